@@ -1,0 +1,43 @@
+# rgbdnav: the two fresh-machine commands are `make demo` and `make test`.
+# Each creates .venv if missing, installs the system libraries (apt-get) and the project into it.
+
+VENV        ?= .venv
+PYTHON      ?= python3
+PY          := $(VENV)/bin/python
+STAMP       := $(VENV)/.rgbdnav-installed
+APT_PACKAGES := libusb-1.0-0 libgomp1
+DEMO_OUT    ?= runs/demo
+PYTEST_ARGS ?=
+
+.PHONY: setup demo test bench lint clean
+
+$(STAMP): pyproject.toml
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=""; elif command -v sudo >/dev/null; then SUDO=sudo; \
+	  else echo "error: need root or sudo to apt-get install$$missing" >&2; exit 1; fi; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing >/dev/null; \
+	fi
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[dev]"
+	@touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/rgbdnav odometry scenes/house.yaml --out $(DEMO_OUT)
+
+# pytest's exit code is kept in .venv/pytest-exit-code so .ci/run can tell "no tests" (5) apart.
+test: $(STAMP)
+	@rc=0; $(PY) -m pytest $(PYTEST_ARGS) || rc=$$?; echo $$rc > $(VENV)/pytest-exit-code; exit $$rc
+
+bench: $(STAMP)
+	$(PY) bench/bench_simulator.py --out docs/benchmarks.md
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check sensors slam nav rgbdnav tests bench
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

@@ -1,0 +1,223 @@
+"""rgbdnav command line: parses, resolves config, dispatches, and maps known errors to one line.
+
+Heavy modules (Open3D, OpenCV, GTSAM) are imported inside the commands that need them so that
+``rgbdnav --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+
+from sensors.types import RgbdNavError
+
+app = typer.Typer(
+    name="rgbdnav",
+    help="Map, localise and drive a differential-drive robot with an RGB-D camera, without ROS.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+log = logging.getLogger("rgbdnav")
+
+ConfigOpt = Annotated[
+    Optional[list[Path]],  # noqa: UP045 - typer needs Optional here on 3.10
+    typer.Option("--config", "-c", help="YAML config file(s), applied in order over the defaults."),
+]
+SetOpt = Annotated[
+    Optional[list[str]],  # noqa: UP045
+    typer.Option("--set", "-s", help="Override one key: section.key=value (YAML value)."),
+]
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
+VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
+
+
+def _setup_logging(verbose: bool) -> None:
+    from rich.logging import RichHandler
+
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(message)s",
+        handlers=[RichHandler(show_time=False, show_path=False)],
+        force=True,
+    )
+
+
+class _Progress:
+    """A rich progress bar, or nothing with --quiet."""
+
+    def __init__(self, description: str, quiet: bool) -> None:
+        self.description, self.quiet = description, quiet
+        self._bar: Any = None
+        self._task: Any = None
+
+    def __enter__(self) -> _Progress:
+        if not self.quiet:
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TimeRemainingColumn,
+            )
+
+            self._bar = Progress(
+                "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                TimeRemainingColumn(), transient=False,
+            )  # fmt: skip
+            self._bar.__enter__()
+            self._task = self._bar.add_task(self.description, total=None)
+        return self
+
+    def __call__(self, done: int, total: int) -> None:
+        if self._bar is not None:
+            self._bar.update(self._task, completed=done, total=total)
+
+    def __exit__(self, *exc: object) -> None:
+        if self._bar is not None:
+            self._bar.__exit__(*exc)
+
+
+def _is_world(path: Path) -> bool:
+    return path.is_file() and path.suffix in (".yaml", ".yml")
+
+
+def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
+    """A recording folder as given, or the cached rendering of a world file (made if missing)."""
+    from rgbdnav.cache import cached_recording_path
+    from sensors.recording import Recording
+    from sensors.sim.simulator import simulate
+
+    if not source.exists():
+        raise RgbdNavError(f"{source}: no such file or folder")
+    if not _is_world(source):
+        return source
+    cached = cached_recording_path(source, cfg, seed)
+    if cached.exists():
+        try:
+            Recording.open(cached)
+            log.info("using cached rendering %s", cached)
+            return cached
+        except RgbdNavError as err:
+            log.warning("cached rendering is unreadable (%s); rendering again", err)
+    log.info("rendering %s (seed %d) into %s", source, seed, cached)
+    with _Progress(f"rendering {source.stem}", quiet) as progress:
+        simulate(source, cached, cfg.robot, cfg.camera, cfg.sim, seed=seed, progress=progress)
+    return cached
+
+
+@app.command()
+def info(source: Annotated[Path, typer.Argument(help="Recording folder or world YAML.")]) -> None:
+    """Say what a recording or world holds: streams, counts, rates, duration, gaps."""
+    if not source.exists():
+        raise RgbdNavError(f"{source}: no such file or folder")
+    if _is_world(source):
+        from sensors.sim.world import load_world
+
+        world = load_world(source)
+        walls = sum(b.name in ("wall", "lintel") for b in world.boxes)
+        furniture = [b.name for b in world.boxes if b.name not in ("wall", "lintel")]
+        typer.echo(f"world {world.name} ({source})")
+        x0, y0, x1, y1 = world.bounds(margin=0.0)
+        typer.echo(f"  extent        {x1 - x0:.1f} m x {y1 - y0:.1f} m, ceiling {world.ceiling_height} m")
+        typer.echo(f"  wall pieces   {walls}")
+        typer.echo(f"  furniture     {len(furniture)}: {', '.join(furniture)}")
+        typer.echo(f"  start         x={world.start[0]} y={world.start[1]} yaw={world.start[2]}")
+        typer.echo(f"  route         {len(world.route)} waypoints, {world.route_length():.1f} m")
+        return
+    from sensors.recording import Recording
+    from sensors.stream_stats import describe_recording, format_stats_table
+
+    rec = Recording.open(source)
+    k = rec.intrinsics
+    typer.echo(f"recording {source}")
+    typer.echo(f"  camera {k.width}x{k.height} fx={k.fx} fy={k.fy} cx={k.cx} cy={k.cy} "
+               f"depth_scale={k.depth_scale}; {len(rec)} associated rgb/depth pairs")  # fmt: skip
+    if "world" in rec.scene:
+        typer.echo(f"  simulated world {rec.scene['world']} (seed {rec.scene.get('seed')})")
+    typer.echo(format_stats_table(describe_recording(rec)))
+
+
+@app.command()
+def simulate(
+    world: Annotated[Path, typer.Argument(help="World YAML (see scenes/).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Recording folder to write.")],
+    seed: Annotated[int, typer.Option(help="Random seed: same seed, same recording.")] = 0,
+    duration: Annotated[Optional[float], typer.Option(help="Stop after this many seconds.")] = None,  # noqa: UP045
+    frames: Annotated[Optional[int], typer.Option(help="Stop after this many camera frames.")] = None,  # noqa: UP045
+    trajectory: Annotated[
+        Optional[Path],  # noqa: UP045
+        typer.Option(help="Replay this TUM trajectory (z up, planar) instead of the route."),
+    ] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Render a Kinect + wheel-encoder recording of a robot driving through a world."""
+    _setup_logging(verbose)
+    from rgbdnav.config import load_config
+    from rgbdnav.run_dir import RunDir
+    from sensors.sim.simulator import simulate as run_simulation
+
+    if duration is not None and frames is not None:
+        raise RgbdNavError("give --duration or --frames, not both")
+    if frames is not None and frames < 1:
+        raise RgbdNavError(f"--frames must be >= 1, got {frames}")
+    if not world.is_file():
+        raise RgbdNavError(f"{world}: no such world file")
+    cfg = load_config(config or [], set_ or [])
+    t0 = time.perf_counter()
+    with _Progress(f"rendering {world.stem}", quiet) as progress:
+        summary = run_simulation(world, out, cfg.robot, cfg.camera, cfg.sim, seed=seed,
+                                 duration_s=duration, frames=frames, trajectory=trajectory,
+                                 progress=progress)  # fmt: skip
+    wall = time.perf_counter() - t0
+    run = RunDir(out)
+    run.write_config(cfg)
+    run.write_summary({"command": "simulate", **summary.as_dict(), "wall_time_s": round(wall, 2),
+                       "frames_per_s": round(summary.frames / wall, 2)})  # fmt: skip
+    typer.echo(f"wrote {summary.frames} frames ({summary.path_length_m:.1f} m, "
+               f"{summary.duration_s:.1f} s) to {out} in {wall:.1f} s")  # fmt: skip
+
+
+@app.command()
+def odometry(
+    source: Annotated[Path, typer.Argument(help="Recording folder, or a world YAML to render.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    seed: Annotated[int, typer.Option(help="Seed when SOURCE is a world.")] = 0,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Wheel odometry of a recording, with drift against ground truth when it has some."""
+    _setup_logging(verbose)
+    from rgbdnav.config import load_config
+    from rgbdnav.odometry_run import run_odometry
+
+    cfg = load_config(config or [], set_ or [])
+    recording = _recording_for(source, cfg, seed, quiet)
+    outputs = run_odometry(recording, out, config or [], set_ or [])
+    typer.echo(f"source      {source} (recording: {recording})")
+    for label, path in outputs.items():
+        typer.echo(f"{label:<11} {path}")
+
+
+def main() -> None:
+    try:
+        app()
+    except RgbdNavError as err:
+        typer.echo(f"error: {err}", err=True)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        typer.echo("interrupted", err=True)
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,147 @@
+"""The whole resolved configuration: defaults < YAML files (in order) < ``--set key=value``.
+
+Every section is a frozen dataclass owned by the layer that uses it (``sensors.config``,
+``slam.config``, ``nav.config``); this module only composes them, reads YAML and applies
+overrides. Errors name the file and the full key path, e.g. ``ekf.yaml: ekf.frequency: ...``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from nav.config import CostmapConfig, FollowerConfig, PlannerConfig, SmootherConfig
+from sensors.atomic import atomic_write_text
+from sensors.config import (
+    BoardConfig,
+    CameraConfig,
+    RobotConfig,
+    SimConfig,
+    SyncConfig,
+    build_section,
+    section_to_dict,
+)
+from sensors.types import ConfigError
+from slam.config import (
+    DepthToScanConfig,
+    EkfConfig,
+    LocalizerConfig,
+    MapperConfig,
+    VoConfig,
+)
+
+REPO_CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+
+@dataclass(frozen=True)
+class Config:
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    sync: SyncConfig = field(default_factory=SyncConfig)
+    ekf: EkfConfig = field(default_factory=EkfConfig)
+    vo: VoConfig = field(default_factory=VoConfig)
+    depth_to_scan: DepthToScanConfig = field(default_factory=DepthToScanConfig)
+    mapper: MapperConfig = field(default_factory=MapperConfig)
+    localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
+    costmap: CostmapConfig = field(default_factory=CostmapConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    follower: FollowerConfig = field(default_factory=FollowerConfig)
+    smoother: SmootherConfig = field(default_factory=SmootherConfig)
+    board: BoardConfig = field(default_factory=BoardConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
+# Annotations are strings under `from __future__ import annotations`; read types off an instance.
+SECTIONS: dict[str, type] = {
+    f.name: type(getattr(Config(), f.name)) for f in dataclasses.fields(Config)
+}
+
+
+def config_to_dict(cfg: Config) -> dict[str, dict[str, Any]]:
+    return {name: section_to_dict(getattr(cfg, name)) for name in SECTIONS}
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read config file ({err.strerror})") from err
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}:{where} is not valid YAML") from err
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping of sections")
+    return data
+
+
+def _merge_layer(
+    merged: dict[str, dict[str, Any]], layer: Mapping[str, Any], source: str
+) -> dict[str, dict[str, Any]]:
+    """Overlay one file's sections on ``merged``, checking every section and key as we go."""
+    out = {k: dict(v) for k, v in merged.items()}
+    for section, values in layer.items():
+        if section not in SECTIONS:
+            raise ConfigError(
+                f"{source}: {section}: unknown section (valid: {', '.join(SECTIONS)})"
+            )
+        if values is None:
+            continue
+        if not isinstance(values, Mapping):
+            raise ConfigError(f"{source}: {section}: expected a mapping of keys, got {values!r}")
+        out[section].update(values)
+        # Validate now so the error names the file that introduced the bad value.
+        try:
+            build_section(SECTIONS[section], out[section], section)
+        except ConfigError as err:
+            raise ConfigError(f"{source}: {err}") from None
+    return out
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """``"ekf.frequency=30"`` -> ("ekf", "frequency", 30); the value is parsed as YAML."""
+    key, sep, raw = text.partition("=")
+    section, dot, name = key.strip().partition(".")
+    if not sep or not dot or not section or not name:
+        raise ConfigError(f"--set {text!r}: expected section.key=value, e.g. ekf.frequency=30")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as err:
+        raise ConfigError(f"--set {text!r}: value is not valid YAML") from err
+    return section, name, value
+
+
+def load_config(
+    files: Iterable[str | os.PathLike[str]] = (),
+    overrides: Iterable[str] = (),
+    base: Mapping[str, Mapping[str, Any]] | None = None,
+) -> Config:
+    """Resolve defaults < ``base`` (e.g. a recording's scene.yaml) < files < overrides."""
+    merged: dict[str, dict[str, Any]] = {name: {} for name in SECTIONS}
+    if base:
+        merged = _merge_layer(merged, base, "scene")
+    for f in files:
+        path = Path(f)
+        merged = _merge_layer(merged, _read_yaml(path), str(path))
+    for text in overrides:
+        section, name, value = parse_override(text)
+        merged = _merge_layer(merged, {section: {name: value}}, f"--set {text}")
+    return Config(**{s: build_section(SECTIONS[s], merged[s], s) for s in SECTIONS})
+
+
+def write_config(cfg: Config, path: Path) -> None:
+    """Write the resolved config as YAML, atomically."""
+    text = "# rgbdnav resolved configuration\n" + yaml.safe_dump(
+        config_to_dict(cfg), sort_keys=False, default_flow_style=None
+    )
+    atomic_write_text(path, text)

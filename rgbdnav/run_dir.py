@@ -1,0 +1,45 @@
+"""The run-directory convention: every command that produces results writes here."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from rgbdnav.config import Config, write_config
+from sensors.atomic import atomic_write_text
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if hasattr(value, "item"):  # numpy scalar
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+class RunDir:
+    """``config.yaml`` (resolved config), ``summary.json``, ``trajectory.tum`` and pictures."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.mkdir(parents=True, exist_ok=True)
+
+    def file(self, name: str) -> Path:
+        return self.path / name
+
+    def write_config(self, cfg: Config) -> Path:
+        write_config(cfg, self.file("config.yaml"))
+        return self.file("config.yaml")
+
+    def write_summary(self, summary: dict[str, Any]) -> Path:
+        text = json.dumps(_jsonable(summary), indent=2) + "\n"
+        atomic_write_text(self.file("summary.json"), text)
+        return self.file("summary.json")

@@ -1,0 +1,195 @@
+"""Ground-truth robot motion for the simulator and the encoder and gyro readings it causes.
+
+The robot drives a waypoint route with a unicycle controller under speed and acceleration
+limits (or replays a recorded trajectory). Encoders see that motion through the robot's *true*
+geometry (wheel diameters and track that differ from the nominal ones), slip and gear backlash,
+and report whole positions (36 per revolution on Eddie); odometry later integrates them with the
+*nominal* geometry, which is where the drift comes from.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sensors.config import RobotConfig, SimConfig
+from sensors.sim.world import World
+from sensors.tum import load_tum_trajectory
+from sensors.types import NS_PER_S, WorldError
+
+HEADING_GAIN = 2.5  # [1/s] angular speed per radian of heading error
+TURN_IN_PLACE_ANGLE = 0.35  # [rad] heading errors above this stop forward motion
+SETTLE_TIME = 1.0  # [s] the robot stands still at the end of the route
+ROUTE_TIME_FACTOR = 6.0  # give up when the route takes this many times its ideal duration
+REPLAY_SMOOTHING = 0.1  # [s] moving-average window over replayed mocap poses
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """base_link in the world at the physics rate, with its body velocities."""
+
+    t_ns: np.ndarray  # (M,) int64 [ns], starts at 0
+    x: np.ndarray  # (M,) [m]
+    y: np.ndarray  # (M,) [m]
+    yaw: np.ndarray  # (M,) [rad], unwrapped (continuous)
+    v: np.ndarray  # (M,) [m/s] forward speed over the step that *ends* at sample i
+    w: np.ndarray  # (M,) [rad/s]
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_ns[-1] - self.t_ns[0]) / NS_PER_S
+
+    def length_m(self) -> float:
+        return float(np.hypot(np.diff(self.x), np.diff(self.y)).sum())
+
+    def truncated(self, duration_s: float) -> Trajectory:
+        keep = self.t_ns <= self.t_ns[0] + int(round(duration_s * NS_PER_S))
+        return Trajectory(*(a[keep] for a in (self.t_ns, self.x, self.y, self.yaw, self.v, self.w)))
+
+    def interpolate(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pose at arbitrary times (clamped to the trajectory's span)."""
+        t = np.asarray(t_ns, dtype=np.float64)
+        tt = self.t_ns.astype(np.float64)
+        return np.interp(t, tt, self.x), np.interp(t, tt, self.y), np.interp(t, tt, self.yaw)
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def drive_route(world: World, sim: SimConfig) -> Trajectory:
+    """Drive ``world.route`` from ``world.start``: turn in place towards the next waypoint when the
+    heading error is large, otherwise drive forward while steering; slow down before waypoints
+    that need a sharp turn. Deterministic."""
+    dt = 1.0 / sim.physics_rate
+    x, y, th = world.start
+    v = w = 0.0
+    route = world.route
+    ideal = world.route_length() / sim.max_linear_speed + len(route) * math.pi / sim.max_angular_speed
+    max_steps = int(ROUTE_TIME_FACTOR * ideal / dt) + 1
+    out = [(x, y, th, v, w)]
+    i, settle = 0, 0
+    for _ in range(max_steps):
+        if i < len(route):
+            dx, dy = route[i, 0] - x, route[i, 1] - y
+            dist = math.hypot(dx, dy)
+            if dist < sim.waypoint_tolerance:
+                i += 1
+                continue
+            err = _wrap(math.atan2(dy, dx) - th)
+            w_cmd = max(-sim.max_angular_speed, min(sim.max_angular_speed, HEADING_GAIN * err))
+            if abs(err) > TURN_IN_PLACE_ANGLE:
+                v_cmd = 0.0
+            else:
+                # Brake so the robot arrives slowly where the next leg needs a sharp turn.
+                turn_next = i + 1 < len(route) and abs(_wrap(
+                    math.atan2(route[i + 1, 1] - route[i, 1], route[i + 1, 0] - route[i, 0])
+                    - math.atan2(dy, dx))) > TURN_IN_PLACE_ANGLE  # fmt: skip
+                reach = dist if (turn_next or i + 1 == len(route)) else math.inf
+                v_cmd = min(sim.max_linear_speed, math.sqrt(2 * sim.max_linear_accel * reach))
+                v_cmd *= math.cos(err)
+        else:
+            v_cmd = w_cmd = 0.0
+            settle += 1
+            if settle * dt >= SETTLE_TIME:
+                break
+        v += max(-sim.max_linear_accel * dt, min(sim.max_linear_accel * dt, v_cmd - v))
+        w += max(-sim.max_angular_accel * dt, min(sim.max_angular_accel * dt, w_cmd - w))
+        # Midpoint (second-order) integration of the unicycle over one step.
+        x += v * dt * math.cos(th + w * dt / 2)
+        y += v * dt * math.sin(th + w * dt / 2)
+        th += w * dt
+        out.append((x, y, th, v, w))
+    else:
+        raise WorldError(
+            f"{world.source}: the robot did not finish the route within {max_steps * dt:.0f} s "
+            f"(stuck before waypoint {i}: {route[min(i, len(route) - 1)].tolist()})"
+        )
+    arr = np.array(out)
+    t_ns = np.round(np.arange(len(arr)) * dt * NS_PER_S).astype(np.int64)
+    return Trajectory(t_ns, arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3], arr[:, 4])
+
+
+def replay_tum(path: str | Path, robot: RobotConfig, sim: SimConfig) -> Trajectory:
+    """A recorded camera trajectory (TUM, z up, planar motion, e.g. the TUM fr2/pioneer mocap)
+    -> base_link trajectory at the physics rate, starting at t = 0."""
+    stamps, xyz, quat = load_tum_trajectory(path)
+    if len(stamps) < 2:
+        raise WorldError(f"{path}: a trajectory to replay needs at least 2 poses")
+    qx, qy, qz, qw = quat.T
+    # Third column of the rotation matrix: the optical axis (camera z) in the world.
+    zx = 2 * (qx * qz + qw * qy)
+    zy = 2 * (qy * qz - qw * qx)
+    cam_yaw = np.unwrap(np.arctan2(zy, zx))
+    yaw = cam_yaw  # camera looks along base_link x when camera_yaw = 0
+    bx = xyz[:, 0] - (np.cos(yaw) * robot.camera_x - np.sin(yaw) * robot.camera_y)
+    by = xyz[:, 1] - (np.sin(yaw) * robot.camera_x + np.cos(yaw) * robot.camera_y)
+    t_rel = (stamps - stamps[0]).astype(np.float64) / NS_PER_S
+    dt = 1.0 / sim.physics_rate
+    t = np.arange(0.0, t_rel[-1], dt)
+    x, y, th = (np.interp(t, t_rel, a) for a in (bx, by, yaw))
+    k = max(1, int(round(REPLAY_SMOOTHING / dt)))
+    if k > 1 and len(t) > 2 * k:
+        kernel = np.ones(k) / k
+        x, y, th = (np.convolve(np.pad(a, (k // 2, k - 1 - k // 2), mode="edge"), kernel, "valid")
+                    for a in (x, y, th))  # fmt: skip
+    v, w = body_velocities(x, y, th, dt)
+    return Trajectory(np.round(t * NS_PER_S).astype(np.int64), x, y, th, v, w)
+
+
+def body_velocities(
+    x: np.ndarray, y: np.ndarray, yaw: np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Forward speed and yaw rate over each step (sample i holds the step ending at i)."""
+    dth = np.diff(yaw)
+    ds = np.hypot(np.diff(x), np.diff(y))
+    heading = np.arctan2(np.diff(y), np.diff(x))
+    forward = np.cos(heading - (yaw[:-1] + dth / 2))
+    v = np.concatenate([[0.0], np.sign(forward) * ds / dt])
+    w = np.concatenate([[0.0], dth / dt])
+    return v, w
+
+
+def wheel_travel(traj: Trajectory, track_width: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ground distance [m] each wheel covers per physics step for a given (true) track width."""
+    dth = np.diff(traj.yaw)
+    ds = np.hypot(np.diff(traj.x), np.diff(traj.y)) * np.sign(traj.v[1:] + 1e-12 * (traj.v[1:] == 0))
+    return ds - dth * track_width / 2, ds + dth * track_width / 2
+
+
+def _backlash(angle: np.ndarray, play: float) -> np.ndarray:
+    """Motor-side angle for a wheel angle seen through gear play: the motor leads the wheel by
+    half the play in the direction of the last motion, and crosses the play on reversal."""
+    if play <= 0 or len(angle) < 2:
+        return angle
+    step = np.sign(np.diff(angle))
+    idx = np.where(step != 0, np.arange(len(step)), -1)
+    last = np.maximum.accumulate(idx)  # index of the last non-zero step so far
+    direction = np.where(last >= 0, step[np.maximum(last, 0)], 0.0)
+    return angle + np.concatenate([[0.0], direction]) * play / 2
+
+
+def encoder_counts(
+    traj: Trajectory, robot: RobotConfig, sim: SimConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative encoder positions (left, right) at every physics sample, starting at 0."""
+    true_track = robot.track_width * (1 + sim.track_width_error)
+    s_left, s_right = wheel_travel(traj, true_track)
+    counts = []
+    for s, err in ((s_left, sim.wheel_diameter_error[0]), (s_right, sim.wheel_diameter_error[1])):
+        slip = 1 + sim.wheel_slip * rng.standard_normal(len(s))
+        true_radius = robot.wheel_diameter * (1 + err) / 2
+        wheel_angle = np.concatenate([[0.0], np.cumsum(s * slip)]) / true_radius
+        motor = _backlash(wheel_angle, sim.backlash)
+        counts.append(np.floor(motor / (2 * math.pi / robot.ticks_per_revolution) + 1e-9))
+    return counts[0].astype(np.int64), counts[1].astype(np.int64)
+
+
+def sample_times(duration_ns: int, rate_hz: float) -> np.ndarray:
+    """Nominal sample times 0, 1/rate, ... within [0, duration]."""
+    period = NS_PER_S / rate_hz
+    n = int(duration_ns // period) + 1
+    return np.round(np.arange(n) * period).astype(np.int64)

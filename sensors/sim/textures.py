@@ -1,0 +1,144 @@
+"""Texture catalogue for the simulator: scikit-image's bundled photographs plus procedural ones,
+stored as one flat mip-mapped atlas so a frame's colours are a single vectorised gather."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sensors.types import WorldError
+
+TEXTURE_SIZE = 512  # [px] side of the finest mip level (power of two)
+MIP_LEVELS = 7  # 512 .. 8 px
+
+# Photographs shipped inside the scikit-image wheel (no download): name -> file.
+PHOTO_FILES = {
+    "brick": "brick.png",
+    "grass": "grass.png",
+    "gravel": "gravel.png",
+    "coffee": "coffee.png",
+    "astronaut": "astronaut.png",
+    "chelsea": "chelsea.png",
+    "rocket": "rocket.jpg",
+    "hubble": "hubble_deep_field.jpg",
+    "motorcycle": "motorcycle_left.png",
+    "retina": "retina.jpg",
+    "camera": "camera.png",
+    "coins": "coins.png",
+    "page": "page.png",
+    "text": "text.png",
+    "moon": "moon.png",
+    "ihc": "ihc.png",
+    "horse": "horse.png",
+    "cell": "cell.png",
+}
+PROCEDURAL = ("plaster", "wood", "tiles", "carpet")
+TEXTURE_NAMES = tuple(PHOTO_FILES) + PROCEDURAL
+
+
+def _square(img: np.ndarray) -> np.ndarray:
+    h, w = img.shape[:2]
+    s = min(h, w)
+    img = img[(h - s) // 2 : (h - s) // 2 + s, (w - s) // 2 : (w - s) // 2 + s]
+    return cv2.resize(img, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_AREA)
+
+
+def _photo(name: str) -> np.ndarray:
+    import skimage.data  # heavy; only the simulator needs it
+
+    path = Path(skimage.data.__file__).parent / PHOTO_FILES[name]
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise WorldError(f"texture '{name}': cannot read {path} (is scikit-image installed?)")
+    return _square(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+
+
+def _fractal_noise(rng: np.random.Generator, octaves: int = 6) -> np.ndarray:
+    """Tileable-ish value noise in [0, 1]: sum of upsampled random grids."""
+    out = np.zeros((TEXTURE_SIZE, TEXTURE_SIZE), np.float32)
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        n = 4 << o
+        grid = rng.random((n, n)).astype(np.float32)
+        out += amp * cv2.resize(grid, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_CUBIC)
+        total += amp
+        amp *= 0.6
+    out /= total
+    return (out - out.min()) / max(float(np.ptp(out)), 1e-6)
+
+
+def _procedural(name: str) -> np.ndarray:
+    rng = np.random.default_rng(PROCEDURAL.index(name) + 7)  # fixed: a world looks the same
+    noise = _fractal_noise(rng)
+    yy, xx = np.mgrid[0:TEXTURE_SIZE, 0:TEXTURE_SIZE].astype(np.float32) / TEXTURE_SIZE
+    if name == "plaster":
+        base = np.array([225, 218, 205], np.float32)
+        shade = 0.8 + 0.35 * noise
+    elif name == "wood":
+        base = np.array([160, 110, 65], np.float32)
+        rings = 0.5 + 0.5 * np.sin(2 * np.pi * (8 * yy + 1.5 * noise))
+        planks = (np.floor(xx * 4) % 2) * 0.12
+        shade = 0.65 + 0.3 * rings + planks + 0.1 * noise
+    elif name == "tiles":
+        base = np.array([200, 205, 210], np.float32)
+        grout = ((xx * 4) % 1 < 0.03) | ((yy * 4) % 1 < 0.03)
+        shade = np.where(grout, 0.45, 0.85 + 0.25 * noise)
+    else:  # carpet
+        base = np.array([120, 70, 80], np.float32)
+        fine = rng.random((TEXTURE_SIZE, TEXTURE_SIZE)).astype(np.float32)
+        shade = 0.6 + 0.3 * noise + 0.3 * fine
+    return np.clip(base * shade[..., None], 0, 255).astype(np.uint8)
+
+
+def texture_image(name: str) -> np.ndarray:
+    """(TEXTURE_SIZE, TEXTURE_SIZE, 3) uint8 RGB."""
+    if name in PHOTO_FILES:
+        return _photo(name)
+    if name in PROCEDURAL:
+        return _procedural(name)
+    raise WorldError(f"unknown texture '{name}' (known: {', '.join(TEXTURE_NAMES)})")
+
+
+@dataclass(frozen=True, eq=False)
+class TextureAtlas:
+    """All textures at all mip levels in one flat (N, 3) uint8 array."""
+
+    names: tuple[str, ...]
+    texels: np.ndarray  # (N, 3) uint8
+    level_offset: np.ndarray  # (MIP_LEVELS,) int64: start of each level in ``texels``
+    level_size: np.ndarray  # (MIP_LEVELS,) int64: side [px] of each level
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    def lookup(self, tex_id: np.ndarray, u: np.ndarray, v: np.ndarray, level: np.ndarray) -> np.ndarray:
+        """Nearest texel of texture ``tex_id`` at tile coordinates (u, v) (1.0 = one tile) on mip
+        ``level``; returns (N, 3) uint8. Sizes are powers of two, so wrapping is a bit mask."""
+        size = self.level_size[level]
+        tx = (u * size).astype(np.int32) & (size - 1)
+        ty = (v * size).astype(np.int32) & (size - 1)
+        flat = self.level_offset[level] + (tex_id * size + ty) * size + tx
+        return self.texels[flat]
+
+
+@functools.lru_cache(maxsize=4)
+def build_atlas(names: tuple[str, ...]) -> TextureAtlas:
+    images = [texture_image(n) for n in names]
+    levels, offsets, sizes, pos = [], [], [], 0
+    for lvl in range(MIP_LEVELS):
+        stack = np.stack(images)
+        levels.append(stack.reshape(-1, 3))
+        offsets.append(pos)
+        sizes.append(stack.shape[1])
+        pos += levels[-1].shape[0]
+        images = [cv2.pyrDown(im) for im in images]
+    return TextureAtlas(
+        names,
+        np.ascontiguousarray(np.concatenate(levels)),
+        np.array(offsets, np.int64),
+        np.array(sizes, np.int32),
+    )

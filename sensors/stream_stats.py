@@ -1,0 +1,108 @@
+"""Timing statistics of stamped streams (rate, gaps, disorder), for ``rgbdnav info``."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sensors.recording import Recording
+from sensors.types import NS_PER_S
+
+GAP_FACTOR = 1.5  # an interval longer than this many median periods counts as a gap
+
+
+@dataclass(frozen=True)
+class StreamStats:
+    name: str
+    count: int
+    first_ns: int | None  # [ns] earliest stamp; None when empty
+    last_ns: int | None  # [ns] latest stamp; None when empty
+    duration_s: float  # [s] latest - earliest
+    rate_hz: float  # [Hz] 1 / median positive interval; NaN with fewer than two distinct stamps
+    mean_rate_hz: float  # [Hz] (count - 1) / duration; NaN when duration is 0
+    gaps: int  # intervals longer than GAP_FACTOR median periods
+    max_gap_s: float  # [s] longest positive interval between consecutive stamps (0 if none)
+    non_monotonic: int  # intervals < 0 (stamp earlier than its predecessor)
+    duplicates: int  # intervals == 0 (stamp equal to its predecessor)
+
+
+def stream_stats(name: str, stamps_ns: np.ndarray) -> StreamStats:
+    """Statistics of one stream's stamps, taken in arrival (file) order."""
+    t = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    if t.size == 0:
+        return StreamStats(name, 0, None, None, 0.0, math.nan, math.nan, 0, 0.0, 0, 0)
+    dt = np.diff(t)
+    positive = dt[dt > 0]
+    duration_ns = int(t.max() - t.min())
+    if positive.size:
+        median_ns = float(np.median(positive))
+        rate_hz = NS_PER_S / median_ns
+        gaps = int(np.count_nonzero(positive > GAP_FACTOR * median_ns))
+    else:
+        rate_hz, gaps = math.nan, 0
+    return StreamStats(
+        name=name,
+        count=int(t.size),
+        first_ns=int(t.min()),
+        last_ns=int(t.max()),
+        duration_s=duration_ns / NS_PER_S,
+        rate_hz=rate_hz,
+        mean_rate_hz=(t.size - 1) * NS_PER_S / duration_ns if duration_ns > 0 else math.nan,
+        gaps=gaps,
+        max_gap_s=float(positive.max()) / NS_PER_S if positive.size else 0.0,
+        non_monotonic=int(np.count_nonzero(dt < 0)),
+        duplicates=int(np.count_nonzero(dt == 0)),
+    )
+
+
+def describe_recording(rec: Recording) -> list[StreamStats]:
+    """Stats of rgb, depth and, when present, wheels, imu and groundtruth."""
+    stats = [
+        stream_stats("rgb", rec.rgb_stamps_ns),
+        stream_stats("depth", rec.depth_stamps_ns),
+    ]
+    wheel_stamps = rec.wheels()[0]
+    if wheel_stamps.size:
+        stats.append(stream_stats("wheels", wheel_stamps))
+    imu = rec.imu()
+    if imu is not None:
+        stats.append(stream_stats("imu", imu[0]))
+    groundtruth = rec.groundtruth()
+    if groundtruth is not None:
+        stats.append(stream_stats("groundtruth", groundtruth[0]))
+    return stats
+
+
+def format_stats_table(stats: list[StreamStats]) -> str:
+    """A plain, aligned text table (one row per stream)."""
+
+    def num(value: float, digits: int) -> str:
+        return "-" if math.isnan(value) else f"{value:.{digits}f}"
+
+    header = ("stream", "count", "duration_s", "rate_hz", "mean_hz", "gaps", "max_gap_s",
+              "non_mono", "dups")  # fmt: skip
+    rows = [header] + [
+        (
+            s.name,
+            str(s.count),
+            num(s.duration_s, 3),
+            num(s.rate_hz, 2),
+            num(s.mean_rate_hz, 2),
+            str(s.gaps),
+            num(s.max_gap_s, 3),
+            str(s.non_monotonic),
+            str(s.duplicates),
+        )
+        for s in stats
+    ]
+    widths = [max(len(r[c]) for r in rows) for c in range(len(header))]
+    lines = [
+        "  ".join(
+            cell.ljust(w) if c == 0 else cell.rjust(w)
+            for c, (cell, w) in enumerate(zip(row, widths, strict=True))
+        ).rstrip()
+        for row in rows
+    ]
+    return "\n".join(lines)

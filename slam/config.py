@@ -1,0 +1,388 @@
+"""Config sections owned by the slam layer: EKF, visual odometry, depth->scan, mapper, localiser.
+
+Names and defaults follow the ROS packages a user already knows (robot_localization, RTAB-Map,
+depthimage_to_laserscan / pointcloud_to_laserscan, slam_toolbox, AMCL, Cartographer). Where a
+default differs from the upstream one because of the Kinect or the planar robot, the field's doc
+says so. Declared with :func:`sensors.config.param`; see ``config/<section>.yaml`` for the
+shipped defaults.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from sensors.config import param
+
+# robot_localization state order, used by every 15-element vector below.
+STATE_NAMES = (
+    "x", "y", "z", "roll", "pitch", "yaw",
+    "vx", "vy", "vz", "vroll", "vpitch", "vyaw",
+    "ax", "ay", "az",
+)  # fmt: skip
+STATE_SIZE = len(STATE_NAMES)
+
+# robot_localization defaults a rejection threshold to numeric_limits<double>::max() (never
+# reject). We use a large finite value instead so the YAML stays readable and JSON-safe.
+NO_REJECTION = 1.0e9  # [Mahalanobis distance]
+
+_CONFIG_VECTOR_DOC = "15 flags in robot_localization order (x y z roll pitch yaw vx vy vz ..)"
+
+
+def _mask(*names: str) -> tuple[bool, ...]:
+    """A robot_localization ``*_config`` vector with ``names`` set."""
+    return tuple(n in names for n in STATE_NAMES)
+
+
+@dataclass(frozen=True)
+class EkfConfig:
+    """Planar EKF with robot_localization semantics (ekf_localization_node parameter names)."""
+
+    frequency: float = param(30.0, unit="Hz", gt=0.0, doc="filter output rate")
+    sensor_timeout: float = param(
+        0.1, unit="s", gt=0.0, doc="predict without correction after this long without data"
+    )
+    two_d_mode: bool = param(True, doc="ignore z, roll, pitch and their rates")
+    publish_tf: bool = param(True, doc="publish odom -> base_link")
+    odom_frame: str = param("odom", doc="REP-105 odometry frame")
+    base_link_frame: str = param("base_link", doc="robot body frame")
+    world_frame: str = param("odom", doc="frame the estimate is expressed in")
+    smooth_lagged_data: bool = param(False, doc="re-filter from history when late data arrives")
+    history_length: float = param(
+        0.0, unit="s", ge=0.0, doc="state history kept for smooth_lagged_data"
+    )
+    # 0. Wheel odometry (nav_msgs/Odometry-like twist from the encoders).
+    odom0_config: tuple[bool, ...] = param(
+        _mask("vx", "vy", "vyaw"),
+        length=STATE_SIZE,
+        doc=_CONFIG_VECTOR_DOC + "; vy=0 enforces the non-holonomic constraint",
+    )
+    odom0_differential: bool = param(False, doc="differentiate absolute pose into velocity")
+    odom0_relative: bool = param(False, doc="treat the first measurement as zero")
+    odom0_pose_rejection_threshold: float = param(
+        NO_REJECTION,
+        unit="sigma",
+        gt=0.0,
+        doc="Mahalanobis gate on pose (1e9 = never, as upstream max)",
+    )
+    odom0_twist_rejection_threshold: float = param(
+        NO_REJECTION,
+        unit="sigma",
+        gt=0.0,
+        doc="Mahalanobis gate on twist (1e9 = never, as upstream max)",
+    )
+    # 1. Visual odometry (pose in its own frame -> fused differentially).
+    vo0_config: tuple[bool, ...] = param(
+        _mask("x", "y", "yaw"), length=STATE_SIZE, doc=_CONFIG_VECTOR_DOC
+    )
+    vo0_differential: bool = param(True, doc="VO pose drifts: fuse its frame-to-frame change")
+    vo0_relative: bool = param(False, doc="treat the first measurement as zero")
+    vo0_pose_rejection_threshold: float = param(
+        NO_REJECTION,
+        unit="sigma",
+        gt=0.0,
+        doc="Mahalanobis gate on pose (1e9 = never, as upstream max)",
+    )
+    vo0_twist_rejection_threshold: float = param(
+        NO_REJECTION,
+        unit="sigma",
+        gt=0.0,
+        doc="Mahalanobis gate on twist (1e9 = never, as upstream max)",
+    )
+    # 2. IMU (gyro z only on this robot).
+    imu0_config: tuple[bool, ...] = param(_mask("vyaw"), length=STATE_SIZE, doc=_CONFIG_VECTOR_DOC)
+    imu0_differential: bool = param(False, doc="differentiate absolute orientation")
+    imu0_relative: bool = param(False, doc="treat the first orientation as zero")
+    imu0_pose_rejection_threshold: float = param(
+        NO_REJECTION, unit="sigma", gt=0.0, doc="Mahalanobis gate on orientation (1e9 = never)"
+    )
+    imu0_twist_rejection_threshold: float = param(
+        NO_REJECTION, unit="sigma", gt=0.0, doc="Mahalanobis gate on angular velocity (1e9 = never)"
+    )
+    imu0_linear_acceleration_rejection_threshold: float = param(
+        NO_REJECTION, unit="sigma", gt=0.0, doc="Mahalanobis gate on acceleration (1e9 = never)"
+    )
+    # Diagonals of Q and P0; robot_localization's default matrices (off-diagonals are zero).
+    process_noise_covariance: tuple[float, ...] = param(
+        (0.05, 0.05, 0.06, 0.03, 0.03, 0.06, 0.025, 0.025, 0.04, 0.01, 0.01, 0.02, 0.01, 0.01,
+         0.015),
+        ge=0.0,
+        length=STATE_SIZE,
+        doc="diagonal of Q per second, robot_localization order",
+    )  # fmt: skip
+    initial_estimate_covariance: tuple[float, ...] = param(
+        (1e-9,) * STATE_SIZE,
+        ge=0.0,
+        length=STATE_SIZE,
+        doc="diagonal of P0, robot_localization order",
+    )
+
+    def validate(self) -> str | None:
+        if not any(self.odom0_config + self.vo0_config + self.imu0_config):
+            return "odom0_config, vo0_config and imu0_config are all false: nothing is fused"
+        if self.smooth_lagged_data and self.history_length <= 0.0:
+            return "smooth_lagged_data needs history_length > 0"
+        return None
+
+
+@dataclass(frozen=True)
+class VoConfig:
+    """RGB-D visual odometry (names after RTAB-Map's Vis/* and Odom/* parameters)."""
+
+    method: Literal["orb_pnp", "open3d_rgbd", "kiss_icp"] = param(
+        "orb_pnp", doc="ORB + PnP RANSAC, Open3D RGB-D odometry, or KISS-ICP on the cloud"
+    )
+    force_3dof: bool = param(
+        True, doc="keep x, y, yaw only (Reg/Force3DoF; RTAB-Map default false)"
+    )
+    max_features: int = param(1000, ge=1, doc="features per frame (Vis/MaxFeatures)")
+    cor_nndr: float = param(
+        0.8, gt=0.0, le=1.0, doc="nearest-neighbour distance ratio (Vis/CorNNDR)"
+    )
+    min_inliers: int = param(20, ge=3, doc="accept a motion only above this (Vis/MinInliers)")
+    pnp_reproj_error: float = param(
+        2.0, unit="px", gt=0.0, doc="RANSAC inlier threshold (Vis/PnPReprojError)"
+    )
+    ransac_iterations: int = param(300, ge=1, doc="max RANSAC iterations (Vis/Iterations)")
+    min_depth: float = param(
+        0.5, unit="m", ge=0.0, doc="ignore features nearer than this (Vis/MinDepth)"
+    )
+    max_depth: float = param(
+        4.0, unit="m", gt=0.0, doc="ignore features beyond this; Kinect noise ~z^2 (Vis/MaxDepth)"
+    )
+    keyframe_thr: float = param(
+        0.3, ge=0.0, le=1.0, doc="new keyframe when inlier ratio drops below (Odom/KeyFrameThr)"
+    )
+    keyframe_translation: float = param(
+        0.25, unit="m", gt=0.0, doc="new keyframe after this much travel"
+    )
+    keyframe_rotation: float = param(
+        0.26, unit="rad", gt=0.0, doc="new keyframe after this much turning"
+    )
+    max_translation: float = param(
+        0.2, unit="m", gt=0.0, doc="reject a frame-to-frame jump larger than this"
+    )
+    max_rotation: float = param(
+        0.78, unit="rad", gt=0.0, doc="reject a frame-to-frame turn larger than this"
+    )
+
+    def validate(self) -> str | None:
+        if self.min_depth >= self.max_depth:
+            return f"min_depth ({self.min_depth}) must be below max_depth ({self.max_depth})"
+        return None
+
+
+@dataclass(frozen=True)
+class DepthToScanConfig:
+    """Depth image -> planar LaserScan (depthimage_to_laserscan + pointcloud_to_laserscan names).
+
+    Unlike depthimage_to_laserscan the scan is tilt-compensated through the camera extrinsics
+    and expressed in ``output_frame`` on the floor plane; points outside the height band
+    [min_height, max_height] above the floor are dropped, and each beam keeps its nearest return.
+    """
+
+    scan_height: int = param(
+        0, unit="px", ge=0, doc="rows about the centre row used; 0 = all rows (upstream: 1)"
+    )
+    range_min: float = param(0.45, unit="m", ge=0.0, doc="shorter returns are dropped")
+    range_max: float = param(
+        4.0, unit="m", gt=0.0, doc="longer returns are dropped (upstream 10.0; Kinect v1)"
+    )
+    output_frame: str = param(
+        "base_link", doc="scan frame (upstream camera_depth_frame; ours is tilt-compensated)"
+    )
+    min_height: float = param(
+        0.05, unit="m", doc="drop points below this height above the floor (floor removal)"
+    )
+    max_height: float = param(
+        1.0, unit="m", doc="drop points above this height above the floor (ceiling removal)"
+    )
+    angle_increment: float = param(
+        0.017453292519943295, unit="rad", gt=0.0, doc="beam spacing (pi/180, as upstream)"
+    )
+    scan_time: float = param(0.033, unit="s", ge=0.0, doc="time between scans (LaserScan)")
+
+    def validate(self) -> str | None:
+        if self.range_min >= self.range_max:
+            return f"range_min ({self.range_min}) must be below range_max ({self.range_max})"
+        if self.min_height >= self.max_height:
+            return f"min_height ({self.min_height}) must be below max_height ({self.max_height})"
+        return None
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Keyframe pose-graph mapper with slam_toolbox parameter names, plus the occupancy model."""
+
+    resolution: float = param(0.05, unit="m/cell", gt=0.0, doc="occupancy grid resolution")
+    max_laser_range: float = param(20.0, unit="m", gt=0.0, doc="longest ray used to build the grid")
+    map_update_interval: float = param(
+        5.0, unit="s", gt=0.0, doc="rebuild the grid at most this often"
+    )
+    minimum_time_interval: float = param(
+        0.5, unit="s", ge=0.0, doc="min time between processed scans"
+    )
+    # Keyframes.
+    minimum_travel_distance: float = param(
+        0.5, unit="m", ge=0.0, doc="new keyframe after this much travel"
+    )
+    minimum_travel_heading: float = param(
+        0.5, unit="rad", ge=0.0, doc="new keyframe after this much rotation"
+    )
+    scan_buffer_size: int = param(10, ge=1, doc="recent scans in the local matching map")
+    scan_buffer_maximum_scan_distance: float = param(
+        10.0, unit="m", gt=0.0, doc="drop buffered scans farther than this"
+    )
+    link_match_minimum_response_fine: float = param(
+        0.1, ge=0.0, le=1.0, doc="min response to link a scan to its neighbours"
+    )
+    link_scan_maximum_distance: float = param(
+        1.5, unit="m", gt=0.0, doc="max distance between linked scans"
+    )
+    # Loop closure.
+    do_loop_closing: bool = param(True, doc="search for and add loop-closure factors")
+    loop_search_maximum_distance: float = param(
+        3.0, unit="m", gt=0.0, doc="only consider candidates within this distance"
+    )
+    loop_match_minimum_chain_size: int = param(
+        10, ge=1, doc="min consecutive scans in a loop candidate chain"
+    )
+    loop_match_maximum_variance_coarse: float = param(
+        3.0, gt=0.0, doc="max coarse-match variance to accept a loop"
+    )
+    loop_match_minimum_response_coarse: float = param(
+        0.35, ge=0.0, le=1.0, doc="min coarse-match response to accept a loop"
+    )
+    loop_match_minimum_response_fine: float = param(
+        0.45, ge=0.0, le=1.0, doc="min fine-match response to accept a loop"
+    )
+    # Correlative scan matching.
+    correlation_search_space_dimension: float = param(
+        0.5, unit="m", gt=0.0, doc="side of the sequential matching search window"
+    )
+    correlation_search_space_resolution: float = param(
+        0.01, unit="m", gt=0.0, doc="step of the sequential matching search"
+    )
+    correlation_search_space_smear_deviation: float = param(
+        0.1, unit="m", gt=0.0, doc="blur of the sequential matching grid"
+    )
+    loop_search_space_dimension: float = param(
+        8.0, unit="m", gt=0.0, doc="side of the loop-closure search window"
+    )
+    loop_search_space_resolution: float = param(
+        0.05, unit="m", gt=0.0, doc="step of the loop-closure search"
+    )
+    loop_search_space_smear_deviation: float = param(
+        0.03, unit="m", gt=0.0, doc="blur of the loop-closure matching grid"
+    )
+    distance_variance_penalty: float = param(
+        0.5, unit="m^2", gt=0.0, doc="penalise matches far from the odometry guess"
+    )
+    angle_variance_penalty: float = param(
+        1.0, unit="rad^2", gt=0.0, doc="penalise matches rotated from the odometry guess"
+    )
+    fine_search_angle_offset: float = param(
+        0.00349, unit="rad", gt=0.0, doc="angular range of the fine search"
+    )
+    coarse_search_angle_offset: float = param(
+        0.349, unit="rad", gt=0.0, doc="angular range of the coarse search"
+    )
+    coarse_angle_resolution: float = param(
+        0.0349, unit="rad", gt=0.0, doc="angular step of the coarse search"
+    )
+    minimum_angle_penalty: float = param(0.9, ge=0.0, le=1.0, doc="floor of the angle penalty")
+    minimum_distance_penalty: float = param(
+        0.5, ge=0.0, le=1.0, doc="floor of the distance penalty"
+    )
+    use_response_expansion: bool = param(True, doc="widen the search when the response is low")
+    # Pose graph.
+    robust_kernel: Literal["huber", "cauchy", "none"] = param(
+        "huber", doc="loss on loop-closure factors (slam_toolbox ceres_loss_function: None)"
+    )
+    robust_kernel_width: float = param(
+        1.0, gt=0.0, doc="kernel threshold in whitened (sigma) units"
+    )
+    # Occupancy grid, log-odds (OctoMap names) and map_server thresholds.
+    prob_hit: float = param(0.7, gt=0.5, lt=1.0, doc="P(occupied) for a cell a ray ends in")
+    prob_miss: float = param(0.4, gt=0.0, lt=0.5, doc="P(occupied) for a cell a ray crosses")
+    clamping_thres_min: float = param(
+        0.12, gt=0.0, lt=1.0, doc="lower clamp of a cell's occupancy probability"
+    )
+    clamping_thres_max: float = param(
+        0.97, gt=0.0, lt=1.0, doc="upper clamp of a cell's occupancy probability"
+    )
+    occupied_thresh: float = param(
+        0.65, gt=0.0, lt=1.0, doc="map.yaml occupied_thresh: at or above is occupied"
+    )
+    free_thresh: float = param(0.25, gt=0.0, lt=1.0, doc="map.yaml free_thresh: below is free")
+
+    def validate(self) -> str | None:
+        if self.clamping_thres_min >= self.clamping_thres_max:
+            return (
+                f"clamping_thres_min ({self.clamping_thres_min}) must be below "
+                f"clamping_thres_max ({self.clamping_thres_max})"
+            )
+        if self.free_thresh >= self.occupied_thresh:
+            return (
+                f"free_thresh ({self.free_thresh}) must be below "
+                f"occupied_thresh ({self.occupied_thresh})"
+            )
+        if self.correlation_search_space_resolution > self.correlation_search_space_dimension:
+            return "correlation_search_space_resolution exceeds its search space dimension"
+        if self.loop_search_space_resolution > self.loop_search_space_dimension:
+            return "loop_search_space_resolution exceeds its search space dimension"
+        return None
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Scan-to-map tracking and global relocalisation (Cartographer / AMCL names where they fit)."""
+
+    # Tracking.
+    linear_search_window: float = param(
+        0.3, unit="m", gt=0.0, doc="half-width of the tracking search around the prediction"
+    )
+    angular_search_window: float = param(
+        0.349, unit="rad", gt=0.0, doc="half-width of the tracking search in yaw (20 deg)"
+    )
+    min_score: float = param(
+        0.55, ge=0.0, le=1.0, doc="accept a tracking match at or above this confidence"
+    )
+    update_min_d: float = param(0.25, unit="m", ge=0.0, doc="match after this much travel")
+    update_min_a: float = param(0.2, unit="rad", ge=0.0, doc="match after this much turning")
+    # Lost detection.
+    lost_score: float = param(
+        0.3, ge=0.0, le=1.0, doc="smoothed confidence below this counts as lost"
+    )
+    lost_time: float = param(2.0, unit="s", gt=0.0, doc="declare lost after this long below")
+    # Global relocalisation.
+    global_localization_min_score: float = param(
+        0.6, ge=0.0, le=1.0, doc="accept a global candidate at or above this confidence"
+    )
+    relocalization_verification_scans: int = param(
+        3, ge=1, doc="consecutive scans that must agree before a relocalisation is accepted"
+    )
+    relocalization_agreement_distance: float = param(
+        0.25, unit="m", gt=0.0, doc="verification scans agree within this distance"
+    )
+    relocalization_agreement_angle: float = param(
+        0.2, unit="rad", gt=0.0, doc="verification scans agree within this yaw"
+    )
+    global_search_angular_resolution: float = param(
+        0.0349, unit="rad", gt=0.0, doc="yaw step of the exhaustive global search"
+    )
+    # Likelihood field (AMCL laser model).
+    laser_likelihood_max_dist: float = param(
+        2.0, unit="m", gt=0.0, doc="distance-transform cap for the likelihood field"
+    )
+    sigma_hit: float = param(0.2, unit="m", gt=0.0, doc="std dev of the hit model")
+    z_hit: float = param(0.5, ge=0.0, le=1.0, doc="weight of the hit component")
+    z_rand: float = param(0.5, ge=0.0, le=1.0, doc="weight of the random component")
+    max_beams: int = param(60, ge=2, doc="beams per scan used for matching")
+
+    def validate(self) -> str | None:
+        if self.lost_score > self.min_score:
+            return f"lost_score ({self.lost_score}) must not exceed min_score ({self.min_score})"
+        if self.z_hit + self.z_rand <= 0.0 or self.z_hit + self.z_rand > 1.0 + 1e-9:
+            return f"z_hit + z_rand must be in (0, 1], got {self.z_hit + self.z_rand}"
+        return None
