@@ -6,6 +6,7 @@ Heavy modules (Open3D, OpenCV, GTSAM) are imported inside the commands that need
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
 import time
@@ -37,13 +38,28 @@ QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
 
 
+def _known_errors(fn: Any) -> Any:
+    """Known errors become one line on stderr and exit code 1, never a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except RgbdNavError as err:
+            typer.echo(f"error: {err}", err=True)
+            raise typer.Exit(1) from None
+
+    return wrapper
+
+
 def _setup_logging(verbose: bool) -> None:
+    from rich.console import Console
     from rich.logging import RichHandler
 
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(message)s",
-        handlers=[RichHandler(show_time=False, show_path=False)],
+        handlers=[RichHandler(console=Console(stderr=True), show_time=False, show_path=False)],
         force=True,
     )
 
@@ -111,6 +127,7 @@ def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
 
 
 @app.command()
+@_known_errors
 def info(source: Annotated[Path, typer.Argument(help="Recording folder or world YAML.")]) -> None:
     """Say what a recording or world holds: streams, counts, rates, duration, gaps."""
     if not source.exists():
@@ -143,6 +160,7 @@ def info(source: Annotated[Path, typer.Argument(help="Recording folder or world 
 
 
 @app.command()
+@_known_errors
 def simulate(
     world: Annotated[Path, typer.Argument(help="World YAML (see scenes/).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Recording folder to write.")],
@@ -186,6 +204,7 @@ def simulate(
 
 
 @app.command()
+@_known_errors
 def odometry(
     source: Annotated[Path, typer.Argument(help="Recording folder, or a world YAML to render.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],

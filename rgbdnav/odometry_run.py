@@ -45,7 +45,11 @@ def run_odometry(
     outputs["wheel odom"] = run.file("wheel.tum")
     # One pose per camera frame, stamped with the frame's stamp.
     frame_t = rec.rgb_stamps_ns[rec.rgb_index] if len(rec) else rec.rgb_stamps_ns
-    fx, fy, fyaw, inside = interpolate_poses(stamps, x, y, yaw, frame_t)
+    fx, fy, fyaw, _ = interpolate_poses(stamps, x, y, yaw, frame_t)
+    # Frames a little outside the encoder span hold the nearest pose (sync.max_interpolation_gap);
+    # frames further out get no pose and are counted.
+    gap = int(cfg.sync.max_interpolation_gap * 1e9)
+    inside = (frame_t >= stamps[0] - gap) & (frame_t <= stamps[-1] + gap)
     write_tum_trajectory(run.file("trajectory.tum"), frame_t[inside], fx[inside], fy[inside],
                          fyaw[inside])  # fmt: skip
     outputs["trajectory"] = run.file("trajectory.tum")
@@ -57,6 +61,7 @@ def run_odometry(
         "frames": len(rec),
         "wheel_readings": int(len(stamps)),
         "trajectory_poses": int(inside.sum()),
+        "frames_without_odometry": int((~inside).sum()),
     }
     paths = [("wheel odometry", x, y)]
     if gt is not None:

@@ -74,7 +74,9 @@ def plan_trajectory(
 ) -> Trajectory:
     traj = replay_tum(trajectory, robot, sim) if trajectory else drive_route(world, sim)
     if frames is not None:
-        duration_s = min(duration_s or math.inf, (frames - 0.5) / sim.camera_rate)
+        # Room for the dropped frames; camera_stamps() then keeps exactly ``frames``.
+        margin = frames * 2 * sim.frame_drop_probability + 5
+        duration_s = min(duration_s or math.inf, (frames + margin) / sim.camera_rate)
     if duration_s is not None:
         if duration_s <= 0:
             raise WorldError(f"duration must be > 0 s, got {duration_s}")
@@ -90,10 +92,11 @@ def camera_stamps(
     """(true capture times, reported stamps, dropped count): nominal 30 Hz, a few frames dropped,
     reported stamps jittered but kept strictly increasing."""
     nominal = sample_times(duration_ns, sim.camera_rate)
-    if max_frames is not None:
-        nominal = nominal[:max_frames]
     keep = rng.random(len(nominal)) >= sim.frame_drop_probability
     keep[0] = True  # a recording always starts with a frame
+    if max_frames is not None:
+        keep &= np.cumsum(keep) <= max_frames
+        nominal, keep = nominal[: np.flatnonzero(keep)[-1] + 1], keep[: np.flatnonzero(keep)[-1] + 1]
     capture = nominal[keep]
     jitter = np.round(rng.standard_normal(len(capture)) * sim.stamp_jitter * NS_PER_S)
     stamps = capture + jitter.astype(np.int64)
@@ -120,6 +123,10 @@ def simulate(
     world = load_world(world_path)
     rngs = _streams(seed)
     traj = plan_trajectory(world, robot, sim, trajectory, duration_s, frames)
+    # Camera frames first: with --frames the recording ends at the last frame.
+    capture, stamps, dropped = camera_stamps(int(traj.t_ns[-1]), sim, rngs["camera"], frames)
+    if frames is not None:
+        traj = traj.truncated(capture[-1] / NS_PER_S)
     duration_ns = int(traj.t_ns[-1])
 
     # 2. Encoders, gyro and ground truth, each at its own rate.
@@ -132,10 +139,10 @@ def simulate(
     gt_t = sample_times(duration_ns, sim.groundtruth_rate)
     gt_x, gt_y, gt_yaw = traj.interpolate(gt_t)
 
-    # 3. Camera frames.
-    capture, stamps, dropped = camera_stamps(duration_ns, sim, rngs["camera"], frames)
+    # 3. Render each camera frame at its true capture time.
     cam_x, cam_y, cam_yaw = traj.interpolate(capture)
-    renderer = KinectRenderer(world, camera, robot, sim, noise_seed=int(rngs["noise_bank"].integers(2**31)))
+    bank_seed = int(rngs["noise_bank"].integers(2**31))
+    renderer = KinectRenderer(world, camera, robot, sim, noise_seed=bank_seed)
     scene = {
         "generator": "rgbdnav simulate",
         "world": world.name,
@@ -150,7 +157,8 @@ def simulate(
     render_rng = rngs["render"]
     with RecordingWriter(out, renderer.intrinsics, scene) as writer:
         for k in range(len(capture)):
-            rgb, depth = renderer.render(float(cam_x[k]), float(cam_y[k]), float(cam_yaw[k]), render_rng)
+            pose = float(cam_x[k]), float(cam_y[k]), float(cam_yaw[k])
+            rgb, depth = renderer.render(*pose, render_rng)
             writer.add_frame(RgbdFrame(int(stamps[k]), rgb, depth, renderer.intrinsics))
             if progress is not None:
                 progress(k + 1, len(capture))

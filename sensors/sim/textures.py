@@ -50,11 +50,15 @@ def _square(img: np.ndarray) -> np.ndarray:
 def _photo(name: str) -> np.ndarray:
     import skimage.data  # heavy; only the simulator needs it
 
+    from PIL import Image  # Pillow comes with scikit-image; it reads these files quietly
+
     path = Path(skimage.data.__file__).parent / PHOTO_FILES[name]
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise WorldError(f"texture '{name}': cannot read {path} (is scikit-image installed?)")
-    return _square(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+    try:
+        with Image.open(path) as im:
+            img = np.asarray(im.convert("RGB"))
+    except OSError as err:
+        raise WorldError(f"texture '{name}': cannot read {path} (is scikit-image installed?)") from err
+    return _square(img)
 
 
 def _fractal_noise(rng: np.random.Generator, octaves: int = 6) -> np.ndarray:

@@ -1,0 +1,116 @@
+"""The CLI as a user meets it: help, one-line errors, run directories."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from rgbdnav.cli import app
+
+REPO = Path(__file__).resolve().parents[2]
+HOUSE = REPO / "scenes" / "house.yaml"
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("rec") / "house"
+    result = runner.invoke(app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45",
+                                 "--seed", "2", "--quiet"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_help_lists_the_commands() -> None:
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0
+    for verb in ("info", "simulate", "odometry"):
+        assert verb in result.output
+
+
+def test_simulate_writes_a_recording_and_a_run_record(recording: Path) -> None:
+    for name in ("rgb.txt", "depth.txt", "wheels.txt", "groundtruth.txt", "scene.yaml",
+                 "config.yaml", "summary.json"):  # fmt: skip
+        assert (recording / name).is_file(), name
+    summary = json.loads((recording / "summary.json").read_text())
+    assert summary["frames"] == 45 and summary["frames_per_s"] > 0
+
+
+def test_info_describes_a_recording(recording: Path) -> None:
+    result = runner.invoke(app, ["info", str(recording)])
+    assert result.exit_code == 0
+    assert "45 associated rgb/depth pairs" in result.output
+    assert "wheels" in result.output and "groundtruth" in result.output
+
+
+def test_info_describes_a_world() -> None:
+    result = runner.invoke(app, ["info", str(HOUSE)])
+    assert result.exit_code == 0
+    assert "18 waypoints, 44.2 m" in result.output
+
+
+def test_odometry_writes_trajectory_summary_and_pictures(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["odometry", str(recording), "--out", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    for name in ("config.yaml", "summary.json", "trajectory.tum", "wheel.tum", "trajectory.png",
+                 "frames.png"):  # fmt: skip
+        assert (out / name).is_file(), name
+    summary = json.loads((out / "summary.json").read_text())
+    drift = summary["wheel_odometry_vs_groundtruth"]
+    assert drift["matched"] > 50
+    assert drift["final_position_error_m"] < 0.1  # 1.5 s of driving
+    # One trajectory pose per camera frame, stamped like the frames.
+    lines = [ln for ln in (out / "trajectory.tum").read_text().splitlines() if ln[:1] != "#"]
+    rgb = [ln.split()[0] for ln in (recording / "rgb.txt").read_text().splitlines() if ln[:1] != "#"]
+    assert [ln.split()[0] for ln in lines] == rgb
+
+
+def test_set_override_reaches_the_resolved_config(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["odometry", str(recording), "--out", str(out), "-q",
+                                 "--set", "robot.track_width=0.31"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "track_width: 0.31" in (out / "config.yaml").read_text()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["info", "no/such/place"], "no/such/place: no such file or folder"),
+        (["simulate", str(HOUSE), "--out", "x", "--set", "sim.max_linear_speed=3"],
+         "sim.max_linear_speed: 3.0 m/s is out of range"),
+        (["simulate", str(HOUSE), "--out", "x", "--set", "sim.warp_speed=1"],
+         "sim.warp_speed: unknown key"),
+        (["simulate", str(HOUSE), "--out", "x", "--frames", "2", "--duration", "1"],
+         "not both"),
+        (["odometry", str(REPO / "scenes"), "--out", "x"], "not a recording folder|missing"),
+    ],
+)
+def test_user_mistakes_give_one_clear_line_and_exit_1(args: list[str], message: str,
+                                                      tmp_path: Path) -> None:  # fmt: skip
+    args = [a if a != "x" else str(tmp_path / "x") for a in args]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 1
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    import re
+
+    assert re.search(message, result.output)
+
+
+def test_console_script_prints_no_traceback_for_a_bad_config(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("ekf:\n  frequency: fast\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "rgbdnav.cli", "simulate", str(HOUSE), "--out", str(tmp_path / "o"),
+         "--config", str(bad)],
+        capture_output=True, text=True, cwd=REPO,
+    )  # fmt: skip
+    assert proc.returncode == 1
+    assert "Traceback" not in proc.stderr
+    assert f"{bad}: ekf.frequency: expected a number" in proc.stderr

@@ -1,0 +1,125 @@
+"""Robot motion, encoders and gyro of the simulator."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sensors.config import RobotConfig, SimConfig
+from sensors.sim.motion import (
+    Trajectory,
+    _backlash,
+    drive_route,
+    encoder_counts,
+    replay_tum,
+    wheel_travel,
+)
+from sensors.sim.world import load_world
+from sensors.types import NS_PER_S, Pose2
+from slam.diff_drive import integrate_ticks, wheel_increments
+
+REPO = Path(__file__).resolve().parents[3]
+DATA = REPO.parent / "shared" / "data"
+PIONEER = DATA / "tum" / "pioneer_groundtruth" / "pioneer_slam.groundtruth.txt"
+ROBOT = RobotConfig()
+PERFECT = replace(
+    SimConfig(), wheel_diameter_error=(0.0, 0.0), track_width_error=0.0, wheel_slip=0.0, backlash=0.0
+)
+
+
+@pytest.fixture(scope="module")
+def house_route() -> Trajectory:
+    return drive_route(load_world(REPO / "scenes" / "house.yaml"), SimConfig())
+
+
+def test_route_respects_speed_and_acceleration_limits(house_route: Trajectory) -> None:
+    sim = SimConfig()
+    dt = 1 / sim.physics_rate
+    assert np.abs(house_route.v).max() <= sim.max_linear_speed + 1e-9
+    assert np.abs(house_route.w).max() <= sim.max_angular_speed + 1e-9
+    assert np.abs(np.diff(house_route.v)).max() <= sim.max_linear_accel * dt + 1e-9
+    assert np.abs(np.diff(house_route.w)).max() <= sim.max_angular_accel * dt + 1e-9
+
+
+def test_route_visits_every_waypoint_and_ends_at_the_last(house_route: Trajectory) -> None:
+    world = load_world(REPO / "scenes" / "house.yaml")
+    xy = np.column_stack([house_route.x, house_route.y])
+    for wp in world.route:
+        assert np.min(np.linalg.norm(xy - wp, axis=1)) < SimConfig().waypoint_tolerance + 1e-6
+    assert np.linalg.norm(xy[-1] - world.route[-1]) < 0.2
+
+
+def test_perfect_encoders_integrate_back_to_the_ground_truth_path(house_route: Trajectory) -> None:
+    left, right = encoder_counts(house_route, ROBOT, PERFECT, np.random.default_rng(0))
+    x, y, yaw = integrate_ticks(left, right, ROBOT, Pose2(house_route.x[0], house_route.y[0],
+                                                             house_route.yaw[0]))  # fmt: skip
+    # Only quantisation is left: 36 positions per turn of a 6-inch wheel = 13.3 mm per count, so
+    # heading wobbles by up to 13.3 mm / 0.3 m = 0.044 rad; over 44 m that stays under 0.3 %.
+    err = np.hypot(x - house_route.x, y - house_route.y)
+    assert err.max() < 0.003 * house_route.length_m()
+    assert abs(yaw[-1] - house_route.yaw[-1]) < 2 * ROBOT.metres_per_tick / ROBOT.track_width
+
+
+def test_encoders_with_configured_errors_drift_as_configured(house_route: Trajectory) -> None:
+    sim = replace(PERFECT, wheel_diameter_error=(0.01, 0.01))
+    left, right = encoder_counts(house_route, ROBOT, sim, np.random.default_rng(0))
+    ds, _ = wheel_increments(left, right, ROBOT)
+    odom_length = ds.sum()  # the robot only drives forwards here
+    # Wheels 1 % larger than nominal turn 1 % less, so odometry reports 1/1.01 of the distance.
+    assert odom_length / house_route.length_m() == pytest.approx(1 / 1.01, abs=0.002)
+
+
+def test_track_width_error_scales_integrated_rotation() -> None:
+    # Spin in place by 4 pi.
+    n = 2001
+    yaw = np.linspace(0, 4 * math.pi, n)
+    traj = Trajectory(np.arange(n, dtype=np.int64) * 5_000_000, np.zeros(n), np.zeros(n), yaw,
+                      np.zeros(n), np.full(n, 0.5))  # fmt: skip
+    sim = replace(PERFECT, track_width_error=0.05)
+    left, right = encoder_counts(traj, ROBOT, sim, np.random.default_rng(0))
+    _, _, odom_yaw = integrate_ticks(left, right, ROBOT)
+    assert odom_yaw[-1] / yaw[-1] == pytest.approx(1.05, abs=0.01)
+
+
+def test_backlash_adds_the_play_once_per_reversal() -> None:
+    angle = np.concatenate([np.linspace(0, 1, 50), np.linspace(1, 0.2, 50)])
+    motor = _backlash(angle, play=0.1)
+    assert motor[49] - angle[49] == pytest.approx(0.05)
+    assert motor[-1] - angle[-1] == pytest.approx(-0.05)
+    assert np.array_equal(_backlash(angle, 0.0), angle)
+
+
+def test_wheel_travel_splits_an_arc_between_the_wheels() -> None:
+    n = 101
+    radius, dtheta = 1.0, math.pi / 2
+    th = np.linspace(0, dtheta, n)
+    traj = Trajectory(np.arange(n, dtype=np.int64), radius * np.sin(th), radius * (1 - np.cos(th)),
+                      th, np.ones(n), np.ones(n))  # fmt: skip
+    s_left, s_right = wheel_travel(traj, track_width=0.3)
+    assert s_left.sum() == pytest.approx((radius - 0.15) * dtheta, rel=1e-3)
+    assert s_right.sum() == pytest.approx((radius + 0.15) * dtheta, rel=1e-3)
+
+
+@pytest.mark.skipif(not PIONEER.is_file(), reason="../shared/data (TUM pioneer) not present")
+def test_replayed_pioneer_trajectory_is_planar_and_plausible() -> None:
+    traj = replay_tum(PIONEER, ROBOT, SimConfig())
+    assert traj.t_ns[0] == 0
+    assert 120 < traj.duration_s < 160
+    assert 15 < traj.length_m() < 45
+    # A Pioneer in a hall: under 1 m/s and 2 rad/s once mocap noise is smoothed.
+    assert np.percentile(np.abs(traj.v), 99) < 1.0
+    assert np.percentile(np.abs(traj.w), 99) < 2.0
+    # Replayed encoders integrate back to the replayed path (no slip, no diameter error).
+    left, right = encoder_counts(traj, ROBOT, PERFECT, np.random.default_rng(0))
+    x, y, _ = integrate_ticks(left, right, ROBOT, Pose2(traj.x[0], traj.y[0], traj.yaw[0]))
+    assert np.hypot(x[-1] - traj.x[-1], y[-1] - traj.y[-1]) < 0.1 * traj.length_m() / 10
+
+
+def test_trajectory_truncation_keeps_the_start() -> None:
+    traj = drive_route(load_world(REPO / "scenes" / "house.yaml"), SimConfig())
+    short = traj.truncated(2.0)
+    assert short.t_ns[-1] <= 2 * NS_PER_S and short.x[0] == traj.x[0]
