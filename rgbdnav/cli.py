@@ -11,7 +11,7 @@ import logging
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any
 
 import typer
 
@@ -27,11 +27,11 @@ app = typer.Typer(
 log = logging.getLogger("rgbdnav")
 
 ConfigOpt = Annotated[
-    Optional[list[Path]],  # noqa: UP045 - typer needs Optional here on 3.10
+    list[Path] | None,
     typer.Option("--config", "-c", help="YAML config file(s), applied in order over the defaults."),
 ]
 SetOpt = Annotated[
-    Optional[list[str]],  # noqa: UP045
+    list[str] | None,
     typer.Option("--set", "-s", help="Override one key: section.key=value (YAML value)."),
 ]
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
@@ -140,7 +140,9 @@ def info(source: Annotated[Path, typer.Argument(help="Recording folder or world 
         furniture = [b.name for b in world.boxes if b.name not in ("wall", "lintel")]
         typer.echo(f"world {world.name} ({source})")
         x0, y0, x1, y1 = world.bounds(margin=0.0)
-        typer.echo(f"  extent        {x1 - x0:.1f} m x {y1 - y0:.1f} m, ceiling {world.ceiling_height} m")
+        typer.echo(
+            f"  extent        {x1 - x0:.1f} m x {y1 - y0:.1f} m, ceiling {world.ceiling_height} m"
+        )
         typer.echo(f"  wall pieces   {walls}")
         typer.echo(f"  furniture     {len(furniture)}: {', '.join(furniture)}")
         typer.echo(f"  start         x={world.start[0]} y={world.start[1]} yaw={world.start[2]}")
@@ -165,10 +167,12 @@ def simulate(
     world: Annotated[Path, typer.Argument(help="World YAML (see scenes/).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Recording folder to write.")],
     seed: Annotated[int, typer.Option(help="Random seed: same seed, same recording.")] = 0,
-    duration: Annotated[Optional[float], typer.Option(help="Stop after this many seconds.")] = None,  # noqa: UP045
-    frames: Annotated[Optional[int], typer.Option(help="Stop after this many camera frames.")] = None,  # noqa: UP045
+    duration: Annotated[float | None, typer.Option(help="Stop after this many seconds.")] = None,
+    frames: Annotated[
+        int | None, typer.Option(help="Stop after this many camera frames.")
+    ] = None,
     trajectory: Annotated[
-        Optional[Path],  # noqa: UP045
+        Path | None,
         typer.Option(help="Replay this TUM trajectory (z up, planar) instead of the route."),
     ] = None,
     config: ConfigOpt = None,

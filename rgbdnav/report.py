@@ -85,5 +85,7 @@ def contact_sheet(path: Path, frames: Sequence[tuple[np.ndarray, np.ndarray]],
         d8 = (np.clip(np.nan_to_num(depth) / max_depth_m, 0, 1) * 255).astype(np.uint8)
         dc = cv2.applyColorMap(d8, cv2.COLORMAP_TURBO)
         dc[np.nan_to_num(depth) <= 0] = 0
-        rows.append(np.hstack([colour, cv2.resize(dc, (width_px, h), interpolation=cv2.INTER_NEAREST)]))
+        rows.append(
+            np.hstack([colour, cv2.resize(dc, (width_px, h), interpolation=cv2.INTER_NEAREST)])
+        )
     _png(path, np.vstack(rows))

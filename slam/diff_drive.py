@@ -19,6 +19,8 @@ import numpy as np
 from sensors.config import RobotConfig
 from sensors.types import NS_PER_S, Pose2
 
+ORIGIN = Pose2(0.0, 0.0, 0.0)
+
 
 def wheel_increments(
     left: np.ndarray, right: np.ndarray, robot: RobotConfig
@@ -31,7 +33,7 @@ def wheel_increments(
 
 
 def integrate_increments(
-    ds: np.ndarray, dtheta: np.ndarray, start: Pose2 = Pose2(0.0, 0.0, 0.0)
+    ds: np.ndarray, dtheta: np.ndarray, start: Pose2 = ORIGIN
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Midpoint-integrate increments; returns N+1 poses (the first is ``start``)."""
     theta = start.yaw + np.concatenate([[0.0], np.cumsum(dtheta)])
@@ -42,7 +44,7 @@ def integrate_increments(
 
 
 def integrate_ticks(
-    left: np.ndarray, right: np.ndarray, robot: RobotConfig, start: Pose2 = Pose2(0.0, 0.0, 0.0)
+    left: np.ndarray, right: np.ndarray, robot: RobotConfig, start: Pose2 = ORIGIN
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One pose per encoder reading: (x [m], y [m], yaw [rad], unwrapped)."""
     ds, dtheta = wheel_increments(left, right, robot)

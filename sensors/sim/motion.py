@@ -68,7 +68,9 @@ def drive_route(world: World, sim: SimConfig) -> Trajectory:
     x, y, th = world.start
     v = w = 0.0
     route = world.route
-    ideal = world.route_length() / sim.max_linear_speed + len(route) * math.pi / sim.max_angular_speed
+    ideal = (
+        world.route_length() / sim.max_linear_speed + len(route) * math.pi / sim.max_angular_speed
+    )
     max_steps = int(ROUTE_TIME_FACTOR * ideal / dt) + 1
     out = [(x, y, th, v, w)]
     i, settle = 0, 0
@@ -156,7 +158,9 @@ def body_velocities(
 def wheel_travel(traj: Trajectory, track_width: float) -> tuple[np.ndarray, np.ndarray]:
     """Ground distance [m] each wheel covers per physics step for a given (true) track width."""
     dth = np.diff(traj.yaw)
-    ds = np.hypot(np.diff(traj.x), np.diff(traj.y)) * np.sign(traj.v[1:] + 1e-12 * (traj.v[1:] == 0))
+    ds = np.hypot(np.diff(traj.x), np.diff(traj.y)) * np.sign(
+        traj.v[1:] + 1e-12 * (traj.v[1:] == 0)
+    )
     return ds - dth * track_width / 2, ds + dth * track_width / 2
 
 

@@ -248,7 +248,9 @@ class KinectRenderer:
         finite = np.isfinite(z)
         zt = np.where(finite, z, np.inf).astype(np.float32)
         disparity = fb / zt  # 0 where nothing was hit
-        noisy = disparity + sim.disparity_noise * self._window(self._gauss, h * w, rng).reshape(h, w)
+        noisy = disparity + sim.disparity_noise * self._window(self._gauss, h * w, rng).reshape(
+            h, w
+        )
         q = float(sim.disparity_subpixel)
         quantised = np.round(noisy * q) / q
         valid = finite & (zt >= cam.depth_min) & (zt <= cam.depth_max) & (quantised > 0)

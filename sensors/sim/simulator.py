@@ -61,7 +61,7 @@ class SimulationSummary:
 def _streams(seed: int) -> dict[str, np.random.Generator]:
     names = ("encoders", "camera", "render", "imu", "noise_bank")
     children = np.random.SeedSequence(seed).spawn(len(names))
-    return {n: np.random.default_rng(c) for n, c in zip(names, children)}
+    return {n: np.random.default_rng(c) for n, c in zip(names, children, strict=True)}
 
 
 def plan_trajectory(
@@ -96,7 +96,10 @@ def camera_stamps(
     keep[0] = True  # a recording always starts with a frame
     if max_frames is not None:
         keep &= np.cumsum(keep) <= max_frames
-        nominal, keep = nominal[: np.flatnonzero(keep)[-1] + 1], keep[: np.flatnonzero(keep)[-1] + 1]
+        nominal, keep = (
+            nominal[: np.flatnonzero(keep)[-1] + 1],
+            keep[: np.flatnonzero(keep)[-1] + 1],
+        )
     capture = nominal[keep]
     jitter = np.round(rng.standard_normal(len(capture)) * sim.stamp_jitter * NS_PER_S)
     stamps = capture + jitter.astype(np.int64)

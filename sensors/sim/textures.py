@@ -49,7 +49,6 @@ def _square(img: np.ndarray) -> np.ndarray:
 
 def _photo(name: str) -> np.ndarray:
     import skimage.data  # heavy; only the simulator needs it
-
     from PIL import Image  # Pillow comes with scikit-image; it reads these files quietly
 
     path = Path(skimage.data.__file__).parent / PHOTO_FILES[name]
@@ -57,7 +56,9 @@ def _photo(name: str) -> np.ndarray:
         with Image.open(path) as im:
             img = np.asarray(im.convert("RGB"))
     except OSError as err:
-        raise WorldError(f"texture '{name}': cannot read {path} (is scikit-image installed?)") from err
+        raise WorldError(
+            f"texture '{name}': cannot read {path} (is scikit-image installed?)"
+        ) from err
     return _square(img)
 
 
@@ -119,7 +120,9 @@ class TextureAtlas:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
-    def lookup(self, tex_id: np.ndarray, u: np.ndarray, v: np.ndarray, level: np.ndarray) -> np.ndarray:
+    def lookup(
+        self, tex_id: np.ndarray, u: np.ndarray, v: np.ndarray, level: np.ndarray
+    ) -> np.ndarray:
         """Nearest texel of texture ``tex_id`` at tile coordinates (u, v) (1.0 = one tile) on mip
         ``level``; returns (N, 3) uint8. Sizes are powers of two, so wrapping is a bit mask."""
         size = self.level_size[level]
@@ -133,7 +136,7 @@ class TextureAtlas:
 def build_atlas(names: tuple[str, ...]) -> TextureAtlas:
     images = [texture_image(n) for n in names]
     levels, offsets, sizes, pos = [], [], [], 0
-    for lvl in range(MIP_LEVELS):
+    for _ in range(MIP_LEVELS):
         stack = np.stack(images)
         levels.append(stack.reshape(-1, 3))
         offsets.append(pos)

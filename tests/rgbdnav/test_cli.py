@@ -67,7 +67,9 @@ def test_odometry_writes_trajectory_summary_and_pictures(recording: Path, tmp_pa
     assert drift["final_position_error_m"] < 0.1  # 1.5 s of driving
     # One trajectory pose per camera frame, stamped like the frames.
     lines = [ln for ln in (out / "trajectory.tum").read_text().splitlines() if ln[:1] != "#"]
-    rgb = [ln.split()[0] for ln in (recording / "rgb.txt").read_text().splitlines() if ln[:1] != "#"]
+    rgb = [
+        ln.split()[0] for ln in (recording / "rgb.txt").read_text().splitlines() if ln[:1] != "#"
+    ]
     assert [ln.split()[0] for ln in lines] == rgb
 
 
@@ -83,12 +85,15 @@ def test_set_override_reaches_the_resolved_config(recording: Path, tmp_path: Pat
     ("args", "message"),
     [
         (["info", "no/such/place"], "no/such/place: no such file or folder"),
-        (["simulate", str(HOUSE), "--out", "x", "--set", "sim.max_linear_speed=3"],
-         "sim.max_linear_speed: 3.0 m/s is out of range"),
-        (["simulate", str(HOUSE), "--out", "x", "--set", "sim.warp_speed=1"],
-         "sim.warp_speed: unknown key"),
-        (["simulate", str(HOUSE), "--out", "x", "--frames", "2", "--duration", "1"],
-         "not both"),
+        (
+            ["simulate", str(HOUSE), "--out", "x", "--set", "sim.max_linear_speed=3"],
+            "sim.max_linear_speed: 3.0 m/s is out of range",
+        ),
+        (
+            ["simulate", str(HOUSE), "--out", "x", "--set", "sim.warp_speed=1"],
+            "sim.warp_speed: unknown key",
+        ),
+        (["simulate", str(HOUSE), "--out", "x", "--frames", "2", "--duration", "1"], "not both"),
         (["odometry", str(REPO / "scenes"), "--out", "x"], "not a recording folder|missing"),
     ],
 )

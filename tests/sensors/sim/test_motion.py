@@ -27,7 +27,11 @@ DATA = REPO.parent / "shared" / "data"
 PIONEER = DATA / "tum" / "pioneer_groundtruth" / "pioneer_slam.groundtruth.txt"
 ROBOT = RobotConfig()
 PERFECT = replace(
-    SimConfig(), wheel_diameter_error=(0.0, 0.0), track_width_error=0.0, wheel_slip=0.0, backlash=0.0
+    SimConfig(),
+    wheel_diameter_error=(0.0, 0.0),
+    track_width_error=0.0,
+    wheel_slip=0.0,
+    backlash=0.0,
 )
 
 
