@@ -10,7 +10,7 @@ import yaml
 
 from rgbdnav.config import Config, config_to_dict
 
-SIM_VERSION = "1"  # bump when the simulator's output changes for the same inputs
+SIM_VERSION = "2"  # bump when the simulator's output changes for the same inputs
 
 
 def cache_root() -> Path:

@@ -168,9 +168,7 @@ def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="Recording folder to write.")],
     seed: Annotated[int, typer.Option(help="Random seed: same seed, same recording.")] = 0,
     duration: Annotated[float | None, typer.Option(help="Stop after this many seconds.")] = None,
-    frames: Annotated[
-        int | None, typer.Option(help="Stop after this many camera frames.")
-    ] = None,
+    frames: Annotated[int | None, typer.Option(help="Stop after this many camera frames.")] = None,
     trajectory: Annotated[
         Path | None,
         typer.Option(help="Replay this TUM trajectory (z up, planar) instead of the route."),

@@ -223,6 +223,9 @@ class BoardConfig:
 class SimConfig:
     """Simulated Eddie + Kinect v1: rates, motion limits and sensor error models."""
 
+    renderer: Literal["raster", "raycast"] = param(
+        "raster", doc="raster: fast scan conversion; raycast: Open3D reference"
+    )
     camera_rate: float = param(30.0, unit="Hz", gt=0.0)
     wheel_rate: float = param(50.0, unit="Hz", gt=0.0, doc="board encoder polling")
     imu_rate: float = param(100.0, unit="Hz", gt=0.0)

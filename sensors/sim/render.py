@@ -12,8 +12,10 @@ and a small random dropout.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig
@@ -26,6 +28,10 @@ R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 AMBIENT = 0.35  # share of light that does not depend on the surface angle
 DISTANCE_FALLOFF = 0.04  # [1/m] brightness lost per metre (a dim indoor scene)
 NOISE_BANK_FACTOR = 2  # noise banks hold this many frames of samples
+Z_NEAR = 0.02  # [m] near clipping plane of the rasteriser
+RASTER_SHIFT = 4  # fractional bits of polygon vertices handed to OpenCV
+MIN_COS_INCIDENCE = 0.05  # grazing surfaces are shaded as if at ~87 degrees
+EDGE_KERNEL = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # 4-neighbourhood
 
 
 def _rot_x(a: float) -> np.ndarray:
@@ -56,21 +62,23 @@ def camera_pose_in_world(
 
 
 @dataclass(frozen=True, eq=False)
-class SceneMesh:
-    """Triangles plus, per triangle, the plane mapping a hit point to texture tile coordinates."""
+class SceneFaces:
+    """Every quad face of the world, with the plane that maps a point to texture tiles."""
 
-    vertices: np.ndarray  # (V, 3) float32 [m]
-    triangles: np.ndarray  # (T, 3) uint32
-    normal: np.ndarray  # (T, 3) float32, unit
-    u_axis: np.ndarray  # (T, 3) float32: u = p . u_axis + u_offset  [tiles]
-    u_offset: np.ndarray  # (T,) float32
-    v_axis: np.ndarray  # (T, 3) float32
-    v_offset: np.ndarray  # (T,) float32
-    texels_per_metre: np.ndarray  # (T,) float32 at the finest mip level
-    texture: np.ndarray  # (T,) int64 index into the atlas
+    corners: np.ndarray  # (F, 4, 3) float64 [m] world, counter-clockwise seen from outside
+    normal: np.ndarray  # (F, 3) unit, pointing out of the solid
+    u_axis: np.ndarray  # (F, 3): u = p . u_axis + u_offset  [tiles]
+    u_offset: np.ndarray  # (F,)
+    v_axis: np.ndarray  # (F, 3)
+    v_offset: np.ndarray  # (F,)
+    texels_per_metre: np.ndarray  # (F,) at the finest mip level
+    texture: np.ndarray  # (F,) int32 index into the atlas
+
+    def __len__(self) -> int:
+        return len(self.corners)
 
 
-# Box corners as (sx, sy, sz) in {0, 1}: sx along length, sy along width, sz up.
+# Box corners: 0-3 the footprint at z_min (counter-clockwise), 4-7 the same at z_max.
 _FACES = (  # corner indices, counter-clockwise seen from outside
     (0, 1, 5, 4),  # -y side
     (2, 3, 7, 6),  # +y side
@@ -82,20 +90,17 @@ _FACES = (  # corner indices, counter-clockwise seen from outside
 
 
 def _box_corners(b: Box) -> np.ndarray:
-    fp = b.footprint()  # counter-clockwise: (-l,-w), (l,-w), (l,w), (-l,w)
+    fp = b.footprint()
     low = np.column_stack([fp, np.full(4, b.z_min)])
     high = np.column_stack([fp, np.full(4, b.z_max)])
     return np.vstack([low, high])
 
 
-def build_scene_mesh(world: World, atlas_names: tuple[str, ...]) -> SceneMesh:
-    verts, tris, normals, uax, uoff, vax, voff, tpm, tex = [], [], [], [], [], [], [], [], []
+def build_scene_faces(world: World, atlas_names: tuple[str, ...]) -> SceneFaces:
+    quads, normals, uax, uoff, vax, voff, tpm, tex = [], [], [], [], [], [], [], []
 
-    def add_quad(c: np.ndarray, quad: tuple, texture: str, scale: float) -> None:
-        base = sum(len(v) for v in verts)
+    def add_quad(c: np.ndarray, quad: tuple[int, ...], texture: str, scale: float) -> None:
         pts = c[list(quad)]
-        verts.append(pts)
-        tris.extend([[base, base + 1, base + 2], [base, base + 2, base + 3]])
         n = np.cross(pts[1] - pts[0], pts[2] - pts[0])
         n /= np.linalg.norm(n)
         if abs(n[2]) < 0.5:
@@ -107,14 +112,14 @@ def build_scene_mesh(world: World, atlas_names: tuple[str, ...]) -> SceneMesh:
         else:
             u, v = np.array([1.0, 0.0, 0.0]), np.array([0.0, -np.sign(n[2]), 0.0])
         o = pts[0]
-        for _ in range(2):
-            normals.append(n)
-            uax.append(u / scale)
-            uoff.append(-(o @ u) / scale)
-            vax.append(v / scale)
-            voff.append(-(o @ v) / scale)
-            tpm.append(TEXTURE_SIZE / scale)
-            tex.append(atlas_names.index(texture))
+        quads.append(pts)
+        normals.append(n)
+        uax.append(u / scale)
+        uoff.append(-(o @ u) / scale)
+        vax.append(v / scale)
+        voff.append(-(o @ v) / scale)
+        tpm.append(TEXTURE_SIZE / scale)
+        tex.append(atlas_names.index(texture))
 
     for b in world.boxes:
         c = _box_corners(b)
@@ -122,22 +127,137 @@ def build_scene_mesh(world: World, atlas_names: tuple[str, ...]) -> SceneMesh:
             add_quad(c, quad, b.texture, b.texture_scale)
     x0, y0, x1, y1 = world.bounds(margin=1.0)
     h = world.ceiling_height
-    plane = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0],
-                      [x0, y0, h], [x1, y0, h], [x1, y1, h], [x0, y1, h]], dtype=np.float64)  # fmt: skip
+    corners_2d = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    plane = np.vstack([np.column_stack([corners_2d, np.zeros(4)]),
+                       np.column_stack([corners_2d, np.full(4, h)])])  # fmt: skip
     add_quad(plane, (0, 1, 2, 3), world.floor.texture, world.floor.scale)
     add_quad(plane, (4, 7, 6, 5), world.ceiling.texture, world.ceiling.scale)
-    f32 = np.float32
-    return SceneMesh(
-        vertices=np.concatenate(verts).astype(f32),
-        triangles=np.array(tris, dtype=np.uint32),
-        normal=np.array(normals, f32),
-        u_axis=np.array(uax, f32),
-        u_offset=np.array(uoff, f32),
-        v_axis=np.array(vax, f32),
-        v_offset=np.array(voff, f32),
-        texels_per_metre=np.array(tpm, f32),
-        texture=np.array(tex, np.int64),
+    return SceneFaces(
+        corners=np.array(quads),
+        normal=np.array(normals),
+        u_axis=np.array(uax),
+        u_offset=np.array(uoff),
+        v_axis=np.array(vax),
+        v_offset=np.array(voff),
+        texels_per_metre=np.array(tpm),
+        texture=np.array(tex, np.int32),
     )
+
+
+# Rows of the per-frame face table (see face_table); one extra column is the "no surface" face.
+# The shading rows come first so shading gathers one contiguous block of them.
+(TU_A, TU_B, TU_C, TU_D, TV_A, TV_B, TV_C, TV_D, ABS_D, MIP_K, INVZ_A, INVZ_B, INVZ_C) = range(13)
+SHADING_ROWS = 10
+
+
+def face_table(
+    faces: SceneFaces, r_wo: np.ndarray, t_wo: np.ndarray, cam: CameraConfig
+) -> np.ndarray:
+    """Per-face coefficients for one camera pose, (13, F + 1) float32, so that for a pixel (u, v)
+    on face f (d = ((u - cx)/fx, (v - cy)/fy, 1) its ray in the optical frame):
+
+    * inverse depth   1/z   = A u + B v + C           (a plane is affine in 1/z)
+    * texture tile    u_tex = z (a u + b v + c) + d   (and v_tex alike)
+    * cos incidence   |n.d|/|d| = ABS_D * (1/z) / |d|  (ABS_D = distance from camera to plane)
+    * texels a pixel covers     = z^2 |d|^2 * MIP_K
+
+    The last column is all zeros: pixels that see nothing.
+    """
+    fx, fy, cx, cy = cam.fx, cam.fy, cam.cx, cam.cy
+    n_c = faces.normal @ r_wo  # rows: R^T n
+    d_c = np.einsum("fi,fi->f", n_c, (faces.corners[:, 0] - t_wo) @ r_wo)  # n_c . o_c
+    d_c = np.where(np.abs(d_c) < 1e-9, 1e-9, d_c)
+    table = np.zeros((13, len(faces) + 1), np.float64)
+
+    def affine(vec: np.ndarray, rows: tuple[int, int, int], scale: np.ndarray) -> None:
+        a, b, c = rows
+        table[a, :-1] = vec[:, 0] / fx * scale
+        table[b, :-1] = vec[:, 1] / fy * scale
+        table[c, :-1] = (vec[:, 2] - vec[:, 0] * cx / fx - vec[:, 1] * cy / fy) * scale
+
+    affine(n_c, (INVZ_A, INVZ_B, INVZ_C), 1.0 / d_c)
+    affine(faces.u_axis @ r_wo, (TU_A, TU_B, TU_C), np.ones(len(faces)))
+    affine(faces.v_axis @ r_wo, (TV_A, TV_B, TV_C), np.ones(len(faces)))
+    table[TU_D, :-1] = faces.u_axis @ t_wo + faces.u_offset
+    table[TV_D, :-1] = faces.v_axis @ t_wo + faces.v_offset
+    table[ABS_D, :-1] = np.abs(d_c)
+    table[MIP_K, :-1] = faces.texels_per_metre / (fx * np.abs(d_c))
+    return table.astype(np.float32)
+
+
+def _clip_near(poly: np.ndarray, z_near: float) -> np.ndarray:
+    """Sutherland-Hodgman against the plane z = z_near (optical frame); poly (k, 3)."""
+    out = []
+    k = len(poly)
+    for i in range(k):
+        a, b = poly[i], poly[(i + 1) % k]
+        a_in, b_in = a[2] >= z_near, b[2] >= z_near
+        if a_in:
+            out.append(a)
+        if a_in != b_in:
+            s = (z_near - a[2]) / (b[2] - a[2])
+            out.append(a + s * (b - a))
+    return np.array(out)
+
+
+def rasterize(faces: SceneFaces, table: np.ndarray, r_wo: np.ndarray, t_wo: np.ndarray,
+              cam: CameraConfig) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Z-buffered scan conversion of the visible faces.
+
+    Returns (inverse depth 1/z (H, W) float32, 0 = nothing; face index (H, W) int32, F = none).
+    Each face is filled with OpenCV over its bounding box and its exact plane depth is compared
+    with the buffer there, so cost grows with the screen area faces cover, not with pixels x faces.
+    """
+    h, w = cam.height, cam.width
+    n_faces = len(faces)
+    invz = np.zeros((h, w), np.float32)
+    face = np.full((h, w), n_faces, np.int32)
+    cam_pos = t_wo
+    # Back faces and faces wholly outside one frustum plane never reach the loop.
+    front = np.einsum("fi,fi->f", faces.normal, cam_pos - faces.corners[:, 0]) > 1e-6
+    pc = (faces.corners - t_wo) @ r_wo  # (F, 4, 3) optical frame
+    x, y, z = pc[..., 0], pc[..., 1], pc[..., 2]
+    outside = (
+        np.all(z < Z_NEAR, axis=1)
+        | np.all(x * cam.fx < (-0.5 - cam.cx) * z, axis=1)
+        | np.all(x * cam.fx > (w - 0.5 - cam.cx) * z, axis=1)
+        | np.all(y * cam.fy < (-0.5 - cam.cy) * z, axis=1)
+        | np.all(y * cam.fy > (h - 0.5 - cam.cy) * z, axis=1)
+    )
+    cols = np.arange(w, dtype=np.float32)
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    for f in np.flatnonzero(front & ~outside):
+        poly = pc[f] if np.all(z[f] >= Z_NEAR) else _clip_near(pc[f], Z_NEAR)
+        if len(poly) < 3:
+            continue
+        u = poly[:, 0] / poly[:, 2] * cam.fx + cam.cx
+        v = poly[:, 1] / poly[:, 2] * cam.fy + cam.cy
+        x0, x1 = max(int(np.floor(u.min())), 0), min(int(np.ceil(u.max())) + 1, w)
+        y0, y1 = max(int(np.floor(v.min())), 0), min(int(np.ceil(v.max())) + 1, h)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        pts = np.round(np.column_stack([u - x0, v - y0]) * (1 << RASTER_SHIFT)).astype(np.int32)
+        cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=RASTER_SHIFT)
+        a, b, c = table[INVZ_A, f], table[INVZ_B, f], table[INVZ_C, f]
+        plane = cols[x0:x1] * a + (rows[y0:y1] * b + c)
+        view = invz[y0:y1, x0:x1]
+        closer = mask.view(bool) & (plane > view)
+        np.copyto(view, plane, where=closer)
+        np.copyto(face[y0:y1, x0:x1], np.int32(f), where=closer)
+    return invz, face
+
+
+def _open3d_scene(faces: SceneFaces) -> object:
+    """Open3D RaycastingScene of the faces, two triangles per quad (triangle 2f, 2f+1 = face f)."""
+    import open3d as o3d  # heavy; only the reference backend needs it
+
+    verts = faces.corners.reshape(-1, 3).astype(np.float32)
+    base = 4 * np.arange(len(faces), dtype=np.uint32)[:, None]
+    tris = np.stack([base + [0, 1, 2], base + [0, 2, 3]], axis=1).reshape(-1, 3).astype(np.uint32)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
+    return scene
 
 
 def world_textures(world: World) -> tuple[str, ...]:
@@ -148,136 +268,158 @@ def world_textures(world: World) -> tuple[str, ...]:
 class KinectRenderer:
     """Renders ``(rgb uint8 HxWx3, depth_m float32 HxW)`` for a base_link pose.
 
-    Randomness comes only from the generator passed to :meth:`render`, so the same seed and
-    poses give identical images.
+    ``sim.renderer`` picks the geometry backend: "raster" (fast z-buffered scan conversion) or
+    "raycast" (Open3D RaycastingScene, the reference the rasteriser is tested against). Both feed
+    the same shading and Kinect error model. Randomness comes only from the generator passed to
+    :meth:`render`, so the same seed and poses give identical images.
     """
 
     def __init__(self, world: World, camera: CameraConfig, robot: RobotConfig, sim: SimConfig,
-                 noise_seed: int = 0) -> None:  # fmt: skip
-        import open3d as o3d  # heavy; imported where used
-
-        self._o3c = o3d.core
+                 noise_seed: int = 0, backend: str | None = None) -> None:  # fmt: skip
         self.camera, self.robot, self.sim = camera, robot, sim
+        self.backend = backend or sim.renderer
         self.intrinsics = CameraIntrinsics(
             camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
             camera.depth_scale,
         )  # fmt: skip
         self.atlas: TextureAtlas = build_atlas(world_textures(world))
-        self.mesh = build_scene_mesh(world, self.atlas.names)
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(
-            o3d.core.Tensor(self.mesh.vertices), o3d.core.Tensor(self.mesh.triangles)
-        )
-        m = self.mesh
-        self._tri_attr = np.ascontiguousarray(np.column_stack(
-            [m.u_axis, m.u_offset, m.v_axis, m.v_offset, m.normal, m.texels_per_metre]
-        ).astype(np.float32))  # fmt: skip
-        self._tri_tex = m.texture.astype(np.int32)
+        self.faces = build_scene_faces(world, self.atlas.names)
+        self._scene = None
+        if self.backend == "raycast":
+            self._scene = _open3d_scene(self.faces)
         h, w = camera.height, camera.width
         u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        self._u, self._v = u.ravel(), v.ravel()
         # Ray directions in the optical frame with z = 1, so the ray parameter *is* depth z.
         self._dirs_opt = np.stack(
             [(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], axis=-1
         ).reshape(-1, 3)
-        self._dir_norm = np.linalg.norm(self._dirs_opt, axis=1)
-        self._rays = np.empty((h * w, 6), np.float32)
+        self._dir_norm2 = np.einsum("ij,ij->i", self._dirs_opt, self._dirs_opt)
+        self._dir_norm = np.sqrt(self._dir_norm2)
         self._cols = u
+        self._tex = np.append(self.faces.texture, 0).astype(np.int32)
         # Noise banks: a frame takes a window at a random offset (cheap, seeded, deterministic).
         bank_rng = np.random.default_rng(noise_seed)
         n = h * w
-        self._gauss = bank_rng.standard_normal(NOISE_BANK_FACTOR * 3 * n, dtype=np.float32)
+        self._gauss = bank_rng.standard_normal(NOISE_BANK_FACTOR * n, dtype=np.float32)
         self._uniform = bank_rng.random(NOISE_BANK_FACTOR * n, dtype=np.float32)
+        rgb = np.round(bank_rng.standard_normal(NOISE_BANK_FACTOR * 4 * n) * sim.rgb_noise)
+        self._rgb_plus = np.clip(rgb, 0, 255).astype(np.uint8)
+        self._rgb_minus = np.clip(-rgb, 0, 255).astype(np.uint8)
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinect-depth")
 
     def _window(self, bank: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
         start = int(rng.integers(0, len(bank) - n))
         return bank[start : start + n]
 
-    def cast(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Noise-free ray cast: (z [m] (N,) with inf for no hit, triangle id (N,), dirs_world)."""
+    def geometry(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Noise-free (inverse depth (H, W), face index (H, W), face table) for a base pose."""
         r, t = camera_pose_in_world(x, y, yaw, self.robot)
-        dirs = self._dirs_opt @ r.T.astype(np.float32)
-        self._rays[:, :3] = t.astype(np.float32)
-        self._rays[:, 3:] = dirs
-        hit = self.scene.cast_rays(self._o3c.Tensor.from_numpy(self._rays))
-        z = hit["t_hit"].numpy()
-        tri = hit["primitive_ids"].numpy().astype(np.int64)
-        return z, tri, dirs
+        table = face_table(self.faces, r, t, self.camera)
+        if self._scene is None:
+            invz, face = rasterize(self.faces, table, r, t, self.camera)
+        else:
+            invz, face = self._raycast(r, t)
+        return invz, face, table
+
+    def _raycast(self, r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        import open3d as o3d
+
+        h, w = self.camera.height, self.camera.width
+        rays = np.empty((h * w, 6), np.float32)
+        rays[:, :3] = t
+        rays[:, 3:] = self._dirs_opt @ r.T.astype(np.float32)
+        hit = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))  # type: ignore[union-attr]
+        z = hit["t_hit"].numpy().reshape(h, w)
+        tri = hit["primitive_ids"].numpy().astype(np.int64).reshape(h, w)
+        ok = np.isfinite(z)
+        with np.errstate(divide="ignore"):
+            invz = np.where(ok, 1.0 / z, 0.0).astype(np.float32)
+        face = np.where(ok, tri // 2, len(self.faces)).astype(np.int32)
+        return invz, face
 
     def true_depth(self, x: float, y: float, yaw: float) -> np.ndarray:
         """Noise-free depth image [m] (inf where nothing is hit), for tests and ground truth."""
-        z, _, _ = self.cast(x, y, yaw)
-        return z.reshape(self.camera.height, self.camera.width)
+        invz, _, _ = self.geometry(x, y, yaw)
+        return self.true_depth_from_invz(invz)
 
     def render(
         self, x: float, y: float, yaw: float, rng: np.random.Generator
     ) -> tuple[np.ndarray, np.ndarray]:
-        cam, sim = self.camera, self.sim
-        h, w, n = cam.height, cam.width, cam.height * cam.width
-        z, tri, dirs = self.cast(x, y, yaw)
-        hit = np.isfinite(z)
-        tri = np.where(hit, tri, 0)
-        zf = np.where(hit, z, 0.0).astype(np.float32)
-        rgb = self._shade(x, y, yaw, zf, tri, dirs, hit, rng)
-        depth = self._kinect_depth(z.reshape(h, w), rng)
-        return rgb.reshape(h, w, 3), depth
+        h, w = self.camera.height, self.camera.width
+        invz, face, table = self.geometry(x, y, yaw)
+        # Draw the noise windows here, in a fixed order, so threading cannot change the output.
+        rgb_noise = int(rng.integers(0, len(self._rgb_plus) - 4 * h * w))
+        depth_noise = self._window(self._gauss, h * w, rng)
+        dropout = self._window(self._uniform, h * w, rng)
+        # numpy releases the GIL on whole-image work: colour and depth run on both cores.
+        pending = self._pool.submit(self._kinect_depth, invz, depth_noise, dropout)
+        rgb = self._shade(invz.ravel(), face.ravel().astype(np.intp), table, rgb_noise)
+        return rgb.reshape(h, w, 3), pending.result()
 
-    def _shade(self, x: float, y: float, yaw: float, z: np.ndarray, tri: np.ndarray,
-               dirs: np.ndarray, hit: np.ndarray, rng: np.random.Generator) -> np.ndarray:  # fmt: skip
-        _, origin = camera_pose_in_world(x, y, yaw, self.robot)
-        attr = self._tri_attr[tri]  # one gather: (N, 12) float32
-        p = origin.astype(np.float32) + dirs * z[:, None]
-        u = p[:, 0] * attr[:, 0] + p[:, 1] * attr[:, 1] + p[:, 2] * attr[:, 2] + attr[:, 3]
-        v = p[:, 0] * attr[:, 4] + p[:, 1] * attr[:, 5] + p[:, 2] * attr[:, 6] + attr[:, 7]
-        n_dot_d = dirs[:, 0] * attr[:, 8] + dirs[:, 1] * attr[:, 9] + dirs[:, 2] * attr[:, 10]
-        cos_inc = np.maximum(np.abs(n_dot_d) / self._dir_norm, 0.05)
-        # Mip level from the texels one pixel's footprint covers on the surface.
+    def _shade(self, invz: np.ndarray, face: np.ndarray, table: np.ndarray,
+               noise_start: int) -> np.ndarray:  # fmt: skip
+        g = np.take(table[:SHADING_ROWS], face, axis=1)  # (10, N): one gather for all of them
+        z = np.zeros_like(invz)
+        np.divide(1.0, invz, out=z, where=invz > 0)  # 0 where nothing is seen
+        u, v = self._u, self._v
+        tu = z * (g[TU_A] * u + g[TU_B] * v + g[TU_C]) + g[TU_D]
+        tv = z * (g[TV_A] * u + g[TV_B] * v + g[TV_C]) + g[TV_D]
+        cos_inc = np.maximum(g[ABS_D] * invz / self._dir_norm, MIN_COS_INCIDENCE)
+        # Mip level = floor(log2(texels per pixel)), read off the float exponent.
+        texels = z * z * self._dir_norm2 * g[MIP_K]
+        level = np.clip(np.frexp(texels)[1] - 1, 0, MIP_LEVELS - 1).astype(np.int32)
+        albedo = self.atlas.lookup(self._tex[face], tu, tv, level)
         dist = z * self._dir_norm
-        texels = dist * attr[:, 11] / (self.camera.fx * cos_inc)
-        level = np.clip(np.log2(np.maximum(texels, 1.0)), 0, MIP_LEVELS - 1).astype(np.int32)
-        albedo = self.atlas.lookup(self._tri_tex[tri], u, v, level)
         light = (AMBIENT + (1 - AMBIENT) * cos_inc) * np.maximum(1 - DISTANCE_FALLOFF * dist, 0.3)
-        light = np.where(hit, light, 0.0).astype(np.float32)
-        noise = self._window(self._gauss, 3 * len(z), rng).reshape(-1, 3) * self.sim.rgb_noise
-        rgb = albedo * light[:, None] + noise
-        return np.clip(rgb, 0, 255).astype(np.uint8)
+        light[invz <= 0] = 0.0
+        h, w = self.camera.height, self.camera.width
+        light8 = (light * 255).astype(np.uint8).reshape(h, w)
+        shaded = cv2.multiply(albedo.reshape(h, w, 4), cv2.merge([light8] * 4), scale=1 / 255)
+        # Sensor noise in whole 8-bit levels, added and subtracted with saturation.
+        start = noise_start
+        plus = self._rgb_plus[start : start + 4 * h * w].reshape(h, w, 4)
+        minus = self._rgb_minus[start : start + 4 * h * w].reshape(h, w, 4)
+        shaded = cv2.subtract(cv2.add(shaded, plus), minus)
+        return cv2.cvtColor(shaded, cv2.COLOR_RGBA2RGB)
 
-    def _kinect_depth(self, z: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        cam, sim = self.camera, self.sim
-        h, w = z.shape
-        fb = cam.disparity_focal * cam.baseline  # [px m]
-        finite = np.isfinite(z)
-        zt = np.where(finite, z, np.inf).astype(np.float32)
-        disparity = fb / zt  # 0 where nothing was hit
-        noisy = disparity + sim.disparity_noise * self._window(self._gauss, h * w, rng).reshape(
-            h, w
-        )
-        q = float(sim.disparity_subpixel)
-        quantised = np.round(noisy * q) / q
-        valid = finite & (zt >= cam.depth_min) & (zt <= cam.depth_max) & (quantised > 0)
+    def true_depth_from_invz(self, invz: np.ndarray) -> np.ndarray:
         with np.errstate(divide="ignore"):
-            depth = np.where(valid, fb / np.where(quantised > 0, quantised, 1.0), 0.0)
-        valid &= ~self._edges(zt)
+            return np.where(invz > 0, 1.0 / invz, np.inf).astype(np.float32)
+
+    def _kinect_depth(self, invz: np.ndarray, noise: np.ndarray, dropout: np.ndarray) -> np.ndarray:
+        """Inverse true depth (0 = no hit) -> Kinect v1 depth [m] (0 = invalid); ``noise`` holds
+        unit Gaussian and ``dropout`` uniform samples, one per pixel.
+
+        Disparity is proportional to inverse depth, so the whole model works on 1/z.
+        """
+        cam, sim = self.camera, self.sim
+        h, w = invz.shape
+        fb = np.float32(cam.disparity_focal * cam.baseline)  # [px m]
+        disparity = fb * invz  # 0 where nothing was hit
+        noisy = disparity + np.float32(sim.disparity_noise) * noise.reshape(h, w)
+        q = np.float32(sim.disparity_subpixel)
+        quantised = np.round(noisy * q) / q
+        valid = (invz >= 1 / cam.depth_max) & (invz <= 1 / cam.depth_min) & (quantised > 0)
+        valid &= ~self._edges(invz)
         if sim.shadows:
             valid &= ~self._projector_shadow(disparity)
         if sim.depth_dropout > 0:
-            valid &= self._window(self._uniform, h * w, rng).reshape(h, w) >= sim.depth_dropout
-        return np.where(valid, depth, 0.0).astype(np.float32)
+            valid &= dropout.reshape(h, w) >= sim.depth_dropout
+        depth = np.zeros((h, w), np.float32)
+        np.divide(fb, quantised, out=depth, where=valid)
+        return depth
 
-    def _edges(self, z: np.ndarray) -> np.ndarray:
-        """Pixels beside a relative depth jump larger than depth_edge_threshold."""
+    def _edges(self, invz: np.ndarray) -> np.ndarray:
+        """The far side of every relative depth jump above ``depth_edge_threshold`` (mixed
+        returns there make a real Kinect drop the pixel): pixels farther than their nearest
+        4-neighbour by more than the threshold, z > (1 + thr) z_near, i.e. in inverse depth
+        1/z < max_neighbour(1/z) / (1 + thr)."""
         thr = self.sim.depth_edge_threshold
         if thr <= 0:
-            return np.zeros(z.shape, bool)
-        zc = np.where(np.isfinite(z), z, 1e3)
-        edge = np.zeros(z.shape, bool)
-        dx = np.abs(np.diff(zc, axis=1)) > thr * np.minimum(zc[:, 1:], zc[:, :-1])
-        dy = np.abs(np.diff(zc, axis=0)) > thr * np.minimum(zc[1:], zc[:-1])
-        # The far side of a jump loses its pixel (mixed returns there), as on a real Kinect.
-        edge[:, 1:] |= dx & (zc[:, 1:] > zc[:, :-1])
-        edge[:, :-1] |= dx & (zc[:, :-1] > zc[:, 1:])
-        edge[1:] |= dy & (zc[1:] > zc[:-1])
-        edge[:-1] |= dy & (zc[:-1] > zc[1:])
-        return edge
+            return np.zeros(invz.shape, bool)
+        nearest = cv2.dilate(invz, EDGE_KERNEL, borderType=cv2.BORDER_REPLICATE)
+        return invz * np.float32(1 + thr) < nearest
 
     def _projector_shadow(self, disparity: np.ndarray) -> np.ndarray:
         """Pixels the projector (``baseline`` to the right) cannot light.

@@ -12,7 +12,8 @@ import numpy as np
 
 from sensors.types import WorldError
 
-TEXTURE_SIZE = 512  # [px] side of the finest mip level (power of two)
+TEXTURE_BITS = 9
+TEXTURE_SIZE = 1 << TEXTURE_BITS  # [px] side of the finest mip level
 MIP_LEVELS = 7  # 512 .. 8 px
 
 # Photographs shipped inside the scikit-image wheel (no download): name -> file.
@@ -110,12 +111,18 @@ def texture_image(name: str) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class TextureAtlas:
-    """All textures at all mip levels in one flat (N, 3) uint8 array."""
+    """All textures at all mip levels in one flat array of packed RGBA texels."""
 
     names: tuple[str, ...]
-    texels: np.ndarray  # (N, 3) uint8
+    texels: np.ndarray  # (N,) uint32: RGBA packed, so a lookup is one 1-D gather
     level_offset: np.ndarray  # (MIP_LEVELS,) int64: start of each level in ``texels``
-    level_size: np.ndarray  # (MIP_LEVELS,) int64: side [px] of each level
+    level_size: np.ndarray  # (MIP_LEVELS,) int32: side [px] of each level
+
+    @functools.cached_property
+    def level_offset32(self) -> np.ndarray:
+        if self.texels.size >= 2**31:  # pragma: no cover - thousands of textures
+            raise WorldError("texture atlas too large for 32-bit indices")
+        return self.level_offset.astype(np.int32)
 
     def index(self, name: str) -> int:
         return self.names.index(name)
@@ -124,12 +131,19 @@ class TextureAtlas:
         self, tex_id: np.ndarray, u: np.ndarray, v: np.ndarray, level: np.ndarray
     ) -> np.ndarray:
         """Nearest texel of texture ``tex_id`` at tile coordinates (u, v) (1.0 = one tile) on mip
-        ``level``; returns (N, 3) uint8. Sizes are powers of two, so wrapping is a bit mask."""
-        size = self.level_size[level]
-        tx = (u * size).astype(np.int32) & (size - 1)
-        ty = (v * size).astype(np.int32) & (size - 1)
-        flat = self.level_offset[level] + (tex_id * size + ty) * size + tx
-        return self.texels[flat]
+        ``level``; returns (N, 4) uint8 RGBA (alpha unused).
+
+        Level L has side TEXTURE_SIZE >> L, so its texel is the finest level's texel shifted
+        right by L and wrapping is a bit mask: integer shifts only, no per-pixel size lookup.
+        """
+        mask = np.int32(TEXTURE_SIZE - 1)
+        tx = (u * TEXTURE_SIZE).astype(np.int32) & mask
+        ty = (v * TEXTURE_SIZE).astype(np.int32) & mask
+        bits = np.int32(TEXTURE_BITS) - level  # log2 of the level's side
+        flat = ((tex_id << bits) + (ty >> level)) << bits
+        flat += tx >> level
+        flat += self.level_offset32[level]
+        return np.take(self.texels, flat).view(np.uint8).reshape(-1, 4)
 
 
 @functools.lru_cache(maxsize=4)
@@ -138,7 +152,8 @@ def build_atlas(names: tuple[str, ...]) -> TextureAtlas:
     levels, offsets, sizes, pos = [], [], [], 0
     for _ in range(MIP_LEVELS):
         stack = np.stack(images)
-        levels.append(stack.reshape(-1, 3))
+        rgba = np.concatenate([stack, np.zeros(stack.shape[:-1] + (1,), np.uint8)], axis=-1)
+        levels.append(np.ascontiguousarray(rgba).reshape(-1, 4).view(np.uint32).ravel())
         offsets.append(pos)
         sizes.append(stack.shape[1])
         pos += levels[-1].shape[0]
