@@ -48,6 +48,10 @@ def _known_errors(fn: Any) -> Any:
         except RgbdNavError as err:
             typer.echo(f"error: {err}", err=True)
             raise typer.Exit(1) from None
+        except OSError as err:  # unwritable --out, full disk, ...
+            where = f"{err.filename}: " if err.filename else ""
+            typer.echo(f"error: {where}{err.strerror or err}", err=True)
+            raise typer.Exit(1) from None
 
     return wrapper
 

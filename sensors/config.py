@@ -247,10 +247,11 @@ class SimConfig:
     frame_drop_probability: float = param(0.01, ge=0.0, lt=1.0)
     # Wheels and encoders.
     wheel_diameter_error: tuple[float, float] = param(
-        (0.004, -0.003), doc="relative true-vs-nominal diameter error, left and right"
+        (0.002, -0.001), doc="relative true-vs-nominal diameter error, left and right"
     )
     track_width_error: float = param(0.01, doc="relative true-vs-nominal track width error")
-    wheel_slip: float = param(0.01, ge=0.0, le=0.5, doc="sigma of relative per-step slip")
+    wheel_slip: float = param(0.01, ge=0.0, le=0.5, doc="sigma of relative wheel slip")
+    slip_correlation_time: float = param(0.5, unit="s", gt=0.0, doc="slip is an AR(1) process")
     backlash: float = param(0.02, unit="rad", ge=0.0, doc="gear backlash per wheel")
     gyro_enabled: bool = param(True)
     gyro_bias: float = param(0.002, unit="rad/s")

@@ -201,9 +201,14 @@ class RecordingWriter:
         camera = dict(scene.get("camera") or {}) | dataclasses.asdict(intrinsics)
         self._scene = _plain({**scene, "camera": camera})
         self._max_pending = 2 * workers
-        self._staging = make_staging_dir(self.path)
-        (self._staging / "rgb").mkdir()
-        (self._staging / "depth").mkdir()
+        try:
+            self._staging = make_staging_dir(self.path)
+            (self._staging / "rgb").mkdir()
+            (self._staging / "depth").mkdir()
+        except OSError as err:
+            raise SensorError(
+                f"{self.path}: cannot create a recording there ({err.strerror or err})"
+            ) from err
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="png")
         self._pending: deque[Future[None]] = deque()
         self._frame_stamps: list[int] = []
@@ -357,7 +362,13 @@ class RecordingWriter:
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
+    # Measured on 640x480 simulated frames: 16-bit depth compresses best and fastest without a
+    # row filter (6 ms, ~110 kB); noisy colour with the SUB filter (20 ms vs 45 ms by default).
+    row_filter = (
+        cv2.IMWRITE_PNG_FILTER_NONE if image.dtype == np.uint16 else cv2.IMWRITE_PNG_FILTER_SUB
+    )
+    params = [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION, cv2.IMWRITE_PNG_FILTER, row_filter]
+    ok, buf = cv2.imencode(".png", image, params)
     if not ok:
         raise SensorError(f"{path}: PNG encoding failed")
     path.write_bytes(buf.tobytes())

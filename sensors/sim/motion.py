@@ -176,6 +176,21 @@ def _backlash(angle: np.ndarray, play: float) -> np.ndarray:
     return angle + np.concatenate([[0.0], direction]) * play / 2
 
 
+def correlated_noise(
+    n: int, sigma: float, tau: float, dt: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Stationary first-order Gauss-Markov (AR(1)) samples with std ``sigma`` and correlation
+    time ``tau`` [s]: x_k = a x_(k-1) + sqrt(1 - a^2) sigma n_k, a = exp(-dt / tau)."""
+    from scipy.signal import lfilter
+
+    if n == 0:
+        return np.zeros(0)
+    a = math.exp(-dt / tau)
+    white = rng.standard_normal(n) * sigma * math.sqrt(1 - a * a)
+    white[0] = sigma * rng.standard_normal()  # start in the stationary distribution
+    return lfilter([1.0], [1.0, -a], white)
+
+
 def encoder_counts(
     traj: Trajectory, robot: RobotConfig, sim: SimConfig, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -183,8 +198,9 @@ def encoder_counts(
     true_track = robot.track_width * (1 + sim.track_width_error)
     s_left, s_right = wheel_travel(traj, true_track)
     counts = []
+    dt = 1.0 / sim.physics_rate
     for s, err in ((s_left, sim.wheel_diameter_error[0]), (s_right, sim.wheel_diameter_error[1])):
-        slip = 1 + sim.wheel_slip * rng.standard_normal(len(s))
+        slip = 1 + correlated_noise(len(s), sim.wheel_slip, sim.slip_correlation_time, dt, rng)
         true_radius = robot.wheel_diameter * (1 + err) / 2
         wheel_angle = np.concatenate([[0.0], np.cumsum(s * slip)]) / true_radius
         motor = _backlash(wheel_angle, sim.backlash)

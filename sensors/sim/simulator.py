@@ -129,7 +129,8 @@ def simulate(
     # Camera frames first: with --frames the recording ends at the last frame.
     capture, stamps, dropped = camera_stamps(int(traj.t_ns[-1]), sim, rngs["camera"], frames)
     if frames is not None:
-        traj = traj.truncated(capture[-1] / NS_PER_S)
+        # Keep one encoder period past the last frame so wheel readings bracket every frame.
+        traj = traj.truncated(capture[-1] / NS_PER_S + 1.0 / sim.wheel_rate)
     duration_ns = int(traj.t_ns[-1])
 
     # 2. Encoders, gyro and ground truth, each at its own rate.

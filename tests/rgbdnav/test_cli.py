@@ -95,6 +95,11 @@ def test_set_override_reaches_the_resolved_config(recording: Path, tmp_path: Pat
         ),
         (["simulate", str(HOUSE), "--out", "x", "--frames", "2", "--duration", "1"], "not both"),
         (["odometry", str(REPO / "scenes"), "--out", "x"], "not a recording folder|missing"),
+        (["simulate", str(HOUSE), "--out", "/proc/rgbdnav-test", "--frames", "1"],
+         "/proc/rgbdnav-test"),
+        (["simulate", str(HOUSE), "--out", "x", "--trajectory", "no-such.txt", "--frames", "1"],
+         "no-such.txt"),
+        (["simulate", str(REPO / "README.md"), "--out", "x"], "README.md"),
     ],
 )
 def test_user_mistakes_give_one_clear_line_and_exit_1(args: list[str], message: str,

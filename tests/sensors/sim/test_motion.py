@@ -127,3 +127,14 @@ def test_trajectory_truncation_keeps_the_start() -> None:
     traj = drive_route(load_world(REPO / "scenes" / "house.yaml"), SimConfig())
     short = traj.truncated(2.0)
     assert short.t_ns[-1] <= 2 * NS_PER_S and short.x[0] == traj.x[0]
+
+
+def test_slip_noise_has_the_configured_sigma_and_correlation_time() -> None:
+    from sensors.sim.motion import correlated_noise
+
+    dt, tau = 0.005, 0.5
+    x = correlated_noise(400_000, 0.01, tau, dt, np.random.default_rng(0))
+    assert x.std() == pytest.approx(0.01, rel=0.05)
+    lag = int(tau / dt)
+    corr = np.corrcoef(x[:-lag], x[lag:])[0, 1]
+    assert corr == pytest.approx(math.exp(-1), abs=0.05)
