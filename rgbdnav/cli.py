@@ -132,8 +132,10 @@ def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
 
 @app.command()
 @_known_errors
-def info(source: Annotated[Path, typer.Argument(help="Recording folder or world YAML.")]) -> None:
-    """Say what a recording or world holds: streams, counts, rates, duration, gaps."""
+def info(
+    source: Annotated[Path, typer.Argument(help="Recording, TUM folder, log, bag or world YAML.")],
+) -> None:
+    """Say what a recording, log, bag or world holds: streams, counts, rates, duration, gaps."""
     if not source.exists():
         raise RgbdNavError(f"{source}: no such file or folder")
     if _is_world(source):
@@ -152,17 +154,18 @@ def info(source: Annotated[Path, typer.Argument(help="Recording folder or world 
         typer.echo(f"  start         x={world.start[0]} y={world.start[1]} yaw={world.start[2]}")
         typer.echo(f"  route         {len(world.route)} waypoints, {world.route_length():.1f} m")
         return
-    from sensors.recording import Recording
-    from sensors.stream_stats import describe_recording, format_stats_table
+    from sensors.source import open_source
+    from sensors.stream_stats import format_stats_table, stream_stats
 
-    rec = Recording.open(source)
-    k = rec.intrinsics
-    typer.echo(f"recording {source}")
-    typer.echo(f"  camera {k.width}x{k.height} fx={k.fx} fy={k.fy} cx={k.cx} cy={k.cy} "
-               f"depth_scale={k.depth_scale}; {len(rec)} associated rgb/depth pairs")  # fmt: skip
-    if "world" in rec.scene:
-        typer.echo(f"  simulated world {rec.scene['world']} (seed {rec.scene.get('seed')})")
-    typer.echo(format_stats_table(describe_recording(rec)))
+    src = open_source(source)
+    try:
+        typer.echo(f"{source}: {src.describe()}")
+        stats = [stream_stats(name, stamps) for name, stamps in src.stream_stamps().items()]
+        typer.echo(format_stats_table(stats))
+        if src.skipped:
+            typer.echo(f"skipped while reading: {src.skipped}")
+    finally:
+        src.close()
 
 
 @app.command()

@@ -12,6 +12,7 @@ from sensors.atomic import atomic_write_bytes
 
 MARGIN_PX = 40  # [px] around the drawing
 TARGET_SIZE_PX = 900  # [px] longest side of the drawing area
+LINE_PX = 24  # [px] legend line height
 COLORS_BGR = [(40, 160, 40), (40, 40, 220), (220, 120, 30), (160, 40, 160), (30, 170, 200)]
 
 
@@ -40,7 +41,9 @@ def plot_trajectories(
         hi = np.maximum(hi, [origin[0] + w * resolution, origin[1] + h * resolution])
     span = np.maximum(hi - lo, 1e-3)
     scale = TARGET_SIZE_PX / span.max()  # [px/m]
+    header = LINE_PX * (len(paths) + 1) + MARGIN_PX // 2  # title and legend above the plot
     size = (span * scale).astype(int) + 2 * MARGIN_PX
+    size[1] += header
     img = np.full((size[1], size[0], 3), 255, np.uint8)
 
     def to_px(xy: np.ndarray) -> np.ndarray:
@@ -64,7 +67,7 @@ def plot_trajectories(
         px = to_px(np.column_stack([x, y]))
         cv2.polylines(img, [px.reshape(-1, 1, 2)], False, color, 2, cv2.LINE_AA)
         cv2.circle(img, tuple(int(c) for c in px[0]), 6, color, 2, cv2.LINE_AA)
-        cv2.putText(img, label, (MARGIN_PX + 10, 28 + 24 * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX,
+        cv2.putText(img, label, (MARGIN_PX + 10, 28 + LINE_PX * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX,
                     0.6, color, 2, cv2.LINE_AA)  # fmt: skip
     cv2.putText(img, title, (MARGIN_PX + 10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.65, (0, 0, 0), 2,
                 cv2.LINE_AA)  # fmt: skip

@@ -44,7 +44,7 @@ def test_simulate_writes_a_recording_and_a_run_record(recording: Path) -> None:
 def test_info_describes_a_recording(recording: Path) -> None:
     result = runner.invoke(app, ["info", str(recording)])
     assert result.exit_code == 0
-    assert "45 associated rgb/depth pairs" in result.output
+    assert "45 rgb/depth pairs" in result.output
     assert "wheels" in result.output and "groundtruth" in result.output
 
 

@@ -1,0 +1,98 @@
+"""One protocol for everything rgbdnav reads: recordings, TUM folders, rosbags, CARMEN logs,
+live cameras. Adapters implement :class:`Source`; :func:`open_source` picks one from a path.
+
+A source says which streams it holds (``stream_stamps``) for ``rgbdnav info``, and yields what it
+has: RGB-D frames, wheel encoder readings, IMU samples, laser scans, odometry, ground truth.
+Methods for streams a source does not have return ``None`` (or yield nothing).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from sensors.types import CameraIntrinsics, LaserScan, RgbdFrame, SensorError
+
+
+@dataclass(frozen=True, eq=False)
+class WheelStream:
+    stamps_ns: np.ndarray  # (N,) int64 [ns]
+    left: np.ndarray  # (N,) int64 cumulative encoder positions
+    right: np.ndarray  # (N,) int64
+
+
+@dataclass(frozen=True, eq=False)
+class PoseStream:
+    """Planar poses over time: ground truth, or raw odometry from a log or bag."""
+
+    stamps_ns: np.ndarray  # (N,) int64 [ns]
+    x: np.ndarray  # (N,) [m]
+    y: np.ndarray  # (N,) [m]
+    yaw: np.ndarray  # (N,) [rad]
+    frame: str = "base_link"  # which frame the poses describe (base_link, camera, laser)
+
+
+@dataclass(frozen=True, eq=False)
+class ImuStream:
+    stamps_ns: np.ndarray  # (N,) int64 [ns]
+    gyro_z: np.ndarray  # (N,) [rad/s]
+
+
+@runtime_checkable
+class Source(Protocol):
+    """What every input adapter offers. ``skipped`` counts bad records by reason."""
+
+    path: str
+    skipped: dict[str, int]
+
+    def describe(self) -> str:
+        """One line: kind of source, camera/laser, sizes."""
+        ...
+
+    def stream_stamps(self) -> dict[str, np.ndarray]:
+        """Stamps [ns] of every stream present, e.g. {"rgb": ..., "depth": ..., "wheels": ...}."""
+        ...
+
+    def intrinsics(self) -> CameraIntrinsics | None: ...
+
+    def frames(self) -> Iterator[RgbdFrame]: ...
+
+    def scans(self) -> Iterator[LaserScan]: ...
+
+    def wheels(self) -> WheelStream | None: ...
+
+    def imu(self) -> ImuStream | None: ...
+
+    def odometry(self) -> PoseStream | None: ...
+
+    def groundtruth(self) -> PoseStream | None: ...
+
+    def close(self) -> None: ...
+
+
+Opener = Callable[[Path], "Source | None"]
+_OPENERS: list[tuple[str, Opener]] = []
+
+
+def register_opener(name: str, opener: Opener) -> None:
+    """Adapters register a function that returns a Source for paths it recognises, else None."""
+    _OPENERS.append((name, opener))
+
+
+def open_source(path: str | Path) -> Source:
+    """The first registered adapter that recognises ``path``; a clear error if none does."""
+    import sensors.adapters  # noqa: F401  (registers the built-in adapters)
+
+    p = Path(path)
+    if not p.exists():
+        raise SensorError(f"{p}: no such file or folder")
+    for _name, opener in _OPENERS:
+        src = opener(p)
+        if src is not None:
+            return src
+    kinds = ", ".join(name for name, _ in _OPENERS)
+    raise SensorError(f"{p}: not a source rgbdnav can read (known: {kinds})")
