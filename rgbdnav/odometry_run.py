@@ -15,7 +15,12 @@ from sensors.recording import Recording
 from sensors.sim.world import floor_plan, world_from_dict
 from sensors.tum import write_tum_trajectory
 from sensors.types import Pose2, SensorError
-from slam.diff_drive import integrate_ticks
+from slam.diff_drive import (
+    WheelErrorModel,
+    integrate_ticks,
+    propagate_covariance,
+    wheel_increments,
+)
 from slam.metrics import drift_report, interpolate_poses
 
 CONTACT_SHEET_FRAMES = 4
@@ -41,6 +46,10 @@ def run_odometry(
         gx, gy, gyaw, _ = interpolate_poses(gt[0], gt[1], gt[2], gt[3], stamps[:1])
         start = Pose2(float(gx[0]), float(gy[0]), float(gyaw[0]))
     x, y, yaw = integrate_ticks(left, right, cfg.robot, start)
+    ds, dtheta = wheel_increments(left, right, cfg.robot)
+    cov = propagate_covariance(
+        ds, dtheta, start.yaw, cfg.robot, WheelErrorModel.from_robot(cfg.robot)
+    )
     write_tum_trajectory(run.file("wheel.tum"), stamps, x, y, yaw)
     outputs["wheel odom"] = run.file("wheel.tum")
     # One pose per camera frame, stamped with the frame's stamp.
@@ -61,6 +70,11 @@ def run_odometry(
         "frames": len(rec),
         "wheel_readings": int(len(stamps)),
         "trajectory_poses": int(inside.sum()),
+        "final_pose_sigma": {
+            "x_m": float(np.sqrt(cov[-1, 0, 0])),
+            "y_m": float(np.sqrt(cov[-1, 1, 1])),
+            "yaw_deg": float(np.degrees(np.sqrt(cov[-1, 2, 2]))),
+        },
         "frames_without_odometry": int((~inside).sum()),
     }
     paths = [("wheel odometry", x, y)]
