@@ -28,7 +28,9 @@ class RecordingSource:
     def describe(self) -> str:
         k = self.recording.intrinsics
         world = self.recording.scene.get("world")
-        sim = f", simulated world {world} (seed {self.recording.scene.get('seed')})" if world else ""
+        sim = (
+            f", simulated world {world} (seed {self.recording.scene.get('seed')})" if world else ""
+        )
         return (f"rgbdnav recording, camera {k.width}x{k.height} fx={k.fx:g} fy={k.fy:g} "
                 f"cx={k.cx:g} cy={k.cy:g}, {len(self.recording)} rgb/depth pairs{sim}")  # fmt: skip
 
