@@ -133,11 +133,15 @@ def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
 @app.command()
 @_known_errors
 def info(
-    source: Annotated[Path, typer.Argument(help="Recording, TUM folder, log, bag or world YAML.")],
+    source_text: Annotated[
+        str,
+        typer.Argument(
+            metavar="SOURCE", help="Recording, TUM folder, CARMEN log, bag, .oni, openni://, world."
+        ),
+    ],
 ) -> None:
     """Say what a recording, log, bag or world holds: streams, counts, rates, duration, gaps."""
-    if not source.exists():
-        raise RgbdNavError(f"{source}: no such file or folder")
+    source = Path(source_text)
     if _is_world(source):
         from sensors.sim.world import load_world
 
@@ -157,7 +161,7 @@ def info(
     from sensors.source import open_source
     from sensors.stream_stats import format_stats_table, stream_stats
 
-    src = open_source(source)
+    src = open_source(source_text)
     try:
         typer.echo(f"{source}: {src.describe()}")
         stats = [stream_stats(name, stamps) for name, stamps in src.stream_stamps().items()]

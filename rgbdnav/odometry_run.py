@@ -1,4 +1,5 @@
-"""`rgbdnav odometry`: wheel odometry over a recording, scored against its ground truth."""
+"""`rgbdnav odometry`: wheel odometry of a source, synchronised to its camera frames and scored
+against its ground truth when it has some."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ import numpy as np
 from rgbdnav.config import load_config
 from rgbdnav.report import contact_sheet, plot_trajectories
 from rgbdnav.run_dir import RunDir
-from sensors.recording import Recording
+from sensors.recording_source import RecordingSource
 from sensors.sim.world import floor_plan, world_from_dict
+from sensors.source import Source, open_source
+from sensors.sync import interpolate_wheels, synchronise
 from sensors.tum import write_tum_trajectory
 from sensors.types import Pose2, SensorError
 from slam.diff_drive import (
@@ -27,72 +30,102 @@ CONTACT_SHEET_FRAMES = 4
 
 
 def run_odometry(
-    recording_path: Path, out: Path, config_files: Sequence[Path], overrides: Sequence[str]
+    source_path: Path, out: Path, config_files: Sequence[Path], overrides: Sequence[str]
 ) -> dict[str, Path]:
+    """Wheel odometry of any source with wheel encoders (recording, TUM folder + wheels, bag)."""
     t0 = time.perf_counter()
-    rec = Recording.open(recording_path)
-    # The recording's own robot and camera description sits under the user's files and --set.
-    base = {k: rec.scene[k] for k in ("robot",) if isinstance(rec.scene.get(k), dict)}
+    src = open_source(source_path)
+    try:
+        return _run(src, source_path, out, config_files, overrides, t0)
+    finally:
+        src.close()
+
+
+def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path],
+         overrides: Sequence[str], t0: float) -> dict[str, Path]:  # fmt: skip
+    scene = src.recording.scene if isinstance(src, RecordingSource) else {}
+    # A recording's own robot description sits under the user's files and --set.
+    base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
     cfg = load_config(config_files, overrides, base=base)
     run = RunDir(out)
     outputs = {"config": run.write_config(cfg)}
 
-    stamps, left, right = rec.wheels()
-    if len(stamps) < 2:
-        raise SensorError(f"{recording_path}: wheels.txt has {len(stamps)} readings; need >= 2")
-    gt = rec.groundtruth_planar()
+    wheels = src.wheels()
+    if wheels is None or len(wheels.stamps_ns) < 2:
+        raise SensorError(f"{source_path}: no wheel encoder readings (need at least 2)")
+    stamps, left, right = wheels.stamps_ns, wheels.left, wheels.right
+    gt = src.groundtruth()
     start = Pose2(0.0, 0.0, 0.0)
-    if gt is not None:
-        gx, gy, gyaw, _ = interpolate_poses(gt[0], gt[1], gt[2], gt[3], stamps[:1])
+    if gt is not None and gt.frame == "base_link":
+        gx, gy, gyaw, _ = interpolate_poses(gt.stamps_ns, gt.x, gt.y, gt.yaw, stamps[:1])
         start = Pose2(float(gx[0]), float(gy[0]), float(gyaw[0]))
     x, y, yaw = integrate_ticks(left, right, cfg.robot, start)
     ds, dtheta = wheel_increments(left, right, cfg.robot)
-    cov = propagate_covariance(
-        ds, dtheta, start.yaw, cfg.robot, WheelErrorModel.from_robot(cfg.robot)
-    )
+    model = WheelErrorModel.from_robot(cfg.robot)
+    cov = propagate_covariance(ds, dtheta, start.yaw, cfg.robot, model)
     write_tum_trajectory(run.file("wheel.tum"), stamps, x, y, yaw)
     outputs["wheel odom"] = run.file("wheel.tum")
-    # One pose per camera frame, stamped with the frame's stamp.
-    frame_t = rec.rgb_stamps_ns[rec.rgb_index] if len(rec) else rec.rgb_stamps_ns
-    fx, fy, fyaw, _ = interpolate_poses(stamps, x, y, yaw, frame_t)
-    # Frames a little outside the encoder span hold the nearest pose (sync.max_interpolation_gap);
-    # frames further out get no pose and are counted.
+
+    # 1. Frames: approximate-time sets of colour and depth (message_filters semantics).
+    streams = src.stream_stamps()
+    camera = {k: streams[k] for k in ("rgb", "depth") if k in streams}
+    frame_t = np.zeros(0, dtype=np.int64)
+    sync_stats = None
+    if camera:
+        index, sync_stats = synchronise(
+            camera,
+            int(cfg.sync.slop * 1e9),
+            cfg.sync.queue_size,
+            warn_fraction=cfg.sync.warn_fraction,
+        )
+        lead = "rgb" if "rgb" in camera else next(iter(camera))
+        frame_t = np.asarray(camera[lead])[index[lead]]
+    # 2. One pose per frame, at the frame's stamp, where encoder readings bracket it.
     gap = int(cfg.sync.max_interpolation_gap * 1e9)
-    inside = (frame_t >= stamps[0] - gap) & (frame_t <= stamps[-1] + gap)
-    write_tum_trajectory(run.file("trajectory.tum"), frame_t[inside], fx[inside], fy[inside],
-                         fyaw[inside])  # fmt: skip
+    _, _, ok = interpolate_wheels(stamps, left, right, frame_t, gap)
+    fx, fy, fyaw, _ = interpolate_poses(stamps, x, y, yaw, frame_t)
+    write_tum_trajectory(run.file("trajectory.tum"), frame_t[ok], fx[ok], fy[ok], fyaw[ok])
     outputs["trajectory"] = run.file("trajectory.tum")
 
     summary: dict = {
         "command": "odometry",
-        "source": str(recording_path),
+        "source": str(source_path),
+        "source_kind": src.describe(),
         "estimator": "wheel odometry (diff drive, midpoint integration)",
-        "frames": len(rec),
+        "frames": int(len(frame_t)),
         "wheel_readings": int(len(stamps)),
-        "trajectory_poses": int(inside.sum()),
+        "trajectory_poses": int(ok.sum()),
+        "frames_without_odometry": int((~ok).sum()),
         "final_pose_sigma": {
             "x_m": float(np.sqrt(cov[-1, 0, 0])),
             "y_m": float(np.sqrt(cov[-1, 1, 1])),
             "yaw_deg": float(np.degrees(np.sqrt(cov[-1, 2, 2]))),
         },
-        "frames_without_odometry": int((~inside).sum()),
     }
+    if sync_stats is not None:
+        summary["sync"] = {
+            "sets": sync_stats.sets,
+            "dropped_fraction": sync_stats.dropped_fraction,
+            "mean_spread_ms": sync_stats.mean_spread_ns / 1e6 if sync_stats.sets else None,
+            "streams": {name: dict(vars(st)) for name, st in sync_stats.streams.items()},
+        }
     paths = [("wheel odometry", x, y)]
-    if gt is not None:
-        report = drift_report(stamps, (x, y, yaw), gt[0], (gt[1], gt[2], gt[3]))
+    if gt is not None and gt.frame == "base_link":
+        report = drift_report(stamps, (x, y, yaw), gt.stamps_ns, (gt.x, gt.y, gt.yaw))
         summary["wheel_odometry_vs_groundtruth"] = report.as_dict()
-        paths.insert(0, ("ground truth", gt[1], gt[2]))
+        paths.insert(0, ("ground truth", gt.x, gt.y))
     plan = None
-    if isinstance(rec.scene.get("world_description"), dict):
-        plan = floor_plan(world_from_dict(rec.scene["world_description"]))
+    if isinstance(scene.get("world_description"), dict):
+        plan = floor_plan(world_from_dict(scene["world_description"]))
     plot_trajectories(
-        run.file("trajectory.png"), paths, f"{recording_path.name}: wheel odometry",
+        run.file("trajectory.png"), paths, f"{source_path.name}: wheel odometry",
         occupied=None if plan is None else plan.occupied,
         origin=(0.0, 0.0) if plan is None else (plan.origin_x, plan.origin_y),
         resolution=0.05 if plan is None else plan.resolution,
     )  # fmt: skip
     outputs["picture"] = run.file("trajectory.png")
-    if len(rec):
+    if isinstance(src, RecordingSource) and len(src.recording):
+        rec = src.recording
         pick = np.linspace(0, len(rec) - 1, CONTACT_SHEET_FRAMES).round().astype(int)
         frames = [(f.rgb, f.depth_m) for f in (rec.frame(int(k)) for k in np.unique(pick))]
         contact_sheet(run.file("frames.png"), frames)

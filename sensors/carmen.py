@@ -538,7 +538,9 @@ class CarmenSource:
         self.skipped: dict[str, int] = dict(self.log.skipped)
 
     @classmethod
-    def try_open(cls, path: Path) -> CarmenSource | None:
+    def try_open(cls, path: Path | str) -> CarmenSource | None:
+        if not isinstance(path, Path):  # device URIs are not logs
+            return None
         suffix_ok = path.suffix.lower() in CARMEN_SUFFIXES
         if not (path.is_file() and suffix_ok and _sniff(path)):
             return None

@@ -20,8 +20,13 @@ class RecordingSource:
         self.skipped: dict[str, int] = {}
 
     @classmethod
-    def try_open(cls, path: Path) -> RecordingSource | None:
-        if path.is_dir() and (path / "scene.yaml").is_file() and (path / "rgb.txt").is_file():
+    def try_open(cls, path: Path | str) -> RecordingSource | None:
+        if (
+            isinstance(path, Path)
+            and path.is_dir()
+            and (path / "scene.yaml").is_file()
+            and (path / "rgb.txt").is_file()
+        ):
             return cls(Recording.open(path))
         return None
 

@@ -8,6 +8,7 @@ Methods for streams a source does not have return ``None`` (or yield nothing).
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,7 +75,8 @@ class Source(Protocol):
     def close(self) -> None: ...
 
 
-Opener = Callable[[Path], "Source | None"]
+Opener = Callable[[Path | str], "Source | None"]
+_URI = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")  # pseudo-paths such as openni://
 _OPENERS: list[tuple[str, Opener]] = []
 
 
@@ -87,6 +89,15 @@ def open_source(path: str | Path) -> Source:
     """The first registered adapter that recognises ``path``; a clear error if none does."""
     import sensors.adapters  # noqa: F401  (registers the built-in adapters)
 
+    kinds = ", ".join(name for name, _ in _OPENERS)
+    text = str(path)
+    if isinstance(path, str) and _URI.match(text):
+        # A device URI: no file to check, and Path() would collapse its double slashes.
+        for _name, opener in _OPENERS:
+            src = opener(text)
+            if src is not None:
+                return src
+        raise SensorError(f"{text}: no adapter for this URI (known: {kinds})")
     p = Path(path)
     if not p.exists():
         raise SensorError(f"{p}: no such file or folder")
@@ -94,5 +105,4 @@ def open_source(path: str | Path) -> Source:
         src = opener(p)
         if src is not None:
             return src
-    kinds = ", ".join(name for name, _ in _OPENERS)
     raise SensorError(f"{p}: not a source rgbdnav can read (known: {kinds})")

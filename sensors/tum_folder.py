@@ -280,10 +280,10 @@ class TumFolderSource:
         self._intrinsics, self.intrinsics_source = self._resolve_intrinsics(default_scale)
 
     @classmethod
-    def try_open(cls, path: Path) -> TumFolderSource | None:
+    def try_open(cls, path: Path | str) -> TumFolderSource | None:
         """A source for a TUM-style folder; None for anything else, including our recordings
-        (they hold ``scene.yaml`` and have their own adapter)."""
-        if not path.is_dir() or (path / "scene.yaml").is_file():
+        (they hold ``scene.yaml`` and have their own adapter) and device URIs."""
+        if not isinstance(path, Path) or not path.is_dir() or (path / "scene.yaml").is_file():
             return None
         tum = (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
         return cls(path) if tum or (path / "rgbd.match").is_file() else None

@@ -94,11 +94,15 @@ def test_set_override_reaches_the_resolved_config(recording: Path, tmp_path: Pat
             "sim.warp_speed: unknown key",
         ),
         (["simulate", str(HOUSE), "--out", "x", "--frames", "2", "--duration", "1"], "not both"),
-        (["odometry", str(REPO / "scenes"), "--out", "x"], "not a recording folder|missing"),
-        (["simulate", str(HOUSE), "--out", "/proc/rgbdnav-test", "--frames", "1"],
-         "/proc/rgbdnav-test"),
-        (["simulate", str(HOUSE), "--out", "x", "--trajectory", "no-such.txt", "--frames", "1"],
-         "no-such.txt"),
+        (["odometry", str(REPO / "scenes"), "--out", "x"], "not a source rgbdnav can read"),
+        (
+            ["simulate", str(HOUSE), "--out", "/proc/rgbdnav-test", "--frames", "1"],
+            "/proc/rgbdnav-test",
+        ),
+        (
+            ["simulate", str(HOUSE), "--out", "x", "--trajectory", "no-such.txt", "--frames", "1"],
+            "no-such.txt",
+        ),
         (["simulate", str(REPO / "README.md"), "--out", "x"], "README.md"),
     ],
 )

@@ -24,7 +24,9 @@ def test_a_missing_path_is_named() -> None:
 def test_an_unknown_file_lists_what_can_be_read(tmp_path: Path) -> None:
     f = tmp_path / "notes.xyz"
     f.write_text("hello")
-    with pytest.raises(SensorError, match="not a source rgbdnav can read .known: rgbdnav recording"):
+    with pytest.raises(
+        SensorError, match="not a source rgbdnav can read .known: rgbdnav recording"
+    ):
         open_source(f)
 
 
@@ -40,3 +42,14 @@ def test_a_recording_opens_as_a_source_with_all_its_streams(tmp_path: Path) -> N
     assert wheels is not None and gt is not None and gt.frame == "base_link"
     assert np.all(np.diff(wheels.stamps_ns) > 0)
     assert list(src.scans()) == [] and src.odometry() is None
+
+
+def test_a_device_uri_reaches_the_openni_adapter_with_install_advice() -> None:
+    # No OpenNI2 here (or no device): one clear error, never a traceback from file adapters.
+    with pytest.raises(SensorError, match="(?i)openni"):
+        open_source("openni://")
+
+
+def test_an_unknown_uri_scheme_is_refused_by_name() -> None:
+    with pytest.raises(SensorError, match="gopher://x: no adapter for this URI"):
+        open_source("gopher://x")
