@@ -35,6 +35,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/bench_simulator.py --out docs/benchmarks.md
+	$(PY) bench/bench_readers.py --out docs/benchmarks.md
+	$(PY) bench/bench_serial.py --out docs/benchmarks.md
+	$(PY) bench/bench_sync.py --out docs/benchmarks.md
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check sensors slam nav rgbdnav tests bench

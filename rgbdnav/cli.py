@@ -139,6 +139,8 @@ def info(
             metavar="SOURCE", help="Recording, TUM folder, CARMEN log, bag, .oni, openni://, world."
         ),
     ],
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ) -> None:
     """Say what a recording, log, bag or world holds: streams, counts, rates, duration, gaps."""
     source = Path(source_text)
@@ -158,10 +160,11 @@ def info(
         typer.echo(f"  start         x={world.start[0]} y={world.start[1]} yaw={world.start[2]}")
         typer.echo(f"  route         {len(world.route)} waypoints, {world.route_length():.1f} m")
         return
+    from rgbdnav.config import load_config, source_options
     from sensors.source import open_source
     from sensors.stream_stats import format_stats_table, stream_stats
 
-    src = open_source(source_text)
+    src = open_source(source_text, source_options(load_config(config or [], set_ or [])))
     try:
         typer.echo(f"{source}: {src.describe()}")
         stats = [stream_stats(name, stamps) for name, stamps in src.stream_stamps().items()]
@@ -238,6 +241,37 @@ def odometry(
     typer.echo(f"source      {source} (recording: {recording})")
     for label, path in outputs.items():
         typer.echo(f"{label:<11} {path}")
+
+
+@app.command()
+@_known_errors
+def board(
+    port: Annotated[str | None, typer.Argument(help="Serial port or pyserial URL.")] = None,
+    emulator: Annotated[
+        bool, typer.Option(help="Talk to the built-in board emulator on a pseudo-terminal.")
+    ] = False,
+    test_drive: Annotated[
+        bool, typer.Option(help="Drive forward at 0.1 m/s for 1 s and measure it. Lift the robot!")
+    ] = False,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Check an Eddie control board: firmware, battery, encoders, round-trip time."""
+    from rgbdnav.board_check import check_board
+    from rgbdnav.config import load_config
+
+    cfg = load_config(config or [], set_ or [])
+    if emulator:
+        from sensors.eddie_emulator import EddieEmulator
+
+        emu = EddieEmulator(cfg.robot)
+        try:
+            report = check_board(emu.serve_pty(), cfg.board, cfg.robot, test_drive)
+        finally:
+            emu.close()
+    else:
+        report = check_board(port or cfg.board.port, cfg.board, cfg.robot, test_drive)
+    typer.echo(report.text())
 
 
 def main() -> None:

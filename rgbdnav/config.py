@@ -24,9 +24,11 @@ from sensors.config import (
     RobotConfig,
     SimConfig,
     SyncConfig,
+    TopicsConfig,
     build_section,
     section_to_dict,
 )
+from sensors.source import SourceOptions
 from sensors.types import ConfigError
 from slam.config import (
     DepthToScanConfig,
@@ -54,6 +56,7 @@ class Config:
     follower: FollowerConfig = field(default_factory=FollowerConfig)
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     board: BoardConfig = field(default_factory=BoardConfig)
+    topics: TopicsConfig = field(default_factory=TopicsConfig)
     sim: SimConfig = field(default_factory=SimConfig)
 
 
@@ -145,3 +148,10 @@ def write_config(cfg: Config, path: Path) -> None:
         config_to_dict(cfg), sort_keys=False, default_flow_style=None
     )
     atomic_write_text(path, text)
+
+
+def source_options(cfg: Config, strict: bool = False) -> SourceOptions:
+    """What adapters need from the configuration (rosbag topics, robot, camera)."""
+    return SourceOptions(
+        topics=section_to_dict(cfg.topics), robot=cfg.robot, camera=cfg.camera, strict=strict
+    )

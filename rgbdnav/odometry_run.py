@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdnav.config import load_config
+from rgbdnav.config import load_config, source_options
 from rgbdnav.report import contact_sheet, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from sensors.recording_source import RecordingSource
@@ -34,7 +34,8 @@ def run_odometry(
 ) -> dict[str, Path]:
     """Wheel odometry of any source with wheel encoders (recording, TUM folder + wheels, bag)."""
     t0 = time.perf_counter()
-    src = open_source(source_path)
+    cfg = load_config(config_files, overrides)
+    src = open_source(source_path, source_options(cfg))
     try:
         return _run(src, source_path, out, config_files, overrides, t0)
     finally:

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sensors.source import ImuStream, PoseStream, WheelStream
+from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
 from sensors.types import (
     CameraIntrinsics,
     LaserScan,
@@ -538,13 +538,15 @@ class CarmenSource:
         self.skipped: dict[str, int] = dict(self.log.skipped)
 
     @classmethod
-    def try_open(cls, path: Path | str) -> CarmenSource | None:
+    def try_open(
+        cls, path: Path | str, options: SourceOptions | None = None
+    ) -> CarmenSource | None:
         if not isinstance(path, Path):  # device URIs are not logs
             return None
         suffix_ok = path.suffix.lower() in CARMEN_SUFFIXES
         if not (path.is_file() and suffix_ok and _sniff(path)):
             return None
-        return cls(path)
+        return cls(path, strict=options.strict if options else False)
 
     def describe(self) -> str:
         lg = self.log

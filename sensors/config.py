@@ -217,6 +217,19 @@ class SyncConfig:
 
 
 @dataclass(frozen=True)
+class TopicsConfig:
+    """ROS topic per role when reading rosbags. A role left at its default falls back to the
+    bag's unique topic of the right message type when the default topic is absent."""
+
+    rgb: str = param("/camera/rgb/image_color", doc="sensor_msgs/Image or CompressedImage")
+    depth: str = param("/camera/depth/image", doc="sensor_msgs/Image 16UC1 [mm] or 32FC1 [m]")
+    camera_info: str = param("/camera/rgb/camera_info", doc="sensor_msgs/CameraInfo")
+    odom: str = param("/odom", doc="nav_msgs/Odometry")
+    imu: str = param("/imu/data", doc="sensor_msgs/Imu")
+    wheels: str = param("/wheel_encoders", doc="Int32MultiArray [left, right] or JointState")
+
+
+@dataclass(frozen=True)
 class BoardConfig:
     """Parallax Eddie control board on a serial line."""
 

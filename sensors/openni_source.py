@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from sensors.config import CameraConfig, SyncConfig
-from sensors.source import ImuStream, PoseStream, WheelStream
+from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
 from sensors.types import CameraIntrinsics, LaserScan, RgbdFrame, SensorError, seconds_to_ns
 
 log = logging.getLogger(__name__)
@@ -313,9 +313,12 @@ class OpenNISource:
     # --- opening ------------------------------------------------------------------------------
 
     @classmethod
-    def try_open(cls, path: Path | str) -> OpenNISource | None:
+    def try_open(
+        cls, path: Path | str, options: SourceOptions | None = None
+    ) -> OpenNISource | None:
         target = parse_target(path)
-        return None if target is None else cls.open(target)
+        camera = options.camera if options else None
+        return None if target is None else cls.open(target, camera=camera)
 
     @classmethod
     def open(

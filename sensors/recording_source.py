@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from sensors.recording import Recording
-from sensors.source import ImuStream, PoseStream, WheelStream
+from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
 from sensors.types import CameraIntrinsics, LaserScan, RgbdFrame
 
 
@@ -20,14 +20,16 @@ class RecordingSource:
         self.skipped: dict[str, int] = {}
 
     @classmethod
-    def try_open(cls, path: Path | str) -> RecordingSource | None:
+    def try_open(
+        cls, path: Path | str, options: SourceOptions | None = None
+    ) -> RecordingSource | None:
         if (
             isinstance(path, Path)
             and path.is_dir()
             and (path / "scene.yaml").is_file()
             and (path / "rgb.txt").is_file()
         ):
-            return cls(Recording.open(path))
+            return cls(Recording.open(path), skip_bad=not (options and options.strict))
         return None
 
     def describe(self) -> str:

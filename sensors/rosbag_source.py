@@ -56,7 +56,7 @@ import numpy as np
 
 from sensors.config import CameraConfig, RobotConfig, SyncConfig
 from sensors.recording import associate
-from sensors.source import ImuStream, PoseStream, WheelStream
+from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
 from sensors.tum import yaw_from_quaternion
 from sensors.types import (
     NS_PER_S,
@@ -600,9 +600,18 @@ class RosbagSource:
     # --- opening ------------------------------------------------------------------------------
 
     @classmethod
-    def try_open(cls, path: Path | str) -> RosbagSource | None:
+    def try_open(
+        cls, path: Path | str, options: SourceOptions | None = None
+    ) -> RosbagSource | None:
         p = Path(path)
-        return cls.open(p) if looks_like_rosbag(p) else None
+        if not looks_like_rosbag(p):
+            return None
+        if options is None:
+            return cls.open(p)
+        topics = RosbagTopics(**options.topics) if options.topics else None
+        # Intrinsics from the user's camera config only stand in when the bag has no CameraInfo.
+        return cls.open(p, topics, strict=options.strict, robot=options.robot,
+                        camera=options.camera)  # fmt: skip
 
     @classmethod
     def open(

@@ -9,13 +9,14 @@ Methods for streams a source does not have return ``None`` (or yield nothing).
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from sensors.config import CameraConfig, RobotConfig
 from sensors.types import CameraIntrinsics, LaserScan, RgbdFrame, SensorError
 
 
@@ -75,7 +76,17 @@ class Source(Protocol):
     def close(self) -> None: ...
 
 
-Opener = Callable[[Path | str], "Source | None"]
+@dataclass(frozen=True)
+class SourceOptions:
+    """What the user's configuration tells adapters; each adapter uses what applies to it."""
+
+    topics: Mapping[str, str] | None = None  # rosbag topic per role (TopicsConfig fields)
+    robot: RobotConfig | None = None  # wheel geometry, e.g. for JointState wheel angles
+    camera: CameraConfig | None = None  # intrinsics when a source carries none
+    strict: bool = False  # raise on the first bad record instead of counting skips
+
+
+Opener = Callable[[Path | str, SourceOptions], "Source | None"]
 _URI = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")  # pseudo-paths such as openni://
 _OPENERS: list[tuple[str, Opener]] = []
 
@@ -85,16 +96,17 @@ def register_opener(name: str, opener: Opener) -> None:
     _OPENERS.append((name, opener))
 
 
-def open_source(path: str | Path) -> Source:
+def open_source(path: str | Path, options: SourceOptions | None = None) -> Source:
     """The first registered adapter that recognises ``path``; a clear error if none does."""
     import sensors.adapters  # noqa: F401  (registers the built-in adapters)
 
+    opts = options or SourceOptions()
     kinds = ", ".join(name for name, _ in _OPENERS)
     text = str(path)
     if isinstance(path, str) and _URI.match(text):
         # A device URI: no file to check, and Path() would collapse its double slashes.
         for _name, opener in _OPENERS:
-            src = opener(text)
+            src = opener(text, opts)
             if src is not None:
                 return src
         raise SensorError(f"{text}: no adapter for this URI (known: {kinds})")
@@ -102,7 +114,7 @@ def open_source(path: str | Path) -> Source:
     if not p.exists():
         raise SensorError(f"{p}: no such file or folder")
     for _name, opener in _OPENERS:
-        src = opener(p)
+        src = opener(p, opts)
         if src is not None:
             return src
     raise SensorError(f"{p}: not a source rgbdnav can read (known: {kinds})")

@@ -34,7 +34,7 @@ import numpy as np
 import yaml
 
 from sensors.recording import DEFAULT_MAX_DIFFERENCE_NS, associate, counts_to_depth
-from sensors.source import ImuStream, PoseStream, WheelStream
+from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
 from sensors.tum import load_tum_trajectory, read_stamped_text, yaw_from_quaternion
 from sensors.types import (
     NS_PER_S,
@@ -280,13 +280,16 @@ class TumFolderSource:
         self._intrinsics, self.intrinsics_source = self._resolve_intrinsics(default_scale)
 
     @classmethod
-    def try_open(cls, path: Path | str) -> TumFolderSource | None:
+    def try_open(
+        cls, path: Path | str, options: SourceOptions | None = None
+    ) -> TumFolderSource | None:
         """A source for a TUM-style folder; None for anything else, including our recordings
         (they hold ``scene.yaml`` and have their own adapter) and device URIs."""
         if not isinstance(path, Path) or not path.is_dir() or (path / "scene.yaml").is_file():
             return None
         tum = (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
-        return cls(path) if tum or (path / "rgbd.match").is_file() else None
+        strict = options.strict if options else False
+        return cls(path, strict=strict) if tum or (path / "rgbd.match").is_file() else None
 
     def __len__(self) -> int:
         return int(self.rgb_index.size)

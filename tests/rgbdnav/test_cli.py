@@ -128,3 +128,21 @@ def test_console_script_prints_no_traceback_for_a_bad_config(tmp_path: Path) -> 
     assert proc.returncode == 1
     assert "Traceback" not in proc.stderr
     assert f"{bad}: ekf.frequency: expected a number" in proc.stderr
+
+
+def test_board_check_talks_to_the_emulator_and_test_drives() -> None:
+    result = runner.invoke(app, ["board", "--emulator", "--test-drive"])
+    assert result.exit_code == 0, result.output
+    assert "firmware" in result.output and "battery" in result.output
+    # 0.1 m/s for 1 s on 13.3 mm positions: about 8 positions per wheel.
+    import re
+
+    m = re.search(r"left (\d+), right (\d+) positions = ([0-9.]+) m", result.output)
+    assert m is not None
+    assert 0.05 < float(m.group(3)) < 0.15
+
+
+def test_board_check_names_a_missing_port() -> None:
+    result = runner.invoke(app, ["board", "/dev/rgbdnav-no-such-port"])
+    assert result.exit_code == 1
+    assert "cannot open Eddie board at /dev/rgbdnav-no-such-port" in result.output

@@ -583,3 +583,21 @@ def test_try_open_does_not_import_rosbags_for_other_paths(tmp_path):
         "assert not any(m.startswith('rosbags') for m in sys.modules), 'rosbags imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO)
+
+
+def test_topics_from_the_user_config_reach_the_adapter_through_open_source(tmp_path):
+    from rgbdnav.config import load_config, source_options
+    from sensors.source import open_source
+
+    path = tmp_path / "two_odoms.bag"
+    with write_bag(path, "bag") as bag:
+        bag.write("/a/odom", "nav_msgs/msg/Odometry", T0, bag.odometry(T0, 1.0, 0.0, 0.0))
+        bag.write("/b/odom", "nav_msgs/msg/Odometry", T0, bag.odometry(T0, 2.0, 0.0, 0.0))
+    # Two candidates: auto-detection must not guess ...
+    with open_source(path, source_options(load_config())) as src:
+        assert src.odometry() is None
+    # ... and `--set topics.odom=/b/odom` picks one.
+    cfg = load_config(overrides=["topics.odom=/b/odom"])
+    with open_source(path, source_options(cfg)) as src:
+        odom = src.odometry()
+        assert odom is not None and odom.x.tolist() == [2.0]
