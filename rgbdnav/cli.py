@@ -274,6 +274,40 @@ def board(
     typer.echo(report.text())
 
 
+@app.command("eval")
+@_known_errors
+def eval_(
+    trajectory: Annotated[
+        Path, typer.Argument(metavar="TRAJ", help="Estimated TUM trajectory, or a run directory.")
+    ],
+    reference: Annotated[Path, typer.Option("--reference", "-r", help="Reference TUM trajectory.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    align: Annotated[
+        str, typer.Option(help="Alignment: se3 (TUM ATE), sim3 (monocular), se2 (planar), none.")
+    ] = "se3",
+    max_diff: Annotated[
+        float, typer.Option(help="Association window [s] (TUM associate.py).")
+    ] = 0.02,
+    delta: Annotated[float, typer.Option(help="RPE pose-pair distance.")] = 1.0,
+    delta_unit: Annotated[
+        str, typer.Option(help="Unit of --delta: m (along the reference) or frames.")
+    ] = "m",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Score a trajectory against a reference: ATE and RPE (TUM RGB-D benchmark / evo method)."""
+    _setup_logging(verbose)
+    from rgbdnav.eval_run import format_report, run_eval
+
+    summary = run_eval(
+        trajectory, reference, out, align=align, max_diff_s=max_diff, delta=delta,
+        delta_unit=delta_unit, config_files=config or [], overrides=set_ or [],
+    )  # fmt: skip
+    typer.echo(format_report(summary))
+    typer.echo(f"wrote {out / 'summary.json'} and {out / 'ate.png'}")
+
+
 def main() -> None:
     try:
         app()

@@ -1,0 +1,223 @@
+"""`rgbdnav eval`: ATE and RPE of a TUM trajectory against a reference, written to a run directory.
+
+I/O lives here; the metrics are the pure kernels of :mod:`slam.trajectory_eval`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import cast
+
+import numpy as np
+
+from rgbdnav.config import load_config
+from rgbdnav.report import plot_trajectories
+from rgbdnav.run_dir import RunDir
+from sensors.tum import TRAJECTORY_COLUMNS, StampedText
+from sensors.types import NS_PER_S, SensorError, format_stamp, parse_stamp
+from slam.trajectory_eval import (
+    ALIGN_MODES,
+    DELTA_UNITS,
+    AlignMode,
+    DeltaUnit,
+    TrajectoryEvalError,
+    TrajectoryEvaluation,
+    evaluate,
+    poses_from_tum,
+)
+
+log = logging.getLogger(__name__)
+
+RUN_TRAJECTORY = "trajectory.tum"  # what a run directory holds (see RunDir)
+RAD_TO_DEG = 180.0 / np.pi
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A TUM trajectory as read: sorted unique stamps, positions and quaternions."""
+
+    path: Path
+    stamps_ns: np.ndarray  # (N,) int64 [ns], strictly increasing
+    xyz: np.ndarray  # (N, 3) [m]
+    quat_xyzw: np.ndarray  # (N, 4)
+    repeated_stamps: int  # lines dropped because a later line had the same stamp
+
+
+def read_trajectory(path: Path) -> Trajectory:
+    """Read a TUM trajectory the way the TUM benchmark tools do (into a dict keyed by stamp):
+    lines may come in any order, and a repeated stamp keeps its last line. The official
+    fr2/desk ground truth has such a repeat. Malformed lines are errors naming file:line."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / RUN_TRAJECTORY
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise SensorError(f"{path}: cannot read: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise SensorError(f"{path}: not a text file: {err}") from err
+    stamps: list[int] = []
+    values: list[list[str]] = []
+    lines: list[int] = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        tokens = line.split()
+        if len(tokens) != len(TRAJECTORY_COLUMNS):
+            raise SensorError(
+                f"{path}:{number}: expected {len(TRAJECTORY_COLUMNS)} fields "
+                f"({' '.join(TRAJECTORY_COLUMNS)}), got {len(tokens)}: {line!r}"
+            )
+        try:
+            stamps.append(parse_stamp(tokens[0]))
+        except ValueError as err:
+            raise SensorError(f"{path}:{number}: bad timestamp: {err}") from err
+        values.append(tokens[1:])
+        lines.append(number)
+    if not stamps:
+        raise SensorError(f"{path}: no poses (expected lines '{' '.join(TRAJECTORY_COLUMNS)}')")
+    table = StampedText(path, np.array(stamps, np.int64), values, np.array(lines, np.int64))
+    data = table.numeric(np.float64, "pose (tx ty tz qx qy qz qw)")
+    norms = np.linalg.norm(data[:, 3:], axis=1)
+    if (bad := np.flatnonzero(norms < 1e-9)).size:
+        raise SensorError(f"{path}:{lines[bad[0]]}: quaternion has zero length")
+    # Sort by stamp (stable), then keep the last line of each run of equal stamps.
+    order = np.argsort(table.stamps_ns, kind="stable")
+    sorted_ns = table.stamps_ns[order]
+    last = np.append(sorted_ns[1:] != sorted_ns[:-1], True)
+    keep = order[last]
+    repeated = int(len(order) - keep.size)
+    if repeated:
+        log.warning("%s: %d repeated timestamp(s); kept the last line of each", path, repeated)
+    return Trajectory(path, table.stamps_ns[keep], data[keep, :3], data[keep, 3:], repeated)
+
+
+def _span(t: Trajectory) -> str:
+    return f"{format_stamp(int(t.stamps_ns[0]))}..{format_stamp(int(t.stamps_ns[-1]))} s"
+
+
+def evaluate_files(
+    estimate: Trajectory,
+    reference: Trajectory,
+    align: str,
+    max_diff_s: float,
+    delta: float,
+    delta_unit: str,
+) -> TrajectoryEvaluation:
+    """Run the kernels, turning "no overlap" into an error that names both files and spans."""
+    if align not in ALIGN_MODES:
+        raise TrajectoryEvalError(f"--align {align!r}: use one of {', '.join(ALIGN_MODES)}")
+    if delta_unit not in DELTA_UNITS:
+        raise TrajectoryEvalError(
+            f"--delta-unit {delta_unit!r}: use one of {', '.join(DELTA_UNITS)}"
+        )
+    max_diff_ns = int(round(max_diff_s * NS_PER_S))
+    if max_diff_ns <= 0:
+        raise TrajectoryEvalError(f"--max-diff must be > 0 s, got {max_diff_s}")
+    try:
+        return evaluate(
+            estimate.stamps_ns, poses_from_tum(estimate.xyz, estimate.quat_xyzw),
+            reference.stamps_ns, poses_from_tum(reference.xyz, reference.quat_xyzw),
+            align_mode=cast(AlignMode, align), max_diff_ns=max_diff_ns, delta=delta,
+            delta_unit=cast(DeltaUnit, delta_unit),
+        )  # fmt: skip
+    except TrajectoryEvalError as err:
+        raise TrajectoryEvalError(
+            f"{estimate.path} ({_span(estimate)}) vs {reference.path} ({_span(reference)}), "
+            f"max difference {max_diff_s} s: {err}"
+        ) from err
+
+
+def summary_of(result: TrajectoryEvaluation, estimate: Trajectory, reference: Trajectory,
+               align: str, max_diff_s: float, delta: float, delta_unit: str) -> dict:  # fmt: skip
+    """The summary.json content; flat ``ate_rmse_m`` etc. for scripts, full statistics nested."""
+    summary: dict = {
+        "command": "eval",
+        "estimate": str(estimate.path),
+        "reference": str(reference.path),
+        "estimate_poses": int(len(estimate.stamps_ns)),
+        "reference_poses": int(len(reference.stamps_ns)),
+        "repeated_stamps": {
+            "estimate": estimate.repeated_stamps,
+            "reference": reference.repeated_stamps,
+        },  # fmt: skip
+        "matched": result.matched,
+        "max_diff_s": max_diff_s,
+        "align": align,
+        "alignment": result.alignment.as_dict(),
+        "ate_rmse_m": result.ate.rmse,
+        "ate_m": result.ate.as_dict(),
+        "rpe_delta": delta,
+        "rpe_delta_unit": delta_unit,
+    }
+    if result.rpe_trans is not None and result.rpe_rot is not None:
+        summary["rpe_trans_rmse_m"] = result.rpe_trans.rmse
+        summary["rpe_rot_rmse_deg"] = result.rpe_rot.rmse * RAD_TO_DEG
+        summary["rpe_trans_m"] = result.rpe_trans.as_dict()
+        summary["rpe_rot_deg"] = result.rpe_rot.scaled(RAD_TO_DEG).as_dict()
+    return summary
+
+
+def format_report(summary: dict) -> str:
+    """Human-readable lines for the terminal."""
+    out = [
+        f"matched     {summary['matched']} of {summary['estimate_poses']} estimate poses "
+        f"(max difference {summary['max_diff_s']} s)",
+        f"alignment   {summary['align']} (scale {summary['alignment']['scale']:.6f})",
+    ]
+    ate = summary["ate_m"]
+    out.append(
+        f"ATE [m]     rmse {ate['rmse']:.6f}  mean {ate['mean']:.6f}  "
+        f"median {ate['median']:.6f}  std {ate['std']:.6f}  max {ate['max']:.6f}"
+    )
+    per = f"per {summary['rpe_delta']:g} {summary['rpe_delta_unit']}"
+    if "rpe_trans_m" in summary:
+        t, r = summary["rpe_trans_m"], summary["rpe_rot_deg"]
+        out.append(f"RPE [m]     rmse {t['rmse']:.6f}  mean {t['mean']:.6f}  max {t['max']:.6f}"
+                   f"  ({t['count']} pairs, {per})")  # fmt: skip
+        out.append(f"RPE [deg]   rmse {r['rmse']:.4f}  mean {r['mean']:.4f}  max {r['max']:.4f}")
+    else:
+        out.append(f"RPE         no pose pairs {per}: the trajectory is shorter than the delta")
+    return "\n".join(out)
+
+
+def run_eval(
+    estimate_path: Path,
+    reference_path: Path,
+    out: Path,
+    *,
+    align: str = "se3",
+    max_diff_s: float = 0.02,
+    delta: float = 1.0,
+    delta_unit: str = "m",
+    config_files: Sequence[Path] = (),
+    overrides: Sequence[str] = (),
+) -> dict:
+    """Evaluate, write ``config.yaml``, ``summary.json`` and ``ate.png`` to ``out``; return the
+    summary."""
+    t0 = time.perf_counter()
+    cfg = load_config(list(config_files), list(overrides))
+    estimate = read_trajectory(estimate_path)
+    reference = read_trajectory(reference_path)
+    result = evaluate_files(estimate, reference, align, max_diff_s, delta, delta_unit)
+    summary = summary_of(result, estimate, reference, align, max_diff_s, delta, delta_unit)
+
+    run = RunDir(out)
+    run.write_config(cfg)
+    ref, est = result.ref_xyz, result.est_aligned_xyz
+    plot_trajectories(
+        run.file("ate.png"),
+        [
+            ("reference", ref[:, 0], ref[:, 1]),
+            (f"estimate ({align} aligned)", est[:, 0], est[:, 1]),
+        ],
+        f"{estimate.path.name}: ATE rmse {result.ate.rmse:.4f} m",
+    )
+    summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
+    run.write_summary(summary)
+    return summary

@@ -1,0 +1,135 @@
+"""`rgbdnav eval` as a user meets it: check values, run directory, one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from rgbdnav.cli import app
+from rgbdnav.eval_run import evaluate_files, read_trajectory
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+TUM = DATA / "tum"
+needs_tum = pytest.mark.skipif(not TUM.is_dir(), reason="shared TUM data not available")
+runner = CliRunner()
+
+
+def _write_tum(path: Path, stamps_s: np.ndarray, xyz: np.ndarray) -> Path:
+    lines = ["# t tx ty tz qx qy qz qw"]
+    lines += [
+        f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} 0 0 0 1"
+        for t, (x, y, z) in zip(stamps_s, xyz, strict=True)
+    ]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture
+def line_pair(tmp_path: Path) -> tuple[Path, Path]:
+    t = np.arange(50) * 0.1
+    xyz = np.column_stack([0.1 * np.arange(50), np.sin(t), np.zeros(50)])
+    return _write_tum(tmp_path / "est.txt", t, xyz), _write_tum(tmp_path / "gt.txt", t, xyz)
+
+
+@needs_tum
+def test_eval_fr1_xyz_writes_the_tum_check_value_to_summary(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    est, gt = TUM / "freiburg1_xyz-rgbdslam.txt", TUM / "freiburg1_xyz-groundtruth.txt"
+    result = runner.invoke(app, ["eval", str(est), "--reference", str(gt), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ate_rmse_m"] == pytest.approx(0.01347, abs=1e-5)
+    assert summary["matched"] == 786 and summary["align"] == "se3"
+    assert summary["rpe_trans_m"]["count"] > 0
+    assert "ATE [m]     rmse 0.013473" in result.output
+    for name in ("config.yaml", "ate.png"):
+        assert (out / name).stat().st_size > 0, name
+
+
+@needs_tum
+def test_fr2_desk_orb_reproduces_the_tum_check_value_despite_a_repeated_stamp() -> None:
+    reference = read_trajectory(TUM / "fr2_desk_groundtruth.txt")
+    assert reference.repeated_stamps == 1  # the official file repeats 1311868229.576
+    result = evaluate_files(read_trajectory(TUM / "fr2_desk_ORB.txt"), reference, "se3", 0.02,
+                            1.0, "m")  # fmt: skip
+    assert result.ate.rmse == pytest.approx(0.00814, abs=1e-5)
+
+
+@needs_tum
+def test_monocular_keyframes_need_sim3() -> None:
+    est = read_trajectory(TUM / "freiburg1_xyz-ORB_kf_mono.txt")
+    ref = read_trajectory(TUM / "freiburg1_xyz-groundtruth.txt")
+    se3 = evaluate_files(est, ref, "se3", 0.02, 1.0, "m")
+    sim3 = evaluate_files(est, ref, "sim3", 0.02, 1.0, "m")
+    assert sim3.ate.rmse < se3.ate.rmse
+    assert sim3.ate.rmse < 0.02 and sim3.alignment.scale != pytest.approx(1.0, abs=0.01)
+
+
+def test_eval_of_a_trajectory_against_itself_is_zero(line_pair: tuple[Path, Path],
+                                                     tmp_path: Path) -> None:  # fmt: skip
+    est, gt = line_pair
+    out = tmp_path / "run"
+    options = ["--delta", "3", "--delta-unit", "frames", "--align", "sim3"]
+    result = runner.invoke(app, ["eval", str(est), "--reference", str(gt), "--out", str(out),
+                                 *options])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ate_rmse_m"] == pytest.approx(0.0, abs=1e-9)
+    assert summary["rpe_trans_m"]["count"] == 47
+    assert summary["alignment"]["scale"] == pytest.approx(1.0, abs=1e-9)
+
+
+def test_eval_accepts_a_run_directory(line_pair: tuple[Path, Path], tmp_path: Path) -> None:
+    est, gt = line_pair
+    run = tmp_path / "odometry_run"
+    run.mkdir()
+    (run / "trajectory.tum").write_text(est.read_text())
+    result = runner.invoke(app, ["eval", str(run), "--reference", str(gt), "--out",
+                                 str(tmp_path / "out")])  # fmt: skip
+    assert result.exit_code == 0, result.output
+
+
+def _one_line_error(args: list[str]) -> str:
+    result = runner.invoke(app, args)
+    assert result.exit_code == 1, result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    return lines[0]
+
+
+def test_missing_file_is_one_line_and_exit_1(line_pair: tuple[Path, Path], tmp_path: Path) -> None:
+    _, gt = line_pair
+    missing = tmp_path / "nope.txt"
+    line = _one_line_error(["eval", str(missing), "--reference", str(gt), "--out",
+                            str(tmp_path / "out")])  # fmt: skip
+    assert f"{missing}: cannot read" in line
+
+
+def test_malformed_line_names_file_and_line(line_pair: tuple[Path, Path], tmp_path: Path) -> None:
+    est, gt = line_pair
+    text = est.read_text().splitlines()
+    text[3] = text[3].replace(" 0 0 0 1", " 0 0 zero 1")
+    est.write_text("\n".join(text) + "\n")
+    line = _one_line_error(["eval", str(est), "--reference", str(gt), "--out",
+                            str(tmp_path / "out")])  # fmt: skip
+    assert f"{est}:4:" in line and "not valid pose" in line
+
+
+def test_no_overlap_in_time_names_both_files(line_pair: tuple[Path, Path], tmp_path: Path) -> None:
+    est, _ = line_pair
+    late = _write_tum(tmp_path / "late.txt", 100 + np.arange(5) * 0.1, np.zeros((5, 3)))
+    line = _one_line_error(["eval", str(est), "--reference", str(late), "--out",
+                            str(tmp_path / "out")])  # fmt: skip
+    assert str(est) in line and str(late) in line and "no estimate stamp" in line
+
+
+def test_unknown_alignment_is_one_line(line_pair: tuple[Path, Path], tmp_path: Path) -> None:
+    est, gt = line_pair
+    line = _one_line_error(["eval", str(est), "--reference", str(gt), "--align", "se4",
+                            "--out", str(tmp_path / "out")])  # fmt: skip
+    assert "--align 'se4'" in line
