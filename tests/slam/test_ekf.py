@@ -1,0 +1,399 @@
+"""Planar EKF: kernels against hand-computed cases and filterpy, consistency on simulated data,
+and the robot_localization behaviours (gating, differential/relative, timeouts, lagged data)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from filterpy.kalman import predict as fp_predict
+from filterpy.kalman import update as fp_update
+from scipy.stats import chi2
+
+from sensors.config import RobotConfig
+from sensors.types import NS_PER_S, ImuSample, Pose2
+from slam.config import STATE_NAMES, EkfConfig
+from slam.ekf import (
+    PLANAR_INDEX,
+    EkfError,
+    PlanarEkf,
+    PoseInput,
+    TwistInput,
+    angle_residual,
+    fuse,
+    passes_gate,
+    predict,
+    se2_between,
+    sensor_specs,
+    transition,
+    update,
+    wheel_twist_inputs,
+    wrap_angle,
+)
+
+DT_NS = NS_PER_S // 30  # [ns] 30 Hz sensors
+V, W = 0.3, 0.2  # [m/s], [rad/s] the simulated circle
+SIGMA_V, SIGMA_W = 0.01, 0.02  # [m/s], [rad/s] wheel twist noise
+SIGMA_VO = 0.002  # [m] and [rad] VO pose noise per frame
+
+
+def mask(*names: str) -> tuple[bool, ...]:
+    return tuple(n in names for n in STATE_NAMES)
+
+
+def planar15(x: float, y: float, yaw: float, vx: float, vy: float, vyaw: float) -> tuple:
+    """A 15-vector with the planar entries set and tiny values elsewhere."""
+    out = [1e-9] * 15
+    for i, v in zip(PLANAR_INDEX, (x, y, yaw, vx, vy, vyaw), strict=True):
+        out[i] = v
+    return tuple(out)
+
+
+def cfg_with(**kw: Any) -> EkfConfig:
+    return dataclasses.replace(EkfConfig(), **kw)
+
+
+def compose(a: Pose2, b: Pose2) -> Pose2:
+    c, s = math.cos(a.yaw), math.sin(a.yaw)
+    return Pose2(a.x + c * b.x - s * b.y, a.y + s * b.x + c * b.y, wrap_angle(a.yaw + b.yaw))
+
+
+def circle(n: int, seed: int = 0, dt_ns: int = DT_NS):
+    """Truth on a circle, noisy wheel twists and noisy cumulative VO poses (same stamps)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt_ns
+    ts = t / NS_PER_S
+    yaw = W * ts
+    x, y = V / W * np.sin(yaw), V / W * (1 - np.cos(yaw))
+    twist_cov = np.diag([SIGMA_V**2, 1e-4, SIGMA_W**2])
+    twists = [
+        TwistInput(int(t[i]), V + SIGMA_V * rng.standard_normal(), 0.01 * rng.standard_normal(),
+                   W + SIGMA_W * rng.standard_normal(), twist_cov)
+        for i in range(n)
+    ]  # fmt: skip
+    vo_cov = np.eye(3) * SIGMA_VO**2
+    noise = SIGMA_VO * rng.standard_normal((n, 3))
+    poses = [
+        PoseInput(int(t[i]), Pose2(x[i] + noise[i, 0], y[i] + noise[i, 1],
+                                   wrap_angle(yaw[i] + noise[i, 2])), vo_cov)
+        for i in range(n)
+    ]  # fmt: skip
+    return t, (x, y, yaw), twists, poses
+
+
+# --- kernels ----------------------------------------------------------------------------------
+
+
+def test_predict_moves_along_the_heading_and_adds_dt_times_q() -> None:
+    x = np.array([1.0, 2.0, math.pi / 2, 1.0, 0.0, 0.5])
+    q = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    xn, pn = predict(x, np.zeros((6, 6)), 0.1, q)
+    np.testing.assert_allclose(xn, [1.0, 2.1, math.pi / 2 + 0.05, 1.0, 0.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(pn, 0.1 * q, atol=1e-15)
+
+
+def test_predict_covariance_matches_filterpy_with_the_jacobian() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.standard_normal((6, 6))
+    p = a @ a.T
+    q = np.diag(rng.uniform(0.01, 0.1, 6))
+    x = np.array([0.5, -0.2, 0.7, 0.4, 0.1, -0.3])
+    _, f = transition(x, 0.05)
+    _, ref = fp_predict(x, p, f, 0.05 * q)
+    np.testing.assert_allclose(predict(x, p, 0.05, q)[1], ref, rtol=1e-12, atol=1e-12)
+
+
+def test_jacobian_matches_finite_differences() -> None:
+    x = np.array([0.5, -0.2, 0.7, 0.4, 0.1, -0.3])
+    _, f = transition(x, 0.1)
+    eps = 1e-7
+    num = np.column_stack(
+        [(transition(x + eps * e, 0.1)[0] - transition(x - eps * e, 0.1)[0]) / (2 * eps)
+         for e in np.eye(6)]
+    )  # fmt: skip
+    np.testing.assert_allclose(f, num, atol=1e-7)
+
+
+def test_update_1d_matches_hand_computed_values() -> None:
+    # K = 4 / (4 + 1) = 0.8; x = 1 + 0.8 * 2; P = (1 - 0.8)^2 4 + 0.8^2 1 = 0.8
+    x, p, y, s, nis = update(np.array([1.0]), np.array([[4.0]]), np.array([3.0]),
+                             np.array([[1.0]]), np.array([[1.0]]))  # fmt: skip
+    assert x[0] == pytest.approx(2.6, abs=1e-12)
+    assert p[0, 0] == pytest.approx(0.8, abs=1e-12)
+    assert y[0] == pytest.approx(2.0) and s[0, 0] == pytest.approx(5.0)
+    assert nis == pytest.approx(4.0 / 5.0, abs=1e-12)
+
+
+def test_update_2d_matches_filterpy_joseph_form() -> None:
+    rng = np.random.default_rng(2)
+    a = rng.standard_normal((4, 4))
+    p = a @ a.T + np.eye(4)
+    h = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    r = np.array([[0.5, 0.1], [0.1, 0.3]])
+    x = rng.standard_normal(4)
+    z = rng.standard_normal(2)
+    xn, pn, _, s, nis = update(x, p, z, h, r)
+    x_ref, p_ref = fp_update(x, p, z, r, h)
+    np.testing.assert_allclose(xn, x_ref, atol=1e-12)
+    np.testing.assert_allclose(pn, p_ref, atol=1e-12)
+    y = z - h @ x
+    assert nis == pytest.approx(y @ np.linalg.inv(s) @ y, rel=1e-12)
+
+
+def test_joseph_form_keeps_covariance_symmetric_psd_under_near_exact_measurements() -> None:
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((6, 6)) * 100
+    p = a @ a.T
+    x = np.zeros(6)
+    for k in range(50):
+        rows = rng.choice(6, size=3, replace=False)
+        h = np.eye(6)[rows]
+        x, p, *_ = update(x, p, rng.standard_normal(3), h, np.eye(3) * 1e-9)
+        x, p = predict(x, p, 0.01, np.eye(6) * 1e-6)
+        assert np.array_equal(p, p.T), k
+        assert np.linalg.eigvalsh(p).min() >= -1e-12 * np.abs(p).max(), k
+
+
+def test_yaw_residual_wraps_across_pi() -> None:
+    res = angle_residual(np.array([False, True]))
+    r = res(np.array([1.0, -math.pi + 0.05]), np.array([0.5, math.pi - 0.05]))
+    np.testing.assert_allclose(r, [0.5, 0.1], atol=1e-12)
+    x = np.array([0.0, 0.0, math.pi - 0.05, 0.0, 0.0, 0.0])
+    h = np.eye(6)[[2]]
+    xn, _, y, _, _ = update(x, np.eye(6), np.array([-math.pi + 0.05]), h, np.eye(1),
+                            angle_residual(np.array([True])))  # fmt: skip
+    assert y[0] == pytest.approx(0.1, abs=1e-12)
+    assert wrap_angle(xn[2]) == pytest.approx(-math.pi + 0.0, abs=1e-12)  # halfway, across pi
+
+
+def test_gate_rejects_at_threshold_squared_in_sigma() -> None:
+    assert passes_gate(3.99, 2.0)
+    assert not passes_gate(4.0, 2.0)  # robot_localization: reject when sq. distance >= t^2
+
+
+def test_config_vectors_map_onto_the_planar_state() -> None:
+    specs = sensor_specs(EkfConfig())
+    np.testing.assert_array_equal(specs["odom0"].twist_mask, [True, True, True])
+    np.testing.assert_array_equal(specs["odom0"].pose_mask, [False, False, False])
+    np.testing.assert_array_equal(specs["vo0"].pose_mask, [True, True, True])
+    assert specs["vo0"].differential
+    np.testing.assert_array_equal(specs["imu0"].twist_mask, [False, False, True])
+    with pytest.raises(EkfError, match="two_d_mode"):
+        sensor_specs(cfg_with(two_d_mode=False, odom0_config=mask("vx", "vz")))
+
+
+# --- consistency ------------------------------------------------------------------------------
+
+
+def _consistency_run(n: int, rng: np.random.Generator, ekf: PlanarEkf, q: np.ndarray,
+                     r_twist: np.ndarray, r_pose: np.ndarray, dt: float):  # fmt: skip
+    """Truth follows the filter's own model with process noise Q dt; yields NIS and NEES."""
+    s = np.array([0.0, 0.0, 0.0, V, 0.0, W])
+    nis: dict[str, list[float]] = {"twist": [], "pose": []}
+    nees = []
+    lq, lt, lp = (np.linalg.cholesky(m) for m in (q * dt, r_twist, r_pose))
+    for k in range(n):
+        if k:
+            s = transition(s, dt)[0] + lq @ rng.standard_normal(6)
+        stamp = k * int(dt * NS_PER_S)
+        zt = s[3:] + lt @ rng.standard_normal(3)
+        for res in ekf.process("odom0", TwistInput(stamp, zt[0], zt[1], zt[2], r_twist)):
+            if res.reason == "":
+                nis["twist"].append(res.nis)
+        if k % 5 == 0:
+            zp = s[:3] + lp @ rng.standard_normal(3)
+            pose = PoseInput(stamp, Pose2(zp[0], zp[1], wrap_angle(zp[2])), r_pose)
+            for res in ekf.process("vo0", pose):
+                if res.reason == "":
+                    nis["pose"].append(res.nis)
+        e = s - ekf.x
+        e[2] = wrap_angle(e[2])
+        nees.append(float(e @ np.linalg.solve(ekf.P, e)))
+    return nis, np.array(nees)
+
+
+def _consistency_filter() -> tuple[PlanarEkf, np.ndarray, np.ndarray, np.ndarray]:
+    q6 = (1e-4, 1e-4, 1e-4, 1e-3, 1e-4, 1e-3)
+    r_twist = np.diag([SIGMA_V**2, 1e-4, SIGMA_W**2])
+    r_pose = np.diag([0.05**2, 0.05**2, 0.03**2])
+    # The first (twist) measurement sets the velocities, so their P0 is its noise.
+    cfg = cfg_with(
+        odom0_config=mask("vx", "vy", "vyaw"),
+        vo0_config=mask("x", "y", "yaw"),
+        vo0_differential=False,
+        process_noise_covariance=planar15(*q6),
+        initial_estimate_covariance=planar15(1e-9, 1e-9, 1e-9, SIGMA_V**2, 1e-4, SIGMA_W**2),
+    )
+    return PlanarEkf(cfg), np.diag(q6), r_twist, r_pose
+
+
+def test_average_nis_of_twist_and_pose_updates_is_within_the_95_percent_chi2_interval() -> None:
+    ekf, q, r_twist, r_pose = _consistency_filter()
+    nis, _ = _consistency_run(600, np.random.default_rng(4), ekf, q, r_twist, r_pose, 0.05)
+    for kind, values in nis.items():
+        n = len(values)
+        lo, hi = chi2.ppf([0.025, 0.975], 3 * n) / n
+        assert lo <= np.mean(values) <= hi, (kind, n, np.mean(values), lo, hi)
+
+
+def test_average_nees_over_monte_carlo_runs_is_within_the_95_percent_chi2_interval() -> None:
+    runs, steps = 40, 100
+    rng = np.random.default_rng(5)
+    nees = []
+    for _ in range(runs):
+        ekf, q, r_twist, r_pose = _consistency_filter()
+        nees.append(_consistency_run(steps, rng, ekf, q, r_twist, r_pose, 0.05)[1])
+    mean = np.mean(nees, axis=0)  # average over runs, per step
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * runs) / runs
+    for k in (25, 50, 99):
+        assert lo <= mean[k] <= hi, (k, mean[k], lo, hi)
+
+
+# --- robot_localization behaviours --------------------------------------------------------------
+
+
+def test_vo_jump_of_one_metre_is_rejected_by_the_mahalanobis_gate_and_counted() -> None:
+    n = 90
+    t, (x, y, _), twists, poses = circle(n, seed=6)
+    jumped = [
+        p if i < 45 else PoseInput(p.stamp_ns, Pose2(p.pose.x + 1.0, p.pose.y, p.pose.yaw),
+                                   p.covariance)
+        for i, p in enumerate(poses)
+    ]  # fmt: skip
+    cfg = cfg_with(vo0_pose_rejection_threshold=5.0, vo0_twist_rejection_threshold=5.0)
+    out = fuse({"odom0": twists, "vo0": jumped}, cfg, output_stamps_ns=t)
+    assert out.stats.sensors["vo0"]["rejected"] == 1
+    assert out.stats.sensors["vo0"]["fused"] == n - 2  # first pose only seeds the differencing
+    assert abs(out.x[-1] - x[-1]) < 0.02 and abs(out.y[-1] - y[-1]) < 0.02
+
+
+def test_vo_failure_frames_are_skipped_and_counted() -> None:
+    t, _, twists, poses = circle(30, seed=7)
+    lost = [dataclasses.replace(p, valid=(i % 3 != 1)) for i, p in enumerate(poses)]
+    out = fuse({"odom0": twists, "vo0": lost}, EkfConfig())
+    assert out.stats.sensors["vo0"]["invalid"] == 10
+    assert out.stats.sensors["vo0"]["received"] == 30
+
+
+def test_vo_that_stops_halfway_times_out_and_the_estimate_continues_from_the_wheels() -> None:
+    n = 300  # 10 s
+    t, (x, y, yaw), twists, poses = circle(n, seed=8)
+    out = fuse({"odom0": twists, "vo0": poses[: n // 2]}, EkfConfig(), output_stamps_ns=t)
+    assert out.stats.sensors["vo0"]["timeouts"] == 1
+    assert out.stats.stale_sensors == ("vo0",)
+    assert not out.timed_out.any()  # the wheels keep the filter corrected
+    assert np.hypot(out.x - x, out.y - y).max() < 0.05
+    assert abs(wrap_angle(out.yaw[-1] - yaw[-1])) < 0.05
+    assert out.cov[-1, 0, 0] > out.cov[n // 2 - 1, 0, 0]  # uncertainty grows on wheels alone
+
+
+def test_no_data_for_sensor_timeout_gives_predict_only_outputs_that_are_flagged() -> None:
+    t, _, twists, _ = circle(30, seed=9)
+    late = int(t[-1] + 0.5 * NS_PER_S)
+    out = fuse({"odom0": twists}, EkfConfig(sensor_timeout=0.1), output_stamps_ns=[t[-1], late])
+    assert out.timed_out.tolist() == [False, True]
+    assert out.stats.timed_out_outputs == 1
+    assert out.cov[1, 0, 0] > out.cov[0, 0, 0]
+
+
+def _streams_for_lag():
+    t, _, twists, poses = circle(60, seed=10)
+    noisy_abs = [p for i, p in enumerate(poses) if i % 6 == 0]  # 5 Hz absolute pose
+    return twists, noisy_abs
+
+
+def _lag_cfg(**kw: Any) -> EkfConfig:
+    args: dict[str, Any] = dict(vo0_differential=False, smooth_lagged_data=True, history_length=1.0)
+    return cfg_with(**(args | kw))
+
+
+def test_late_measurement_within_history_is_refiltered_to_the_in_order_result() -> None:
+    twists, poses = _streams_for_lag()
+    msgs = sorted([("odom0", m) for m in twists] + [("vo0", m) for m in poses],
+                  key=lambda sm: sm[1].stamp_ns)  # fmt: skip
+    in_order = PlanarEkf(_lag_cfg())
+    for s, m in msgs:
+        in_order.process(s, m)
+    late_msg = poses[5]  # t = 1.0 s, arrives 0.3 s late
+    shuffled = [sm for sm in msgs if sm[1] is not late_msg]
+    at = next(i for i, sm in enumerate(shuffled) if sm[1].stamp_ns > late_msg.stamp_ns + 0.3e9)
+    shuffled.insert(at, ("vo0", late_msg))
+    late = PlanarEkf(_lag_cfg())
+    for s, m in shuffled:
+        late.process(s, m)
+    np.testing.assert_allclose(late.x, in_order.x, atol=1e-9)
+    np.testing.assert_allclose(late.P, in_order.P, atol=1e-9)
+    assert late.stats.sensors["vo0"]["refiltered"] == 1
+    assert late.stats.sensors["vo0"]["fused"] == in_order.stats.sensors["vo0"]["fused"]
+    assert late.stats.sensors["odom0"]["fused"] == in_order.stats.sensors["odom0"]["fused"]
+
+
+@pytest.mark.parametrize("smooth", [True, False])
+def test_late_measurement_outside_history_is_dropped_and_counted(smooth: bool) -> None:
+    twists, poses = _streams_for_lag()
+    ekf = PlanarEkf(_lag_cfg(history_length=0.5, smooth_lagged_data=smooth))
+    for m in twists:
+        ekf.process("odom0", m)
+    x_before = ekf.x.copy()
+    res = ekf.process("vo0", dataclasses.replace(poses[1], stamp_ns=twists[0].stamp_ns + 1))
+    assert [r.reason for r in res] == ["dropped_late"]
+    assert ekf.stats.sensors["vo0"]["dropped_late"] == 1
+    np.testing.assert_array_equal(ekf.x, x_before)
+
+
+def test_differential_mode_makes_a_constant_offset_disappear() -> None:
+    t, _, twists, poses = circle(60, seed=11)
+    offset = Pose2(5.0, -3.0, 1.0)
+    shifted = [dataclasses.replace(p, pose=compose(offset, p.pose)) for p in poses]
+    cfg = EkfConfig()  # vo0_differential defaults to true
+    a = fuse({"odom0": twists, "vo0": poses}, cfg)
+    b = fuse({"odom0": twists, "vo0": shifted}, cfg)
+    assert a.stats.sensors["vo0"]["fused"] == 59
+    for u, v in ((a.x, b.x), (a.y, b.y), (a.yaw, b.yaw), (a.cov, b.cov)):
+        np.testing.assert_allclose(u, v, atol=1e-9)
+
+
+def test_relative_mode_equals_absolute_fusion_of_poses_relative_to_the_first() -> None:
+    t, _, twists, poses = circle(60, seed=12)
+    offset = Pose2(5.0, -3.0, 1.0)
+    shifted = [dataclasses.replace(p, pose=compose(offset, p.pose)) for p in poses]
+    rel = [dataclasses.replace(p, pose=se2_between(poses[0].pose, p.pose)) for p in poses]
+    a = fuse({"vo0": shifted, "odom0": twists}, cfg_with(vo0_differential=False, vo0_relative=True))
+    b = fuse({"vo0": rel, "odom0": twists}, cfg_with(vo0_differential=False))
+    for u, v in ((a.x, b.x), (a.y, b.y), (a.yaw, b.yaw), (a.cov, b.cov)):
+        np.testing.assert_allclose(u, v, atol=1e-9)
+    assert abs(a.x[-1] - poses[-1].pose.x) < 0.02  # the circle starts at the origin
+
+
+def test_gyro_fuses_yaw_rate_only() -> None:
+    ekf = PlanarEkf(cfg_with(odom0_config=mask("vx")))
+    ekf.process("odom0", TwistInput(0, 0.2, 0.0, 0.0, np.eye(3) * 1e-4))
+    res = ekf.process("imu0", ImuSample(NS_PER_S // 10, 0.5))
+    assert res[0].accepted and res[0].dof == 1
+    assert ekf.x[5] > 0.1 and ekf.x[4] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_wheel_twist_inputs_from_equal_counts_drive_straight_with_quantisation_noise() -> None:
+    robot = RobotConfig()
+    stamps = np.arange(31) * DT_NS
+    ticks = np.arange(31) * 2
+    tw = wheel_twist_inputs(stamps, ticks, ticks, robot)
+    assert len(tw) == 30
+    v = 2 * robot.metres_per_tick / (DT_NS / NS_PER_S)
+    assert tw[0].vx == pytest.approx(v) and tw[0].vyaw == pytest.approx(0.0)
+    assert tw[0].covariance[0, 0] > (robot.metres_per_tick / (DT_NS / NS_PER_S)) ** 2 / 12
+    out = fuse({"odom0": tw}, EkfConfig(), output_stamps_ns=[stamps[-1]])
+    assert out.x[0] == pytest.approx(v * (stamps[-1] - stamps[1]) / NS_PER_S, rel=1e-6)
+    assert out.y[0] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_state_at_earlier_than_history_raises() -> None:
+    ekf = PlanarEkf(EkfConfig())
+    with pytest.raises(EkfError, match="no measurement"):
+        ekf.state_at(0)
+    ekf.process("odom0", TwistInput(NS_PER_S, 0.1, 0.0, 0.0, np.eye(3) * 1e-4))
+    with pytest.raises(EkfError, match="older than the kept history"):
+        ekf.state_at(0)
