@@ -71,11 +71,12 @@ class EkfConfig:
         gt=0.0,
         doc="Mahalanobis gate on twist (1e9 = never, as upstream max)",
     )
-    # 1. Visual odometry (pose in its own frame -> fused differentially).
+    # 1. Visual odometry: each frame pair's motion as a body twist (a failed pair is skipped, so
+    #    a VO dropout never becomes a zero-motion measurement).
     vo0_config: tuple[bool, ...] = param(
-        _mask("x", "y", "yaw"), length=STATE_SIZE, doc=_CONFIG_VECTOR_DOC
+        _mask("vx", "vy", "vyaw"), length=STATE_SIZE, doc=_CONFIG_VECTOR_DOC
     )
-    vo0_differential: bool = param(True, doc="VO pose drifts: fuse its frame-to-frame change")
+    vo0_differential: bool = param(False, doc="differentiate an absolute VO pose instead")
     vo0_relative: bool = param(False, doc="treat the first measurement as zero")
     vo0_pose_rejection_threshold: float = param(
         NO_REJECTION,
@@ -84,13 +85,19 @@ class EkfConfig:
         doc="Mahalanobis gate on pose (1e9 = never, as upstream max)",
     )
     vo0_twist_rejection_threshold: float = param(
-        NO_REJECTION,
+        5.0,
         unit="sigma",
         gt=0.0,
-        doc="Mahalanobis gate on twist (1e9 = never, as upstream max)",
+        doc="Mahalanobis gate on VO twist: a bad frame pair is rejected, not fused",
     )
     # 2. IMU (gyro z only on this robot).
     imu0_config: tuple[bool, ...] = param(_mask("vyaw"), length=STATE_SIZE, doc=_CONFIG_VECTOR_DOC)
+    imu0_angular_velocity_variance: float = param(
+        1e-4, unit="(rad/s)^2", gt=0.0, doc="gyro z noise (ImuSample carries no covariance)"
+    )
+    odom0_vy_variance: float = param(
+        1e-4, unit="(m/s)^2", gt=0.0, doc="variance of the non-holonomic vy = 0 measurement"
+    )
     imu0_differential: bool = param(False, doc="differentiate absolute orientation")
     imu0_relative: bool = param(False, doc="treat the first orientation as zero")
     imu0_pose_rejection_threshold: float = param(

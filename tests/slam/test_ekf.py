@@ -56,6 +56,14 @@ def cfg_with(**kw: Any) -> EkfConfig:
     return dataclasses.replace(EkfConfig(), **kw)
 
 
+def pose_vo_config(**kw: Any) -> EkfConfig:
+    """robot_localization's usual VO set-up: an absolute VO pose fused differentially, ungated
+    (the shipped default fuses VO as a gated twist instead)."""
+    base = {"vo0_config": mask("x", "y", "yaw"), "vo0_differential": True,
+            "vo0_twist_rejection_threshold": 1e9}  # fmt: skip
+    return dataclasses.replace(EkfConfig(), **{**base, **kw})
+
+
 def compose(a: Pose2, b: Pose2) -> Pose2:
     c, s = math.cos(a.yaw), math.sin(a.yaw)
     return Pose2(a.x + c * b.x - s * b.y, a.y + s * b.x + c * b.y, wrap_angle(a.yaw + b.yaw))
@@ -178,6 +186,9 @@ def test_config_vectors_map_onto_the_planar_state() -> None:
     specs = sensor_specs(EkfConfig())
     np.testing.assert_array_equal(specs["odom0"].twist_mask, [True, True, True])
     np.testing.assert_array_equal(specs["odom0"].pose_mask, [False, False, False])
+    np.testing.assert_array_equal(specs["vo0"].twist_mask, [True, True, True])
+    assert not specs["vo0"].differential
+    specs = sensor_specs(pose_vo_config())
     np.testing.assert_array_equal(specs["vo0"].pose_mask, [True, True, True])
     assert specs["vo0"].differential
     np.testing.assert_array_equal(specs["imu0"].twist_mask, [False, False, True])
@@ -220,7 +231,7 @@ def _consistency_filter() -> tuple[PlanarEkf, np.ndarray, np.ndarray, np.ndarray
     r_twist = np.diag([SIGMA_V**2, 1e-4, SIGMA_W**2])
     r_pose = np.diag([0.05**2, 0.05**2, 0.03**2])
     # The first (twist) measurement sets the velocities, so their P0 is its noise.
-    cfg = cfg_with(
+    cfg = pose_vo_config(
         odom0_config=mask("vx", "vy", "vyaw"),
         vo0_config=mask("x", "y", "yaw"),
         vo0_differential=False,
@@ -263,17 +274,29 @@ def test_vo_jump_of_one_metre_is_rejected_by_the_mahalanobis_gate_and_counted() 
                                    p.covariance)
         for i, p in enumerate(poses)
     ]  # fmt: skip
-    cfg = cfg_with(vo0_pose_rejection_threshold=5.0, vo0_twist_rejection_threshold=5.0)
+    cfg = pose_vo_config(vo0_pose_rejection_threshold=5.0, vo0_twist_rejection_threshold=5.0)
     out = fuse({"odom0": twists, "vo0": jumped}, cfg, output_stamps_ns=t)
     assert out.stats.sensors["vo0"]["rejected"] == 1
     assert out.stats.sensors["vo0"]["fused"] == n - 2  # first pose only seeds the differencing
     assert abs(out.x[-1] - x[-1]) < 0.02 and abs(out.y[-1] - y[-1]) < 0.02
 
 
+def test_default_config_gates_a_wild_vo_twist_and_keeps_the_good_ones() -> None:
+    n = 90
+    t, (x, y, _), twists, _ = circle(n, seed=8)
+    cov = np.diag([0.02**2, 0.02**2, 0.02**2])
+    vo = [TwistInput(tw.stamp_ns, V, 0.0, W, cov) for tw in twists]
+    vo[50] = TwistInput(vo[50].stamp_ns, 30.0, 0.0, W, cov)  # a 1 m jump in one 1/30 s pair
+    out = fuse({"odom0": twists, "vo0": vo}, EkfConfig(), output_stamps_ns=t)
+    assert out.stats.sensors["vo0"]["rejected"] == 1
+    assert out.stats.sensors["vo0"]["fused"] == n - 1
+    assert abs(out.x[-1] - x[-1]) < 0.05 and abs(out.y[-1] - y[-1]) < 0.05
+
+
 def test_vo_failure_frames_are_skipped_and_counted() -> None:
     t, _, twists, poses = circle(30, seed=7)
     lost = [dataclasses.replace(p, valid=(i % 3 != 1)) for i, p in enumerate(poses)]
-    out = fuse({"odom0": twists, "vo0": lost}, EkfConfig())
+    out = fuse({"odom0": twists, "vo0": lost}, pose_vo_config())
     assert out.stats.sensors["vo0"]["invalid"] == 10
     assert out.stats.sensors["vo0"]["received"] == 30
 
@@ -281,7 +304,7 @@ def test_vo_failure_frames_are_skipped_and_counted() -> None:
 def test_vo_that_stops_halfway_times_out_and_the_estimate_continues_from_the_wheels() -> None:
     n = 300  # 10 s
     t, (x, y, yaw), twists, poses = circle(n, seed=8)
-    out = fuse({"odom0": twists, "vo0": poses[: n // 2]}, EkfConfig(), output_stamps_ns=t)
+    out = fuse({"odom0": twists, "vo0": poses[: n // 2]}, pose_vo_config(), output_stamps_ns=t)
     assert out.stats.sensors["vo0"]["timeouts"] == 1
     assert out.stats.stale_sensors == ("vo0",)
     assert not out.timed_out.any()  # the wheels keep the filter corrected
@@ -293,7 +316,7 @@ def test_vo_that_stops_halfway_times_out_and_the_estimate_continues_from_the_whe
 def test_no_data_for_sensor_timeout_gives_predict_only_outputs_that_are_flagged() -> None:
     t, _, twists, _ = circle(30, seed=9)
     late = int(t[-1] + 0.5 * NS_PER_S)
-    out = fuse({"odom0": twists}, EkfConfig(sensor_timeout=0.1), output_stamps_ns=[t[-1], late])
+    out = fuse({"odom0": twists}, pose_vo_config(sensor_timeout=0.1), output_stamps_ns=[t[-1], late])
     assert out.timed_out.tolist() == [False, True]
     assert out.stats.timed_out_outputs == 1
     assert out.cov[1, 0, 0] > out.cov[0, 0, 0]
@@ -307,7 +330,7 @@ def _streams_for_lag():
 
 def _lag_cfg(**kw: Any) -> EkfConfig:
     args: dict[str, Any] = dict(vo0_differential=False, smooth_lagged_data=True, history_length=1.0)
-    return cfg_with(**(args | kw))
+    return pose_vo_config(**(args | kw))
 
 
 def test_late_measurement_within_history_is_refiltered_to_the_in_order_result() -> None:
@@ -348,7 +371,7 @@ def test_differential_mode_makes_a_constant_offset_disappear() -> None:
     t, _, twists, poses = circle(60, seed=11)
     offset = Pose2(5.0, -3.0, 1.0)
     shifted = [dataclasses.replace(p, pose=compose(offset, p.pose)) for p in poses]
-    cfg = EkfConfig()  # vo0_differential defaults to true
+    cfg = pose_vo_config()  # vo0 as a differential pose
     a = fuse({"odom0": twists, "vo0": poses}, cfg)
     b = fuse({"odom0": twists, "vo0": shifted}, cfg)
     assert a.stats.sensors["vo0"]["fused"] == 59
@@ -361,15 +384,15 @@ def test_relative_mode_equals_absolute_fusion_of_poses_relative_to_the_first() -
     offset = Pose2(5.0, -3.0, 1.0)
     shifted = [dataclasses.replace(p, pose=compose(offset, p.pose)) for p in poses]
     rel = [dataclasses.replace(p, pose=se2_between(poses[0].pose, p.pose)) for p in poses]
-    a = fuse({"vo0": shifted, "odom0": twists}, cfg_with(vo0_differential=False, vo0_relative=True))
-    b = fuse({"vo0": rel, "odom0": twists}, cfg_with(vo0_differential=False))
+    a = fuse({"vo0": shifted, "odom0": twists}, pose_vo_config(vo0_differential=False, vo0_relative=True))
+    b = fuse({"vo0": rel, "odom0": twists}, pose_vo_config(vo0_differential=False))
     for u, v in ((a.x, b.x), (a.y, b.y), (a.yaw, b.yaw), (a.cov, b.cov)):
         np.testing.assert_allclose(u, v, atol=1e-9)
     assert abs(a.x[-1] - poses[-1].pose.x) < 0.02  # the circle starts at the origin
 
 
 def test_gyro_fuses_yaw_rate_only() -> None:
-    ekf = PlanarEkf(cfg_with(odom0_config=mask("vx")))
+    ekf = PlanarEkf(pose_vo_config(odom0_config=mask("vx")))
     ekf.process("odom0", TwistInput(0, 0.2, 0.0, 0.0, np.eye(3) * 1e-4))
     res = ekf.process("imu0", ImuSample(NS_PER_S // 10, 0.5))
     assert res[0].accepted and res[0].dof == 1
@@ -385,13 +408,13 @@ def test_wheel_twist_inputs_from_equal_counts_drive_straight_with_quantisation_n
     v = 2 * robot.metres_per_tick / (DT_NS / NS_PER_S)
     assert tw[0].vx == pytest.approx(v) and tw[0].vyaw == pytest.approx(0.0)
     assert tw[0].covariance[0, 0] > (robot.metres_per_tick / (DT_NS / NS_PER_S)) ** 2 / 12
-    out = fuse({"odom0": tw}, EkfConfig(), output_stamps_ns=[stamps[-1]])
+    out = fuse({"odom0": tw}, pose_vo_config(), output_stamps_ns=[stamps[-1]])
     assert out.x[0] == pytest.approx(v * (stamps[-1] - stamps[1]) / NS_PER_S, rel=1e-6)
     assert out.y[0] == pytest.approx(0.0, abs=1e-9)
 
 
 def test_state_at_earlier_than_history_raises() -> None:
-    ekf = PlanarEkf(EkfConfig())
+    ekf = PlanarEkf(pose_vo_config())
     with pytest.raises(EkfError, match="no measurement"):
         ekf.state_at(0)
     ekf.process("odom0", TwistInput(NS_PER_S, 0.1, 0.0, 0.0, np.eye(3) * 1e-4))
