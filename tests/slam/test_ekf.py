@@ -316,7 +316,9 @@ def test_vo_that_stops_halfway_times_out_and_the_estimate_continues_from_the_whe
 def test_no_data_for_sensor_timeout_gives_predict_only_outputs_that_are_flagged() -> None:
     t, _, twists, _ = circle(30, seed=9)
     late = int(t[-1] + 0.5 * NS_PER_S)
-    out = fuse({"odom0": twists}, pose_vo_config(sensor_timeout=0.1), output_stamps_ns=[t[-1], late])
+    out = fuse(
+        {"odom0": twists}, pose_vo_config(sensor_timeout=0.1), output_stamps_ns=[t[-1], late]
+    )
     assert out.timed_out.tolist() == [False, True]
     assert out.stats.timed_out_outputs == 1
     assert out.cov[1, 0, 0] > out.cov[0, 0, 0]
@@ -384,7 +386,9 @@ def test_relative_mode_equals_absolute_fusion_of_poses_relative_to_the_first() -
     offset = Pose2(5.0, -3.0, 1.0)
     shifted = [dataclasses.replace(p, pose=compose(offset, p.pose)) for p in poses]
     rel = [dataclasses.replace(p, pose=se2_between(poses[0].pose, p.pose)) for p in poses]
-    a = fuse({"vo0": shifted, "odom0": twists}, pose_vo_config(vo0_differential=False, vo0_relative=True))
+    a = fuse(
+        {"vo0": shifted, "odom0": twists}, pose_vo_config(vo0_differential=False, vo0_relative=True)
+    )
     b = fuse({"vo0": rel, "odom0": twists}, pose_vo_config(vo0_differential=False))
     for u, v in ((a.x, b.x), (a.y, b.y), (a.yaw, b.yaw), (a.cov, b.cov)):
         np.testing.assert_allclose(u, v, atol=1e-9)
