@@ -141,6 +141,8 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
         fused_report = drift_report(fused.stamps_ns[good], (ex[good], ey[good], eyaw[good]),
                                     gt.stamps_ns, (gt.x, gt.y, gt.yaw))  # fmt: skip
         summary["fused_vs_groundtruth"] = fused_report.as_dict()
+        write_tum_trajectory(run.file("groundtruth.tum"), gt.stamps_ns, gt.x, gt.y, gt.yaw)
+        outputs["ground truth"] = run.file("groundtruth.tum")
         paths.insert(0, ("ground truth", gt.x, gt.y))
     plan = None
     if isinstance(scene.get("world_description"), dict):
