@@ -226,7 +226,7 @@ def test_write_config_round_trips_overridden_values(tmp_path: Path) -> None:
         overrides=[
             "ekf.initial_estimate_covariance=" + str([1e-3] * 15),
             "smoother.feedback=CLOSED_LOOP",
-            "vo.method=kiss_icp",
+            "vo.min_inliers=25",
             "board.port=/dev/ttyACM0",
             "mapper.robust_kernel=cauchy",
         ]
