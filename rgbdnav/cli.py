@@ -227,17 +227,19 @@ def odometry(
     seed: Annotated[int, typer.Option(help="Seed when SOURCE is a world.")] = 0,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    vo: Annotated[bool, typer.Option(help="Run visual odometry on the RGB-D frames.")] = True,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
-    """Wheel odometry of a recording, with drift against ground truth when it has some."""
+    """Wheel, visual and fused (EKF) odometry of a source, with drift against ground truth."""
     _setup_logging(verbose)
     from rgbdnav.config import load_config
     from rgbdnav.odometry_run import run_odometry
 
     cfg = load_config(config or [], set_ or [])
     recording = _recording_for(source, cfg, seed, quiet)
-    outputs = run_odometry(recording, out, config or [], set_ or [])
+    with _Progress("visual odometry", quiet or not vo) as progress:
+        outputs = run_odometry(recording, out, config or [], set_ or [], vo, progress)
     typer.echo(f"source      {source} (recording: {recording})")
     for label, path in outputs.items():
         typer.echo(f"{label:<11} {path}")

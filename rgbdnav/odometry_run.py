@@ -3,13 +3,16 @@ against its ground truth when it has some."""
 
 from __future__ import annotations
 
+import math
 import time
-from collections.abc import Sequence
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from rgbdnav.config import load_config, source_options
+from rgbdnav.config import Config, load_config, source_options
 from rgbdnav.report import contact_sheet, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from sensors.recording_source import RecordingSource
@@ -17,34 +20,95 @@ from sensors.sim.world import floor_plan, world_from_dict
 from sensors.source import Source, open_source
 from sensors.sync import interpolate_wheels, synchronise
 from sensors.tum import write_tum_trajectory
-from sensors.types import ImuSample, Pose2, SensorError
+from sensors.types import NS_PER_S, ImuSample, Pose2, SensorError
 from slam.diff_drive import (
     WheelErrorModel,
     integrate_ticks,
     propagate_covariance,
     wheel_increments,
 )
-from slam.ekf import fuse, wheel_twist_inputs
+from slam.ekf import TwistInput, fuse, wheel_twist_inputs
 from slam.metrics import drift_report, interpolate_poses
+from slam.visual_odometry import VisualOdometry
 
 CONTACT_SHEET_FRAMES = 4
+LABELS = {"odom0": "wheels", "imu0": "gyro", "vo0": "VO"}
 
 
 def run_odometry(
-    source_path: Path, out: Path, config_files: Sequence[Path], overrides: Sequence[str]
+    source_path: Path,
+    out: Path,
+    config_files: Sequence[Path],
+    overrides: Sequence[str],
+    use_vo: bool = True,
+    progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Path]:
-    """Wheel odometry of any source with wheel encoders (recording, TUM folder + wheels, bag)."""
+    """Odometry of any source with wheel encoders (recording, TUM folder + wheels, bag): wheel
+    dead reckoning, visual odometry when it has RGB-D frames, and their EKF fusion with the gyro."""
     t0 = time.perf_counter()
     cfg = load_config(config_files, overrides)
     src = open_source(source_path, source_options(cfg))
     try:
-        return _run(src, source_path, out, config_files, overrides, t0)
+        return _run(src, source_path, out, config_files, overrides, t0, use_vo, progress)
     finally:
         src.close()
 
 
+@dataclass
+class _VoTrack:
+    """Visual odometry over a source's frames: per-frame twists for the EKF and the VO-only path."""
+
+    inputs: list[TwistInput]
+    stamps_ns: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    failures: dict[str, int]
+    ms_median: float
+
+
+def _visual_odometry(src: Source, cfg: Config, start: Pose2,
+                     progress: Callable[[int, int], None] | None) -> _VoTrack | None:  # fmt: skip
+    intrinsics = src.intrinsics()
+    n = len(src.stream_stamps().get("rgb", ()))
+    if intrinsics is None or n < 2:
+        return None
+    vo = VisualOdometry(intrinsics, cfg.vo, cfg.robot)
+    inputs: list[TwistInput] = []
+    stamps, poses, ms = [], [], []
+    failures: Counter[str] = Counter()
+    x, y, yaw = start.x, start.y, start.yaw
+    prev_t = None
+    for k, frame in enumerate(src.frames()):
+        res = vo.process(frame)
+        ms.append(res.ms)
+        if prev_t is not None:
+            dt = (frame.stamp_ns - prev_t) / NS_PER_S
+            d = res.delta_base
+            if res.success and d is not None and dt > 0:
+                # 1. The pair's planar motion as a body twist, its covariance scaled to rates.
+                inputs.append(TwistInput(frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
+                                         np.asarray(res.covariance) / dt**2))  # fmt: skip
+                # 2. The VO-only path: compose the motion (a failed pair's motion is lost).
+                x += math.cos(yaw) * d.x - math.sin(yaw) * d.y
+                y += math.sin(yaw) * d.x + math.cos(yaw) * d.y
+                yaw += d.yaw
+            else:
+                inputs.append(TwistInput(frame.stamp_ns, 0.0, 0.0, 0.0, np.eye(3), valid=False))
+                failures[res.reason] += 1
+        prev_t = frame.stamp_ns
+        stamps.append(frame.stamp_ns)
+        poses.append((x, y, yaw))
+        if progress is not None:
+            progress(k + 1, n)
+    arr = np.array(poses).reshape(-1, 3)
+    return _VoTrack(inputs, np.array(stamps, np.int64), arr[:, 0], arr[:, 1], arr[:, 2],
+                    dict(failures), float(np.median(ms)) if ms else math.nan)  # fmt: skip
+
+
 def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path],
-         overrides: Sequence[str], t0: float) -> dict[str, Path]:  # fmt: skip
+         overrides: Sequence[str], t0: float, use_vo: bool,
+         progress: Callable[[int, int], None] | None) -> dict[str, Path]:  # fmt: skip
     scene = src.recording.scene if isinstance(src, RecordingSource) else {}
     # A recording's own robot description sits under the user's files and --set.
     base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
@@ -111,12 +175,25 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
             "mean_spread_ms": sync_stats.mean_spread_ns / 1e6 if sync_stats.sets else None,
             "streams": {name: dict(vars(st)) for name, st in sync_stats.streams.items()},
         }
-    # 3. EKF: wheel twists (+ gyro, + VO twists when available) -> odom -> base_link.
+    # 3. Visual odometry over the RGB-D frames (optional: the slowest step).
+    vo_track = _visual_odometry(src, cfg, start, progress) if use_vo else None
+    # 4. EKF: wheel twists (+ gyro, + VO twists) -> odom -> base_link.
     streams: dict[str, list] = {
         "odom0": wheel_twist_inputs(
             stamps, left, right, cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance
-        )  # fmt: skip
+        )
     }
+    if vo_track is not None:
+        streams["vo0"] = vo_track.inputs
+        write_tum_trajectory(run.file("vo.tum"), vo_track.stamps_ns, vo_track.x, vo_track.y,
+                             vo_track.yaw)  # fmt: skip
+        outputs["visual odom"] = run.file("vo.tum")
+        summary["vo"] = {
+            "frames": int(len(vo_track.stamps_ns)),
+            "pairs_tracked": int(sum(i.valid for i in vo_track.inputs)),
+            "failures": vo_track.failures,
+            "ms_per_frame_median": round(vo_track.ms_median, 2),
+        }
     imu = src.imu()
     if imu is not None and len(imu.stamps_ns):
         streams["imu0"] = [ImuSample(int(t), float(g)) for t, g in zip(imu.stamps_ns, imu.gyro_z,
@@ -134,13 +211,20 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     outputs["fused odom"] = run.file("fused.tum")
     summary["ekf"] = {"inputs": sorted(streams), "stats": _jsonable_stats(fused.stats)}
 
-    paths = [("wheel odometry", x, y), ("EKF (wheels + gyro)", ex[good], ey[good])]
+    fused_label = "EKF (" + " + ".join(LABELS[k] for k in sorted(streams)) + ")"
+    paths = [("wheel odometry", x, y), (fused_label, ex[good], ey[good])]
+    if vo_track is not None:
+        paths.append(("visual odometry", vo_track.x, vo_track.y))
     if gt is not None and gt.frame == "base_link":
         report = drift_report(stamps, (x, y, yaw), gt.stamps_ns, (gt.x, gt.y, gt.yaw))
         summary["wheel_odometry_vs_groundtruth"] = report.as_dict()
         fused_report = drift_report(fused.stamps_ns[good], (ex[good], ey[good], eyaw[good]),
                                     gt.stamps_ns, (gt.x, gt.y, gt.yaw))  # fmt: skip
         summary["fused_vs_groundtruth"] = fused_report.as_dict()
+        if vo_track is not None:
+            vo_report = drift_report(vo_track.stamps_ns, (vo_track.x, vo_track.y, vo_track.yaw),
+                                     gt.stamps_ns, (gt.x, gt.y, gt.yaw))  # fmt: skip
+            summary["vo_vs_groundtruth"] = vo_report.as_dict()
         write_tum_trajectory(run.file("groundtruth.tum"), gt.stamps_ns, gt.x, gt.y, gt.yaw)
         outputs["ground truth"] = run.file("groundtruth.tum")
         paths.insert(0, ("ground truth", gt.x, gt.y))

@@ -58,10 +58,16 @@ def test_odometry_writes_trajectory_summary_and_pictures(recording: Path, tmp_pa
     out = tmp_path / "run"
     result = runner.invoke(app, ["odometry", str(recording), "--out", str(out), "--quiet"])
     assert result.exit_code == 0, result.output
-    for name in ("config.yaml", "summary.json", "trajectory.tum", "wheel.tum", "trajectory.png",
-                 "frames.png"):  # fmt: skip
+    for name in ("config.yaml", "summary.json", "trajectory.tum", "wheel.tum", "vo.tum",
+                 "fused.tum", "groundtruth.tum", "trajectory.png", "frames.png"):  # fmt: skip
         assert (out / name).is_file(), name
     summary = json.loads((out / "summary.json").read_text())
+    # Visual odometry tracked the simulated frames and the EKF fused all three sensors.
+    assert summary["vo"]["pairs_tracked"] >= 40
+    assert summary["ekf"]["inputs"] == ["imu0", "odom0", "vo0"]
+    assert summary["vo_vs_groundtruth"]["final_position_error_m"] < 0.05
+    assert summary["fused_vs_groundtruth"]["final_position_error_m"] < 0.1
+    assert summary["sync"]["sets"] == 45
     drift = summary["wheel_odometry_vs_groundtruth"]
     assert drift["matched"] > 50
     assert drift["final_position_error_m"] < 0.1  # 1.5 s of driving
@@ -146,3 +152,11 @@ def test_board_check_names_a_missing_port() -> None:
     result = runner.invoke(app, ["board", "/dev/rgbdnav-no-such-port"])
     assert result.exit_code == 1
     assert "cannot open Eddie board at /dev/rgbdnav-no-such-port" in result.output
+
+
+def test_odometry_without_vo_skips_it(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["odometry", str(recording), "--out", str(out), "-q", "--no-vo"])
+    assert result.exit_code == 0, result.output
+    assert not (out / "vo.tum").exists() and (out / "fused.tum").is_file()
+    assert json.loads((out / "summary.json").read_text())["ekf"]["inputs"] == ["imu0", "odom0"]
