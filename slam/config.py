@@ -95,6 +95,12 @@ class EkfConfig:
     imu0_angular_velocity_variance: float = param(
         1e-4, unit="(rad/s)^2", gt=0.0, doc="gyro z noise (ImuSample carries no covariance)"
     )
+    imu0_gyro_bias_initial_variance: float = param(
+        1e-4, unit="(rad/s)^2", ge=0.0, doc="prior on the gyro z bias state (0.01 rad/s sigma)"
+    )
+    imu0_gyro_bias_process_noise: float = param(
+        1e-8, unit="(rad/s)^2/s", ge=0.0, doc="random walk of the gyro z bias"
+    )
     odom0_vy_variance: float = param(
         1e-4, unit="(m/s)^2", gt=0.0, doc="variance of the non-holonomic vy = 0 measurement"
     )

@@ -44,8 +44,8 @@ from slam.diff_drive import WheelErrorModel, wheel_increments
 log = logging.getLogger(__name__)
 
 # 1. State layout.
-X, Y, YAW, VX, VY, VYAW = range(6)
-STATE_DIM = 6
+X, Y, YAW, VX, VY, VYAW, GYRO_BIAS = range(7)
+STATE_DIM = 7  # the planar state and the gyro's z bias [rad/s]
 PLANAR_NAMES = ("x", "y", "yaw", "vx", "vy", "vyaw")
 PLANAR_INDEX = tuple(STATE_NAMES.index(n) for n in PLANAR_NAMES)  # into the 15-vectors
 POSE_IDX = np.array([X, Y, YAW])
@@ -106,7 +106,7 @@ def transition(x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     xn[X] += (vx * c - vy * s) * dt
     xn[Y] += (vx * s + vy * c) * dt
     xn[YAW] = wrap_angle(x[YAW] + x[VYAW] * dt)
-    f = np.eye(STATE_DIM)
+    f = np.eye(len(x))  # the gyro bias (when present) is a random walk: F = 1 there
     f[X, YAW] = -(vx * s + vy * c) * dt
     f[X, VX], f[X, VY] = c * dt, -s * dt
     f[Y, YAW] = (vx * c - vy * s) * dt
@@ -382,12 +382,16 @@ class PlanarEkf:
         self.cfg = cfg
         self.specs = sensor_specs(cfg)
         self.gyro_z_variance = gyro_z_variance  # [(rad/s)^2] ImuSample carries no covariance
-        self.Q = np.diag(
-            np.asarray(cfg.process_noise_covariance, dtype=np.float64)[list(PLANAR_INDEX)]
-        )
-        self.P0 = np.diag(
-            np.asarray(cfg.initial_estimate_covariance, dtype=np.float64)[list(PLANAR_INDEX)]
-        )
+        # The gyro bias is a random walk: without it a biased gyro, trusted for yaw rate, turns
+        # the whole fused heading (robot_localization has no such state; users subtract it).
+        self.Q = np.diag(np.append(
+            np.asarray(cfg.process_noise_covariance, dtype=np.float64)[list(PLANAR_INDEX)],
+            cfg.imu0_gyro_bias_process_noise,
+        ))  # fmt: skip
+        self.P0 = np.diag(np.append(
+            np.asarray(cfg.initial_estimate_covariance, dtype=np.float64)[list(PLANAR_INDEX)],
+            cfg.imu0_gyro_bias_initial_variance,
+        ))  # fmt: skip
         self.x = np.zeros(STATE_DIM) if x0 is None else np.asarray(x0, dtype=np.float64).copy()
         self.P = self.P0.copy()
         self.t_ns: int | None = None  # time of the last processed measurement
@@ -486,6 +490,8 @@ class PlanarEkf:
         x, P = (self.x, self.P) if dt <= 0 else predict(self.x, self.P, dt, self.Q)
         H = np.zeros((len(m.idx), STATE_DIM))
         H[np.arange(len(m.idx)), m.idx] = 1.0
+        if m.sensor == "imu0" and m.kind == "twist":
+            H[m.idx == VYAW, GYRO_BIAS] = 1.0  # a gyro reads vyaw + bias
         xu, Pu, _, _, nis = update(x, P, m.z, H, m.R, angle_residual(m.idx == YAW))
         accepted = passes_gate(nis, m.threshold)
         if accepted:
