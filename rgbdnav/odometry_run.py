@@ -232,7 +232,7 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     if isinstance(scene.get("world_description"), dict):
         plan = floor_plan(world_from_dict(scene["world_description"]))
     plot_trajectories(
-        run.file("trajectory.png"), paths, f"{source_path.name}: wheel odometry",
+        run.file("trajectory.png"), paths, f"{source_path.name}: odometry",
         occupied=None if plan is None else plan.occupied,
         origin=(0.0, 0.0) if plan is None else (plan.origin_x, plan.origin_y),
         resolution=0.05 if plan is None else plan.resolution,
