@@ -38,6 +38,8 @@ bench: $(STAMP)
 	$(PY) bench/bench_readers.py --out docs/benchmarks.md
 	$(PY) bench/bench_serial.py --out docs/benchmarks.md
 	$(PY) bench/bench_sync.py --out docs/benchmarks.md
+	$(PY) bench/bench_depth_to_scan.py --out docs/benchmarks.md
+	$(PY) bench/bench_vo.py --out docs/benchmarks.md
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check sensors slam nav rgbdnav tests bench
