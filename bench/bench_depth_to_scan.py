@@ -11,7 +11,6 @@ import argparse
 import datetime as dt
 import os
 import platform
-import re
 import sys
 import time
 from pathlib import Path
@@ -20,6 +19,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from common import write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig  # noqa: E402
 from sensors.sim.motion import drive_route  # noqa: E402
@@ -72,18 +73,6 @@ def time_conversion(conv: DepthToScan, depths: list[np.ndarray]) -> dict[str, fl
             "valid": float(np.mean(valid)), "kept": float(np.mean(kept))}  # fmt: skip
 
 
-def write_section(out: Path, body: str) -> None:
-    text = out.read_text() if out.exists() else "# rgbdnav benchmarks\n"
-    start, end = f"<!-- {SECTION}:start -->", f"<!-- {SECTION}:end -->"
-    block = f"{start}\n{body.rstrip()}\n{end}"
-    if start in text:
-        text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--world", type=Path, default=REPO / "scenes" / "house.yaml")
@@ -128,7 +117,7 @@ camera are reused for the other mountings (only the cost matters there).
 """
     print(body)
     if args.out:
-        write_section(args.out, body)
+        write_section(args.out, SECTION, body)
         print(f"updated {args.out}")
 
 

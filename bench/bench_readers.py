@@ -14,7 +14,6 @@ import datetime as dt
 import logging
 import os
 import platform
-import re
 import sys
 import time
 from collections.abc import Callable
@@ -25,6 +24,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from common import write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.carmen import read_carmen_log  # noqa: E402
 from sensors.recording import Recording  # noqa: E402
@@ -122,18 +123,6 @@ def bench_carmen(repeat: int) -> list[tuple[str, float, int, int]]:
     return rows
 
 
-def write_section(out: Path, body: str) -> None:
-    text = out.read_text() if out.exists() else "# rgbdnav benchmarks\n"
-    start, end = f"<!-- {SECTION}:start -->", f"<!-- {SECTION}:end -->"
-    block = f"{start}\n{body.rstrip()}\n{end}"
-    if start in text:
-        text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--recording", type=Path, default=Path("/tmp/bench-rec"))
@@ -172,7 +161,7 @@ def main() -> None:
     body = "\n".join(lines) + "\n"
     print(body)
     if args.out:
-        write_section(args.out, body)
+        write_section(args.out, SECTION, body)
         print(f"updated {args.out}")
 
 

@@ -11,7 +11,6 @@ import argparse
 import datetime as dt
 import os
 import platform
-import re
 import sys
 import time
 from pathlib import Path
@@ -21,6 +20,8 @@ import serial
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from common import write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import BoardConfig  # noqa: E402
 from sensors.eddie import EddieBoard  # noqa: E402
@@ -73,18 +74,6 @@ def bench_transport(kind: str, commands: int) -> dict[str, float]:
     }
 
 
-def write_section(out: Path, body: str) -> None:
-    text = out.read_text() if out.exists() else "# rgbdnav benchmarks\n"
-    start, end = f"<!-- {SECTION}:start -->", f"<!-- {SECTION}:end -->"
-    block = f"{start}\n{body.rstrip()}\n{end}"
-    if start in text:
-        text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--commands", type=int, default=5000, help="timed DIST commands per transport")
@@ -117,7 +106,7 @@ real board's line up to about {50 * 3 * wire_ms / 10:.0f} % busy.
 """
     print(body)
     if args.out:
-        write_section(args.out, body)
+        write_section(args.out, SECTION, body)
         print(f"updated {args.out}")
 
 

@@ -10,7 +10,6 @@ import argparse
 import datetime as dt
 import os
 import platform
-import re
 import resource
 import sys
 import tempfile
@@ -21,6 +20,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from common import write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig  # noqa: E402
 from sensors.sim.motion import drive_route  # noqa: E402
@@ -87,18 +88,6 @@ def bench_simulate(world_path: Path, frames: int) -> dict[str, float]:
     return {"simulate_fps": summary.frames / wall, "simulate_wall_s": wall}
 
 
-def write_section(out: Path, body: str) -> None:
-    text = out.read_text() if out.exists() else "# rgbdnav benchmarks\n"
-    start, end = f"<!-- {SECTION}:start -->", f"<!-- {SECTION}:end -->"
-    block = f"{start}\n{body.rstrip()}\n{end}"
-    if start in text:
-        text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--world", type=Path, default=REPO / "scenes" / "house.yaml")
@@ -127,7 +116,7 @@ Command: `make bench` (`python bench/bench_simulator.py --frames {args.frames} -
 """
     print(body)
     if args.out:
-        write_section(args.out, body)
+        write_section(args.out, SECTION, body)
         print(f"updated {args.out}")
 
 
