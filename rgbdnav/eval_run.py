@@ -17,8 +17,8 @@ import numpy as np
 from rgbdnav.config import load_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
-from sensors.tum import TRAJECTORY_COLUMNS, StampedText
-from sensors.types import NS_PER_S, SensorError, format_stamp, parse_stamp
+from sensors.tum import TRAJECTORY_COLUMNS, read_stamped_text
+from sensors.types import NS_PER_S, SensorError, format_stamp
 from slam.trajectory_eval import (
     ALIGN_MODES,
     DELTA_UNITS,
@@ -54,38 +54,13 @@ def read_trajectory(path: Path) -> Trajectory:
     path = Path(path)
     if path.is_dir():
         path = path / RUN_TRAJECTORY
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as err:
-        raise SensorError(f"{path}: cannot read: {err.strerror or err}") from err
-    except UnicodeDecodeError as err:
-        raise SensorError(f"{path}: not a text file: {err}") from err
-    stamps: list[int] = []
-    values: list[list[str]] = []
-    lines: list[int] = []
-    for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        tokens = line.split()
-        if len(tokens) != len(TRAJECTORY_COLUMNS):
-            raise SensorError(
-                f"{path}:{number}: expected {len(TRAJECTORY_COLUMNS)} fields "
-                f"({' '.join(TRAJECTORY_COLUMNS)}), got {len(tokens)}: {line!r}"
-            )
-        try:
-            stamps.append(parse_stamp(tokens[0]))
-        except ValueError as err:
-            raise SensorError(f"{path}:{number}: bad timestamp: {err}") from err
-        values.append(tokens[1:])
-        lines.append(number)
-    if not stamps:
+    table = read_stamped_text(path, TRAJECTORY_COLUMNS, check_order=False)
+    if not len(table.stamps_ns):
         raise SensorError(f"{path}: no poses (expected lines '{' '.join(TRAJECTORY_COLUMNS)}')")
-    table = StampedText(path, np.array(stamps, np.int64), values, np.array(lines, np.int64))
     data = table.numeric(np.float64, "pose (tx ty tz qx qy qz qw)")
     norms = np.linalg.norm(data[:, 3:], axis=1)
     if (bad := np.flatnonzero(norms < 1e-9)).size:
-        raise SensorError(f"{path}:{lines[bad[0]]}: quaternion has zero length")
+        raise SensorError(f"{path}:{table.lines[bad[0]]}: quaternion has zero length")
     # Sort by stamp (stable), then keep the last line of each run of equal stamps.
     order = np.argsort(table.stamps_ns, kind="stable")
     sorted_ns = table.stamps_ns[order]

@@ -49,11 +49,14 @@ class StampedText:
         raise SensorError(f"{self.path}: could not parse {what}")  # pragma: no cover
 
 
-def read_stamped_text(path: str | os.PathLike[str], columns: tuple[str, ...]) -> StampedText:
+def read_stamped_text(
+    path: str | os.PathLike[str], columns: tuple[str, ...], check_order: bool = True
+) -> StampedText:
     """Read ``columns`` (the first is the timestamp) from a TUM-style file.
 
     Blank lines and lines starting with ``#`` are skipped. Each data line must have exactly
-    ``len(columns)`` whitespace-separated fields and timestamps must strictly increase.
+    ``len(columns)`` whitespace-separated fields and, with ``check_order``, timestamps must
+    strictly increase (file order and stamps are otherwise returned as read).
     """
     path = Path(path)
     try:
@@ -81,7 +84,8 @@ def read_stamped_text(path: str | os.PathLike[str], columns: tuple[str, ...]) ->
         lines.append(number)
     stamps_ns = np.array(stamps, dtype=np.int64)
     line_numbers = np.array(lines, dtype=np.int64)
-    check_increasing(path, stamps_ns, line_numbers)
+    if check_order:
+        check_increasing(path, stamps_ns, line_numbers)
     return StampedText(path, stamps_ns, values, line_numbers)
 
 
