@@ -43,6 +43,7 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check sensors slam nav rgbdnav tests bench
+	$(VENV)/bin/mypy sensors slam nav rgbdnav
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -133,8 +133,10 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     outputs["wheel odom"] = run.file("wheel.tum")
 
     # 1. Frames: approximate-time sets of colour and depth (message_filters semantics).
-    streams = src.stream_stamps()
-    camera = {k: streams[k] for k in ("rgb", "depth") if k in streams}
+    stamp_streams = src.stream_stamps()
+    camera: dict[str, np.ndarray] = {
+        k: stamp_streams[k] for k in ("rgb", "depth") if k in stamp_streams
+    }
     frame_t = np.zeros(0, dtype=np.int64)
     sync_stats = None
     if camera:

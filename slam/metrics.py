@@ -79,7 +79,7 @@ def drift_report(
         ate_rmse_m=float(np.sqrt(np.mean(err**2))),
         ate_rmse_aligned_m=float(np.sqrt(np.mean(err_aligned**2))),
         final_position_error_m=final,
-        final_heading_error_deg=float(np.degrees(abs(wrap_angle(eyaw[-1] - ryaw[-1])))),
+        final_heading_error_deg=float(np.degrees(np.abs(wrap_angle(eyaw[-1] - ryaw[-1])))),
         drift_percent=100 * final / length if length > 0 else float("nan"),
         drift_per_10m_m=10 * final / length if length > 0 else float("nan"),
     )

@@ -256,7 +256,7 @@ def _open3d_scene(faces: SceneFaces) -> object:
     base = 4 * np.arange(len(faces), dtype=np.uint32)[:, None]
     tris = np.stack([base + [0, 1, 2], base + [0, 2, 3]], axis=1).reshape(-1, 3).astype(np.uint32)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
+    scene.add_triangles(o3d.core.Tensor.from_numpy(verts), o3d.core.Tensor.from_numpy(tris))
     return scene
 
 
@@ -329,7 +329,7 @@ class KinectRenderer:
         rays = np.empty((h * w, 6), np.float32)
         rays[:, :3] = t
         rays[:, 3:] = self._dirs_opt @ r.T.astype(np.float32)
-        hit = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))  # type: ignore[union-attr]
+        hit = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))  # type: ignore[attr-defined]
         z = hit["t_hit"].numpy().reshape(h, w)
         tri = hit["primitive_ids"].numpy().astype(np.int64).reshape(h, w)
         ok = np.isfinite(z)
