@@ -37,18 +37,16 @@ always horizontal distance, never distance along the tilted ray.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
 from sensors.config import RobotConfig
+from sensors.extrinsics import optical_in_base
 from sensors.types import CameraIntrinsics, ConfigError, LaserScan, RgbdFrame
 from slam.config import DepthToScanConfig
 
-# Optical axes (x right, y down, z forward) in camera_link (x forward, y left, z up).
-R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 ROBOT_FRAMES = ("base_link", "base_footprint")  # base_link lies on the floor (ARCHITECTURE.md)
 CAMERA_FRAME_PREFIX = "camera"
 COLINEAR_TOL = 1e-9  # [m] optical centre this close above the scan origin: fixed bearings
@@ -63,22 +61,9 @@ class DepthToScanError(ConfigError):
 # --- pure kernels ----------------------------------------------------------------------------
 
 
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 def base_from_optical(robot: RobotConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(R_base_optical 3x3, t_base_optical 3): R = Ry(pitch) Rx(roll) R_LINK_OPTICAL, positive
-    pitch nose down; the same convention as the simulator's ``camera_pose_in_world``."""
-    r = _rot_y(robot.camera_pitch) @ _rot_x(robot.camera_roll) @ R_LINK_OPTICAL
-    t = np.array([robot.camera_x, robot.camera_y, robot.camera_height])
-    return r, t
+    """(R_base_optical 3x3, t_base_optical 3) from the robot's camera extrinsics."""
+    return optical_in_base(robot)
 
 
 def row_band(height_px: int, cy: float, scan_height: int) -> tuple[int, int]:

@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from sensors.config import RobotConfig
+from sensors.extrinsics import optical_in_base_4x4
 from sensors.types import CameraIntrinsics, ConfigError, Pose2, RgbdFrame
 from slam.config import VoConfig
 
@@ -188,12 +189,7 @@ def rotation_angle(t: np.ndarray) -> float:
 
 def base_from_optical(robot: RobotConfig) -> np.ndarray:
     """4x4 pose of the optical frame in base_link from the robot's camera extrinsics."""
-    from sensors.sim.render import camera_pose_in_world
-
-    r, t = camera_pose_in_world(0.0, 0.0, 0.0, robot)
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = r, t
-    return out
+    return optical_in_base_4x4(robot)
 
 
 # --------------------------------------------------------------------------------------------

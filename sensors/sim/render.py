@@ -19,12 +19,11 @@ import cv2
 import numpy as np
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig
+from sensors.extrinsics import camera_pose_in_world
 from sensors.sim.textures import MIP_LEVELS, TEXTURE_SIZE, TextureAtlas, build_atlas
 from sensors.sim.world import Box, World
 from sensors.types import CameraIntrinsics
 
-# Optical axes (x right, y down, z forward) expressed in camera_link (x forward, y left, z up).
-R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 AMBIENT = 0.35  # share of light that does not depend on the surface angle
 DISTANCE_FALLOFF = 0.04  # [1/m] brightness lost per metre (a dim indoor scene)
 NOISE_BANK_FACTOR = 2  # noise banks hold this many frames of samples
@@ -32,33 +31,6 @@ Z_NEAR = 0.02  # [m] near clipping plane of the rasteriser
 RASTER_SHIFT = 4  # fractional bits of polygon vertices handed to OpenCV
 MIN_COS_INCIDENCE = 0.05  # grazing surfaces are shaded as if at ~87 degrees
 EDGE_KERNEL = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # 4-neighbourhood
-
-
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def camera_pose_in_world(
-    x: float, y: float, yaw: float, robot: RobotConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """base_link pose on the floor -> (R_world_optical 3x3, t_world_optical 3)."""
-    r_world_base = _rot_z(yaw)
-    t_base_link = np.array([robot.camera_x, robot.camera_y, robot.camera_height])
-    r_base_link = _rot_y(robot.camera_pitch) @ _rot_x(robot.camera_roll)
-    r_world_opt = r_world_base @ r_base_link @ R_LINK_OPTICAL
-    t_world_opt = np.array([x, y, 0.0]) + r_world_base @ t_base_link
-    return r_world_opt, t_world_opt
 
 
 @dataclass(frozen=True, eq=False)

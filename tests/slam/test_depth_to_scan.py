@@ -53,14 +53,6 @@ def line_ranges(scan_angles: np.ndarray, inc: float, dist_m: float, normal_rad: 
     return dist_m / np.cos(off)
 
 
-def test_base_from_optical_matches_the_simulator_convention() -> None:
-    robot = replace(ROBOT, camera_x=0.1, camera_y=-0.05, camera_pitch=0.3, camera_roll=0.1)
-    r, t = base_from_optical(robot)
-    r_sim, t_sim = camera_pose_in_world(0.0, 0.0, 0.0, robot)
-    np.testing.assert_allclose(r, r_sim, atol=1e-12)
-    np.testing.assert_allclose(t, t_sim, atol=1e-12)
-
-
 def test_wall_ahead_gives_two_over_cos_theta_across_the_fov() -> None:
     conv = DepthToScan(INTRINSICS, ROBOT, CFG)
     out = conv(true_depth(room([wall_ahead(2.05)])))  # near face at 2.0 m
