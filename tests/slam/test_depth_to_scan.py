@@ -9,14 +9,13 @@ import numpy as np
 import pytest
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig
-from sensors.sim.render import KinectRenderer, camera_pose_in_world
+from sensors.sim.render import KinectRenderer
 from sensors.sim.world import world_from_dict
 from sensors.types import CameraIntrinsics
 from slam.config import DepthToScanConfig
 from slam.depth_to_scan import (
     DepthToScan,
     DepthToScanError,
-    base_from_optical,
     nearest_per_beam_reference,
 )
 
