@@ -31,6 +31,7 @@ import numpy as np
 import yaml
 
 from sensors.atomic import atomic_write_text, commit_staging_dir, make_staging_dir
+from sensors.images import ImageError, read_image
 from sensors.tum import (
     load_tum_trajectory,
     read_stamped_text,
@@ -49,20 +50,11 @@ log = logging.getLogger(__name__)
 DEFAULT_MAX_DIFFERENCE_NS = 20_000_000  # [ns] rgb/depth association window (TUM associate.py)
 PNG_COMPRESSION = 1  # fast zlib level: recording speed matters more than disk here
 UINT16_MAX = np.iinfo(np.uint16).max
-PNG_IEND = b"IEND"  # type of the last chunk of every complete PNG
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "depth_scale")
 FOLDER_CONTENTS = (
     "a recording folder holds rgb.txt, depth.txt, scene.yaml, rgb/ and depth/ "
     "(optionally wheels.txt, imu.txt, groundtruth.txt)"
 )
-
-
-class _ImageError(SensorError):
-    """An image of a recording is missing or bad; ``reason`` keys ``Recording.skipped``."""
-
-    def __init__(self, message: str, reason: str) -> None:
-        super().__init__(message)
-        self.reason = reason
 
 
 # --- pure helpers ------------------------------------------------------------------------------
@@ -467,7 +459,7 @@ class Recording:
         for k in range(len(self)):
             try:
                 yield self.frame(k)
-            except _ImageError as err:
+            except ImageError as err:
                 if not skip_bad:
                     raise
                 stamp = format_stamp(int(self.rgb_stamps_ns[self.rgb_index[k]]))
@@ -477,42 +469,15 @@ class Recording:
     def frame(self, k: int) -> RgbdFrame:
         """The k-th associated frame (0 <= k < len(self)); raises SensorError on a bad image."""
         i, j = int(self.rgb_index[k]), int(self.depth_index[k])
-        bgr = self._load(self._rgb_files[i], np.uint8, 3)
-        counts = self._load(self._depth_files[j], np.uint16, None)
+        size = (self.intrinsics.width, self.intrinsics.height)
+        rgb = read_image(self.path / self._rgb_files[i], size, depth=False)
+        counts = read_image(self.path / self._depth_files[j], size, depth=True)
         return RgbdFrame(
             stamp_ns=int(self.rgb_stamps_ns[i]),
-            rgb=cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),
+            rgb=rgb,
             depth_m=counts_to_depth(counts, self.intrinsics.depth_scale),
             intrinsics=self.intrinsics,
         )
-
-    def _load(self, name: str, dtype: type[np.generic], channels: int | None) -> np.ndarray:
-        file = self.path / name
-        try:
-            data = file.read_bytes()
-        except FileNotFoundError as err:
-            raise _ImageError(f"{file}: image is missing", "missing") from err
-        except OSError as err:
-            raise _ImageError(f"{file}: cannot read: {err}", "unreadable") from err
-        # OpenCV may decode a truncated PNG partially without an error, so check the end chunk.
-        if file.suffix.lower() == ".png" and data[-8:-4] != PNG_IEND:
-            raise _ImageError(f"{file}: truncated PNG", "truncated")
-        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise _ImageError(f"{file}: not a readable image", "unreadable")
-        h, w = self.intrinsics.height, self.intrinsics.width
-        shape = (h, w) if channels is None else (h, w, channels)
-        if image.shape[:2] != (h, w):
-            raise _ImageError(
-                f"{file}: image is {image.shape[1]}x{image.shape[0]}, camera is {w}x{h}",
-                "wrong_size",
-            )
-        if image.shape != shape or image.dtype != dtype:
-            raise _ImageError(
-                f"{file}: expected {shape} {np.dtype(dtype).name}, got {image.shape} {image.dtype}",
-                "wrong_dtype",
-            )
-        return image
 
 
 def _read_index(file: Path) -> tuple[np.ndarray, list[str]]:

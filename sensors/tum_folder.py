@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 import yaml
 
+from sensors.images import ImageError, read_image
 from sensors.recording import DEFAULT_MAX_DIFFERENCE_NS, associate, counts_to_depth
 from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
 from sensors.tum import load_tum_trajectory, read_stamped_text, yaw_from_quaternion
@@ -59,18 +60,8 @@ OPEN3D_DEPTH_SCALE = 1000.0  # [counts/m] Open3D's sample depth is in millimetre
 INDEX_PERIOD_NS = NS_PER_S // 30  # [ns] assumed frame period when only indices are given
 MAX_INDEX_S = 1_000_000  # [s] index "stamps" are small whole numbers; real ones are epoch times
 GROUNDTRUTH_FILES = ("groundtruth.txt", "truth_cam_poses.txt")
-PNG_IEND = b"IEND"  # type of the last chunk of every complete PNG
-JPEG_EOI = b"\xff\xd9"  # end-of-image marker of every complete JPEG
 MAX_WARNINGS = 5  # per frames() pass; the rest are summarised once
 _PRESET_RE = re.compile(r"(?:freiburg|(?<![a-z])fr)_?([123])(?!\d)")
-
-
-class _ImageError(SensorError):
-    """A missing or bad image; ``reason`` keys ``TumFolderSource.skipped``."""
-
-    def __init__(self, message: str, reason: str) -> None:
-        super().__init__(message)
-        self.reason = reason
 
 
 @dataclass(frozen=True)
@@ -192,37 +183,6 @@ def _read_match(file: Path) -> tuple[_Index, _Index]:
         rgb.append(tokens[1])
     stamps = np.arange(len(rgb), dtype=np.int64) * INDEX_PERIOD_NS
     return _Index(stamps, rgb), _Index(stamps.copy(), depth)
-
-
-def _read_image(file: Path, size: tuple[int, int], depth: bool) -> np.ndarray:
-    """A colour image as (H, W, 3) uint8 RGB, or a depth image as (H, W) uint16 counts."""
-    try:
-        data = file.read_bytes()
-    except FileNotFoundError as err:
-        raise _ImageError(f"{file}: image is missing", "missing") from err
-    except OSError as err:
-        raise _ImageError(f"{file}: cannot read: {err.strerror or err}", "unreadable") from err
-    # OpenCV decodes a truncated PNG or JPEG partially without an error: check the end marker.
-    suffix = file.suffix.lower()
-    if (suffix == ".png" and data[-8:-4] != PNG_IEND) or (
-        suffix in (".jpg", ".jpeg") and data.rstrip(b"\0\r\n")[-2:] != JPEG_EOI
-    ):
-        raise _ImageError(f"{file}: truncated {suffix[1:].upper()}", "truncated")
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise _ImageError(f"{file}: not a readable image", "unreadable")
-    w, h = size
-    if image.shape[:2] != (h, w):
-        raise _ImageError(
-            f"{file}: image is {image.shape[1]}x{image.shape[0]}, camera is {w}x{h}", "wrong_size"
-        )
-    want = ((h, w), np.uint16) if depth else ((h, w, 3), np.uint8)
-    if image.shape != want[0] or image.dtype != want[1]:
-        raise _ImageError(
-            f"{file}: expected {want[0]} {np.dtype(want[1]).name}, got {image.shape} {image.dtype}",
-            "wrong_dtype",
-        )
-    return image if depth else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 # --- source ------------------------------------------------------------------------------------
@@ -388,8 +348,8 @@ class TumFolderSource:
         """The k-th associated pair (0 <= k < len(self)); raises SensorError on a bad image."""
         i, j = int(self.rgb_index[k]), int(self.depth_index[k])
         size = (self._intrinsics.width, self._intrinsics.height)
-        rgb = _read_image(self.root / self._rgb.files[i], size, depth=False)
-        counts = _read_image(self.root / self._depth.files[j], size, depth=True)
+        rgb = read_image(self.root / self._rgb.files[i], size, depth=False)
+        counts = read_image(self.root / self._depth.files[j], size, depth=True)
         return RgbdFrame(
             stamp_ns=int(self._rgb.stamps_ns[i]),
             rgb=rgb,
@@ -417,7 +377,7 @@ class TumFolderSource:
                         pending.append((nxt, pool.submit(self.frame, nxt)))
                     try:
                         frame = future.result()
-                    except _ImageError as err:
+                    except ImageError as err:
                         if self.strict:
                             raise
                         self._count_skip(k, err)
@@ -429,7 +389,7 @@ class TumFolderSource:
         if sum(self.skipped.values()) > MAX_WARNINGS:
             log.warning("%s: skipped %s frames", self.root, self.skipped)
 
-    def _count_skip(self, k: int, err: _ImageError) -> None:
+    def _count_skip(self, k: int, err: ImageError) -> None:
         total = sum(self.skipped.values())
         self.skipped[err.reason] = self.skipped.get(err.reason, 0) + 1
         if total < MAX_WARNINGS:
