@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -20,7 +18,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig  # noqa: E402
 from sensors.sim.motion import drive_route  # noqa: E402
@@ -32,20 +30,6 @@ from slam.depth_to_scan import DepthToScan  # noqa: E402
 
 TARGET_MS = 2.0  # [ms/frame] on 2 cores
 SECTION = "depth_to_scan"
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (
-        f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
-    )
 
 
 def render_frames(world_path: Path, frames: int, robot: RobotConfig) -> list[np.ndarray]:
@@ -104,7 +88,7 @@ def main() -> None:
     verdict = "meets" if best <= TARGET_MS else "misses"
     body = f"""## Depth -> scan ({args.world.name}, 640x480, noisy Kinect depth)
 
-Measured {dt.date.today().isoformat()} on {machine()}.
+Measured {dt.date.today().isoformat()} on {machine("numpy")}.
 Command: `python bench/bench_depth_to_scan.py --frames {args.frames}`; {args.frames} frames rendered
 once up front, conversion timed alone. Default config: {cfg.angle_increment:.4f} rad beams,
 height band [{cfg.min_height}, {cfg.max_height}] m, range [{cfg.range_min}, {cfg.range_max}] m.

@@ -12,20 +12,15 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import logging
-import os
-import platform
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.carmen import read_carmen_log  # noqa: E402
 from sensors.recording import Recording  # noqa: E402
@@ -36,19 +31,6 @@ from sensors.tum_folder import TumFolderSource  # noqa: E402
 DATA = REPO.parent / "shared" / "data"
 SECTION = "readers"
 RECORDING_FRAMES = 300  # frames of the simulated recording
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-            f"numpy {np.__version__}, OpenCV {cv2.__version__}")  # fmt: skip
 
 
 def ensure_recording(path: Path) -> None:
@@ -138,7 +120,7 @@ def main() -> None:
     lines = [
         "## Readers",
         "",
-        f"Measured {dt.date.today().isoformat()} on {machine()}.",
+        f"Measured {dt.date.today().isoformat()} on {machine('numpy', 'cv2')}.",
         f"Command: `python bench/bench_readers.py --repeat {args.repeat}`; best of "
         f"{args.repeat} passes, warm page cache.",
         "",

@@ -9,19 +9,16 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import serial
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import BoardConfig  # noqa: E402
 from sensors.eddie import EddieBoard  # noqa: E402
@@ -32,19 +29,6 @@ BAUD = 115200  # [bit/s]
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 DIST_BYTES = len(b"DIST\r") + len(b"00000000 00000000\r")  # [bytes] one round trip
 WARMUP = 100  # commands before timing
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-            f"pyserial {serial.VERSION}")  # fmt: skip
 
 
 def bench_transport(kind: str, commands: int) -> dict[str, float]:
@@ -89,7 +73,7 @@ def main() -> None:
     table = "\n".join(lines)
     body = f"""## Serial link to the Eddie board (emulator)
 
-Measured {dt.date.today().isoformat()} on {machine()}.
+Measured {dt.date.today().isoformat()} on {machine("serial")}.
 Command: `python bench/bench_serial.py --commands {args.commands}` -- `EddieBoard.distance()` (one
 `DIST` command and its 18-byte reply through pyserial) against `EddieEmulator`, after {WARMUP}
 warm-up commands, wheels turning.

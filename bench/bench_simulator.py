@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import os
-import platform
 import resource
 import sys
 import tempfile
@@ -21,7 +19,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig  # noqa: E402
 from sensors.sim.motion import drive_route  # noqa: E402
@@ -31,21 +29,6 @@ from sensors.sim.world import load_world  # noqa: E402
 
 TARGET_FPS = 30.0  # [frames/s] issue 3 target on a 2-core machine
 SECTION = "simulator"
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import open3d
-
-    return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-            f"numpy {np.__version__}, open3d {open3d.__version__}")  # fmt: skip
 
 
 def _timed(fn: object) -> float:
@@ -102,7 +85,7 @@ def main() -> None:
     verdict = "meets" if r["render_fps"] >= TARGET_FPS else "misses"
     body = f"""## Simulator ({args.world.name}, 640x480)
 
-Measured {dt.date.today().isoformat()} on {machine()}.
+Measured {dt.date.today().isoformat()} on {machine("numpy", "open3d")}.
 Command: `make bench` (`python bench/bench_simulator.py --frames {args.frames} --record-frames {args.record_frames}`).
 
 | figure | value |

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -27,7 +25,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig, SyncConfig  # noqa: E402
 from sensors.recording import Recording  # noqa: E402
@@ -43,20 +41,6 @@ DEPTH_JITTER_NS = 3 * MS  # [ns] extra depth-only stamp jitter sigma, added here
 DEPTH_DROP = 0.02  # extra depth-only drop probability, added here
 SYNTHETIC_STAMPS = 100_000  # total stamps for the throughput figure
 CAMERA_PERIOD_NS = NS_PER_S // 30  # [ns] 30 Hz
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (
-        f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
-    )
 
 
 def perturb(stamps: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -150,7 +134,7 @@ def main() -> None:
     stats = r.stats
     body = f"""## Sync ({args.world.name}, {args.frames} frames)
 
-Measured {dt.date.today().isoformat()} on {machine()}.
+Measured {dt.date.today().isoformat()} on {machine("numpy")}.
 Command: `python bench/bench_sync.py --frames {args.frames}`.
 Sync config: queue_size {cfg.queue_size}, slop {cfg.slop * 1e3:.0f} ms, max_interpolation_gap {cfg.max_interpolation_gap * 1e3:.0f} ms.
 

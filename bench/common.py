@@ -17,3 +17,25 @@ def write_section(out: Path, section: str, body: str) -> None:
         text = text.rstrip() + "\n\n" + block + "\n"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
+
+
+def machine(*libraries: str) -> str:
+    """CPU model, cores, Python and the versions of ``libraries`` (module names), for the report."""
+    import importlib
+    import os
+    import platform
+
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    parts = [cpu, f"{os.cpu_count()} cores", f"Python {platform.python_version()}"]
+    for name in libraries:
+        module = importlib.import_module(name)
+        version = getattr(module, "__version__", None) or getattr(module, "VERSION", "?")
+        parts.append(f"{name} {version}")
+    return ", ".join(parts)
