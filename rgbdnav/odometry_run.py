@@ -175,7 +175,7 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
             "sets": sync_stats.sets,
             "dropped_fraction": sync_stats.dropped_fraction,
             "mean_spread_ms": sync_stats.mean_spread_ns / 1e6 if sync_stats.sets else None,
-            "streams": {name: dict(vars(st)) for name, st in sync_stats.streams.items()},
+            "streams": dict(sync_stats.streams),
         }
     # 3. Visual odometry over the RGB-D frames (optional: the slowest step).
     vo_track = _visual_odometry(src, cfg, start, progress) if use_vo else None
@@ -211,7 +211,7 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     write_tum_trajectory(run.file("fused.tum"), fused.stamps_ns[good], ex[good], ey[good],
                          eyaw[good])  # fmt: skip
     outputs["fused odom"] = run.file("fused.tum")
-    summary["ekf"] = {"inputs": sorted(streams), "stats": _jsonable_stats(fused.stats)}
+    summary["ekf"] = {"inputs": sorted(streams), "stats": fused.stats}
 
     fused_label = "EKF (" + " + ".join(LABELS[k] for k in sorted(streams)) + ")"
     paths = [("wheel odometry", x, y), (fused_label, ex[good], ey[good])]
@@ -249,16 +249,3 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
     outputs["summary"] = run.write_summary(summary)
     return outputs
-
-
-def _jsonable_stats(stats: object) -> object:
-    """EKF statistics as plain data for summary.json."""
-    import dataclasses
-
-    if dataclasses.is_dataclass(stats):
-        return {f.name: _jsonable_stats(getattr(stats, f.name)) for f in dataclasses.fields(stats)}
-    if isinstance(stats, dict):
-        return {str(k): _jsonable_stats(v) for k, v in stats.items()}
-    if isinstance(stats, (list, tuple)):
-        return [_jsonable_stats(v) for v in stats]
-    return stats
