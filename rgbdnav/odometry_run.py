@@ -28,6 +28,7 @@ from slam.diff_drive import (
     wheel_increments,
 )
 from slam.ekf import TwistInput, fuse, wheel_twist_inputs
+from slam.geometry import compose
 from slam.metrics import drift_report, interpolate_poses
 from slam.visual_odometry import VisualOdometry
 
@@ -90,9 +91,7 @@ def _visual_odometry(src: Source, cfg: Config, start: Pose2,
                 inputs.append(TwistInput(frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
                                          np.asarray(res.covariance) / dt**2))  # fmt: skip
                 # 2. The VO-only path: compose the motion (a failed pair's motion is lost).
-                x += math.cos(yaw) * d.x - math.sin(yaw) * d.y
-                y += math.sin(yaw) * d.x + math.cos(yaw) * d.y
-                yaw += d.yaw
+                x, y, yaw = (float(v) for v in compose(x, y, yaw, d.x, d.y, d.yaw))
             else:
                 inputs.append(TwistInput(frame.stamp_ns, 0.0, 0.0, 0.0, np.eye(3), valid=False))
                 failures[res.reason] += 1
@@ -203,10 +202,7 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     fused = fuse(streams, cfg.ekf, output_stamps_ns=frame_t[ok],
                  gyro_z_variance=cfg.ekf.imu0_angular_velocity_variance)  # fmt: skip
     # The filter starts at the odom origin; place odom at the start pose in the world.
-    c, s_ = np.cos(start.yaw), np.sin(start.yaw)
-    ex = start.x + c * fused.x - s_ * fused.y
-    ey = start.y + s_ * fused.x + c * fused.y
-    eyaw = start.yaw + fused.yaw
+    ex, ey, eyaw = compose(start.x, start.y, start.yaw, fused.x, fused.y, fused.yaw)
     good = np.isfinite(ex)
     write_tum_trajectory(run.file("fused.tum"), fused.stamps_ns[good], ex[good], ey[good],
                          eyaw[good])  # fmt: skip

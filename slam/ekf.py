@@ -40,6 +40,8 @@ from sensors.config import RobotConfig
 from sensors.types import NS_PER_S, ImuSample, Odometry2D, Pose2, RgbdNavError
 from slam.config import STATE_NAMES, EkfConfig
 from slam.diff_drive import WheelErrorModel, wheel_increments
+from slam.geometry import between as se2_between
+from slam.geometry import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -64,11 +66,6 @@ class EkfError(RgbdNavError):
 
 
 # --- kernels ----------------------------------------------------------------------------------
-
-
-def wrap_angle(a: float) -> float:
-    """Angle into [-pi, pi)."""
-    return (float(a) + math.pi) % (2 * math.pi) - math.pi
 
 
 def angle_residual(angle_rows: np.ndarray) -> Residual:
@@ -169,13 +166,6 @@ def update(
 def passes_gate(nis: float, threshold_sigma: float) -> bool:
     """robot_localization's checkMahalanobisThreshold: accept while NIS < threshold^2."""
     return nis < threshold_sigma * threshold_sigma
-
-
-def se2_between(a: Pose2, b: Pose2) -> Pose2:
-    """a^-1 * b: pose b expressed in frame a."""
-    c, s = math.cos(a.yaw), math.sin(a.yaw)
-    dx, dy = b.x - a.x, b.y - a.y
-    return Pose2(c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b.yaw - a.yaw)))
 
 
 def _rotation3(yaw: float) -> np.ndarray:

@@ -11,9 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+from slam.geometry import wrap_angle
 
 
 def interpolate_poses(

@@ -1,0 +1,37 @@
+"""Planar (SE(2)) pose helpers, vectorised: poses are (x [m], y [m], yaw [rad]) scalars or arrays
+that broadcast together."""
+
+from __future__ import annotations
+
+import math
+from typing import TypeVar
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from sensors.types import Pose2
+
+A = TypeVar("A", float, np.ndarray)
+
+
+def wrap_angle(a: A) -> A:
+    """Angle(s) into [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def compose(
+    x1: ArrayLike, y1: ArrayLike, yaw1: ArrayLike, x2: ArrayLike, y2: ArrayLike, yaw2: ArrayLike
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pose 1 (+) pose 2: pose 2, given in frame 1, expressed where frame 1 is expressed.
+    Yaw is summed, not wrapped, so a chain of compositions stays continuous."""
+    ax, ay, ayaw, bx, by, byaw = (np.asarray(v, dtype=np.float64)
+                                  for v in (x1, y1, yaw1, x2, y2, yaw2))  # fmt: skip
+    c, s = np.cos(ayaw), np.sin(ayaw)
+    return ax + c * bx - s * by, ay + s * bx + c * by, ayaw + byaw
+
+
+def between(a: Pose2, b: Pose2) -> Pose2:
+    """a^-1 (+) b: pose b expressed in frame a (yaw wrapped)."""
+    c, s = math.cos(a.yaw), math.sin(a.yaw)
+    dx, dy = b.x - a.x, b.y - a.y
+    return Pose2(c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b.yaw - a.yaw)))
