@@ -27,6 +27,7 @@ robot_localization behaviour reproduced here (see the module-level notes on each
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from bisect import bisect_right
@@ -296,6 +297,7 @@ class Measurement:
     z: np.ndarray  # (m,)
     R: np.ndarray  # (m, m)
     threshold: float  # [sigma]
+    gyro: bool = False  # from a gyro: its vyaw row reads vyaw + the gyro bias state
 
 
 @dataclass(frozen=True)
@@ -403,9 +405,12 @@ class PlanarEkf:
         if isinstance(msg, Odometry2D):
             msg = PoseInput(msg.stamp_ns, msg.pose, msg.covariance)
         if isinstance(msg, ImuSample):
-            # A gyro measures vyaw only: the nan rows are never fused.
+            # A gyro measures vyaw (+ its bias) only: the nan rows are never fused.
             cov = np.diag([1.0, 1.0, self.gyro_z_variance])
-            msg = TwistInput(msg.stamp_ns, math.nan, math.nan, msg.gyro_z, cov)
+            z = np.array([math.nan, math.nan, msg.gyro_z])
+            made = self._make(sensor, msg.stamp_ns, "twist", spec.twist_mask, z, cov,
+                              spec.twist_threshold)  # fmt: skip
+            return [dataclasses.replace(m, gyro=True) for m in made]
         if isinstance(msg, TwistInput):
             z = np.array([msg.vx, msg.vy, msg.vyaw])
             return self._make(sensor, msg.stamp_ns, "twist", spec.twist_mask, z,
@@ -480,8 +485,8 @@ class PlanarEkf:
         x, P = (self.x, self.P) if dt <= 0 else predict(self.x, self.P, dt, self.Q)
         H = np.zeros((len(m.idx), STATE_DIM))
         H[np.arange(len(m.idx)), m.idx] = 1.0
-        if m.sensor == "imu0" and m.kind == "twist":
-            H[m.idx == VYAW, GYRO_BIAS] = 1.0  # a gyro reads vyaw + bias
+        if m.gyro:
+            H[m.idx == VYAW, GYRO_BIAS] = 1.0
         xu, Pu, _, _, nis = update(x, P, m.z, H, m.R, angle_residual(m.idx == YAW))
         accepted = passes_gate(nis, m.threshold)
         if accepted:
