@@ -162,13 +162,12 @@ def info(
         return
     from rgbdnav.config import load_config, source_options
     from sensors.source import open_source
-    from sensors.stream_stats import format_stats_table, stream_stats
+    from sensors.stream_stats import describe_source, format_stats_table
 
     src = open_source(source_text, source_options(load_config(config or [], set_ or [])))
     try:
         typer.echo(f"{source}: {src.describe()}")
-        stats = [stream_stats(name, stamps) for name, stamps in src.stream_stamps().items()]
-        typer.echo(format_stats_table(stats))
+        typer.echo(format_stats_table(describe_source(src)))
         if src.skipped:
             typer.echo(f"skipped while reading: {src.skipped}")
     finally:

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from sensors.recording import Recording
+from sensors.source import Source
 from sensors.types import NS_PER_S
 
 GAP_FACTOR = 1.5  # an interval longer than this many median periods counts as a gap
@@ -57,22 +58,21 @@ def stream_stats(name: str, stamps_ns: np.ndarray) -> StreamStats:
     )
 
 
-def describe_recording(rec: Recording) -> list[StreamStats]:
-    """Stats of rgb, depth and, when present, wheels, imu and groundtruth."""
-    stats = [
-        stream_stats("rgb", rec.rgb_stamps_ns),
-        stream_stats("depth", rec.depth_stamps_ns),
+def describe_source(src: Source) -> list[StreamStats]:
+    """Stats of every stream a source holds, in its own order."""
+    return [stream_stats(name, stamps) for name, stamps in src.stream_stamps().items()]
+
+
+def format_table(rows: Sequence[tuple[str, ...]]) -> list[str]:
+    """Rows of cells (the first row a header) -> aligned lines: first column left, rest right."""
+    widths = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
+    return [
+        "  ".join(
+            cell.ljust(w) if c == 0 else cell.rjust(w)
+            for c, (cell, w) in enumerate(zip(row, widths, strict=True))
+        ).rstrip()
+        for row in rows
     ]
-    wheel_stamps = rec.wheels()[0]
-    if wheel_stamps.size:
-        stats.append(stream_stats("wheels", wheel_stamps))
-    imu = rec.imu()
-    if imu is not None:
-        stats.append(stream_stats("imu", imu[0]))
-    groundtruth = rec.groundtruth()
-    if groundtruth is not None:
-        stats.append(stream_stats("groundtruth", groundtruth[0]))
-    return stats
 
 
 def format_stats_table(stats: list[StreamStats]) -> str:
@@ -97,12 +97,4 @@ def format_stats_table(stats: list[StreamStats]) -> str:
         )
         for s in stats
     ]
-    widths = [max(len(r[c]) for r in rows) for c in range(len(header))]
-    lines = [
-        "  ".join(
-            cell.ljust(w) if c == 0 else cell.rjust(w)
-            for c, (cell, w) in enumerate(zip(row, widths, strict=True))
-        ).rstrip()
-        for row in rows
-    ]
-    return "\n".join(lines)
+    return "\n".join(format_table(rows))

@@ -35,6 +35,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sensors.config import SyncConfig
+from sensors.stream_stats import format_table
 from sensors.types import NS_PER_S, SyncError
 
 log = logging.getLogger(__name__)
@@ -124,14 +125,7 @@ class SyncStats:
             counts = (s.received, s.matched, s.out_of_order, s.duplicate, s.stale, s.unmatched,
                       s.overflow, s.pending)  # fmt: skip
             rows.append((name, *(str(c) for c in counts), pct))
-        widths = [max(len(r[c]) for r in rows) for c in range(len(header))]
-        lines = [
-            "  ".join(
-                cell.ljust(w) if c == 0 else cell.rjust(w)
-                for c, (cell, w) in enumerate(zip(row, widths, strict=True))
-            ).rstrip()
-            for row in rows
-        ]
+        lines = format_table(rows)
         if self.sets:
             lines.append(
                 f"{self.sets} sets, spread mean {self.mean_spread_ns / 1e6:.2f} ms, "

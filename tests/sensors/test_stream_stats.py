@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from sensors.recording import Recording, RecordingWriter
-from sensors.stream_stats import describe_recording, format_stats_table, stream_stats
+from sensors.recording_source import RecordingSource
+from sensors.stream_stats import describe_source, format_stats_table, stream_stats
 from sensors.types import CameraIntrinsics, RgbdFrame
 
 MS = 1_000_000  # [ns]
@@ -63,7 +64,7 @@ def test_table_has_a_row_per_stream_and_dashes_for_missing_rates():
     assert len({len(line) for line in lines[:2]}) == 1
 
 
-def test_describe_recording_lists_the_streams_present(tmp_path):
+def test_describe_source_lists_the_streams_a_recording_holds(tmp_path):
     intr = CameraIntrinsics(4, 3, 5.0, 5.0, 2.0, 1.5)
     with RecordingWriter(tmp_path / "rec", intr, {}) as writer:
         for k in range(3):
@@ -76,5 +77,5 @@ def test_describe_recording_lists_the_streams_present(tmp_path):
                 )
             )
         writer.add_wheels(np.array([0, 10 * MS]), np.array([0, 1]), np.array([0, 2]))
-    names = [s.name for s in describe_recording(Recording.open(tmp_path / "rec"))]
+    names = [s.name for s in describe_source(RecordingSource(Recording.open(tmp_path / "rec")))]
     assert names == ["rgb", "depth", "wheels"]
