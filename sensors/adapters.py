@@ -17,4 +17,4 @@ from sensors.openni_source import OpenNISource  # noqa: E402
 from sensors.rosbag_source import RosbagSource  # noqa: E402
 
 register_opener("rosbag", RosbagSource.try_open)
-register_opener("OpenNI2", OpenNISource.try_open)
+register_opener("OpenNI2", OpenNISource.try_open, uri=True)

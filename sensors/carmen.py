@@ -541,8 +541,7 @@ class CarmenSource:
     def try_open(
         cls, path: Path | str, options: SourceOptions | None = None
     ) -> CarmenSource | None:
-        if not isinstance(path, Path):  # device URIs are not logs
-            return None
+        path = Path(path)
         suffix_ok = path.suffix.lower() in CARMEN_SUFFIXES
         if not (path.is_file() and suffix_ok and _sniff(path)):
             return None

@@ -23,12 +23,8 @@ class RecordingSource:
     def try_open(
         cls, path: Path | str, options: SourceOptions | None = None
     ) -> RecordingSource | None:
-        if (
-            isinstance(path, Path)
-            and path.is_dir()
-            and (path / "scene.yaml").is_file()
-            and (path / "rgb.txt").is_file()
-        ):
+        path = Path(path)
+        if path.is_dir() and (path / "scene.yaml").is_file() and (path / "rgb.txt").is_file():
             return cls(Recording.open(path), skip_bad=not (options and options.strict))
         return None
 

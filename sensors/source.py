@@ -88,12 +88,14 @@ class SourceOptions:
 
 Opener = Callable[[Path | str, SourceOptions], "Source | None"]
 _URI = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")  # pseudo-paths such as openni://
-_OPENERS: list[tuple[str, Opener]] = []
+_OPENERS: list[tuple[str, Opener, bool]] = []
 
 
-def register_opener(name: str, opener: Opener) -> None:
-    """Adapters register a function that returns a Source for paths it recognises, else None."""
-    _OPENERS.append((name, opener))
+def register_opener(name: str, opener: Opener, uri: bool = False) -> None:
+    """Adapters register a function that returns a Source for paths it recognises, else None.
+    Only adapters registered with ``uri=True`` are offered device URIs (as strings); the others
+    only ever see existing paths."""
+    _OPENERS.append((name, opener, uri))
 
 
 def open_source(path: str | Path, options: SourceOptions | None = None) -> Source:
@@ -101,19 +103,19 @@ def open_source(path: str | Path, options: SourceOptions | None = None) -> Sourc
     import sensors.adapters  # noqa: F401  (registers the built-in adapters)
 
     opts = options or SourceOptions()
-    kinds = ", ".join(name for name, _ in _OPENERS)
+    kinds = ", ".join(name for name, _, _ in _OPENERS)
     text = str(path)
     if isinstance(path, str) and _URI.match(text):
         # A device URI: no file to check, and Path() would collapse its double slashes.
-        for _name, opener in _OPENERS:
-            src = opener(text, opts)
+        for _name, opener, uri in _OPENERS:
+            src = opener(text, opts) if uri else None
             if src is not None:
                 return src
         raise SensorError(f"{text}: no adapter for this URI (known: {kinds})")
     p = Path(path)
     if not p.exists():
         raise SensorError(f"{p}: no such file or folder")
-    for _name, opener in _OPENERS:
+    for _name, opener, _uri in _OPENERS:
         src = opener(p, opts)
         if src is not None:
             return src

@@ -244,8 +244,9 @@ class TumFolderSource:
         cls, path: Path | str, options: SourceOptions | None = None
     ) -> TumFolderSource | None:
         """A source for a TUM-style folder; None for anything else, including our recordings
-        (they hold ``scene.yaml`` and have their own adapter) and device URIs."""
-        if not isinstance(path, Path) or not path.is_dir() or (path / "scene.yaml").is_file():
+        (they hold ``scene.yaml`` and have their own adapter)."""
+        path = Path(path)
+        if not path.is_dir() or (path / "scene.yaml").is_file():
             return None
         tum = (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
         strict = options.strict if options else False
