@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -110,6 +111,9 @@ def test_set_override_reaches_the_resolved_config(recording: Path, tmp_path: Pat
             "no-such.txt",
         ),
         (["simulate", str(REPO / "README.md"), "--out", "x"], "README.md"),
+        (["simulate", str(HOUSE), "--out", "x", "--duration", "-1"], "duration must be > 0 s"),
+        (["simulate", str(HOUSE), "--out", "x", "--frames", "0"], "--frames must be >= 1"),
+        (["simulate", "no-such-world.yaml", "--out", "x"], "no-such-world.yaml: no such world"),
     ],
 )
 def test_user_mistakes_give_one_clear_line_and_exit_1(args: list[str], message: str,
@@ -160,3 +164,44 @@ def test_odometry_without_vo_skips_it(recording: Path, tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     assert not (out / "vo.tum").exists() and (out / "fused.tum").is_file()
     assert json.loads((out / "summary.json").read_text())["ekf"]["inputs"] == ["imu0", "odom0"]
+
+
+def test_odometry_refuses_a_source_without_wheel_readings(tmp_path: Path) -> None:
+    from sensors.recording import RecordingWriter
+    from sensors.types import CameraIntrinsics, RgbdFrame
+
+    intr = CameraIntrinsics(4, 3, 5.0, 5.0, 2.0, 1.5)
+    with RecordingWriter(tmp_path / "rec", intr, {}) as writer:
+        for k in range(2):
+            writer.add_frame(RgbdFrame(k * 33_000_000, np.zeros((3, 4, 3), np.uint8),
+                                       np.ones((3, 4), np.float32), intr))  # fmt: skip
+    result = runner.invoke(app, ["odometry", str(tmp_path / "rec"), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 1
+    assert "rec: no wheel encoder readings (need at least 2)" in result.output
+
+
+def test_an_unreadable_cached_rendering_is_rendered_again(tmp_path: Path, monkeypatch,
+                                                          caplog) -> None:  # fmt: skip
+    import logging
+
+    from rgbdnav.cache import cached_recording_path
+    from rgbdnav.cli import _recording_for
+    from rgbdnav.config import load_config
+
+    monkeypatch.setenv("RGBDNAV_CACHE", str(tmp_path / "cache"))
+    world = tmp_path / "tiny.yaml"
+    world.write_text(
+        "walls: [{from: [-1, -1], to: [3, -1]}, {from: [3, -1], to: [3, 1]},"
+        " {from: [3, 1], to: [-1, 1]}, {from: [-1, 1], to: [-1, -1]}]\n"
+        "start: [0, 0, 0]\nroute: [[0.15, 0]]\n"
+    )
+    cfg = load_config()
+    cached = cached_recording_path(world, cfg, 0)
+    cached.mkdir(parents=True)
+    (cached / "rgb.txt").write_text("not an index\n")  # a crashed or foreign folder
+    with caplog.at_level(logging.WARNING, logger="rgbdnav"):
+        path = _recording_for(world, cfg, 0, quiet=True)
+    assert path == cached and "rendering again" in caplog.text
+    from sensors.recording import Recording
+
+    assert len(Recording.open(path)) > 10

@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from rgbdnav.cli import app
 from rgbdnav.eval_run import evaluate_files, read_trajectory
+from sensors.types import SensorError
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 TUM = DATA / "tum"
@@ -133,3 +134,10 @@ def test_unknown_alignment_is_one_line(line_pair: tuple[Path, Path], tmp_path: P
     line = _one_line_error(["eval", str(est), "--reference", str(gt), "--align", "se4",
                             "--out", str(tmp_path / "out")])  # fmt: skip
     assert "--align 'se4'" in line
+
+
+def test_a_zero_length_quaternion_is_refused_naming_its_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.txt"
+    bad.write_text("# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 0\n")
+    with pytest.raises(SensorError, match=r"bad.txt:3: quaternion has zero length"):
+        read_trajectory(bad)

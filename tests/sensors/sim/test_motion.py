@@ -138,3 +138,22 @@ def test_slip_noise_has_the_configured_sigma_and_correlation_time() -> None:
     lag = int(tau / dt)
     corr = np.corrcoef(x[:-lag], x[lag:])[0, 1]
     assert corr == pytest.approx(math.exp(-1), abs=0.05)
+
+
+def test_a_route_the_robot_cannot_finish_in_time_names_the_waypoint(monkeypatch) -> None:
+    import sensors.sim.motion as motion
+    from sensors.types import WorldError
+
+    monkeypatch.setattr(motion, "ROUTE_TIME_FACTOR", 0.05)  # far less time than the route needs
+    stuck = r"house.yaml: the robot did not finish the route within \d+ s \(stuck before waypoint"
+    with pytest.raises(WorldError, match=stuck):
+        drive_route(load_world(REPO / "scenes" / "house.yaml"), SimConfig())
+
+
+def test_replaying_a_single_pose_is_refused(tmp_path: Path) -> None:
+    from sensors.types import WorldError
+
+    one = tmp_path / "one.txt"
+    one.write_text("1.0 0 0 0.5 0 0 0 1\n")
+    with pytest.raises(WorldError, match="one.txt: a trajectory to replay needs at least 2 poses"):
+        replay_tum(one, ROBOT, SimConfig())
