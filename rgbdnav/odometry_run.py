@@ -178,14 +178,16 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
         }
     # 3. Visual odometry over the RGB-D frames (optional: the slowest step).
     vo_track = _visual_odometry(src, cfg, start, progress) if use_vo else None
-    # 4. EKF: wheel twists (+ gyro, + VO twists) -> odom -> base_link.
-    streams: dict[str, list] = {
-        "odom0": wheel_twist_inputs(
+    # 4. EKF: wheel twists (+ gyro, + VO twists) -> odom -> base_link. A sensor whose
+    #    <sensor>_config selects nothing is not an input (and is not named as one).
+    streams: dict[str, list] = {}
+    if any(cfg.ekf.odom0_config):
+        streams["odom0"] = wheel_twist_inputs(
             stamps, left, right, cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance
         )
-    }
     if vo_track is not None:
-        streams["vo0"] = vo_track.inputs
+        if any(cfg.ekf.vo0_config):
+            streams["vo0"] = vo_track.inputs
         write_tum_trajectory(run.file("vo.tum"), vo_track.stamps_ns, vo_track.x, vo_track.y,
                              vo_track.yaw)  # fmt: skip
         outputs["visual odom"] = run.file("vo.tum")
@@ -196,7 +198,7 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
             "ms_per_frame_median": round(vo_track.ms_median, 2),
         }
     imu = src.imu()
-    if imu is not None and len(imu.stamps_ns):
+    if imu is not None and len(imu.stamps_ns) and any(cfg.ekf.imu0_config):
         streams["imu0"] = [ImuSample(int(t), float(g)) for t, g in zip(imu.stamps_ns, imu.gyro_z,
                                                                         strict=True)]  # fmt: skip
     fused = fuse(streams, cfg.ekf, output_stamps_ns=frame_t[ok],

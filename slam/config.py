@@ -118,8 +118,9 @@ class EkfConfig:
     # Diagonals of Q and P0; robot_localization's default matrices (off-diagonals are zero).
     # robot_localization's defaults except vx, vy, vyaw: its 0.025 / 0.02 let the velocity change
     # far slower than Eddie accelerates (0.5 m/s^2, turns in place at 1.5 rad/s^2); with noisy
-    # 36-position encoder twists the filter then lags every start and turn. Measured on the
-    # simulated house route (wheels only through the EKF): ATE 2.44 m with upstream's values.
+    # 36-position encoder twists the filter then lags every start and turn. Wheels only through
+    # the EKF on the simulated house route: ATE 2.45 m with upstream's values, 1.30 m with these
+    # (`rgbdnav odometry scenes/house.yaml --no-vo --set ekf.imu0_config=[false,...]`).
     process_noise_covariance: tuple[float, ...] = param(
         (0.05, 0.05, 0.06, 0.03, 0.03, 0.06, 0.5, 0.5, 0.04, 0.01, 0.01, 2.0, 0.01, 0.01,
          0.015),

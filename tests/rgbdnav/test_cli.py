@@ -205,3 +205,16 @@ def test_an_unreadable_cached_rendering_is_rendered_again(tmp_path: Path, monkey
     from sensors.recording import Recording
 
     assert len(Recording.open(path)) > 10
+
+
+def test_a_sensor_switched_off_in_the_ekf_config_is_not_fused_or_named(
+    recording: Path, tmp_path: Path
+) -> None:
+    off = "[" + ",".join(["false"] * 15) + "]"
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["odometry", str(recording), "--out", str(out), "-q", "--no-vo",
+                                 "--set", f"ekf.imu0_config={off}"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ekf"]["inputs"] == ["odom0"]
+    assert summary["ekf"]["stats"]["sensors"]["imu0"]["received"] == 0
