@@ -36,9 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
+from sensors.source import PoseStream, SourceBase, SourceOptions
 from sensors.types import (
-    CameraIntrinsics,
     LaserScan,
     RgbdFrame,
     SensorError,
@@ -524,7 +523,7 @@ def _sniff(path: Path) -> bool:
     return False
 
 
-class CarmenSource:
+class CarmenSource(SourceBase):
     """A CARMEN log as a :class:`~sensors.source.Source`: laser scans and per-scan odometry."""
 
     def __init__(
@@ -583,20 +582,11 @@ class CarmenSource:
             out["odom"] = self.log.odom.stamps_ns
         return out
 
-    def intrinsics(self) -> CameraIntrinsics | None:
-        return None
-
     def frames(self) -> Iterator[RgbdFrame]:
         return iter(())
 
     def scans(self) -> Iterator[LaserScan]:
         return iter(self.log.scans)
-
-    def wheels(self) -> WheelStream | None:
-        return None
-
-    def imu(self) -> ImuStream | None:
-        return None
 
     def odometry(self) -> PoseStream | None:
         """One robot pose per scan (FLASER odom_x odom_y odom_theta; ROBOTLASER1 robot pose)."""
@@ -609,12 +599,6 @@ class CarmenSource:
     def odom_messages(self) -> PoseStream | None:
         """The ODOM messages of the log (their own rate), or None."""
         return self.log.odom
-
-    def groundtruth(self) -> PoseStream | None:
-        return None
-
-    def close(self) -> None:
-        pass
 
 
 __all__ = [

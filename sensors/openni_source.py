@@ -37,14 +37,14 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from types import ModuleType, TracebackType
+from types import ModuleType
 from typing import Any
 
 import numpy as np
 
 from sensors.config import CameraConfig, SyncConfig
-from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
-from sensors.types import CameraIntrinsics, LaserScan, RgbdFrame, SensorError, seconds_to_ns
+from sensors.source import SourceBase, SourceOptions
+from sensors.types import CameraIntrinsics, RgbdFrame, SensorError, seconds_to_ns
 
 log = logging.getLogger(__name__)
 
@@ -282,7 +282,7 @@ def load_openni2() -> ModuleType:
 # --- the adapter -------------------------------------------------------------------------------
 
 
-class OpenNISource:
+class OpenNISource(SourceBase):
     """A live OpenNI2 device or an .oni recording. Use :meth:`open` or :meth:`try_open`."""
 
     def __init__(
@@ -437,17 +437,6 @@ class OpenNISource:
             resources, self._resources = self._resources, None
             resources.close()
 
-    def __enter__(self) -> OpenNISource:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
     # --- Source -------------------------------------------------------------------------------
 
     def describe(self) -> str:
@@ -518,21 +507,6 @@ class OpenNISource:
                 remaining[sensor] -= 1
                 if all(n <= 0 for n in remaining.values()):
                     return
-
-    def scans(self) -> Iterator[LaserScan]:
-        return iter(())
-
-    def wheels(self) -> WheelStream | None:
-        return None
-
-    def imu(self) -> ImuStream | None:
-        return None
-
-    def odometry(self) -> PoseStream | None:
-        return None
-
-    def groundtruth(self) -> PoseStream | None:
-        return None
 
 
 def _text(value: Any) -> str:

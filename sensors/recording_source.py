@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from sensors.recording import Recording
-from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
-from sensors.types import CameraIntrinsics, LaserScan, RgbdFrame
+from sensors.source import ImuStream, PoseStream, SourceBase, SourceOptions, WheelStream
+from sensors.types import CameraIntrinsics, RgbdFrame
 
 
-class RecordingSource:
+class RecordingSource(SourceBase):
     def __init__(self, recording: Recording, skip_bad: bool = True) -> None:
         self.recording = recording
         self.path = str(recording.path)
@@ -58,9 +58,6 @@ class RecordingSource:
         yield from self.recording.frames(skip_bad=self.skip_bad)
         self.skipped = dict(self.recording.skipped)
 
-    def scans(self) -> Iterator[LaserScan]:
-        return iter(())
-
     def wheels(self) -> WheelStream | None:
         stamps, left, right = self.recording.wheels()
         return WheelStream(stamps, left, right) if len(stamps) else None
@@ -69,13 +66,7 @@ class RecordingSource:
         imu = self.recording.imu()
         return None if imu is None else ImuStream(*imu)
 
-    def odometry(self) -> PoseStream | None:
-        return None
-
     def groundtruth(self) -> PoseStream | None:
         gt = self.recording.groundtruth_planar()
         frame = str(self.recording.scene.get("groundtruth_frame", "base_link"))
         return None if gt is None else PoseStream(*gt, frame=frame)
-
-    def close(self) -> None:
-        pass

@@ -48,7 +48,6 @@ import struct
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -56,12 +55,11 @@ import numpy as np
 
 from sensors.config import CameraConfig, RobotConfig, SyncConfig
 from sensors.recording import associate
-from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
+from sensors.source import ImuStream, PoseStream, SourceBase, SourceOptions, WheelStream
 from sensors.tum import yaw_from_quaternion
 from sensors.types import (
     NS_PER_S,
     CameraIntrinsics,
-    LaserScan,
     RgbdFrame,
     SensorError,
     seconds_to_ns,
@@ -557,7 +555,7 @@ def _rosbags_errors() -> tuple[type[BaseException], ...]:
     )
 
 
-class RosbagSource:
+class RosbagSource(SourceBase):
     """A rosbag1/rosbag2 file or folder opened for reading. Use :meth:`open` or ``open_source``."""
 
     def __init__(
@@ -664,17 +662,6 @@ class RosbagSource:
             reader, self._reader = self._reader, None
             reader.close()
 
-    def __enter__(self) -> RosbagSource:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
     # --- Source -------------------------------------------------------------------------------
 
     def describe(self) -> str:
@@ -776,9 +763,6 @@ class RosbagSource:
             if frame is not None:
                 yield frame
 
-    def scans(self) -> Iterator[LaserScan]:
-        return iter(())
-
     def wheels(self) -> WheelStream | None:
         if self.choices["wheels"].topic is None:
             return None
@@ -810,9 +794,6 @@ class RosbagSource:
             self._cache["odom"] = PoseStream(stamps, v[:, 0].copy(), v[:, 1].copy(), yaw)
         stream: PoseStream = self._cache["odom"]
         return stream
-
-    def groundtruth(self) -> PoseStream | None:
-        return None
 
     # --- internals ----------------------------------------------------------------------------
 

@@ -12,7 +12,7 @@ import re
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
@@ -74,6 +74,47 @@ class Source(Protocol):
     def groundtruth(self) -> PoseStream | None: ...
 
     def close(self) -> None: ...
+
+
+_S = TypeVar("_S", bound="SourceBase")
+
+
+class SourceBase:
+    """What a source lacks, said once: adapters inherit it and override the streams they have.
+    Also a context manager that closes the source."""
+
+    path: str
+    skipped: dict[str, int]
+
+    def intrinsics(self) -> CameraIntrinsics | None:
+        return None
+
+    def frames(self) -> Iterator[RgbdFrame]:
+        return iter(())
+
+    def scans(self) -> Iterator[LaserScan]:
+        return iter(())
+
+    def wheels(self) -> WheelStream | None:
+        return None
+
+    def imu(self) -> ImuStream | None:
+        return None
+
+    def odometry(self) -> PoseStream | None:
+        return None
+
+    def groundtruth(self) -> PoseStream | None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+    def __enter__(self: _S) -> _S:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 @dataclass(frozen=True)

@@ -35,12 +35,11 @@ import yaml
 
 from sensors.images import ImageError, read_image
 from sensors.recording import DEFAULT_MAX_DIFFERENCE_NS, associate, counts_to_depth
-from sensors.source import ImuStream, PoseStream, SourceOptions, WheelStream
+from sensors.source import PoseStream, SourceBase, SourceOptions
 from sensors.tum import load_tum_trajectory, read_stamped_text, yaw_from_quaternion
 from sensors.types import (
     NS_PER_S,
     CameraIntrinsics,
-    LaserScan,
     RgbdFrame,
     SensorError,
     format_stamp,
@@ -188,7 +187,7 @@ def _read_match(file: Path) -> tuple[_Index, _Index]:
 # --- source ------------------------------------------------------------------------------------
 
 
-class TumFolderSource:
+class TumFolderSource(SourceBase):
     """A TUM RGB-D style folder. Index files are read at open; images lazily by :meth:`frames`.
 
     ``strict`` makes a missing or bad image an error naming the file; by default the pair is
@@ -397,18 +396,6 @@ class TumFolderSource:
             stamp = format_stamp(int(self._rgb.stamps_ns[self.rgb_index[k]]))
             log.warning("skipping frame %s: %s", stamp, err)
 
-    def scans(self) -> Iterator[LaserScan]:
-        return iter(())
-
-    def wheels(self) -> WheelStream | None:
-        return None
-
-    def imu(self) -> ImuStream | None:
-        return None
-
-    def odometry(self) -> PoseStream | None:
-        return None
-
     def groundtruth(self) -> PoseStream | None:
         """The camera pose in the world, planar: x, y and the yaw of the quaternion."""
         gt = self._groundtruth()
@@ -418,9 +405,6 @@ class TumFolderSource:
         return PoseStream(
             stamps, xyz[:, 0].copy(), xyz[:, 1].copy(), yaw_from_quaternion(quat), frame="camera"
         )
-
-    def close(self) -> None:
-        pass
 
 
 __all__ = [
