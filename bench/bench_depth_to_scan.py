@@ -18,7 +18,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig  # noqa: E402
 from sensors.sim.motion import drive_route  # noqa: E402
@@ -99,10 +99,7 @@ camera are reused for the other mountings (only the cost matters there).
 | --- | --- | --- | --- | --- |
 {lines}
 """
-    print(body)
-    if args.out:
-        write_section(args.out, SECTION, body)
-        print(f"updated {args.out}")
+    publish(body, args.out, SECTION)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.carmen import read_carmen_log  # noqa: E402
 from sensors.recording import Recording  # noqa: E402
@@ -141,10 +141,7 @@ def main() -> None:
         lines.append(f"| {name} | {scans} | {beams} | {seconds * 1e3:.0f} ms | "
                      f"**{scans / seconds:.0f} scans/s** ({beams / seconds / 1e6:.1f} M beams/s) |")  # fmt: skip
     body = "\n".join(lines) + "\n"
-    print(body)
-    if args.out:
-        write_section(args.out, SECTION, body)
-        print(f"updated {args.out}")
+    publish(body, args.out, SECTION)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import BoardConfig  # noqa: E402
 from sensors.eddie import EddieBoard  # noqa: E402
@@ -88,10 +88,7 @@ The emulator replies without the {DIST_BYTES} bytes x {BITS_PER_BYTE} bits / {BA
 overhead (pyserial, the lock, parsing). Polling DIST, SPD and HEAD at the default 50 Hz keeps a
 real board's line up to about {50 * 3 * wire_ms / 10:.0f} % busy.
 """
-    print(body)
-    if args.out:
-        write_section(args.out, SECTION, body)
-        print(f"updated {args.out}")
+    publish(body, args.out, SECTION)
 
 
 if __name__ == "__main__":

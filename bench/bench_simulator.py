@@ -19,7 +19,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig  # noqa: E402
 from sensors.sim.motion import drive_route  # noqa: E402
@@ -97,10 +97,7 @@ Command: `make bench` (`python bench/bench_simulator.py --frames {args.frames} -
 | end to end (render + PNG encode + write) | {s["simulate_fps"]:.1f} frames/s ({args.record_frames} frames in {s["simulate_wall_s"]:.1f} s, incl. start-up) |
 | peak resident memory | {peak_mb:.0f} MB |
 """
-    print(body)
-    if args.out:
-        write_section(args.out, SECTION, body)
-        print(f"updated {args.out}")
+    publish(body, args.out, SECTION)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, write_section  # noqa: E402  (bench/ is on sys.path)
+from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig, SyncConfig  # noqa: E402
 from sensors.recording import Recording  # noqa: E402
@@ -153,10 +153,7 @@ Sets: {stats.sets}, spread mean {stats.mean_spread_ns / MS:.2f} ms, max {stats.m
 | `synchronise` on {t["pushed"]} synthetic stamps (2 streams, 30 Hz, 2 ms jitter, 3 % drops) | {t["wall_s"] * 1e3:.0f} ms = {t["rate"] / 1e3:.0f} k stamps/s ({t["sets"]} sets) |
 | `interpolate_wheels` to {t["interp_images"]} image stamps | {t["interp_ms"]:.1f} ms |
 """
-    print(body)
-    if args.out:
-        write_section(args.out, SECTION, body)
-        print(f"updated {args.out}")
+    publish(body, args.out, SECTION)
 
 
 if __name__ == "__main__":

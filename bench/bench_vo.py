@@ -27,7 +27,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import write_section  # noqa: E402  (bench/ is on sys.path)
+from common import publish  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig  # noqa: E402
 from slam.config import VoConfig  # noqa: E402
@@ -333,10 +333,7 @@ error of each consecutive pair against mocap:
 
 {sim_line}
 """
-    print(body)
-    if args.out:
-        write_section(args.out, SECTION, body)
-        print(f"updated {args.out}")
+    publish(body, args.out, SECTION)
 
 
 if __name__ == "__main__":

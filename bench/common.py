@@ -39,3 +39,11 @@ def machine(*libraries: str) -> str:
         version = getattr(module, "__version__", None) or getattr(module, "VERSION", "?")
         parts.append(f"{name} {version}")
     return ", ".join(parts)
+
+
+def publish(body: str, out: Path | None, section: str) -> None:
+    """Print a benchmark's markdown and, with ``--out``, put it into that file's section."""
+    print(body)
+    if out:
+        write_section(out, section, body)
+        print(f"updated {out}")
