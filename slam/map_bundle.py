@@ -1,0 +1,615 @@
+"""Map bundles and plain Nav2 map_server maps (PGM/PNG + YAML).
+
+A **map bundle** is a folder that other tools can read without rgbdnav::
+
+    map.pgm      binary P5, trinary: occupied 0, free 254, unknown 205; row 0 is the TOP (max y)
+    map.yaml     Nav2 map_server metadata (image, mode, resolution, origin, negate, thresholds)
+    graph.json   schema_version, keyframes (id, stamp_ns, pose, odom_pose), edges, config, source
+    scans.npz    keyframe scans, ragged ranges as one array + offsets (no pickle)
+    grid.npz     float32 log-odds and bool observed mask, so continuing a map keeps its precision
+
+``map.yaml`` thresholds describe the *pixels*, not the mapper: like ROS 1's map_saver and Nav2's
+map_saver since ros-navigation/navigation2#5278, a trinary map is written with
+``occupied_thresh: 0.65`` and ``free_thresh: 0.196`` so that map_server reads 205 back as unknown
+(with ``free_thresh: 0.25`` it reads 205 as free: (255 - 205) / 255 = 0.196 < 0.25). The mapper's
+own thresholds decide which cells become 0 / 254 / 205 and are kept in ``graph.json``'s config.
+
+Saving is atomic: everything is written into a hidden folder beside the target and swapped in
+with renames (:func:`sensors.atomic.commit_staging_dir`); a failure leaves the old bundle intact.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import shutil
+import zipfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from sensors.atomic import (
+    atomic_write_bytes,
+    atomic_write_text,
+    commit_staging_dir,
+    make_staging_dir,
+)
+from sensors.types import LaserScan, MapError
+from slam.occupancy_grid import OCCUPIED, UNKNOWN, GridGeometry, OccupancyGrid
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+MAP_PGM = "map.pgm"
+MAP_YAML = "map.yaml"
+GRAPH_JSON = "graph.json"
+SCANS_NPZ = "scans.npz"
+GRID_NPZ = "grid.npz"
+
+# Trinary pixel values written by map_saver.
+PIXEL_OCCUPIED = 0
+PIXEL_FREE = 254
+PIXEL_UNKNOWN = 205
+# Thresholds written to a trinary map.yaml: they must separate the three pixel values above
+# (occ = 1 - value/255: 1.0, 0.0039, 0.196) whatever the mapper's thresholds were.
+TRINARY_YAML_OCCUPIED_THRESH = 0.65
+TRINARY_YAML_FREE_THRESH = 0.196
+
+EDGE_KINDS = ("odometry", "scan", "loop")
+MAP_MODES = ("trinary", "scale", "raw")
+_MAX_8BIT = 255
+
+
+# --- records ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GraphEdge:
+    """A pose-graph constraint between two keyframes (their ``id``s)."""
+
+    kind: str  # "odometry" | "scan" | "loop"
+    from_id: int
+    to_id: int
+    delta: tuple[float, float, float]  # [m, m, rad] pose of ``to`` in the frame of ``from``
+    information: tuple[tuple[float, ...], ...]  # 3x3 inverse covariance over (x, y, yaw)
+
+
+@dataclass(frozen=True, eq=False)
+class MapBundle:
+    grid: OccupancyGrid
+    keyframe_ids: np.ndarray  # (K,) int64
+    keyframe_stamps_ns: np.ndarray  # (K,) int64 [ns]
+    keyframe_poses: np.ndarray  # (K, 3) float64 [m, m, rad] base_link in map (optimised)
+    keyframe_odom_poses: np.ndarray  # (K, 3) float64 [m, m, rad] base_link in odom
+    edges: tuple[GraphEdge, ...]
+    scans: tuple[LaserScan, ...]  # one per keyframe, same order
+    config: dict[str, Any] = field(default_factory=dict)  # mapper config as plain values
+    source: str = ""  # what the map was built from
+    created: str = ""  # ISO 8601; filled in by save_bundle when empty
+
+    @property
+    def occupied_thresh(self) -> float:
+        return float(self.config.get("occupied_thresh", 0.65))
+
+    @property
+    def free_thresh(self) -> float:
+        return float(self.config.get("free_thresh", 0.25))
+
+
+@dataclass(frozen=True)
+class MapYaml:
+    """A parsed, validated map.yaml (Nav2 map_io ``loadMapYaml``)."""
+
+    image: Path  # resolved path of the image
+    mode: str  # trinary | scale | raw
+    resolution: float  # [m/cell]
+    origin: tuple[float, float, float]  # [m, m, rad] pose of the lower-left pixel
+    negate: bool
+    occupied_thresh: float
+    free_thresh: float
+
+
+# --- map.yaml + image --------------------------------------------------------------------------
+
+
+def _read_yaml_doc(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as err:
+        raise MapError(f"{path}: missing file") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise MapError(f"{path}: cannot read: {err}") from err
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise MapError(f"{path}: not valid YAML: {err}") from err
+    if not isinstance(doc, dict):
+        raise MapError(f"{path}: expected a mapping of map metadata, got {type(doc).__name__}")
+    return doc
+
+
+def _number(doc: dict[str, Any], key: str, path: Path) -> float:
+    if key not in doc:
+        raise MapError(f"{path}: missing key '{key}'")
+    value = doc[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise MapError(f"{path}: '{key}' must be a finite number, got {value!r}")
+    return float(value)
+
+
+def parse_map_yaml(path: str | os.PathLike[str], inside_folder: bool = False) -> MapYaml:
+    """Read and validate a Nav2 map.yaml. ``inside_folder`` (bundles): the image must be a
+    relative path that stays in the YAML's folder; otherwise absolute paths are allowed and
+    relative ones resolve against the YAML's folder, as map_server does."""
+    path = Path(path)
+    doc = _read_yaml_doc(path)
+    image_text = doc.get("image")
+    if not isinstance(image_text, str) or not image_text.strip():
+        raise MapError(f"{path}: 'image' must be a non-empty file name, got {image_text!r}")
+    image_rel = Path(image_text)
+    if inside_folder:
+        if image_rel.is_absolute():
+            raise MapError(f"{path}: image path {image_text!r} is absolute; a bundle needs a "
+                           f"file inside its folder")  # fmt: skip
+        folder = path.parent.resolve()
+        if not (folder / image_rel).resolve().is_relative_to(folder):
+            raise MapError(f"{path}: image path {image_text!r} leaves the bundle folder")
+    image = image_rel if image_rel.is_absolute() else path.parent / image_rel
+
+    resolution = _number(doc, "resolution", path)
+    if resolution <= 0.0:
+        raise MapError(f"{path}: 'resolution' must be positive, got {resolution}")
+    origin = doc.get("origin")
+    if (
+        not isinstance(origin, list)
+        or len(origin) != 3
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in origin)
+        or not all(math.isfinite(v) for v in origin)
+    ):
+        raise MapError(f"{path}: 'origin' must be 3 finite numbers [x, y, yaw], got {origin!r}")
+    occ = _number(doc, "occupied_thresh", path)
+    free = _number(doc, "free_thresh", path)
+    if not (0.0 < free < 1.0 and 0.0 < occ < 1.0):
+        raise MapError(f"{path}: thresholds must lie in (0, 1), got free_thresh {free}, "
+                       f"occupied_thresh {occ}")  # fmt: skip
+    if free >= occ:
+        raise MapError(f"{path}: free_thresh ({free}) must be below occupied_thresh ({occ})")
+    mode = doc.get("mode", "trinary")
+    if mode not in MAP_MODES:
+        raise MapError(f"{path}: 'mode' must be one of {MAP_MODES}, got {mode!r}")
+    negate = doc.get("negate", None)
+    if negate is None:
+        raise MapError(f"{path}: missing key 'negate'")
+    if negate not in (0, 1):  # True/False compare equal to 1/0, as map_io accepts both
+        raise MapError(f"{path}: 'negate' must be 0 or 1, got {negate!r}")
+    return MapYaml(image, mode, resolution, (float(origin[0]), float(origin[1]),
+                   float(origin[2])), bool(negate), occ, free)  # fmt: skip
+
+
+_PGM_HEADER = re.compile(rb"P5(?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)"
+                         rb"(?:\s+|#[^\n]*\n)+(\d+)\s")  # fmt: skip
+
+
+def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, int]:
+    """Binary 8-bit PGM (P5) -> ((H, W) uint8 pixels, top row first; maxval)."""
+    m = _PGM_HEADER.match(data)
+    if m is None:
+        raise MapError(f"{name}: not a binary PGM (P5) image header")
+    width, height, maxval = (int(g) for g in m.groups())
+    if width < 1 or height < 1:
+        raise MapError(f"{name}: PGM size {width}x{height} is empty")
+    if not 0 < maxval <= _MAX_8BIT:
+        raise MapError(f"{name}: PGM maxval {maxval} unsupported; need an 8-bit image (1..255)")
+    body = data[m.end() :]
+    if len(body) != width * height:
+        raise MapError(f"{name}: PGM {width}x{height} needs {width * height} bytes of pixels, "
+                       f"found {len(body)}")  # fmt: skip
+    pixels = np.frombuffer(body, dtype=np.uint8).reshape(height, width)
+    if int(pixels.max()) > maxval:
+        raise MapError(f"{name}: PGM pixel value {int(pixels.max())} exceeds maxval {maxval}")
+    return pixels, maxval
+
+
+def encode_pgm(pixels: np.ndarray) -> bytes:
+    """(H, W) uint8, top row first -> binary PGM bytes."""
+    h, w = pixels.shape
+    return f"P5\n{w} {h}\n255\n".encode("ascii") + np.ascontiguousarray(pixels, np.uint8).tobytes()
+
+
+def _read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Image -> (shade (H, W) float64 in [0, 1] averaged over colour channels, top row first;
+    alpha (H, W) float64 in [0, 1] or None)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError as err:
+        raise MapError(f"{path}: missing image file") from err
+    except OSError as err:
+        raise MapError(f"{path}: cannot read image: {err}") from err
+    if data[:1] == b"P" and data[1:2].isdigit():  # any netpbm: only P5 is supported
+        pixels, maxval = decode_pgm(data, path)
+        return pixels.astype(np.float64) / maxval, None
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise MapError(f"{path}: not a readable image (PGM P5, PNG, ...)")
+    full = float(np.iinfo(img.dtype.type).max) if img.dtype.kind in "ui" else 1.0  # type: ignore[type-var]
+    img = img.astype(np.float64) / full
+    if img.ndim == 2:
+        return img, None
+    channels = img.shape[2]
+    if channels == 2:  # grey + alpha
+        return img[..., 0], img[..., 1]
+    colour = img[..., :3].mean(axis=2)  # BGR order does not matter for the mean
+    return colour, (img[..., 3] if channels == 4 else None)
+
+
+def occupancy_values_from_image(
+    shade: np.ndarray, alpha: np.ndarray | None, meta: MapYaml
+) -> np.ndarray:
+    """Nav2 map_io ``loadMapFromFile`` per-pixel rule -> (H, W) int8 nav_msgs values, image rows
+    (top first). Vectorised; the thresholds compare strictly as upstream does."""
+    if meta.mode == "trinary" and alpha is not None:
+        # map_io averages the alpha in with the colour channels in trinary mode.
+        shade = (shade * 3.0 + alpha) / 4.0
+    occ = shade if meta.negate else 1.0 - shade
+    out = np.full(shade.shape, UNKNOWN, dtype=np.int8)
+    if meta.mode == "raw":
+        percent = np.round(shade * _MAX_8BIT)
+        ok = (percent >= 0) & (percent <= OCCUPIED)
+        out[ok] = percent[ok].astype(np.int8)
+        return out
+    is_occ = meta.occupied_thresh < occ
+    is_free = occ < meta.free_thresh
+    if meta.mode == "scale":
+        between = ~is_occ & ~is_free
+        scaled = np.rint((occ - meta.free_thresh) / (meta.occupied_thresh - meta.free_thresh) * 100)
+        out[between] = scaled[between].astype(np.int8)
+    out[is_occ] = OCCUPIED
+    out[is_free] = 0
+    if meta.mode == "scale" and alpha is not None:
+        out[alpha < 1.0] = UNKNOWN
+    return out
+
+
+def _grid_from_yaml(meta: MapYaml) -> OccupancyGrid:
+    shade, alpha = _read_image(meta.image)
+    if abs(meta.origin[2]) > 1e-9:
+        raise MapError(f"{meta.image}: rotated map origins (yaw {meta.origin[2]}) are not "
+                       f"supported")  # fmt: skip
+    values = occupancy_values_from_image(shade, alpha, meta)[::-1]  # row 0 = lowest y
+    h, w = values.shape
+    geom = GridGeometry(meta.resolution, meta.origin[0], meta.origin[1], w, h)
+    return OccupancyGrid.from_occupancy_values(geom, values)
+
+
+def load_map_yaml(path: str | os.PathLike[str]) -> OccupancyGrid:
+    """A plain Nav2 map (map.yaml + PGM/PNG made by any tool) as an :class:`OccupancyGrid`."""
+    return _grid_from_yaml(parse_map_yaml(path))
+
+
+def trinary_pixels(grid: OccupancyGrid, occupied_thresh: float, free_thresh: float) -> np.ndarray:
+    """(H, W) uint8 map_saver trinary pixels, top row first (flipped from the grid)."""
+    tri = grid.trinary(occupied_thresh, free_thresh)
+    lut = np.full(256, PIXEL_UNKNOWN, dtype=np.uint8)
+    lut[OCCUPIED] = PIXEL_OCCUPIED
+    lut[0] = PIXEL_FREE
+    return lut[tri.view(np.uint8)][::-1]
+
+
+def _map_yaml_text(grid: OccupancyGrid, image: str) -> str:
+    g = grid.geometry
+    return (
+        f"image: {image}\n"
+        f"mode: trinary\n"
+        f"resolution: {g.resolution!r}\n"
+        f"origin: [{g.origin_x!r}, {g.origin_y!r}, 0.0]\n"
+        f"negate: 0\n"
+        f"occupied_thresh: {TRINARY_YAML_OCCUPIED_THRESH}\n"
+        f"free_thresh: {TRINARY_YAML_FREE_THRESH}\n"
+    )
+
+
+def save_map_yaml(
+    grid: OccupancyGrid,
+    path: str | os.PathLike[str],
+    occupied_thresh: float = 0.65,
+    free_thresh: float = 0.25,
+    image: str | None = None,
+) -> None:
+    """Write ``path`` (map.yaml) and its trinary PGM beside it, each atomically.
+
+    ``occupied_thresh`` / ``free_thresh`` classify the grid's probabilities; the YAML gets the
+    pixel-separating thresholds (see the module doc).
+    """
+    path = Path(path)
+    image = image or path.with_suffix(".pgm").name
+    if Path(image).name != image:
+        raise MapError(f"image {image!r} must be a bare file name beside {path.name}")
+    atomic_write_bytes(path.parent / image,
+                       encode_pgm(trinary_pixels(grid, occupied_thresh, free_thresh)))  # fmt: skip
+    atomic_write_text(path, _map_yaml_text(grid, image))
+
+
+# --- graph.json --------------------------------------------------------------------------------
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, tuple):
+        return list(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def _graph_json(bundle: MapBundle, created: str) -> str:
+    keyframes = [
+        {"id": int(i), "stamp_ns": int(t), "pose": [float(v) for v in p],
+         "odom_pose": [float(v) for v in o]}
+        for i, t, p, o in zip(bundle.keyframe_ids, bundle.keyframe_stamps_ns,
+                              bundle.keyframe_poses, bundle.keyframe_odom_poses, strict=True)
+    ]  # fmt: skip
+    edges = [
+        {"kind": e.kind, "from": e.from_id, "to": e.to_id, "delta": list(e.delta),
+         "information": [list(row) for row in e.information]}
+        for e in bundle.edges
+    ]  # fmt: skip
+    doc = {"schema_version": SCHEMA_VERSION, "frame": "map", "keyframes": keyframes,
+           "edges": edges, "config": bundle.config, "source": bundle.source,
+           "created": created}  # fmt: skip
+    try:
+        return json.dumps(doc, indent=1, allow_nan=False, default=_json_default) + "\n"
+    except ValueError as err:
+        raise MapError(f"{GRAPH_JSON}: cannot store non-finite numbers: {err}") from err
+
+
+def _floats(value: Any, n: int, where: str) -> tuple[float, ...]:
+    if (
+        not isinstance(value, list)
+        or len(value) != n
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    ):
+        raise MapError(f"{where} must be a list of {n} numbers, got {value!r}")
+    return tuple(float(v) for v in value)
+
+
+def _int(value: Any, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise MapError(f"{where} must be an integer, got {value!r}")
+    return value
+
+
+def _parse_graph(path: Path) -> dict[str, Any]:
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as err:
+        raise MapError(f"{path}: missing file") from err
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise MapError(f"{path}: not valid JSON: {err}") from err
+    if not isinstance(doc, dict):
+        raise MapError(f"{path}: expected a JSON object")
+    version = doc.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise MapError(f"{path}: schema_version {version!r} is not supported (expected "
+                       f"{SCHEMA_VERSION})")  # fmt: skip
+    kfs = doc.get("keyframes")
+    edges = doc.get("edges")
+    if not isinstance(kfs, list) or not isinstance(edges, list):
+        raise MapError(f"{path}: 'keyframes' and 'edges' must be lists")
+    ids, stamps, poses, odom = [], [], [], []
+    for k, kf in enumerate(kfs):
+        where = f"{path}: keyframes[{k}]"
+        if not isinstance(kf, dict):
+            raise MapError(f"{where} must be an object")
+        ids.append(_int(kf.get("id"), f"{where}.id"))
+        stamps.append(_int(kf.get("stamp_ns"), f"{where}.stamp_ns"))
+        poses.append(_floats(kf.get("pose"), 3, f"{where}.pose"))
+        odom.append(_floats(kf.get("odom_pose"), 3, f"{where}.odom_pose"))
+    if len(set(ids)) != len(ids):
+        raise MapError(f"{path}: keyframe ids are not unique")
+    known = set(ids)
+    parsed_edges = []
+    for k, e in enumerate(edges):
+        where = f"{path}: edges[{k}]"
+        if not isinstance(e, dict):
+            raise MapError(f"{where} must be an object")
+        if e.get("kind") not in EDGE_KINDS:
+            raise MapError(f"{where}.kind must be one of {EDGE_KINDS}, got {e.get('kind')!r}")
+        a, b = _int(e.get("from"), f"{where}.from"), _int(e.get("to"), f"{where}.to")
+        if a not in known or b not in known:
+            raise MapError(f"{where} links unknown keyframe ids {a} -> {b}")
+        info = e.get("information")
+        if not isinstance(info, list) or len(info) != 3:
+            raise MapError(f"{where}.information must be a 3x3 list, got {info!r}")
+        rows = tuple(_floats(r, 3, f"{where}.information") for r in info)
+        dx, dy, dyaw = _floats(e.get("delta"), 3, f"{where}.delta")
+        parsed_edges.append(GraphEdge(e["kind"], a, b, (dx, dy, dyaw), rows))
+    config = doc.get("config", {})
+    if not isinstance(config, dict):
+        raise MapError(f"{path}: 'config' must be an object")
+    return {
+        "ids": np.array(ids, dtype=np.int64),
+        "stamps": np.array(stamps, dtype=np.int64),
+        "poses": np.array(poses, dtype=np.float64).reshape(-1, 3),
+        "odom": np.array(odom, dtype=np.float64).reshape(-1, 3),
+        "edges": tuple(parsed_edges),
+        "config": config,
+        "source": str(doc.get("source", "")),
+        "created": str(doc.get("created", "")),
+    }
+
+
+# --- scans.npz / grid.npz ----------------------------------------------------------------------
+
+_SCAN_KEYS = ("ranges", "offsets", "angle_min", "angle_increment", "range_min", "range_max",
+              "stamp_ns")  # fmt: skip
+
+
+def _scans_arrays(scans: Sequence[LaserScan]) -> dict[str, np.ndarray]:
+    counts = np.array([len(s.ranges) for s in scans], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    ranges = (np.concatenate([np.asarray(s.ranges, np.float32) for s in scans])
+              if scans else np.zeros(0, np.float32))  # fmt: skip
+    return {
+        "ranges": ranges,
+        "offsets": offsets,
+        "angle_min": np.array([s.angle_min for s in scans], dtype=np.float64),
+        "angle_increment": np.array([s.angle_increment for s in scans], dtype=np.float64),
+        "range_min": np.array([s.range_min for s in scans], dtype=np.float64),
+        "range_max": np.array([s.range_max for s in scans], dtype=np.float64),
+        "stamp_ns": np.array([s.stamp_ns for s in scans], dtype=np.int64),
+    }
+
+
+def _load_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            missing = [k for k in keys if k not in npz.files]
+            if missing:
+                raise MapError(f"{path}: missing arrays {missing}")
+            return {k: npz[k] for k in keys}
+    except FileNotFoundError as err:
+        raise MapError(f"{path}: missing file") from err
+    except MapError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+        raise MapError(f"{path}: corrupt or unreadable npz: {err}") from err
+
+
+def _parse_scans(path: Path) -> tuple[LaserScan, ...]:
+    a = _load_npz(path, _SCAN_KEYS)
+    offsets = a["offsets"]
+    k = len(offsets) - 1
+    if offsets.ndim != 1 or k < 0 or offsets.dtype.kind not in "iu":
+        raise MapError(f"{path}: 'offsets' must be a 1-D integer array of K+1 entries")
+    if offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != len(a["ranges"]):
+        raise MapError(f"{path}: 'offsets' must rise from 0 to len(ranges) = {len(a['ranges'])}")
+    for key in _SCAN_KEYS[2:]:
+        if a[key].shape != (k,):
+            raise MapError(f"{path}: '{key}' has shape {a[key].shape}, expected ({k},)")
+    ranges = a["ranges"].astype(np.float32, copy=False)
+    return tuple(
+        LaserScan(int(a["stamp_ns"][i]), float(a["angle_min"][i]), float(a["angle_increment"][i]),
+                  ranges[offsets[i]:offsets[i + 1]].copy(), float(a["range_min"][i]),
+                  float(a["range_max"][i]))
+        for i in range(k)
+    )  # fmt: skip
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    with path.open("wb") as fh:
+        np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
+
+
+# --- bundle ------------------------------------------------------------------------------------
+
+
+def _write_scans(folder: Path, scans: Sequence[LaserScan]) -> None:
+    _write_npz(folder / SCANS_NPZ, _scans_arrays(scans))
+
+
+def _write_bundle_files(bundle: MapBundle, folder: Path, created: str) -> None:
+    grid = bundle.grid
+    (folder / MAP_PGM).write_bytes(
+        encode_pgm(trinary_pixels(grid, bundle.occupied_thresh, bundle.free_thresh))
+    )
+    (folder / MAP_YAML).write_text(_map_yaml_text(grid, MAP_PGM), encoding="utf-8")
+    (folder / GRAPH_JSON).write_text(_graph_json(bundle, created), encoding="utf-8")
+    _write_scans(folder, bundle.scans)
+    _write_npz(folder / GRID_NPZ, {"log_odds": grid.log_odds, "observed": grid.observed})
+
+
+def save_bundle(bundle: MapBundle, path: str | os.PathLike[str]) -> None:
+    """Write ``bundle`` as the folder ``path``, replacing an existing one only when complete."""
+    path = Path(path)
+    k = len(bundle.keyframe_ids)
+    sizes = (len(bundle.keyframe_stamps_ns), len(bundle.keyframe_poses),
+             len(bundle.keyframe_odom_poses), len(bundle.scans))  # fmt: skip
+    if any(n != k for n in sizes):
+        raise MapError(f"bundle has {k} keyframe ids but (stamps, poses, odom poses, scans) = "
+                       f"{sizes}")  # fmt: skip
+    if path.exists() and not path.is_dir():
+        raise MapError(f"{path}: exists and is not a bundle folder")
+    created = bundle.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
+    staging = make_staging_dir(path)
+    try:
+        _write_bundle_files(bundle, staging, created)
+        commit_staging_dir(staging, path)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    log.info("saved map bundle %s (%d keyframes, %dx%d cells)", path, k,
+             bundle.grid.geometry.width, bundle.grid.geometry.height)  # fmt: skip
+
+
+def _bundle_grid(folder: Path, occupied_thresh: float, free_thresh: float) -> OccupancyGrid:
+    """The PGM/YAML map, refined by grid.npz when present and consistent with the PGM."""
+    meta = parse_map_yaml(folder / MAP_YAML, inside_folder=True)
+    from_image = _grid_from_yaml(meta)
+    grid_path = folder / GRID_NPZ
+    if not grid_path.exists():
+        return from_image
+    a = _load_npz(grid_path, ("log_odds", "observed"))
+    geom = from_image.geometry
+    if a["log_odds"].shape != geom.shape or a["observed"].shape != geom.shape:
+        raise MapError(f"{grid_path}: log_odds {a['log_odds'].shape} does not match "
+                       f"{meta.image.name} ({geom.height}, {geom.width})")  # fmt: skip
+    if a["log_odds"].dtype != np.float32 or a["observed"].dtype != np.bool_:
+        raise MapError(f"{grid_path}: need float32 log_odds and bool observed")
+    precise = OccupancyGrid(geom, a["log_odds"], a["observed"])
+    # A map edited in an image editor after saving: the image is what the user wants.
+    if not np.array_equal(precise.trinary(occupied_thresh, free_thresh),
+                          from_image.trinary(occupied_thresh, free_thresh)):  # fmt: skip
+        log.warning("%s differs from %s (edited?); using the image and ignoring the log-odds",
+                    meta.image, grid_path)  # fmt: skip
+        return from_image
+    return precise
+
+
+def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
+    """Read and validate a bundle folder written by :func:`save_bundle` (or by hand)."""
+    folder = Path(path)
+    if not folder.is_dir():
+        raise MapError(f"{folder}: missing map bundle folder")
+    graph = _parse_graph(folder / GRAPH_JSON)
+    scans = _parse_scans(folder / SCANS_NPZ)
+    if len(scans) != len(graph["ids"]):
+        raise MapError(f"keyframe count mismatch: {folder / GRAPH_JSON} has "
+                       f"{len(graph['ids'])} keyframes, {folder / SCANS_NPZ} has "
+                       f"{len(scans)} scans")  # fmt: skip
+    config = graph["config"]
+    grid = _bundle_grid(folder, float(config.get("occupied_thresh", 0.65)),
+                        float(config.get("free_thresh", 0.25)))  # fmt: skip
+    return MapBundle(grid, graph["ids"], graph["stamps"], graph["poses"], graph["odom"],
+                     graph["edges"], scans, config, graph["source"], graph["created"])  # fmt: skip
+
+
+__all__ = [
+    "GRAPH_JSON",
+    "GRID_NPZ",
+    "MAP_PGM",
+    "MAP_YAML",
+    "SCANS_NPZ",
+    "SCHEMA_VERSION",
+    "GraphEdge",
+    "MapBundle",
+    "MapYaml",
+    "decode_pgm",
+    "encode_pgm",
+    "load_bundle",
+    "load_map_yaml",
+    "occupancy_values_from_image",
+    "parse_map_yaml",
+    "save_bundle",
+    "save_map_yaml",
+    "trinary_pixels",
+]
