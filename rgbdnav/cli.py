@@ -281,8 +281,20 @@ def eval_(
     trajectory: Annotated[
         Path, typer.Argument(metavar="TRAJ", help="Estimated TUM trajectory, or a run directory.")
     ],
-    reference: Annotated[Path, typer.Option("--reference", "-r", help="Reference TUM trajectory.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    reference: Annotated[
+        Path | None, typer.Option("--reference", "-r", help="Reference TUM trajectory (ATE, RPE).")
+    ] = None,
+    relations: Annotated[
+        Path | None,
+        typer.Option(
+            help="Reference relations 't1 t2 x y z roll pitch yaw' (Kümmerle 2009 metric, planar); "
+            "instead of --reference."
+        ),
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="Run directory to write (needed with --reference)."),
+    ] = None,
     align: Annotated[
         str, typer.Option(help="Alignment: se3 (TUM ATE), sim3 (monocular), se2 (planar), none.")
     ] = "se3",
@@ -297,10 +309,27 @@ def eval_(
     set_: SetOpt = None,
     verbose: VerboseOpt = False,
 ) -> None:
-    """Score a trajectory against a reference: ATE and RPE (TUM RGB-D benchmark / evo method)."""
+    """Score a trajectory against a reference: ATE and RPE (TUM RGB-D benchmark / evo method),
+    or against reference relations (Kümmerle et al. 2009)."""
     _setup_logging(verbose)
-    from rgbdnav.eval_run import format_report, run_eval
+    from rgbdnav.eval_run import (
+        format_relations_report,
+        format_report,
+        run_eval,
+        run_relations_eval,
+    )
 
+    if (reference is None) == (relations is None):
+        raise RgbdNavError("give exactly one of --reference GT and --relations FILE")
+    if relations is not None:
+        summary = run_relations_eval(trajectory, relations, out, max_diff_s=max_diff,
+                                     config_files=config or [], overrides=set_ or [])  # fmt: skip
+        typer.echo(format_relations_report(summary))
+        if out is not None:
+            typer.echo(f"wrote {out / 'summary.json'}")
+        return
+    if reference is None or out is None:  # reference is set here; the check narrows the type
+        raise RgbdNavError("--reference needs --out DIR (the run directory for ate.png)")
     summary = run_eval(
         trajectory, reference, out, align=align, max_diff_s=max_diff, delta=delta,
         delta_unit=delta_unit, config_files=config or [], overrides=set_ or [],

@@ -1,4 +1,5 @@
-"""`rgbdnav eval`: ATE and RPE of a TUM trajectory against a reference, written to a run directory.
+"""`rgbdnav eval`: ATE and RPE of a TUM trajectory against a reference, or the Kümmerle 2009
+relations metric against a relations file, written to a run directory.
 
 I/O lives here; the metrics are the pure kernels of :mod:`slam.trajectory_eval`.
 """
@@ -17,7 +18,7 @@ import numpy as np
 from rgbdnav.config import load_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
-from sensors.tum import TRAJECTORY_COLUMNS, read_stamped_text
+from sensors.tum import TRAJECTORY_COLUMNS, read_stamped_text, yaw_from_quaternion
 from sensors.types import NS_PER_S, SensorError, format_stamp
 from slam.trajectory_eval import (
     ALIGN_MODES,
@@ -28,6 +29,8 @@ from slam.trajectory_eval import (
     TrajectoryEvaluation,
     evaluate,
     poses_from_tum,
+    read_relations,
+    relations_error,
 )
 
 log = logging.getLogger(__name__)
@@ -195,4 +198,67 @@ def run_eval(
     )
     summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
     run.write_summary(summary)
+    return summary
+
+
+# Relations metric (Kümmerle et al. 2009) ------------------------------------------------------
+
+
+def format_relations_report(summary: dict) -> str:
+    """Human-readable lines for the terminal: mean ± std of the errors and of their squares."""
+    r = summary["relations_error"]
+    return "\n".join([
+        f"relations   {r['count']} of {summary['relations']} scored, {r['skipped']} skipped "
+        f"(no estimate pose within {summary['max_diff_s']} s of t1 or t2)",
+        f"REL [m]     {r['trans_mean_m']:.6f} ± {r['trans_std_m']:.6f}  "
+        f"squared [m^2] {r['trans_sq_mean_m2']:.6f} ± {r['trans_sq_std_m2']:.6f}",
+        f"REL [deg]   {r['rot_mean_deg']:.4f} ± {r['rot_std_deg']:.4f}  "
+        f"squared [deg^2] {r['rot_sq_mean_deg2']:.4f} ± {r['rot_sq_std_deg2']:.4f}",
+    ])  # fmt: skip
+
+
+def run_relations_eval(
+    estimate_path: Path,
+    relations_path: Path,
+    out: Path | None,
+    *,
+    max_diff_s: float = 0.02,
+    config_files: Sequence[Path] = (),
+    overrides: Sequence[str] = (),
+) -> dict:
+    """Score the planar part (x, y, yaw) of a TUM trajectory against reference relations; with
+    ``out``, write ``config.yaml`` and ``summary.json`` there. Return the summary."""
+    t0 = time.perf_counter()
+    cfg = load_config(list(config_files), list(overrides))
+    max_diff_ns = int(round(max_diff_s * NS_PER_S))
+    if max_diff_ns <= 0:
+        raise TrajectoryEvalError(f"--max-diff must be > 0 s, got {max_diff_s}")
+    estimate = read_trajectory(estimate_path)
+    relations = read_relations(relations_path)
+    poses = np.column_stack([estimate.xyz[:, :2], yaw_from_quaternion(estimate.quat_xyzw)])
+    try:
+        metric = relations_error(estimate.stamps_ns, poses, relations.t1_ns, relations.t2_ns,
+                                 relations.xyyaw, max_diff_ns)  # fmt: skip
+    except TrajectoryEvalError as err:
+        raise TrajectoryEvalError(
+            f"{estimate.path} ({_span(estimate)}) vs {relations.path}, "
+            f"max difference {max_diff_s} s: {err}"
+        ) from err
+    summary: dict = {
+        "command": "eval",
+        "estimate": str(estimate.path),
+        "reference_relations": str(relations.path),
+        "estimate_poses": int(len(estimate.stamps_ns)),
+        "repeated_stamps": {"estimate": estimate.repeated_stamps},
+        "relations": int(len(relations.t1_ns)),
+        "max_diff_s": max_diff_s,
+        "rel_trans_mean_m": metric["trans_mean_m"],
+        "rel_rot_mean_deg": metric["rot_mean_deg"],
+        "relations_error": metric,
+    }
+    if out is not None:
+        run = RunDir(out)
+        run.write_config(cfg)
+        summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
+        run.write_summary(summary)
     return summary

@@ -14,17 +14,23 @@ Conventions follow the TUM RGB-D benchmark tools (``associate.py``, ``evaluate_a
   travelled along the reference (evo; TUM measures along the estimate, which a scale error biases).
 
 Poses are (N, 4, 4) homogeneous matrices; quaternions are (x, y, z, w) as in TUM files.
+
+The one exception to "no I/O" is :func:`read_relations`, the reader of the relations files that
+:func:`relations_error` scores against; it lives beside its kernel so the format is documented once.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from sensors.recording import associate as _associate_stamps
-from sensors.types import RgbdNavError
+from sensors.tum import StampedText, read_stamped_text
+from sensors.types import RgbdNavError, SensorError, parse_stamp
 
 AlignMode = Literal["se3", "sim3", "se2", "none"]
 DeltaUnit = Literal["m", "frames"]
@@ -33,6 +39,7 @@ DELTA_UNITS: tuple[str, ...] = ("m", "frames")
 MIN_POINTS = {"se3": 3, "sim3": 3, "se2": 2, "none": 1}  # poses needed to fix the alignment
 PATH_ROUNDOFF_M = 1e-9  # [m] slack so a pair exactly delta apart survives cumulative-sum round-off
 DEGENERATE_SPREAD_M = 1e-12  # [m^2] position variance below which no scale can be fitted
+RELATION_COLUMNS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
 
 
 class TrajectoryEvalError(RgbdNavError):
@@ -400,3 +407,41 @@ def relations_error(
         "rot_sq_mean_deg2": float((rot**2).mean()),
         "rot_sq_std_deg2": float((rot**2).std()),
     }
+
+
+@dataclass(frozen=True, eq=False)
+class Relations:
+    """Reference relations as read: the pose at ``t2`` expressed in the frame of the pose at
+    ``t1``, planar part only, in file order."""
+
+    path: Path
+    t1_ns: np.ndarray  # (M,) int64 [ns]
+    t2_ns: np.ndarray  # (M,) int64 [ns]
+    xyyaw: np.ndarray  # (M, 3) x [m], y [m], yaw [rad]
+    lines: np.ndarray  # (M,) int64, 1-based line number of each relation
+
+
+def read_relations(path: str | os.PathLike[str]) -> Relations:
+    """Read a Kümmerle 2009 relations file: lines ``t1 t2 x y z roll pitch yaw``.
+
+    Stamps become exact integer nanoseconds; blank lines and ``#`` lines are skipped. Any order
+    of lines and of ``t1``, ``t2`` is accepted (``t2 < t1`` and ``t2 == t1`` are well-defined
+    relations; the published files happen to have ``t1 < t2``), and repeated relations are kept,
+    since the metric averages over relations. ``z``, ``roll`` and ``pitch`` must be numbers but
+    are ignored: the metric is planar. A missing file, a wrong field count, a bad stamp or a
+    non-finite value raises :class:`~sensors.types.SensorError` naming file and line; a file
+    without relations is an error too."""
+    table = read_stamped_text(path, RELATION_COLUMNS, check_order=False)
+    if not len(table.stamps_ns):
+        raise SensorError(
+            f"{table.path}: no relations (expected lines '{' '.join(RELATION_COLUMNS)}')"
+        )
+    t2_ns = np.empty(len(table.values), dtype=np.int64)
+    for k, (row, line) in enumerate(zip(table.values, table.lines, strict=True)):
+        try:
+            t2_ns[k] = parse_stamp(row[0])
+        except ValueError as err:
+            raise SensorError(f"{table.path}:{line}: bad timestamp t2: {err}") from err
+    after_t2 = StampedText(table.path, table.stamps_ns, [r[1:] for r in table.values], table.lines)
+    numbers = after_t2.numeric(np.float64, "relation (x y z roll pitch yaw)")
+    return Relations(table.path, table.stamps_ns, t2_ns, numbers[:, [0, 1, 5]], table.lines)

@@ -141,3 +141,134 @@ def test_a_zero_length_quaternion_is_refused_naming_its_line(tmp_path: Path) -> 
     bad.write_text("# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 0\n")
     with pytest.raises(SensorError, match=r"bad.txt:3: quaternion has zero length"):
         read_trajectory(bad)
+
+
+# Relations metric (Kümmerle et al. 2009) ----------------------------------------------------
+
+CARMEN = DATA / "carmen"
+needs_carmen = pytest.mark.skipif(not CARMEN.is_dir(), reason="../shared/data/carmen is absent")
+
+
+@pytest.fixture
+def straight_line(tmp_path: Path) -> tuple[Path, Path]:
+    """A robot driving along x at 1 m/s, and four 1 s relations: two true ones and two whose
+    reference is 0.1 m further along x and turned by 2 deg."""
+    t = np.arange(11) * 1.0
+    traj = _write_tum(tmp_path / "line.tum", t, np.column_stack([t, np.zeros(11), np.zeros(11)]))
+    rel = tmp_path / "rel.txt"
+    rel.write_text("# t1 t2 x y z roll pitch yaw\n"
+                   "1 2 1.0 0 0 0 0 0\n"
+                   "3 4 1.0 0 0 0 0 0\n"
+                   "5 6 1.1 0 0 0 0 0.03490658503988659\n"
+                   "8 7 -1.1 0 0 0 0 -0.03490658503988659\n")  # fmt: skip
+    return traj, rel
+
+
+def test_relations_of_a_straight_line_give_the_known_errors(
+    straight_line: tuple[Path, Path], tmp_path: Path
+) -> None:
+    traj, rel = straight_line
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["eval", str(traj), "--relations", str(rel), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    metric = json.loads((out / "summary.json").read_text())["relations_error"]
+    assert (metric["count"], metric["skipped"]) == (4, 0)
+    # Errors 0, 0, 0.1, 0.1 m and 0, 0, 2, 2 deg.
+    assert (metric["trans_mean_m"], metric["trans_std_m"]) == pytest.approx((0.05, 0.05), abs=1e-9)
+    assert metric["trans_sq_mean_m2"] == pytest.approx(0.005, abs=1e-9)
+    assert (metric["rot_mean_deg"], metric["rot_std_deg"]) == pytest.approx((1.0, 1.0), abs=1e-9)
+    assert metric["rot_sq_mean_deg2"] == pytest.approx(2.0, abs=1e-9)
+    assert "relations   4 of 4 scored, 0 skipped" in result.output
+    assert "REL [m]     0.050000 ± 0.050000" in result.output
+    assert "REL [deg]   1.0000 ± 1.0000" in result.output
+    assert (out / "config.yaml").stat().st_size > 0
+
+
+def test_relations_without_out_print_and_write_nothing(
+    straight_line: tuple[Path, Path], tmp_path: Path
+) -> None:
+    traj, rel = straight_line
+    before = sorted(tmp_path.iterdir())
+    result = runner.invoke(app, ["eval", str(traj), "--relations", str(rel)])
+    assert result.exit_code == 0, result.output
+    assert "REL [m]" in result.output and "wrote" not in result.output
+    assert sorted(tmp_path.iterdir()) == before
+
+
+def test_relations_far_from_every_pose_are_skipped_and_counted(
+    straight_line: tuple[Path, Path],
+) -> None:
+    traj, rel = straight_line
+    rel.write_text(rel.read_text() + "1 2.5 1.5 0 0 0 0 0\n")  # 2.5 s is 0.5 s from any pose
+    result = runner.invoke(app, ["eval", str(traj), "--relations", str(rel)])
+    assert result.exit_code == 0, result.output
+    assert "relations   4 of 5 scored, 1 skipped" in result.output
+
+
+def test_missing_relations_file_is_one_line(straight_line: tuple[Path, Path],
+                                            tmp_path: Path) -> None:  # fmt: skip
+    traj, _ = straight_line
+    missing = tmp_path / "nope.relations"
+    line = _one_line_error(["eval", str(traj), "--relations", str(missing)])
+    assert f"{missing}: cannot read" in line
+
+
+@pytest.mark.parametrize(
+    ("bad", "match"),
+    [("5 6 1.1 0 0 0 0", "expected 8 fields"), ("5 6 1.1 nan 0 0 0 0", "not valid relation")],
+)
+def test_malformed_or_nan_relation_is_one_line_naming_file_and_line(
+    straight_line: tuple[Path, Path], bad: str, match: str
+) -> None:
+    traj, rel = straight_line
+    lines = rel.read_text().splitlines()
+    lines[3] = bad
+    rel.write_text("\n".join(lines) + "\n")
+    line = _one_line_error(["eval", str(traj), "--relations", str(rel)])
+    assert f"{rel}:4:" in line and match in line
+
+
+def test_relations_out_of_time_name_both_files(straight_line: tuple[Path, Path]) -> None:
+    traj, rel = straight_line
+    rel.write_text("100 101 1 0 0 0 0 0\n")
+    line = _one_line_error(["eval", str(traj), "--relations", str(rel)])
+    assert str(traj) in line and str(rel) in line and "no relation has estimate poses" in line
+
+
+def test_reference_and_relations_together_or_neither_are_refused(
+    straight_line: tuple[Path, Path], tmp_path: Path
+) -> None:
+    traj, rel = straight_line
+    out = ["--out", str(tmp_path / "out")]
+    both = _one_line_error(["eval", str(traj), "--reference", str(traj), "--relations", str(rel),
+                            *out])  # fmt: skip
+    neither = _one_line_error(["eval", str(traj), *out])
+    assert both == neither == "error: give exactly one of --reference GT and --relations FILE"
+
+
+def test_reference_still_needs_out(line_pair: tuple[Path, Path]) -> None:
+    est, gt = line_pair
+    line = _one_line_error(["eval", str(est), "--reference", str(gt)])
+    assert "--reference needs --out" in line
+
+
+@needs_carmen
+def test_raw_odometry_of_mit_csail_scores_the_published_relations_figures(tmp_path: Path) -> None:
+    from sensors.carmen import CarmenSource
+    from sensors.tum import write_tum_trajectory
+
+    odom = CarmenSource(CARMEN / "mit-csail.clf").odometry()
+    assert odom is not None
+    traj = tmp_path / "mit-csail-odometry.tum"
+    write_tum_trajectory(traj, odom.stamps_ns, odom.x, odom.y, odom.yaw)
+    out, relations = tmp_path / "run", CARMEN / "mit-csail.relations"
+    result = runner.invoke(app, ["eval", str(traj), "--relations", str(relations), "--out",
+                                 str(out)])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    metric = json.loads((out / "summary.json").read_text())["relations_error"]
+    assert (metric["count"], metric["skipped"]) == (1172, 0)
+    # Kümmerle et al. 2009 (../shared/data/README.md): 1.6815 ± 5.2922 m, 5.072 ± 8.241 deg.
+    assert (metric["trans_mean_m"], metric["trans_std_m"]) == pytest.approx((1.6815, 5.2922),
+                                                                            abs=1e-3)  # fmt: skip
+    assert (metric["rot_mean_deg"], metric["rot_std_deg"]) == pytest.approx((5.072, 8.241),
+                                                                          abs=1e-2)  # fmt: skip

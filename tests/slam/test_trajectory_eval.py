@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from sensors.tum import load_tum_trajectory
+from sensors.types import SensorError
 from slam.trajectory_eval import (
     Alignment,
     TrajectoryEvalError,
@@ -19,6 +20,7 @@ from slam.trajectory_eval import (
     evaluate,
     poses_from_tum,
     quaternion_from_rotation,
+    read_relations,
     relations_error,
     rotation_angle,
     rotation_from_quaternion,
@@ -319,3 +321,51 @@ def test_raw_odometry_of_mit_csail_reproduces_the_published_relations_score() ->
     # Kümmerle et al. 2009: raw odometry 1.6815 +- 5.2922 m, 5.072 +- 8.241 deg.
     assert (r["trans_mean_m"], r["trans_std_m"]) == pytest.approx((1.6815, 5.2922), abs=1e-4)
     assert (r["rot_mean_deg"], r["rot_std_deg"]) == pytest.approx((5.072, 8.241), abs=1e-3)
+
+
+# Relations files ----------------------------------------------------------------------------
+
+
+def test_read_relations_keeps_exact_stamps_and_the_planar_part(tmp_path: Path) -> None:
+    path = tmp_path / "rel.txt"
+    path.write_text("# t1 t2 x y z roll pitch yaw\n"
+                    "1134864645.90321 1134864646.32420 0.31293 0.02935 0 0 0 0.24198\n"
+                    "\n"
+                    "# a relation backwards in time is still a relation\n"
+                    "2.5 1.000000001 -1.0 0.5 0.3 0.01 0.02 -3.0\n")  # fmt: skip
+    rel = read_relations(path)
+    assert rel.t1_ns.tolist() == [1134864645903210000, 2_500_000_000]
+    assert rel.t2_ns.tolist() == [1134864646324200000, 1_000_000_001]
+    np.testing.assert_allclose(rel.xyyaw, [[0.31293, 0.02935, 0.24198], [-1.0, 0.5, -3.0]])
+    assert rel.lines.tolist() == [2, 5]
+
+
+@pytest.mark.parametrize(
+    ("line", "match"),
+    [
+        ("1.0 2.0 0.1 0 0 0 0", r"rel.txt:3: expected 8 fields"),
+        ("1.0 2.0 0.1 nan 0 0 0 0.2", r"rel.txt:3: .* is not valid relation"),
+        ("1.0 2.0 0.1 0 0 0 0 inf", r"rel.txt:3: .* is not valid relation"),
+        ("1.0 two 0.1 0 0 0 0 0.2", r"rel.txt:3: bad timestamp t2"),
+        ("nan 2.0 0.1 0 0 0 0 0.2", r"rel.txt:3: bad timestamp"),
+    ],
+)
+def test_a_malformed_relation_names_file_and_line(tmp_path: Path, line: str, match: str) -> None:
+    path = tmp_path / "rel.txt"
+    path.write_text(f"# t1 t2 x y z roll pitch yaw\n0.0 1.0 1 0 0 0 0 0\n{line}\n")
+    with pytest.raises(SensorError, match=match):
+        read_relations(path)
+
+
+def test_a_relations_file_without_relations_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "rel.txt"
+    path.write_text("# t1 t2 x y z roll pitch yaw\n")
+    with pytest.raises(SensorError, match=r"rel.txt: no relations"):
+        read_relations(path)
+
+
+@pytest.mark.skipif(not CARMEN.is_dir(), reason="shared CARMEN data not available")
+def test_read_relations_of_mit_csail_reads_all_1172() -> None:
+    rel = read_relations(CARMEN / "mit-csail.relations")
+    assert len(rel.t1_ns) == 1172 and rel.t1_ns[0] == 1134864645903210000
+    np.testing.assert_allclose(rel.xyyaw[0], [0.31293, 0.02935, 0.24198])
