@@ -16,13 +16,22 @@ from sensors.sim.world import world_from_dict
 from sensors.types import RgbdFrame
 from slam.config import VoConfig
 from slam.visual_odometry import (
+    KINECT_BASELINE,
+    Features,
     VisualOdometry,
     VoResult,
+    VoTuning,
+    _bucket,
+    _residuals,
     base_from_optical,
     camera_matrix,
     estimate_motion,
+    extract_features,
+    hamming_knn,
     inverse,
+    knn_candidates,
     rotation_angle,
+    se3_exp,
 )
 
 CAMERA = CameraConfig()
@@ -206,3 +215,108 @@ def test_real_cabinet_keyframes_reach_the_measured_success_rate() -> None:
     # Measured 96 % and 1.4 cm (bench/bench_vo.py); pinned two pairs and 0.4 cm below.
     assert np.mean(errors_a < 0.05) >= 0.89
     assert np.median(errors_a) < 0.018
+
+
+# --------------------------------------------------------------------------------------------
+# Kernels of the fast path, cross-checked against slow references
+# --------------------------------------------------------------------------------------------
+
+
+def test_residual_jacobian_matches_finite_differences_of_a_left_perturbation() -> None:
+    rng = np.random.default_rng(3)
+    p = rng.uniform([-1.0, -0.8, 1.0], [1.0, 0.8, 4.0], (12, 3))
+    t = se3_exp(np.array([0.02, -0.05, 0.01, 0.1, -0.03, 0.05]))
+    obs = np.column_stack(
+        [rng.uniform(0, 640, 12), rng.uniform(0, 480, 12), rng.uniform(0, 640, 12)]
+    )
+    has_z = np.arange(12) % 3 != 0  # some observations without depth: no u_r residual
+    bf = K[0, 0] * KINECT_BASELINE
+    _, jac = _residuals(t, p, obs, has_z, K, bf)
+    eps = 1e-6
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = eps
+        r_plus, _ = _residuals(se3_exp(d) @ t, p, obs, has_z, K, bf)
+        r_minus, _ = _residuals(se3_exp(-d) @ t, p, obs, has_z, K, bf)
+        np.testing.assert_allclose(jac[:, :, i], (r_plus - r_minus) / (2 * eps), atol=1e-4)
+
+
+def _hamming_reference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.unpackbits(a[:, None, :] ^ b[None, :, :], axis=2).sum(axis=2)
+
+
+def _features(desc: np.ndarray) -> Features:
+    n = len(desc)
+    return Features(np.zeros((n, 2)), np.zeros(n, int), desc, np.ones((n, 3)))
+
+
+def test_knn_candidates_are_the_k_nearest_hamming_neighbours_best_first() -> None:
+    rng = np.random.default_rng(4)
+    prev = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    curr = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    curr[7] = prev[0]  # an exact match
+    idx, dist = knn_candidates(_features(prev), _features(curr), 3)
+    ref = _hamming_reference(prev, curr)
+    assert idx[0, 0] == 7 and dist[0, 0] == 0
+    np.testing.assert_array_equal(dist, np.sort(ref, axis=1)[:, :3])
+    np.testing.assert_array_equal(dist, np.take_along_axis(ref, idx, axis=1))
+
+
+def test_hamming_knn_equals_opencv_batch_distance_including_ties() -> None:
+    import cv2
+
+    rng = np.random.default_rng(6)
+    a = rng.integers(0, 256, (300, 32), dtype=np.uint8)  # more rows than one block
+    b = rng.integers(0, 256, (90, 32), dtype=np.uint8)
+    b[10] = b[50] = b[70] = a[3]  # a three-way tie at distance 0
+    b[20] = b[21] = a[4] ^ 1  # a two-way tie 32 bits away (bit 0 of every byte flipped)
+    dist, idx = hamming_knn(a, b, 3)
+    ref_dist, ref_idx = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=3)
+    np.testing.assert_array_equal(dist, ref_dist)
+    np.testing.assert_array_equal(idx, ref_idx)
+    assert idx[3].tolist() == [10, 50, 70] and idx[4, :2].tolist() == [20, 21]
+
+
+def test_knn_candidates_pad_with_minus_one_and_inf_when_the_current_frame_has_fewer() -> None:
+    rng = np.random.default_rng(5)
+    prev = rng.integers(0, 256, (4, 32), dtype=np.uint8)
+    curr = rng.integers(0, 256, (2, 32), dtype=np.uint8)
+    idx, dist = knn_candidates(_features(prev), _features(curr), 3)
+    assert idx.shape == (4, 3)
+    assert np.all(idx[:, 2] == -1) and np.all(np.isinf(dist[:, 2]))
+    assert np.all(np.isfinite(dist[:, :2])) and set(idx[0, :2]) == {0, 1}
+
+
+def test_bucketing_takes_the_best_response_of_every_cell_before_any_second_best() -> None:
+    tuning = VoTuning(grid_rows=1, grid_cols=2)
+    # Cell 0 (left half) holds three strong keypoints, cell 1 (right half) two weak ones.
+    uv = np.array([[10.0, 5.0], [20.0, 5.0], [30.0, 5.0], [70.0, 5.0], [80.0, 5.0]])
+    response = np.array([0.9, 0.8, 0.7, 0.2, 0.1])
+    keep = _bucket(uv, response, (10, 100), 3, tuning)
+    assert sorted(keep.tolist()) == [0, 1, 3]
+    assert _bucket(uv, response, (10, 100), 5, tuning).tolist() == [0, 1, 2, 3, 4]
+
+
+def test_features_equal_describing_only_the_kept_keypoints_in_a_second_orb_pass() -> None:
+    import cv2
+
+    r = renderer()
+    rgb, depth = frame(r, START)
+    cfg, tuning = replace(VO6, max_features=300), VoTuning()  # few enough that bucketing acts
+    feats = extract_features(rgb, depth, K, cfg, tuning)
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    orb = cv2.ORB_create(nfeatures=int(cfg.max_features * tuning.detect_factor),
+                         scaleFactor=tuning.orb_scale, nlevels=tuning.orb_levels,
+                         fastThreshold=tuning.fast_threshold)  # fmt: skip
+    with np.errstate(invalid="ignore"):
+        mask = ((depth >= cfg.min_depth) & (depth <= cfg.max_depth)).astype(np.uint8)
+    kps = orb.detect(gray, mask)
+    assert len(kps) > cfg.max_features
+    uv = cv2.KeyPoint_convert(kps)
+    response = np.array([kp.response for kp in kps])
+    kept = [kps[i] for i in _bucket(uv, response, gray.shape, cfg.max_features, tuning)]
+    kps2, desc2 = orb.compute(gray, kept)
+    assert len(feats) == len(kps2) == cfg.max_features
+    np.testing.assert_array_equal(feats.uv, cv2.KeyPoint_convert(kps2))
+    np.testing.assert_array_equal(feats.desc, desc2)
+    np.testing.assert_array_equal(feats.octave, [kp.octave & 0xFF for kp in kps2])
