@@ -282,16 +282,25 @@ class MapperConfig:
         0.5, unit="m", gt=0.0, doc="side of the sequential matching search window"
     )
     correlation_search_space_resolution: float = param(
-        0.01, unit="m", gt=0.0, doc="step of the sequential matching search"
+        0.1,
+        unit="m",
+        gt=0.0,
+        doc="step of the sequential matching search (upstream 0.01; ICP refines below it)",
     )
     correlation_search_space_smear_deviation: float = param(
         0.1, unit="m", gt=0.0, doc="blur of the sequential matching grid"
     )
     loop_search_space_dimension: float = param(
-        8.0, unit="m", gt=0.0, doc="side of the loop-closure search window"
+        20.0, unit="m", gt=0.0, doc="largest side of the loop-closure search window (upstream 8)"
+    )
+    loop_search_drift_rate: float = param(
+        0.03, unit="m/m", ge=0.0, doc="position drift sigma per metre of path: widens the search"
+    )
+    loop_search_heading_drift_rate: float = param(
+        0.01, unit="rad/m", ge=0.0, doc="heading drift sigma per metre of path"
     )
     loop_search_space_resolution: float = param(
-        0.05, unit="m", gt=0.0, doc="step of the loop-closure search"
+        0.1, unit="m", gt=0.0, doc="step of the loop-closure search (upstream 0.05; ICP refines)"
     )
     loop_search_space_smear_deviation: float = param(
         0.03, unit="m", gt=0.0, doc="blur of the loop-closure matching grid"
@@ -316,6 +325,43 @@ class MapperConfig:
         0.5, ge=0.0, le=1.0, doc="floor of the distance penalty"
     )
     use_response_expansion: bool = param(True, doc="widen the search when the response is low")
+    # Refinement and noise models (ours: slam_toolbox has no equivalents).
+    scan_voxel_size: float = param(
+        0.05, unit="m", ge=0.0, doc="scan points kept per square cell for matching (0 = all)"
+    )
+    icp_max_correspondence_distance: float = param(
+        0.3, unit="m", gt=0.0, doc="point-to-line ICP: farthest neighbour accepted as a match"
+    )
+    icp_max_iterations: int = param(20, ge=1, doc="point-to-line ICP Gauss-Newton iterations")
+    icp_min_inlier_fraction: float = param(
+        0.5, ge=0.0, le=1.0, doc="scan points that must find a neighbour for a match to count"
+    )
+    icp_first_min_inlier_fraction: float = param(
+        0.9,
+        ge=0.0,
+        le=1.0,
+        doc="track by ICP from odometry alone when this many points match (1 = always search)",
+    )
+    scan_match_min_sigma: float = param(
+        0.01, unit="m", gt=0.0, doc="floor of the ICP residual sigma behind a match covariance"
+    )
+    scan_match_noise_fraction: float = param(
+        0.2, ge=0.0, doc="scan edges add this fraction of the odometry sigmas to ICP's covariance"
+    )
+    odom_translation_noise: float = param(
+        0.1, unit="m/m", ge=0.0, doc="odometry translation sigma per metre travelled"
+    )
+    odom_rotation_noise: float = param(
+        0.1, unit="rad/rad", ge=0.0, doc="odometry heading sigma per radian turned"
+    )
+    odom_rotation_noise_per_meter: float = param(
+        0.05, unit="rad/m", ge=0.0, doc="odometry heading sigma per metre travelled"
+    )
+    loop_closure_max_chi2: float = param(
+        16.27,
+        gt=0.0,
+        doc="drop a closure whose residual exceeds this after optimising (3 dof 99.9%)",
+    )
     # Pose graph.
     robust_kernel: Literal["huber", "cauchy", "none"] = param(
         "huber", doc="loss on loop-closure factors (slam_toolbox ceres_loss_function: None)"

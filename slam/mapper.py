@@ -1,0 +1,531 @@
+"""Keyframe pose-graph mapper: scan-to-local-map matching, verified loop closures, iSAM2.
+
+Per scan (:meth:`Mapper.add_scan`), like slam_toolbox's ``addScan``:
+
+1. Reject bad input (non-finite odometry, time going backwards) with a counted reason.
+2. Predict the pose from the last keyframe's optimised pose and the odometry since then.
+3. Not moved ``minimum_travel_distance`` / turned ``minimum_travel_heading`` (or too soon after
+   the last keyframe)? Then the scan is only remembered with its odometry offset from the last
+   keyframe, so the final trajectory has one pose per scan.
+4. Otherwise it becomes a keyframe: match it against the local map of the last
+   ``scan_buffer_size`` keyframes (correlative search + point-to-line ICP,
+   :mod:`slam.scan_matching`); a good match gives a ``scan`` edge, a poor one an ``odometry``
+   edge; iSAM2 updates.
+5. Loop closure: older keyframes (outside the recent chain) within a covariance-gated radius
+   are matched in a window as wide as the relative uncertainty; a closure is verified by its
+   response, ICP inliers and, after optimising under the robust kernel, its chi-square residual;
+   a closure that leaves the graph inconsistent is removed again.
+
+The poses are those of the scan frame (the laser for laser logs, ``base_link`` for depth->scan
+scans) in the ``map`` frame; odometry is given for the same frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sensors.types import LaserScan
+from slam.config import MapperConfig
+from slam.geometry import wrap_angle
+from slam.pose_graph import Edge, EdgeKind, PoseGraph
+from slam.scan_matching import (
+    LikelihoodField,
+    ReferenceCloud,
+    build_likelihood_field,
+    build_reference,
+    correlative_match,
+    icp_refine,
+    scan_points,
+    transform_points,
+    voxel_filter,
+)
+
+log = logging.getLogger(__name__)
+
+MIN_SCAN_POINTS = 20  # valid returns a keyframe needs to be matched at all
+LOOP_SIGMA_GATE = 3.0  # search radius/window in relative-uncertainty sigmas
+LOOP_MIN_LINEAR_WINDOW = 0.5  # [m] smallest loop-closure search half-window
+LOOP_MIN_ANGULAR_WINDOW = 0.2  # [rad] smallest loop-closure angular half-window
+ODOM_MIN_SIGMA = (0.01, 0.005)  # [m, rad] floor of an odometry edge's sigmas
+LOOP_MIN_SIGMA = (0.02, 0.01)  # [m, rad] floor of a loop closure's sigmas
+LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
+
+
+# 1. Pose algebra on (3,) arrays -----------------------------------------------------------------
+
+
+def oplus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
+                     float(wrap_angle(a[2] + b[2]))])  # fmt: skip
+
+
+def ominus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a^-1 (+) b: pose b in the frame of pose a."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b[2] - a[2]))])
+
+
+def odometry_covariance(delta: np.ndarray, config: MapperConfig) -> np.ndarray:
+    """Diagonal covariance of an odometry increment, growing with distance and turn."""
+    dist = math.hypot(delta[0], delta[1])
+    s_xy = max(config.odom_translation_noise * dist, ODOM_MIN_SIGMA[0])
+    s_yaw = max(config.odom_rotation_noise * abs(delta[2])
+                + config.odom_rotation_noise_per_meter * dist, ODOM_MIN_SIGMA[1])  # fmt: skip
+    return np.diag([s_xy**2, s_xy**2, s_yaw**2])
+
+
+# 2. Records ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe:
+    id: int
+    stamp_ns: int  # [ns]
+    odom_pose: np.ndarray  # (3,) odometry pose of the scan frame when taken
+    scan: LaserScan
+    points: np.ndarray  # (N, 2) valid returns within max_laser_range, scan frame
+    match_points: np.ndarray  # (M, 2) voxel-filtered points used for matching
+
+
+@dataclass
+class LoopStats:
+    proposed: int = 0
+    accepted: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)
+
+    def as_dict(self) -> dict[str, object]:
+        return {"proposed": self.proposed, "accepted": self.accepted,
+                "rejected": sum(self.rejected.values()),
+                "rejected_by_reason": dict(self.rejected)}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class MatchOutcome:
+    ok: bool
+    reason: str  # "" when ok
+    pose: np.ndarray  # (3,) matched pose (or the prior when not ok)
+    covariance: np.ndarray  # (3, 3)
+    response: float  # likelihood-field score at the final pose, in [0, 1]
+    inlier_fraction: float
+
+
+@dataclass(frozen=True, eq=False)
+class _LocalMap:
+    field: LikelihoodField
+    reference: ReferenceCloud
+
+
+@dataclass(frozen=True, eq=False)
+class MapperResult:
+    keyframes: list[Keyframe]
+    poses: np.ndarray  # (K, 3) optimised keyframe poses in map
+    edges: list[dict[str, object]]  # graph edges (kind, from, to, delta, information)
+    scan_stamps_ns: np.ndarray  # (S,) every accepted scan
+    scan_poses: np.ndarray  # (S, 3) every accepted scan's pose in map
+    counts: dict[str, object]
+    timings_s: dict[str, float]
+
+
+# 3. The mapper ---------------------------------------------------------------------------------
+
+
+class Mapper:
+    """Stateful shell over :mod:`slam.scan_matching` and :class:`slam.pose_graph.PoseGraph`."""
+
+    def __init__(self, config: MapperConfig) -> None:
+        self.config = config
+        self.graph = PoseGraph(
+            robust_kernel=config.robust_kernel, robust_kernel_width=config.robust_kernel_width
+        )
+        self.keyframes: list[Keyframe] = []
+        self.chain_length: list[float] = []  # [m] distance travelled up to each keyframe
+        self.loop_edges: list[tuple[int, int]] = []  # accepted closures (older, newer)
+        self.loops = LoopStats()
+        self.skipped: Counter[str] = Counter()
+        self.matches: Counter[str] = Counter()
+        self.timings: dict[str, float] = defaultdict(float)
+        # Per accepted scan: stamp, keyframe it hangs off, its odometry offset from that keyframe.
+        self._scan_stamps: list[int] = []
+        self._scan_kf: list[int] = []
+        self._scan_offset: list[np.ndarray] = []
+        self._scan_track: list[np.ndarray] = []  # map pose when tracked
+        self._kf_track: list[np.ndarray] = []  # each keyframe's tracked pose when it was made
+        self._kf_matched: list[bool] = []  # whether that pose came from a scan match
+        self._last_stamp: int | None = None
+        self._scans_seen = 0
+        # Tracking: every scan is matched to the local map of recent keyframes (cached until a
+        # keyframe is added or a loop closure moves the poses).
+        self._track_pose = np.zeros(3)  # map pose of the last scan
+        self._track_odom = np.zeros(3)  # its odometry pose
+        self._local: _LocalMap | None = None
+
+    # 3a. Input ---------------------------------------------------------------------------------
+
+    def add_scan(self, scan: LaserScan, odom_pose: np.ndarray) -> np.ndarray | None:
+        """Feed one scan with the odometry pose of its frame; returns its current map pose, or
+        None when the scan was skipped (counted in ``skipped`` by reason)."""
+        self._scans_seen += 1
+        odom = np.asarray(odom_pose, dtype=np.float64)
+        if odom.shape != (3,) or not np.all(np.isfinite(odom)):
+            self.skipped["non-finite odometry"] += 1
+            return None
+        if self._last_stamp is not None and scan.stamp_ns <= self._last_stamp:
+            self.skipped["time not increasing"] += 1
+            return None
+        if len(scan.ranges) == 0:
+            self.skipped["empty scan"] += 1
+            return None
+        self._last_stamp = scan.stamp_ns
+        if not self.keyframes:
+            kf = self._make_keyframe(scan, odom)
+            self.graph.add_node(odom)
+            self._append_keyframe(kf, 0.0, odom, True)
+            return self._record(scan.stamp_ns, odom, odom)
+        # 2. Predict from the last tracked pose and the odometry since that scan.
+        prior = oplus(self._track_pose, ominus(self._track_odom, odom))
+        last = self.keyframes[-1]
+        delta = ominus(last.odom_pose, odom)
+        moved = math.hypot(delta[0], delta[1]) >= self.config.minimum_travel_distance
+        turned = abs(delta[2]) >= self.config.minimum_travel_heading
+        waited = (scan.stamp_ns - last.stamp_ns) * 1e-9 >= self.config.minimum_time_interval
+        is_keyframe = (moved or turned) and waited
+        # 3. Track the scan against the local map.
+        kf = self._make_keyframe(scan, odom)
+        t0 = time.perf_counter()
+        match = self._match_local(kf, prior)
+        self.timings["sequential_matching"] += time.perf_counter() - t0
+        self.matches[match.reason or "matched"] += 1
+        pose = match.pose if match.ok else prior
+        if is_keyframe:
+            self._add_keyframe(kf, delta, match, pose)
+            pose = self.graph.pose(kf.id)  # optimised, and moved by any loop closure
+        return self._record(scan.stamp_ns, odom, pose)
+
+    def _record(self, stamp_ns: int, odom: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Remember the scan as an offset from its keyframe, so it follows the optimised graph."""
+        kf = self.keyframes[-1]
+        self._track_pose, self._track_odom = pose, odom
+        self._scan_stamps.append(stamp_ns)
+        self._scan_kf.append(kf.id)
+        self._scan_offset.append(ominus(self.graph.pose(kf.id), pose))
+        self._scan_track.append(pose)
+        return pose
+
+    # 3b. Keyframes and sequential matching -----------------------------------------------------
+
+    def _make_keyframe(self, scan: LaserScan, odom: np.ndarray) -> Keyframe:
+        pts = scan_points(scan, self.config.max_laser_range)
+        return Keyframe(
+            id=len(self.keyframes),
+            stamp_ns=scan.stamp_ns,
+            odom_pose=odom,
+            scan=scan,
+            points=pts,
+            match_points=voxel_filter(pts, self.config.scan_voxel_size),
+        )
+
+    def _append_keyframe(
+        self, kf: Keyframe, step_m: float, tracked: np.ndarray, matched: bool
+    ) -> None:
+        self.keyframes.append(kf)
+        self._kf_track.append(tracked)
+        self._kf_matched.append(matched)
+        self.chain_length.append((self.chain_length[-1] if self.chain_length else 0.0) + step_m)
+        self._local = None
+
+    def _add_keyframe(
+        self, kf: Keyframe, odom_delta: np.ndarray, match: MatchOutcome, pose: np.ndarray
+    ) -> None:
+        """4. A new graph node: a ``scan`` edge from the previous keyframe when the match was
+        good, else an ``odometry`` edge; then iSAM2, then loop closure."""
+        cfg = self.config
+        prev = self.keyframes[-1]
+        prev_pose = self.graph.pose(prev.id)
+        kind: EdgeKind
+        if match.ok:
+            # ICP's covariance describes the fit, not the drift of matching against a local map
+            # that itself drifts: add a fraction of the odometry noise so loops can close.
+            edge_delta, kind = ominus(prev_pose, pose), "scan"
+            floor = cfg.scan_match_noise_fraction**2 * odometry_covariance(edge_delta, cfg)
+            cov = match.covariance + floor
+        else:
+            edge_delta, cov, kind = odom_delta, odometry_covariance(odom_delta, cfg), "odometry"
+        node = self.graph.add_node(pose)
+        assert node == kf.id
+        self.graph.add_edge(prev.id, kf.id, edge_delta, cov, kind=kind)
+        t0 = time.perf_counter()
+        self.graph.update()
+        self.timings["optimisation"] += time.perf_counter() - t0
+        self._append_keyframe(kf, float(math.hypot(edge_delta[0], edge_delta[1])), pose, match.ok)
+        if cfg.do_loop_closing:
+            t0 = time.perf_counter()
+            self._close_loops(kf)
+            self.timings["loop_closure"] += time.perf_counter() - t0
+
+    def _world_points(self, ids: list[int], poses: np.ndarray) -> np.ndarray:
+        parts = [transform_points(poses[i], self.keyframes[i].points) for i in ids]
+        return np.concatenate(parts) if parts else np.zeros((0, 2))
+
+    def _build_local(
+        self, ref_points: np.ndarray, linear_window: float, resolution: float, smear: float
+    ) -> _LocalMap | None:
+        if len(ref_points) < MIN_SCAN_POINTS:
+            return None
+        n_levels = int(math.ceil(math.log2(2 * linear_window / resolution + 1))) + 1
+        fld = build_likelihood_field(ref_points, resolution, smear, linear_window, n_levels)
+        ref = build_reference(voxel_filter(ref_points, self.config.scan_voxel_size / 2))
+        return _LocalMap(fld, ref)
+
+    def _match(
+        self, kf: Keyframe, prior: np.ndarray, local: _LocalMap | None, linear_window: float,
+        angular_window: float, angle_step: float, min_response: float, penalise: bool,
+        min_coarse: float = 0.0,
+    ) -> MatchOutcome:  # fmt: skip
+        cfg = self.config
+        if len(kf.match_points) < MIN_SCAN_POINTS:
+            return MatchOutcome(False, "too few scan points", prior, np.eye(3), 0.0, 0.0)
+        if local is None:
+            return MatchOutcome(False, "too few map points", prior, np.eye(3), 0.0, 0.0)
+        penalties = (
+            {"distance_variance_penalty": cfg.distance_variance_penalty,
+             "angle_variance_penalty": cfg.angle_variance_penalty,
+             "minimum_distance_penalty": cfg.minimum_distance_penalty,
+             "minimum_angle_penalty": cfg.minimum_angle_penalty}
+            if penalise else {}
+        )  # fmt: skip
+        coarse = correlative_match(
+            local.field, kf.match_points, prior, linear_window, angular_window, angle_step,
+            min_score=min_coarse, **penalties,
+        )  # fmt: skip
+        if coarse.score < min_coarse or coarse.score == 0.0:
+            return MatchOutcome(False, "coarse response below threshold", prior, np.eye(3),
+                                coarse.score, 0.0)  # fmt: skip
+        icp = icp_refine(
+            local.reference, kf.match_points, coarse.pose, cfg.icp_max_correspondence_distance,
+            max_iterations=cfg.icp_max_iterations, min_sigma_m=cfg.scan_match_min_sigma,
+        )  # fmt: skip
+        if not np.all(np.isfinite(icp.pose)) or icp.rmse == math.inf:
+            return MatchOutcome(False, "ICP failed", prior, np.eye(3), coarse.score, 0.0)
+        response = _response(local.field, kf.match_points, icp.pose)
+        if icp.inlier_fraction < cfg.icp_min_inlier_fraction:
+            reason = "too few ICP inliers"
+        elif response < min_response:
+            reason = "response below threshold"
+        elif np.hypot(*(icp.pose[:2] - coarse.pose[:2])) > 2 * local.field.resolution + 0.1:
+            reason = "ICP left the correlative optimum"
+        else:
+            reason = ""
+        return MatchOutcome(reason == "", reason, icp.pose, icp.covariance, response,
+                            icp.inlier_fraction)  # fmt: skip
+
+    def _icp_first(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome | None:
+        """Most scans follow odometry closely: ICP straight from the prior, accepted when it
+        stays well inside the search window and nearly every point finds the map; otherwise
+        (None) the full correlative search runs."""
+        cfg = self.config
+        local = self._local
+        if local is None or len(kf.match_points) < MIN_SCAN_POINTS:
+            return None
+        icp = icp_refine(
+            local.reference, kf.match_points, prior, cfg.icp_max_correspondence_distance,
+            max_iterations=cfg.icp_max_iterations, min_sigma_m=cfg.scan_match_min_sigma,
+        )  # fmt: skip
+        step = icp.pose - prior
+        inside = (math.hypot(step[0], step[1]) <= cfg.correlation_search_space_dimension / 4
+                  and abs(wrap_angle(step[2])) <= cfg.coarse_search_angle_offset / 2)  # fmt: skip
+        if not (icp.converged and inside
+                and icp.inlier_fraction >= cfg.icp_first_min_inlier_fraction):  # fmt: skip
+            return None
+        response = _response(local.field, kf.match_points, icp.pose)
+        if response < cfg.link_match_minimum_response_fine:
+            return None
+        return MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction)
+
+    def _match_local(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome:
+        cfg = self.config
+        if self._local is None:
+            poses = self.graph.poses()
+            last = poses[len(self.keyframes) - 1]
+            recent = range(max(0, len(self.keyframes) - cfg.scan_buffer_size), len(self.keyframes))
+            ids = [i for i in recent if np.hypot(*(poses[i, :2] - last[:2]))
+                   <= cfg.scan_buffer_maximum_scan_distance]  # fmt: skip
+            self._local = self._build_local(
+                self._world_points(ids, poses), cfg.correlation_search_space_dimension / 2,
+                cfg.correlation_search_space_resolution,
+                cfg.correlation_search_space_smear_deviation,
+            )  # fmt: skip
+        fast = self._icp_first(kf, prior)
+        if fast is not None:
+            return fast
+        return self._match(
+            kf, prior, self._local,
+            linear_window=cfg.correlation_search_space_dimension / 2,
+            angular_window=cfg.coarse_search_angle_offset,
+            angle_step=cfg.coarse_angle_resolution,
+            min_response=cfg.link_match_minimum_response_fine,
+            penalise=True,
+        )  # fmt: skip
+
+    # 3c. Loop closure ---------------------------------------------------------------------------
+
+    def _path_between(self, k: int, cands: np.ndarray) -> np.ndarray:
+        """[m] path length from each candidate to keyframe k: along the chain, or through one
+        accepted loop closure, whichever is shorter (a one-hop Dijkstra bound). Drift, and so the
+        search window, grows with it."""
+        cl = np.asarray(self.chain_length)
+        best = cl[k] - cl[cands]
+        if self.loop_edges:
+            a, b = (np.array(v) for v in zip(*self.loop_edges, strict=True))
+            via = (cl[k] - cl[b])[None, :] + np.abs(cl[a][None, :] - cl[cands][:, None])
+            best = np.minimum(best, via.min(axis=1))
+        return np.maximum(best, 0.0)
+
+    def _close_loops(self, kf: Keyframe) -> None:
+        cfg = self.config
+        k = kf.id
+        older = np.arange(0, k - cfg.loop_match_minimum_chain_size)
+        if len(older) == 0:
+            return
+        poses = self.graph.poses()
+        path = self._path_between(k, older)
+        sigma = cfg.loop_search_drift_rate * path  # [m]
+        dist = np.hypot(*(poses[older, :2] - poses[k, :2]).T)
+        radius = np.minimum(cfg.loop_search_maximum_distance + LOOP_SIGMA_GATE * sigma,
+                            cfg.loop_search_space_dimension / 2)  # fmt: skip
+        near = dist <= radius
+        if not near.any():
+            return
+        j = int(older[near][np.argmin(dist[near])])
+        half = cfg.loop_match_minimum_chain_size // 2
+        ids = [i for i in range(max(0, j - half), min(k - cfg.loop_match_minimum_chain_size,
+                                                    j + half + 1))]  # fmt: skip
+        sig_j = float(sigma[j])
+        lin = float(np.clip(LOOP_SIGMA_GATE * sig_j, LOOP_MIN_LINEAR_WINDOW,
+                            cfg.loop_search_space_dimension / 2))  # fmt: skip
+        yaw_sigma = cfg.loop_search_heading_drift_rate * float(path[j])
+        ang = float(np.clip(LOOP_SIGMA_GATE * yaw_sigma, LOOP_MIN_ANGULAR_WINDOW, math.pi))
+        self.loops.proposed += 1
+        local = self._build_local(
+            self._world_points(ids, poses), lin, cfg.loop_search_space_resolution,
+            max(cfg.loop_search_space_smear_deviation, cfg.loop_search_space_resolution),
+        )  # fmt: skip
+        match = self._match(
+            kf, poses[k], local, linear_window=lin, angular_window=ang,
+            angle_step=cfg.coarse_angle_resolution,
+            min_response=cfg.loop_match_minimum_response_fine, penalise=False,
+            min_coarse=cfg.loop_match_minimum_response_coarse,
+        )  # fmt: skip
+        if not match.ok:
+            self.loops.rejected[match.reason] += 1
+            return
+        loop_cov = match.covariance + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
+                                               LOOP_MIN_SIGMA[1] ** 2])  # fmt: skip
+        edge = self.graph.add_edge(j, k, ominus(poses[j], match.pose), loop_cov, kind="loop",
+                                   robust=True)  # fmt: skip
+        self.graph.update(extra_iterations=LOOP_EXTRA_ITERATIONS)
+        chi2 = self.graph.edge_chi2(edge)
+        if chi2 > cfg.loop_closure_max_chi2:
+            self.graph.remove_edge(edge)
+            self.graph.update()
+            self.loops.rejected["inconsistent with the graph"] += 1
+            log.debug("loop %d-%d removed: chi2 %.1f", j, k, chi2)
+            return
+        self.loops.accepted += 1
+        self._local = None  # the closure moved the recent keyframes
+        self.loop_edges.append((j, k))
+
+    # 3d. Output --------------------------------------------------------------------------------
+
+    def _scan_poses(self, poses: np.ndarray) -> np.ndarray:
+        """Every scan's map pose from the optimised keyframes. A scan between keyframes k and k+1
+        was tracked in the frame both were matched in, so it is placed from each of them and the
+        two are blended by time: a correction the graph made between k and k+1 is spread over
+        the scans in between instead of landing as a step at k+1."""
+        if not self._scan_stamps:
+            return np.zeros((0, 3))
+        kf = np.asarray(self._scan_kf)
+        from_prev = _apply(poses[kf], np.asarray(self._scan_offset))
+        nxt = np.minimum(kf + 1, len(poses) - 1)
+        # Only a next keyframe that was itself scan-matched shares the scans' tracking frame.
+        has_next = (kf + 1 < len(poses)) & np.asarray(self._kf_matched)[nxt]
+        track = np.asarray(self._scan_track)
+        kf_track = np.asarray(self._kf_track)
+        from_next = _apply(poses[nxt], _relative(kf_track[nxt], track))
+        stamps = np.asarray(self._scan_stamps, dtype=np.int64)
+        kf_stamps = np.array([k.stamp_ns for k in self.keyframes], dtype=np.int64)
+        span = np.maximum(kf_stamps[nxt] - kf_stamps[kf], 1)
+        w = np.where(has_next, np.clip((stamps - kf_stamps[kf]) / span, 0.0, 1.0), 0.0)
+        blended = from_prev + w[:, None] * _relative_delta(from_prev, from_next)
+        blended[:, 2] = wrap_angle(blended[:, 2])
+        return blended
+
+    def finish(self, batch_optimise: bool = True) -> MapperResult:
+        if batch_optimise and self.keyframes:
+            t0 = time.perf_counter()
+            self.graph.optimize_batch()
+            self.timings["optimisation"] += time.perf_counter() - t0
+        poses = self.graph.poses() if self.keyframes else np.zeros((0, 3))
+        scan_poses = self._scan_poses(poses)
+        counts = {
+            "scans": self._scans_seen,
+            "scans_used": len(self._scan_stamps),
+            "skipped": dict(self.skipped),
+            "keyframes": len(self.keyframes),
+            "sequential_matches": dict(self.matches),
+            "loop_closures": self.loops.as_dict(),
+        }
+        return MapperResult(
+            keyframes=list(self.keyframes),
+            poses=poses,
+            edges=[edge_dict(e) for e in self.graph.edges],
+            scan_stamps_ns=np.asarray(self._scan_stamps, dtype=np.int64),
+            scan_poses=scan_poses,
+            counts=counts,
+            timings_s={k: round(v, 3) for k, v in self.timings.items()},
+        )
+
+
+def _relative_delta(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """b - a with the yaw difference wrapped (for linear blending of nearby poses)."""
+    d = b - a
+    d[:, 2] = wrap_angle(d[:, 2])
+    return d
+
+
+def _apply(base: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """Row-wise base (+) off for (S, 3) arrays."""
+    c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
+    return np.column_stack([base[:, 0] + c * off[:, 0] - s * off[:, 1],
+                            base[:, 1] + s * off[:, 0] + c * off[:, 1],
+                            wrap_angle(base[:, 2] + off[:, 2])])  # fmt: skip
+
+
+def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a^-1 (+) b for (S, 3) arrays."""
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[:, 2] - a[:, 2])])
+
+
+def edge_dict(edge: Edge) -> dict[str, object]:
+    """A graph edge as graph.json stores it."""
+    return {"kind": edge.kind, "from": edge.i, "to": edge.j,
+            "delta": [float(v) for v in edge.delta],
+            "information": np.asarray(edge.information, dtype=float).tolist(),
+            "robust": edge.robust}  # fmt: skip
+
+
+def _response(fld: LikelihoodField, points: np.ndarray, pose: np.ndarray) -> float:
+    """Mean likelihood of the scan points at ``pose`` (the fine response)."""
+    return float(fld.lookup(transform_points(pose, points)).mean())
+
+
+__all__ = ["Keyframe", "Mapper", "MapperResult", "odometry_covariance", "oplus", "ominus"]

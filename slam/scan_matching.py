@@ -1,0 +1,389 @@
+"""2D scan matching: correlative search on a smeared likelihood grid, then point-to-line ICP.
+
+Two stages, in the spirit of Olson's real-time correlative scan matching and Cartographer's
+real-time CSM + Ceres refinement:
+
+1. **Correlative search** (:func:`correlative_match`): the reference points are rasterised on a
+   grid of ``resolution`` and smeared into a likelihood field ``F = exp(-d^2 / 2 sigma^2)`` (``d``
+   from ``cv2.distanceTransform``). Every candidate pose in a window of (x, y, yaw) around a prior
+   is scored by the mean of ``F`` at its transformed scan points. The search is exact over the
+   window's lattice (translation steps of one cell, yaw steps of ``angle_step``) but prunes with
+   branch-and-bound: a pyramid of max-pooled fields (level ``k`` holds the maximum over
+   ``2^k x 2^k`` cells, ``cv2.dilate`` with the anchor at the corner) bounds the score of every
+   candidate in a block, and whole levels of candidates are expanded at once (numpy), best-first.
+   This finds the global optimum in a wide window, so it is the loop-closure matcher too.
+2. **Point-to-line ICP** (:func:`icp_refine`): Gauss-Newton on ``r_i = n_i . (R p_i + t - q_i)``
+   with nearest neighbours from a k-d tree and Huber weights. The Jacobian of one residual in
+   (x, y, yaw) is ``[n_x, n_y, n . (dR/dyaw p_i)]`` with ``dR/dyaw p = (-s p_x - c p_y,
+   c p_x - s p_y)``. Sub-cell accuracy comes from here; the covariance is ``sigma^2 (J^T W J)^-1``
+   with ``sigma^2`` the weighted residual variance, floored so a perfect synthetic match is not
+   infinitely certain.
+
+All functions are pure: arrays in, results out. Poses are (x [m], y [m], yaw [rad]).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from sensors.types import LaserScan
+from slam.geometry import wrap_angle
+
+NORMAL_NEIGHBOURS = 5  # points used to fit each reference point's line (incl. itself)
+MIN_POINTS = 10  # fewer matched points than this is not a match
+SCORE_CHUNK = 8192  # candidates scored per gather (x scan points x 8 bytes of indices)
+PLANARITY_MAX = 0.2  # smaller/larger eigenvalue ratio above which a neighbourhood is no line
+DEGENERATE_EIGENVALUE = 1e-9  # information floor relative to the strongest direction
+
+
+# 1. Scan points ---------------------------------------------------------------------------------
+
+
+def scan_points(scan: LaserScan, max_range_m: float = math.inf) -> np.ndarray:
+    """(N, 2) float64 end points of the valid returns, in the scan frame.
+
+    REP-117: NaN and ranges outside [range_min, range_max] (and +inf, "no return") are dropped,
+    and so are returns beyond ``max_range_m``."""
+    r = np.asarray(scan.ranges, dtype=np.float64)
+    a = scan.angles()
+    limit = min(scan.range_max, max_range_m)
+    ok = np.isfinite(r) & (r >= scan.range_min) & (r <= limit)
+    return np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])])
+
+
+def voxel_filter(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Keep one point (the first) per ``voxel_m`` square cell, order preserved."""
+    if len(points) == 0 or voxel_m <= 0:
+        return points
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    flat = keys[:, 0] * (int(keys[:, 1].max()) + 1) + keys[:, 1]
+    _, first = np.unique(flat, return_index=True)
+    return points[np.sort(first)]
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (N, 2) given in frame ``pose`` expressed in the frame ``pose`` is given in."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return points @ np.array([[c, s], [-s, c]]) + pose[:2]
+
+
+# 2. Likelihood field with its max-pooled pyramid -----------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class LikelihoodField:
+    """Smeared occupancy likelihood of reference points; ``levels[k][r, c]`` is the maximum of
+    ``levels[0]`` over rows r..r+2^k-1 and cols c..c+2^k-1 (an upper bound for a block)."""
+
+    origin: np.ndarray  # (2,) [m] world (x, y) of the corner of cell (0, 0); row = y, col = x
+    resolution: float  # [m/cell]
+    levels: tuple[np.ndarray, ...]  # each (H, W) float32 in [0, 1]; border rows/cols are 0
+    flat_levels: tuple[np.ndarray, ...]  # each levels[k].ravel() followed by a tail of zeros
+    max_window_cells: int  # widest search lattice (cells per axis) the zero tail supports
+
+    @property
+    def field(self) -> np.ndarray:
+        return self.levels[0]
+
+    def lookup(self, points: np.ndarray) -> np.ndarray:
+        """Field value at world points (N, 2), 0 outside the grid (nearest cell)."""
+        rc = np.floor((points - self.origin) / self.resolution).astype(np.int64)
+        h, w = self.field.shape
+        col, row = np.clip(rc[:, 0], 0, w - 1), np.clip(rc[:, 1], 0, h - 1)
+        return self.field[row, col]
+
+
+def build_likelihood_field(
+    points: np.ndarray, resolution: float, smear_sigma: float, margin_m: float, n_levels: int
+) -> LikelihoodField:
+    """Rasterise world points (M, 2) and smear them; ``margin_m`` pads the bounding box so scans
+    moved by the search window still land on the grid."""
+    if len(points) == 0:
+        raise ValueError("no reference points to build a likelihood field from")
+    # Twice the margin: a scan point that some shift of the window moves off the grid is then
+    # at least a margin plus 3 sigma from every reference point at every shift (field ~ 0), so
+    # sending it to the zero tail keeps the search exact.
+    pad = 2.0 * margin_m + 3.0 * smear_sigma + 2 * resolution
+    origin = points.min(axis=0) - pad
+    size = np.ceil((points.max(axis=0) + pad - origin) / resolution).astype(int) + 1
+    w, h = int(size[0]), int(size[1])
+    rc = np.floor((points - origin) / resolution).astype(np.int64)
+    free = np.full((h, w), 255, np.uint8)
+    free[rc[:, 1], rc[:, 0]] = 0
+    # Distance [cells] from each cell centre to the nearest occupied cell centre.
+    dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    sig_cells = smear_sigma / resolution
+    field = np.exp(-0.5 * (dist / sig_cells) ** 2).astype(np.float32)
+    field[[0, -1], :] = 0.0
+    field[:, [0, -1]] = 0.0
+    levels = [field]
+    for k in range(1, n_levels):
+        size_k = 2**k
+        kernel = np.ones((size_k, size_k), np.uint8)
+        pooled = cv2.dilate(
+            field, kernel, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT, borderValue=0
+        )
+        levels.append(pooled)
+    # Off-grid points are pointed at the zero tail, where every shift of the window stays.
+    max_cells = 2 * int(math.ceil(margin_m / resolution)) + 1
+    tail = np.zeros((max_cells + 1) * (w + 1), np.float32)
+    flat = tuple(np.concatenate([lv.ravel(), tail]) for lv in levels)
+    return LikelihoodField(origin=origin, resolution=resolution, levels=tuple(levels),
+                           flat_levels=flat, max_window_cells=max_cells)  # fmt: skip
+
+
+# 3. Correlative search (batched branch-and-bound) ----------------------------------------------
+
+
+@dataclass(frozen=True)
+class CorrelativeResult:
+    pose: np.ndarray  # (3,) best (x, y, yaw) on the search lattice
+    score: float  # mean likelihood of the scan points at ``pose`` in [0, 1] (before penalty)
+    penalised_score: float  # score times the prior-distance penalties
+    evaluated: int  # candidate blocks and leaves scored (how much work the pruning left)
+
+
+def _block_scores(
+    flat_level: np.ndarray, w: int, base: np.ndarray, a: np.ndarray, di: np.ndarray,
+    dj: np.ndarray
+) -> np.ndarray:  # fmt: skip
+    """Mean of a level over the points of angle ``a[c]`` shifted by (di[c], dj[c]) cells.
+
+    ``base`` (A, N) holds each point's flat cell index at shift (0, 0), or the start of the zero
+    tail for points that some shift of the window would move off the grid (they score 0)."""
+    out = np.empty(len(a), np.float64)
+    for lo in range(0, len(a), SCORE_CHUNK):  # bounded memory: SCORE_CHUNK x N indices at once
+        hi = lo + SCORE_CHUNK
+        flat = base[a[lo:hi]] + (di[lo:hi] * w + dj[lo:hi])[:, None]
+        out[lo:hi] = np.take(flat_level, flat).mean(axis=1)
+    return out
+
+
+def correlative_match(
+    field: LikelihoodField,
+    points: np.ndarray,
+    prior: np.ndarray,
+    linear_window_m: float,
+    angular_window_rad: float,
+    angle_step_rad: float,
+    distance_variance_penalty: float = math.inf,
+    angle_variance_penalty: float = math.inf,
+    minimum_distance_penalty: float = 0.0,
+    minimum_angle_penalty: float = 0.0,
+    min_score: float = 0.0,
+) -> CorrelativeResult:
+    """Best pose of scan ``points`` (N, 2, scan frame) within +-``linear_window_m`` and
+    +-``angular_window_rad`` of ``prior`` (exact on the lattice, branch-and-bound pruned).
+
+    The penalties are slam_toolbox's: a candidate's score is multiplied by
+    ``max(exp(-d^2 / distance_variance_penalty), minimum_distance_penalty)`` and the same for the
+    yaw offset; they favour the prior when the field is ambiguous (e.g. along a corridor).
+    Blocks that cannot reach ``min_score`` are pruned (Cartographer's ``min_score``); when no
+    candidate reaches it the result has ``score`` 0 and the prior as pose."""
+    if len(points) == 0:
+        raise ValueError("no scan points to match")
+    res = field.resolution
+    n_half = max(int(math.ceil(linear_window_m / res)), 0)
+    n_ang_half = max(int(math.floor(angular_window_rad / angle_step_rad + 1e-9)), 0)
+    dyaw = angle_step_rad * np.arange(-n_ang_half, n_ang_half + 1)
+    # 3a. Rotate the scan once per angle; the translation lattice then shifts whole cells.
+    yaws = prior[2] + dyaw
+    c, s = np.cos(yaws), np.sin(yaws)
+    wx = c[:, None] * points[:, 0] - s[:, None] * points[:, 1] + prior[0]
+    wy = s[:, None] * points[:, 0] + c[:, None] * points[:, 1] + prior[1]
+    cols = np.floor((wx - field.origin[0]) / res).astype(np.int64) - n_half
+    rows = np.floor((wy - field.origin[1]) / res).astype(np.int64) - n_half
+    n_cells = 2 * n_half + 1  # leaf offsets 0..n_cells-1 per axis (minus n_half in metres)
+    h, w = field.field.shape
+    if n_cells > field.max_window_cells:
+        raise ValueError(f"search window of {n_cells} cells exceeds the field's margin "
+                         f"({field.max_window_cells} cells)")  # fmt: skip
+    # Points that some shift would move off the grid (unmapped territory beyond the margin,
+    # where the field is 0 anyway) point at the zero tail.
+    on_grid = (rows >= 0) & (cols >= 0) & (rows + n_cells <= h) & (cols + n_cells <= w)
+    base = np.where(on_grid, rows * w + cols, h * w)
+    top = min(max(int(math.ceil(math.log2(n_cells))), 0), len(field.levels) - 1)
+    step = 2**top
+    # 3b. All top-level blocks: (angle, row offset, col offset).
+    starts = np.arange(0, n_cells, step)
+    a, di, dj = (v.ravel() for v in np.meshgrid(np.arange(len(yaws)), starts, starts,
+                                                indexing="ij"))  # fmt: skip
+    bound = _block_scores(field.flat_levels[top], w, base, a, di, dj)
+    evaluated = len(a)
+
+    def penalty(a_: np.ndarray, di_: np.ndarray, dj_: np.ndarray) -> np.ndarray:
+        d2 = ((di_ - n_half) ** 2 + (dj_ - n_half) ** 2) * res**2
+        pd = np.maximum(np.exp(-d2 / distance_variance_penalty), minimum_distance_penalty)
+        pa = np.maximum(np.exp(-(dyaw[a_] ** 2) / angle_variance_penalty), minimum_angle_penalty)
+        return pd * pa
+
+    # 3c. Greedy descent from the best top block gives a first exact leaf score to prune with.
+    best_leaf = (-1.0, 0, 0, 0, 0.0)  # penalised, a, di, dj, raw
+    ga, gi, gj = int(a[np.argmax(bound)]), int(di[np.argmax(bound)]), int(dj[np.argmax(bound)])
+    for lvl in range(top, 0, -1):
+        half = 2 ** (lvl - 1)
+        ci = np.array([gi, gi, gi + half, gi + half])
+        cj = np.array([gj, gj + half, gj, gj + half])
+        keep = (ci < n_cells) & (cj < n_cells)
+        ci, cj = ci[keep], cj[keep]
+        sc = _block_scores(field.flat_levels[lvl - 1], w, base, np.full(len(ci), ga), ci, cj)
+        evaluated += len(ci)
+        k = int(np.argmax(sc))
+        gi, gj = int(ci[k]), int(cj[k])
+    raw = float(_block_scores(field.flat_levels[0], w, base, np.array([ga]), np.array([gi]),
+                              np.array([gj]))[0])  # fmt: skip
+    pen = raw * float(penalty(np.array([ga]), np.array([gi]), np.array([gj]))[0])
+    best_leaf = (pen, ga, gi, gj, raw) if pen >= min_score else (min_score, -1, 0, 0, 0.0)
+    # 3d. Level by level: drop blocks whose bound cannot beat the best leaf, split the rest.
+    for lvl in range(top, -1, -1):
+        keep = bound > best_leaf[0]
+        a, di, dj, bound = a[keep], di[keep], dj[keep], bound[keep]
+        if len(a) == 0:
+            break
+        if lvl == 0:
+            # Leaves: the bound is the exact score; apply the penalty and take the best.
+            pen_scores = bound * penalty(a, di, dj)
+            k = int(np.argmax(pen_scores))
+            if pen_scores[k] > best_leaf[0]:
+                best_leaf = (float(pen_scores[k]), int(a[k]), int(di[k]), int(dj[k]),
+                             float(bound[k]))  # fmt: skip
+            break
+        half = 2 ** (lvl - 1)
+        a = np.repeat(a, 4)
+        di = np.repeat(di, 4) + np.tile([0, 0, half, half], len(di))
+        dj = np.repeat(dj, 4) + np.tile([0, half, 0, half], len(dj))
+        inside = (di < n_cells) & (dj < n_cells)
+        a, di, dj = a[inside], di[inside], dj[inside]
+        bound = _block_scores(field.flat_levels[lvl - 1], w, base, a, di, dj)
+        evaluated += len(a)
+    pen, ba, bi, bj, raw = best_leaf
+    if ba < 0:
+        return CorrelativeResult(pose=np.asarray(prior, float).copy(), score=0.0,
+                                 penalised_score=0.0, evaluated=evaluated)  # fmt: skip
+    pose = np.array([prior[0] + (bj - n_half) * res, prior[1] + (bi - n_half) * res,
+                     float(wrap_angle(prior[2] + dyaw[ba]))])  # fmt: skip
+    return CorrelativeResult(pose=pose, score=raw, penalised_score=pen, evaluated=evaluated)
+
+
+# 4. Point-to-line ICP ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ReferenceCloud:
+    """Reference points with unit normals (from a line fit to their neighbours) and a k-d tree.
+
+    ``points`` and ``normals`` carry one extra all-zero row at index M: the k-d tree reports a
+    missing neighbour as index M, which so contributes a zero residual and Jacobian row."""
+
+    points: np.ndarray  # (M + 1, 2) [m]
+    normals: np.ndarray  # (M + 1, 2) unit; (0, 0) where the neighbourhood is no line
+    tree: cKDTree
+
+    @property
+    def size(self) -> int:
+        return len(self.points) - 1
+
+
+def build_reference(points: np.ndarray) -> ReferenceCloud:
+    """Normals by PCA of each point's ``NORMAL_NEIGHBOURS`` nearest neighbours (vectorised)."""
+    tree = cKDTree(points)
+    k = min(NORMAL_NEIGHBOURS, len(points))
+    _, idx = tree.query(points, k=k)
+    nb = points[np.asarray(idx).reshape(len(points), k)]
+    d = nb - nb.mean(axis=1, keepdims=True)
+    sxx = np.einsum("mk,mk->m", d[..., 0], d[..., 0]) / k
+    syy = np.einsum("mk,mk->m", d[..., 1], d[..., 1]) / k
+    sxy = np.einsum("mk,mk->m", d[..., 0], d[..., 1]) / k
+    # Closed-form 2x2 eigen-decomposition: the line direction is at angle phi, the normal at
+    # phi + 90 deg; the eigenvalues are mean -+ radius.
+    phi = 0.5 * np.arctan2(2 * sxy, sxx - syy)
+    normals = np.column_stack([-np.sin(phi), np.cos(phi)])
+    mean, radius = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
+    linear = (mean - radius) <= PLANARITY_MAX * np.maximum(mean + radius, 1e-12)
+    normals = np.where(linear[:, None], normals, 0.0)
+    zero = np.zeros((1, 2))
+    return ReferenceCloud(np.vstack([points, zero]), np.vstack([normals, zero]), tree)
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    pose: np.ndarray  # (3,) refined (x, y, yaw)
+    covariance: np.ndarray  # (3, 3) in (x, y, yaw)
+    rmse: float  # [m] weighted point-to-line residual at convergence
+    inlier_fraction: float  # scan points with a neighbour within max_correspondence_m
+    iterations: int
+    converged: bool
+
+
+def icp_refine(
+    ref: ReferenceCloud,
+    points: np.ndarray,
+    initial: np.ndarray,
+    max_correspondence_m: float,
+    max_iterations: int = 20,
+    huber_m: float = 0.05,
+    min_sigma_m: float = 0.01,
+    tolerance: float = 5e-4,
+) -> IcpResult:
+    """Point-to-line Gauss-Newton from ``initial`` (see module docstring)."""
+    pose = np.asarray(initial, dtype=np.float64).copy()
+    n = max(len(points), 1)
+    failed = IcpResult(pose.copy(), np.diag([1e6, 1e6, 1e6]), math.inf, 0.0, 0, False)
+    px, py = points[:, 0], points[:, 1]
+    it, converged = 0, False
+    for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        wx, wy = c * px - s * py + pose[0], s * px + c * py + pose[1]
+        _, idx = ref.tree.query(np.column_stack([wx, wy]),
+                                distance_upper_bound=max_correspondence_m)  # fmt: skip
+        nx, ny = ref.normals[idx, 0], ref.normals[idx, 1]  # zero for a missing neighbour
+        r = nx * (wx - ref.points[idx, 0]) + ny * (wy - ref.points[idx, 1])
+        jac = np.column_stack([nx, ny, nx * (-s * px - c * py) + ny * (c * px - s * py)])
+        absr = np.abs(r)
+        wts = np.where(absr <= huber_m, 1.0, huber_m / np.maximum(absr, 1e-12))
+        wts *= (nx != 0) | (ny != 0)
+        n_used = int(np.count_nonzero(wts))
+        if n_used < MIN_POINTS:
+            return failed
+        jw = jac * wts[:, None]
+        hess = jw.T @ jac
+        try:
+            delta = -np.linalg.solve(hess + 1e-9 * np.trace(hess) * np.eye(3), jw.T @ r)
+        except np.linalg.LinAlgError:
+            return failed
+        pose += delta
+        if abs(delta[0]) + abs(delta[1]) < tolerance and abs(delta[2]) < tolerance:
+            converged = True
+            break
+    pose[2] = float(wrap_angle(pose[2]))
+    wsum = float(np.sum(wts))
+    rmse = math.sqrt(float(np.sum(wts * r**2)) / max(wsum, 1e-12))
+    sigma2 = max(float(np.sum(wts * r**2)) / max(n_used - 3, 1), min_sigma_m**2)
+    # Invert through a clamped eigen-decomposition: an exactly degenerate direction (a straight
+    # corridor) gets a huge variance instead of failing the whole match.
+    evals, evecs = np.linalg.eigh(0.5 * (hess + hess.T))
+    evals = np.maximum(evals, DEGENERATE_EIGENVALUE * max(float(evals[-1]), 1e-12))
+    cov = sigma2 * (evecs / evals) @ evecs.T
+    inliers = float(np.count_nonzero(idx < ref.size)) / n
+    return IcpResult(pose, 0.5 * (cov + cov.T), rmse, inliers, it, converged)
+
+
+__all__ = [
+    "CorrelativeResult",
+    "IcpResult",
+    "LikelihoodField",
+    "ReferenceCloud",
+    "build_likelihood_field",
+    "build_reference",
+    "correlative_match",
+    "icp_refine",
+    "scan_points",
+    "transform_points",
+    "voxel_filter",
+]
