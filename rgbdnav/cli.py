@@ -244,6 +244,38 @@ def odometry(
         typer.echo(f"{label:<11} {path}")
 
 
+@app.command("map")
+@_known_errors
+def map_(
+    source: Annotated[
+        Path, typer.Argument(help="CARMEN log (.clf/.log[.gz]), recording folder, or world YAML.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    continue_: Annotated[
+        Path | None,
+        typer.Option("--continue", help="Map bundle to extend: relocalise in it, then map on."),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed when SOURCE is a world.")] = 0,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Pose-graph SLAM: trajectory, occupancy grid and a map bundle (Nav2 PGM/YAML + graph)."""
+    _setup_logging(verbose)
+    from rgbdnav.config import load_config
+    from rgbdnav.map_run import run_map
+
+    cfg = load_config(config or [], set_ or [])
+    recording = _recording_for(source, cfg, seed, quiet)
+    with _Progress("mapping", quiet) as progress:
+        outputs = run_map(recording, out, config or [], set_ or [], progress, continue_)
+    typer.echo(f"source      {source}" + (f" (recording: {recording})" if recording != source
+                                           else ""))  # fmt: skip
+    for label, path in outputs.items():
+        typer.echo(f"{label:<11} {path}")
+
+
 @app.command()
 @_known_errors
 def board(

@@ -27,11 +27,13 @@ import math
 import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from sensors.types import LaserScan
+from sensors.types import LaserScan, MapError
 from slam.config import MapperConfig
+from slam.map_bundle import MapBundle
 from slam.geometry import wrap_angle
 from slam.pose_graph import Edge, EdgeKind, PoseGraph
 from slam.scan_matching import (
@@ -54,6 +56,7 @@ LOOP_MIN_LINEAR_WINDOW = 0.5  # [m] smallest loop-closure search half-window
 LOOP_MIN_ANGULAR_WINDOW = 0.2  # [rad] smallest loop-closure angular half-window
 ODOM_MIN_SIGMA = (0.01, 0.005)  # [m, rad] floor of an odometry edge's sigmas
 LOOP_MIN_SIGMA = (0.02, 0.01)  # [m, rad] floor of a loop closure's sigmas
+RELOCALISE_PROBE_SPACING = 2.0  # [m] keyframes probed along the saved path, and their window
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
 
 
@@ -127,7 +130,7 @@ class _LocalMap:
 class MapperResult:
     keyframes: list[Keyframe]
     poses: np.ndarray  # (K, 3) optimised keyframe poses in map
-    edges: list[dict[str, object]]  # graph edges (kind, from, to, delta, information)
+    edges: list[dict[str, Any]]  # graph edges (kind, from, to, delta, information)
     scan_stamps_ns: np.ndarray  # (S,) every accepted scan
     scan_poses: np.ndarray  # (S, 3) every accepted scan's pose in map
     counts: dict[str, object]
@@ -166,6 +169,8 @@ class Mapper:
         self._track_pose = np.zeros(3)  # map pose of the last scan
         self._track_odom = np.zeros(3)  # its odometry pose
         self._local: _LocalMap | None = None
+        self._relocalise = False  # continuing a saved map: place the first scan in it first
+        self.relocalised: dict[str, object] | None = None
 
     # 3a. Input ---------------------------------------------------------------------------------
 
@@ -184,6 +189,8 @@ class Mapper:
             self.skipped["empty scan"] += 1
             return None
         self._last_stamp = scan.stamp_ns
+        if self._relocalise:
+            return self._relocalise_in_map(scan, odom)
         if not self.keyframes:
             kf = self._make_keyframe(scan, odom)
             self.graph.add_node(odom)
@@ -374,7 +381,72 @@ class Mapper:
             penalise=True,
         )  # fmt: skip
 
-    # 3c. Loop closure ---------------------------------------------------------------------------
+    # 3c. Continuing a saved map ----------------------------------------------------------------
+
+    @classmethod
+    def from_bundle(cls, config: MapperConfig, bundle: MapBundle) -> Mapper:
+        """A mapper holding a saved map's keyframes and graph; the first scans it is fed are
+        relocalised in that map (global search around every stretch of the old path) and the
+        new keyframes extend the same graph."""
+        m = cls(config)
+        poses = np.asarray(bundle.keyframe_poses, dtype=np.float64).reshape(-1, 3)
+        if len(poses) == 0:
+            raise MapError("the map bundle has no keyframes to continue from")
+        edges = [Edge(id=n, kind=e.kind, i=e.from_id, j=e.to_id,  # type: ignore[arg-type]
+                      delta=np.asarray(e.delta, float), information=np.asarray(e.information),
+                      robust=e.kind == "loop")
+                 for n, e in enumerate(bundle.edges)]  # fmt: skip
+        m.graph = PoseGraph.from_arrays(poses, edges, robust_kernel=config.robust_kernel,
+                                        robust_kernel_width=config.robust_kernel_width)  # fmt: skip
+        for k, scan in enumerate(bundle.scans):
+            kf = m._make_keyframe(scan, np.asarray(bundle.keyframe_odom_poses[k], float))
+            step = 0.0 if k == 0 else float(np.hypot(*(poses[k, :2] - poses[k - 1, :2])))
+            m._append_keyframe(kf, step, poses[k], True)
+        m._relocalise = True
+        return m
+
+    def _relocalise_in_map(self, scan: LaserScan, odom: np.ndarray) -> np.ndarray | None:
+        """Global search for the scan over the saved map: a correlative search (full turn, a
+        window as wide as the spacing of the probed positions) around keyframes spread along
+        the old path, the best verified by ICP and the fine response."""
+        cfg = self.config
+        kf = self._make_keyframe(scan, odom)
+        poses = self.graph.poses()
+        probes = _spread(poses[:, :2], RELOCALISE_PROBE_SPACING)
+        best: tuple[float, int, MatchOutcome] | None = None
+        for j in probes:
+            near = np.flatnonzero(np.hypot(*(poses[:, :2] - poses[j, :2]).T)
+                                  <= cfg.scan_buffer_maximum_scan_distance)  # fmt: skip
+            ids = [int(i) for i in near]
+            local = self._build_local(
+                self._world_points(ids, poses), RELOCALISE_PROBE_SPACING,
+                cfg.loop_search_space_resolution,
+                max(cfg.loop_search_space_smear_deviation, cfg.loop_search_space_resolution),
+            )  # fmt: skip
+            match = self._match(
+                kf, poses[j], local, linear_window=RELOCALISE_PROBE_SPACING,
+                angular_window=math.pi, angle_step=cfg.coarse_angle_resolution,
+                min_response=cfg.loop_match_minimum_response_fine, penalise=False,
+                min_coarse=cfg.loop_match_minimum_response_coarse,
+            )  # fmt: skip
+            if match.ok and (best is None or match.response > best[0]):
+                best = (match.response, j, match)
+        if best is None:
+            self.skipped["not relocalised in the saved map"] += 1
+            return None
+        _, j, match = best
+        node = self.graph.add_node(match.pose)
+        loop_cov = match.covariance + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
+                                               LOOP_MIN_SIGMA[1] ** 2])  # fmt: skip
+        self.graph.add_edge(j, node, ominus(poses[j], match.pose), loop_cov, kind="loop")
+        self.graph.update()
+        self._append_keyframe(kf, 0.0, match.pose, True)
+        self._relocalise = False
+        self.relocalised = {"keyframe": int(j), "response": round(float(match.response), 4),
+                            "pose": [round(float(v), 4) for v in match.pose]}  # fmt: skip
+        return self._record(scan.stamp_ns, odom, self.graph.pose(node))
+
+    # 3d. Loop closure ---------------------------------------------------------------------------
 
     def _path_between(self, k: int, cands: np.ndarray) -> np.ndarray:
         """[m] path length from each candidate to keyframe k: along the chain, or through one
@@ -442,7 +514,7 @@ class Mapper:
         self._local = None  # the closure moved the recent keyframes
         self.loop_edges.append((j, k))
 
-    # 3d. Output --------------------------------------------------------------------------------
+    # 3e. Output --------------------------------------------------------------------------------
 
     def _scan_poses(self, poses: np.ndarray) -> np.ndarray:
         """Every scan's map pose from the optimised keyframes. A scan between keyframes k and k+1
@@ -468,6 +540,11 @@ class Mapper:
         return blended
 
     def finish(self, batch_optimise: bool = True) -> MapperResult:
+        if self._relocalise and self._scans_seen:
+            raise MapError(
+                f"none of the {self._scans_seen} scans could be placed in the saved map "
+                "(relocalisation found no verified match); the map was not extended"
+            )
         if batch_optimise and self.keyframes:
             t0 = time.perf_counter()
             self.graph.optimize_batch()
@@ -482,6 +559,8 @@ class Mapper:
             "sequential_matches": dict(self.matches),
             "loop_closures": self.loops.as_dict(),
         }
+        if self.relocalised is not None:
+            counts["relocalised_in_saved_map"] = self.relocalised
         return MapperResult(
             keyframes=list(self.keyframes),
             poses=poses,
@@ -515,7 +594,16 @@ def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[:, 2] - a[:, 2])])
 
 
-def edge_dict(edge: Edge) -> dict[str, object]:
+def _spread(points: np.ndarray, spacing: float) -> list[int]:
+    """Indices of points at least ``spacing`` apart, greedily in order."""
+    keep: list[int] = []
+    for i, p in enumerate(points):
+        if not keep or np.min(np.hypot(*(points[keep] - p).T)) >= spacing:
+            keep.append(i)
+    return keep
+
+
+def edge_dict(edge: Edge) -> dict[str, Any]:
     """A graph edge as graph.json stores it."""
     return {"kind": edge.kind, "from": edge.i, "to": edge.j,
             "delta": [float(v) for v in edge.delta],

@@ -1,0 +1,257 @@
+"""`rgbdnav map`: a pose-graph map of a CARMEN laser log or an RGB-D recording, as a map bundle.
+
+Laser logs feed their scans with the log's per-scan laser pose as odometry. RGB-D recordings
+first run the odometry pipeline (wheels + VO + gyro in the EKF, ``odometry/`` in the run
+directory), then turn every frame into a scan (depth -> scan, base_link frame) and feed it with
+the fused pose at the frame's stamp.
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from rgbdnav.config import Config, load_config, source_options
+from rgbdnav.report import plot_trajectories
+from rgbdnav.run_dir import RunDir
+from sensors.carmen import CarmenSource
+from sensors.recording_source import RecordingSource
+from sensors.sim.world import floor_plan, world_from_dict
+from sensors.source import PoseStream, Source, open_source
+from sensors.tum import load_tum_trajectory, write_tum_trajectory, yaw_from_quaternion
+from sensors.types import LaserScan, SensorError
+from slam.map_bundle import GraphEdge, MapBundle, load_bundle, save_bundle
+from slam.mapper import Mapper, MapperResult
+from slam.metrics import drift_report, interpolate_poses
+from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
+
+GRID_MARGIN_M = 1.0  # [m] around the mapped area
+IOU_TOLERANCE_CELLS = 1  # a mapped wall within one cell of the true one counts
+
+
+def run_map(
+    source_path: Path,
+    out: Path,
+    config_files: Sequence[Path],
+    overrides: Sequence[str],
+    progress: Callable[[int, int], None] | None = None,
+    continue_bundle: Path | None = None,
+) -> dict[str, Path]:
+    t0 = time.perf_counter()
+    cfg = load_config(config_files, overrides)
+    src = open_source(source_path, source_options(cfg))
+    try:
+        scene = src.recording.scene if isinstance(src, RecordingSource) else {}
+        base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
+        cfg = load_config(config_files, overrides, base=base)
+        run = RunDir(out)
+        outputs = {"config": run.write_config(cfg)}
+        summary: dict = {"command": "map", "source": str(source_path),
+                         "source_kind": src.describe()}  # fmt: skip
+        if continue_bundle is not None:
+            previous = load_bundle(continue_bundle)
+            mapper = Mapper.from_bundle(cfg.mapper, previous)
+            summary["continued_from"] = str(continue_bundle)
+        else:
+            mapper = Mapper(cfg.mapper)
+        stream, total, frame = _scan_stream(src, source_path, cfg, run, summary, outputs,
+                                            (config_files, overrides))  # fmt: skip
+        t_map = time.perf_counter()
+        first_ns = last_ns = None
+        for k, (scan, odom) in enumerate(stream):
+            mapper.add_scan(scan, odom)
+            first_ns = scan.stamp_ns if first_ns is None else first_ns
+            last_ns = scan.stamp_ns
+            if progress is not None:
+                progress(k + 1, total)
+        result = mapper.finish()
+        mapping_s = time.perf_counter() - t_map
+        if len(result.scan_stamps_ns) == 0:
+            raise SensorError(f"{source_path}: no usable scans to map")
+        # 1. Trajectory: one pose per accepted scan.
+        p = result.scan_poses
+        write_tum_trajectory(run.file("trajectory.tum"), result.scan_stamps_ns, p[:, 0], p[:, 1],
+                             p[:, 2])  # fmt: skip
+        outputs["trajectory"] = run.file("trajectory.tum")
+        # 2. Occupancy grid from the optimised keyframes, and the bundle.
+        t_grid = time.perf_counter()
+        grid = build_grid(result, cfg)
+        bundle = make_bundle(result, grid, cfg, str(source_path))
+        save_bundle(bundle, run.file("map"))
+        outputs["map bundle"] = run.file("map")
+        grid_s = time.perf_counter() - t_grid
+        duration_s = (last_ns - first_ns) / 1e9 if first_ns is not None and last_ns else 0.0
+        wall = time.perf_counter() - t0
+        summary.update({
+            "frame": frame,
+            "counts": result.counts,
+            "timings_s": {**result.timings_s, "mapping_total": round(mapping_s, 3),
+                          "grid_and_bundle": round(grid_s, 3), "wall": round(wall, 3)},
+            "data_duration_s": round(duration_s, 3),
+            "real_time_factor": round(duration_s / mapping_s, 2) if mapping_s > 0 else None,
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            "grid": {"resolution": grid.geometry.resolution, "width": grid.geometry.width,
+                     "height": grid.geometry.height},
+        })  # fmt: skip
+        paths = [("SLAM", p[:, 0], p[:, 1])]
+        gt = src.groundtruth()
+        if gt is not None and gt.frame == "base_link" and frame == "base_link":
+            _score_against_truth(result, grid, gt, scene, cfg, summary)
+            paths.insert(0, ("ground truth", gt.x, gt.y))
+        occ = grid.occupied_mask(cfg.mapper.occupied_thresh)
+        g = grid.geometry
+        plot_trajectories(run.file("map.png"), paths, f"{source_path.name}: map",
+                          occupied=occ, origin=(g.origin_x, g.origin_y),
+                          resolution=g.resolution)  # fmt: skip
+        outputs["picture"] = run.file("map.png")
+        outputs["summary"] = run.write_summary(summary)
+        return outputs
+    finally:
+        src.close()
+
+
+# 1. Scans with odometry --------------------------------------------------------------------
+
+
+def _scan_stream(
+    src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
+    outputs: dict[str, Path], cli_config: tuple[Sequence[Path], Sequence[str]],
+) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
+    """(scan, odometry pose) pairs, their count, and the frame the poses are of."""
+    if isinstance(src, CarmenSource):
+        odo = src.laser_poses()
+        if odo is None:
+            raise SensorError(f"{source_path}: the log has no laser scans")
+        scans = list(src.scans())
+        return _with_poses(scans, odo), len(scans), "laser"
+    if src.intrinsics() is not None and src.wheels() is not None:
+        return _rgbd_stream(src, source_path, cfg, run, summary, outputs, cli_config)
+    raise SensorError(
+        f"{source_path}: cannot map this source: it needs laser scans with odometry (CARMEN) or "
+        "RGB-D frames with wheel encoders (a recording)"
+    )
+
+
+def _with_poses(
+    scans: Sequence[LaserScan], odo: PoseStream
+) -> Iterator[tuple[LaserScan, np.ndarray]]:
+    for k, scan in enumerate(scans):
+        yield scan, np.array([odo.x[k], odo.y[k], odo.yaw[k]])
+
+
+def _rgbd_stream(
+    src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
+    outputs: dict[str, Path], cli_config: tuple[Sequence[Path], Sequence[str]],
+) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
+    from rgbdnav.odometry_run import run_odometry
+    from slam.depth_to_scan import DepthToScan
+
+    odom_out = run_odometry(source_path, run.file("odometry"), cli_config[0], cli_config[1],
+                            use_vo=True)  # fmt: skip
+    outputs["odometry"] = run.file("odometry")
+    stamps, xyz, quat = load_tum_trajectory(odom_out["fused odom"])
+    yaw = yaw_from_quaternion(quat)
+    intrinsics = src.intrinsics()
+    assert intrinsics is not None
+    d2s = DepthToScan(intrinsics, cfg.robot, cfg.depth_to_scan)
+    n = len(src.stream_stamps().get("depth", ()))
+    summary["odometry_source"] = "EKF fused (odometry/fused.tum)"
+
+    def gen() -> Iterator[tuple[LaserScan, np.ndarray]]:
+        for frame in src.frames():
+            fx, fy, fyaw, inside = interpolate_poses(stamps, xyz[:, 0], xyz[:, 1], yaw,
+                                                     np.array([frame.stamp_ns]))  # fmt: skip
+            if not inside[0]:
+                continue  # no fused pose brackets this frame: counted by the odometry run
+            yield d2s.from_frame(frame).scan, np.array([fx[0], fy[0], fyaw[0]])
+
+    return gen(), n, "base_link"
+
+
+# 2. Grid, bundle, scores ---------------------------------------------------------------------
+
+
+def build_grid(result: MapperResult, cfg: Config) -> OccupancyGrid:
+    scans = [k.scan for k in result.keyframes]
+    mc = cfg.mapper
+    bounds = bounds_of_scans(result.poses, scans, mc.max_laser_range)
+    geom = GridGeometry.from_bounds(*bounds, resolution=mc.resolution, margin=GRID_MARGIN_M)
+    return integrate_scans(geom, result.poses, scans, mc)
+
+
+def make_bundle(result: MapperResult, grid: OccupancyGrid, cfg: Config, source: str) -> MapBundle:
+    edges = tuple(_graph_edge(e) for e in result.edges)
+    kfs = result.keyframes
+    return MapBundle(
+        grid=grid,
+        keyframe_ids=np.array([k.id for k in kfs], dtype=np.int64),
+        keyframe_stamps_ns=np.array([k.stamp_ns for k in kfs], dtype=np.int64),
+        keyframe_poses=np.asarray(result.poses, dtype=np.float64).reshape(-1, 3),
+        keyframe_odom_poses=np.array([k.odom_pose for k in kfs], dtype=np.float64).reshape(-1, 3),
+        edges=edges,
+        scans=tuple(k.scan for k in kfs),
+        config=asdict(cfg.mapper),
+        source=source,
+    )
+
+
+def _graph_edge(e: dict[str, Any]) -> GraphEdge:
+    dx, dy, dyaw = (float(v) for v in e["delta"])
+    info = tuple(tuple(float(v) for v in row) for row in e["information"])
+    return GraphEdge(kind=str(e["kind"]), from_id=int(e["from"]), to_id=int(e["to"]),
+                     delta=(dx, dy, dyaw), information=info)  # fmt: skip
+
+
+def occupancy_iou(
+    mapped: np.ndarray, truth: np.ndarray, tolerance_cells: int
+) -> dict[str, float | int]:
+    """IoU of two aligned occupied masks where a cell within ``tolerance_cells`` of the other
+    mask's occupied cells counts as matching (TP from the mapped side, FN from the truth side)."""
+    k = np.ones((2 * tolerance_cells + 1,) * 2, np.uint8)
+    near_truth = cv2.dilate(truth.astype(np.uint8), k) > 0
+    near_mapped = cv2.dilate(mapped.astype(np.uint8), k) > 0
+    tp = int(np.count_nonzero(mapped & near_truth))
+    fp = int(np.count_nonzero(mapped)) - tp
+    fn = int(np.count_nonzero(truth & ~near_mapped))
+    iou = tp / max(tp + fp + fn, 1)
+    return {"iou": round(iou, 4), "true_positive": tp, "false_positive": fp, "false_negative": fn}
+
+
+def _score_against_truth(
+    result: MapperResult, grid: OccupancyGrid, gt: PoseStream, scene: dict, cfg: Config,
+    summary: dict,
+) -> None:  # fmt: skip
+    p = result.scan_poses
+    report = drift_report(result.scan_stamps_ns, (p[:, 0], p[:, 1], p[:, 2]), gt.stamps_ns,
+                          (gt.x, gt.y, gt.yaw))  # fmt: skip
+    summary["slam_vs_groundtruth"] = report.as_dict()
+    world = scene.get("world_description")
+    if not isinstance(world, dict):
+        return
+    plan = floor_plan(world_from_dict(world))
+    g = grid.geometry
+    # Rasterise the true walls into the map's grid, then compare where the robot looked.
+    rows, cols = np.nonzero(plan.occupied)
+    xs = plan.origin_x + (cols + 0.5) * plan.resolution
+    ys = plan.origin_y + (rows + 0.5) * plan.resolution
+    r, c = g.world_to_cell(xs, ys)
+    ok = g.contains(r, c)
+    truth = np.zeros((g.height, g.width), bool)
+    truth[r[ok], c[ok]] = True
+    seen = cv2.dilate(grid.observed.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    mapped = grid.occupied_mask(cfg.mapper.occupied_thresh)
+    summary["grid_vs_floor_plan"] = {
+        **occupancy_iou(mapped, truth & seen, IOU_TOLERANCE_CELLS),
+        "tolerance_cells": IOU_TOLERANCE_CELLS,
+        "note": "true walls restricted to cells the robot observed",
+    }
+
+
+__all__ = ["build_grid", "make_bundle", "occupancy_iou", "run_map"]
