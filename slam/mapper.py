@@ -33,8 +33,8 @@ import numpy as np
 
 from sensors.types import LaserScan, MapError
 from slam.config import MapperConfig
-from slam.map_bundle import MapBundle
 from slam.geometry import wrap_angle
+from slam.map_bundle import MapBundle
 from slam.pose_graph import Edge, EdgeKind, PoseGraph
 from slam.scan_matching import (
     LikelihoodField,
