@@ -1,0 +1,406 @@
+"""Keyframe pose-graph mapper on seeded synthetic worlds: trajectories against ground truth with
+perfect and corrupted odometry, keyframe spacing, bad input counted rather than raised, aliased
+loop-closure candidates, and the shape of the graph it hands back."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+# tests/ is no package: pytest's default (prepend) import mode puts tests/slam on sys.path.
+from scan_scenes import ROOM, raycast
+
+from sensors.types import LaserScan
+from slam.config import MapperConfig
+from slam.geometry import wrap_angle
+from slam.mapper import Mapper, MapperResult, ominus, oplus
+
+CFG = MapperConfig()
+SCAN_PERIOD_NS = 500_000_000  # [ns] 2 Hz: never gated by minimum_time_interval (0.5 s)
+STEP = 0.2  # [m] translation between scans on the loop route
+TURN_STEP = math.radians(15.0)  # [rad] rotation between scans when turning in place
+
+
+def box(x0: float, y0: float, x1: float, y1: float) -> list[list[float]]:
+    return [[x0, y0, x1, y0], [x1, y0, x1, y1], [x1, y1, x0, y1], [x0, y1, x0, y0]]
+
+
+# A 10 m x 8 m corridor loop around a 6 m x 4 m block (corridors 2 m wide), with a cabinet, a box,
+# a wall stub, a pillar and a diagonal panel so no stretch of corridor is featureless.
+LOOP_WORLD = np.array(
+    box(0, 0, 10, 8) + box(2, 2, 8, 6) + [
+        [3.5, 0.0, 3.5, 0.4], [3.5, 0.4, 4.2, 0.4], [4.2, 0.4, 4.2, 0.0],
+        [8.0, 3.0, 8.4, 3.0], [8.4, 3.0, 8.4, 3.6], [8.4, 3.6, 8.0, 3.6],
+        [6.0, 8.0, 6.0, 7.5],
+        *box(0.4, 4.2, 0.7, 4.5),
+        [10.0, 5.5, 9.6, 5.9],
+    ],
+    dtype=np.float64,
+)  # fmt: skip
+
+
+# 1. Routes, odometry and the driver --------------------------------------------------------------
+
+
+def legs_route(
+    start: Sequence[float], legs: Sequence[tuple[float, float]], step: float = STEP,
+    turn_step: float = TURN_STEP,
+) -> np.ndarray:  # fmt: skip
+    """(S, 3) true poses: for each (length [m], heading [rad]) leg turn in place to the heading,
+    then drive straight in ``step`` increments."""
+    poses = [np.asarray(start, dtype=np.float64)]
+    yaw = float(start[2])  # unwrapped
+    for length, heading in legs:
+        while abs(heading - yaw) > 1e-9:
+            yaw += float(np.clip(heading - yaw, -turn_step, turn_step))
+            poses.append(np.array([poses[-1][0], poses[-1][1], yaw]))
+        for _ in range(int(round(length / step))):
+            p = poses[-1]
+            poses.append(np.array([p[0] + step * math.cos(yaw), p[1] + step * math.sin(yaw), yaw]))
+    out = np.array(poses)
+    out[:, 2] = wrap_angle(out[:, 2])
+    return out
+
+
+# Once around the loop anticlockwise from the bottom-left corridor, then 2.4 m more past the start.
+LOOP_ROUTE = legs_route(
+    (1.0, 1.0, 0.0),
+    [(8.0, 0.0), (6.0, math.pi / 2), (8.0, math.pi), (6.0, 1.5 * math.pi), (2.4, 2 * math.pi)],
+)
+# 5.4 m straight through ROOM, clear of its features.
+ROOM_ROUTE = legs_route((1.0, 3.0, 0.0), [(5.4, 0.0)])
+
+
+def corrupt_odometry(
+    truth: np.ndarray, scale_error: float, yaw_bias_rad_per_m: float, sigma_xy_m: float,
+    sigma_yaw_rad: float, seed: int,
+) -> np.ndarray:  # fmt: skip
+    """Odometry integrated from the true increments with a scale error, a yaw bias per metre
+    travelled and white noise on every increment."""
+    rng = np.random.default_rng(seed)
+    odom = [truth[0].copy()]
+    for a, b in zip(truth[:-1], truth[1:], strict=True):
+        d = ominus(a, b)
+        dist = math.hypot(d[0], d[1])
+        noisy = np.array([d[0] * (1 + scale_error), d[1] * (1 + scale_error),
+                          d[2] + yaw_bias_rad_per_m * dist])  # fmt: skip
+        noisy += rng.normal(0.0, [sigma_xy_m, sigma_xy_m, sigma_yaw_rad])
+        odom.append(oplus(odom[-1], noisy))
+    return np.array(odom)
+
+
+def scans_along(
+    world: np.ndarray, truth: np.ndarray, noise_m: float, seed: int, range_max: float = 20.0,
+    period_ns: int = SCAN_PERIOD_NS,
+) -> list[LaserScan]:  # fmt: skip
+    return [raycast(world, p, noise_m=noise_m, seed=seed * 10_000 + i, range_max=range_max,
+                    stamp_ns=(i + 1) * period_ns)
+            for i, p in enumerate(truth)]  # fmt: skip
+
+
+def run_mapper(
+    scans: Sequence[LaserScan], odom: np.ndarray, config: MapperConfig = CFG
+) -> MapperResult:
+    mapper = Mapper(config)
+    for scan, pose in zip(scans, odom, strict=True):
+        mapper.add_scan(scan, pose)
+    return mapper.finish()
+
+
+def errors(est: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pose: position error [m], absolute yaw error [rad]."""
+    return np.hypot(*(est[:, :2] - truth[:, :2]).T), np.abs(wrap_angle(est[:, 2] - truth[:, 2]))
+
+
+def keyframe_truth(
+    result: MapperResult, truth: np.ndarray, scans: Sequence[LaserScan]
+) -> np.ndarray:
+    """True pose of each keyframe, found by its stamp."""
+    index = {s.stamp_ns: i for i, s in enumerate(scans)}
+    return np.array([truth[index[kf.stamp_ns]] for kf in result.keyframes])
+
+
+@dataclass(frozen=True)
+class LoopRun:
+    truth: np.ndarray
+    odom: np.ndarray
+    scans: list[LaserScan]
+    result: MapperResult
+
+
+@pytest.fixture(scope="module")
+def corrupted_loop() -> LoopRun:
+    """The loop route with 3 % scale error, 2 deg/m yaw bias and small noise on the odometry."""
+    odom = corrupt_odometry(LOOP_ROUTE, scale_error=0.03, yaw_bias_rad_per_m=math.radians(2.0),
+                            sigma_xy_m=0.005, sigma_yaw_rad=0.002, seed=3)  # fmt: skip
+    scans = scans_along(LOOP_WORLD, LOOP_ROUTE, noise_m=0.01, seed=3)
+    return LoopRun(LOOP_ROUTE, odom, scans, run_mapper(scans, odom))
+
+
+# 2. Trajectory accuracy --------------------------------------------------------------------------
+
+
+def test_perfect_odometry_maps_the_true_trajectory() -> None:
+    # Measured over 5 noise seeds: max 0.8-1.5 cm / 0.12-0.18 deg (seed 1: 1.1 cm / 0.17 deg).
+    scans = scans_along(LOOP_WORLD, LOOP_ROUTE, noise_m=0.005, seed=1)
+    result = run_mapper(scans, LOOP_ROUTE)
+    pos, yaw = errors(result.scan_poses, LOOP_ROUTE)
+    assert pos.max() < 0.025
+    assert np.degrees(yaw.max()) < 0.5
+
+
+def test_corrupted_odometry_is_corrected_around_the_loop(corrupted_loop: LoopRun) -> None:
+    # Measured over 5 seeds: map max 1.4-1.7 cm / 0.15-0.28 deg (seed 3: 1.7 cm / 0.27 deg);
+    # odometry 4.0-4.4 m / 56-61 deg. Without loop closing the map is 2.6-5.4 cm off.
+    run = corrupted_loop
+    pos, yaw = errors(run.result.scan_poses, run.truth)
+    odom_pos, _ = errors(run.odom, run.truth)
+    assert odom_pos.max() > 2.0  # the odometry really is bad
+    assert pos.max() < 0.05
+    assert np.degrees(yaw.max()) < 1.0
+    assert np.hypot(*(run.result.scan_poses[-1, :2] - run.truth[-1, :2])) < 0.05
+
+
+def test_the_end_of_the_loop_closes_onto_its_start(corrupted_loop: LoopRun) -> None:
+    result = corrupted_loop.result
+    loops = result.counts["loop_closures"]
+    assert isinstance(loops, dict)
+    assert loops["accepted"] >= 1
+    assert loops["proposed"] == loops["accepted"] + loops["rejected"]
+    n_kf = len(result.keyframes)
+    closing = [e for e in result.edges
+               if e["kind"] == "loop" and e["from"] <= 5 and e["to"] >= n_kf - 5]  # fmt: skip
+    assert closing, "no accepted closure joins the last keyframes to the first"
+    # Each accepted closure agrees with the true relative pose.
+    kt = keyframe_truth(result, corrupted_loop.truth, corrupted_loop.scans)
+    for e in (e for e in result.edges if e["kind"] == "loop"):
+        true_delta = ominus(kt[e["from"]], kt[e["to"]])
+        delta = np.asarray(e["delta"])
+        assert np.hypot(*(delta[:2] - true_delta[:2])) < 0.05
+        assert abs(wrap_angle(delta[2] - true_delta[2])) < math.radians(1.0)
+
+
+# 3. Keyframes and per-scan output ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("step_m", "period_s", "scans_per_keyframe"),
+    [
+        (0.12, 0.5, 5),  # distance-gated: ceil(0.5 m / 0.12 m) scans
+        (0.3, 0.15, 4),  # time-gated: 2 scans travel 0.6 m, but 0.5 s needs ceil(0.5 / 0.15)
+    ],
+)
+def test_keyframes_follow_minimum_travel_distance_and_time(
+    step_m: float, period_s: float, scans_per_keyframe: int
+) -> None:
+    truth = legs_route((1.0, 3.0, 0.0), [(5.4, 0.0)], step=step_m)
+    scans = scans_along(ROOM, truth, noise_m=0.005, seed=0, period_ns=int(period_s * 1e9))
+    result = run_mapper(scans, truth)
+    stamps = [kf.stamp_ns for kf in result.keyframes]
+    assert stamps == [s.stamp_ns for s in scans[::scans_per_keyframe]]
+    # Roughly one keyframe per minimum_travel_distance of path.
+    path = step_m * (len(truth) - 1)
+    assert len(result.keyframes) == pytest.approx(path / (scans_per_keyframe * step_m) + 1, abs=1)
+    assert result.counts["keyframes"] == len(result.keyframes) == len(result.poses)
+
+
+def test_keyframes_follow_minimum_travel_heading_when_turning_in_place() -> None:
+    # 15 deg per scan: 0.5 rad is first reached after 2 scans (30 deg); 24 scans turn 360 deg.
+    truth = legs_route((2.0, 3.0, 0.0), [(0.0, 2 * math.pi)])
+    scans = scans_along(ROOM, truth, noise_m=0.005, seed=0)
+    result = run_mapper(scans, truth)
+    assert [kf.stamp_ns for kf in result.keyframes] == [s.stamp_ns for s in scans[::2]]
+    pos, yaw = errors(result.scan_poses, truth)
+    assert pos.max() < 0.02
+    assert np.degrees(yaw.max()) < 0.5
+
+
+def test_every_accepted_scan_gets_a_pose(corrupted_loop: LoopRun) -> None:
+    result = corrupted_loop.result
+    n = len(corrupted_loop.scans)
+    assert result.counts["scans"] == result.counts["scans_used"] == n
+    assert result.scan_poses.shape == (n, 3)
+    assert result.scan_stamps_ns.tolist() == [s.stamp_ns for s in corrupted_loop.scans]
+    # Keyframe scans sit exactly on their optimised keyframe poses.
+    index = {s: i for i, s in enumerate(result.scan_stamps_ns.tolist())}
+    kf_rows = [index[kf.stamp_ns] for kf in result.keyframes]
+    np.testing.assert_allclose(result.scan_poses[kf_rows], result.poses, atol=1e-9)
+
+
+# 4. Bad input is counted, not raised -------------------------------------------------------------
+
+
+def test_bad_input_is_skipped_with_a_counted_reason() -> None:
+    scans = scans_along(ROOM, ROOM_ROUTE, noise_m=0.005, seed=0)
+    mapper = Mapper(CFG)
+    good_poses = []
+    for i, (scan, pose) in enumerate(zip(scans, ROOM_ROUTE, strict=True)):
+        good_poses.append(mapper.add_scan(scan, pose))
+        if i == 5:
+            assert mapper.add_scan(scan, np.array([np.nan, 0.0, 0.0])) is None
+            assert mapper.add_scan(scan, np.array([0.0, np.inf, 0.0])) is None
+        if i == 10:  # the same stamp again, and one from the past
+            assert mapper.add_scan(scan, pose) is None
+            assert mapper.add_scan(scans[3], pose) is None
+        if i == 15:
+            no_ranges = np.zeros(0, dtype=np.float32)
+            empty = LaserScan(scan.stamp_ns + 1, scan.angle_min, scan.angle_increment,
+                              no_ranges, scan.range_min, scan.range_max)  # fmt: skip
+            assert mapper.add_scan(empty, pose) is None
+    result = mapper.finish()
+    assert result.counts["skipped"] == {
+        "non-finite odometry": 2, "time not increasing": 2, "empty scan": 1,
+    }  # fmt: skip
+    assert result.counts["scans"] == len(scans) + 5
+    assert result.counts["scans_used"] == len(scans) == len(result.scan_poses)
+    assert all(p is not None for p in good_poses)
+    pos, yaw = errors(result.scan_poses, ROOM_ROUTE)
+    assert pos.max() < 0.02
+    assert np.degrees(yaw.max()) < 0.5
+
+
+def test_scans_with_varying_beam_counts_map_fine() -> None:
+    scans = [raycast(ROOM, p, n_beams=181 if i % 2 else 361, noise_m=0.005, seed=i,
+                     stamp_ns=(i + 1) * SCAN_PERIOD_NS)
+             for i, p in enumerate(ROOM_ROUTE)]  # fmt: skip
+    result = run_mapper(scans, ROOM_ROUTE)
+    assert result.counts["sequential_matches"] == {"matched": len(scans) - 1}
+    pos, yaw = errors(result.scan_poses, ROOM_ROUTE)
+    assert pos.max() < 0.02
+    assert np.degrees(yaw.max()) < 0.5
+
+
+def test_scans_with_nan_inf_and_short_ranges_mixed_in_map_fine() -> None:
+    rng = np.random.default_rng(7)
+    scans = []
+    for scan in scans_along(ROOM, ROOM_ROUTE, noise_m=0.005, seed=0):
+        r = scan.ranges.copy()
+        pick = rng.random(len(r))
+        r[pick < 0.15] = np.nan
+        r[(pick >= 0.15) & (pick < 0.25)] = np.inf
+        r[(pick >= 0.25) & (pick < 0.30)] = -1.0  # below range_min
+        scans.append(LaserScan(scan.stamp_ns, scan.angle_min, scan.angle_increment, r,
+                               scan.range_min, scan.range_max))  # fmt: skip
+    result = run_mapper(scans, ROOM_ROUTE)
+    assert result.counts["sequential_matches"] == {"matched": len(scans) - 1}
+    pos, yaw = errors(result.scan_poses, ROOM_ROUTE)
+    assert pos.max() < 0.02
+    assert np.degrees(yaw.max()) < 0.5
+
+
+def test_a_scan_without_valid_returns_is_tracked_by_odometry() -> None:
+    scans = scans_along(ROOM, ROOM_ROUTE, noise_m=0.005, seed=0)
+    blind = scans[12]
+    scans[12] = LaserScan(blind.stamp_ns, blind.angle_min, blind.angle_increment,
+                          np.full_like(blind.ranges, np.nan), blind.range_min,
+                          blind.range_max)  # fmt: skip
+    result = run_mapper(scans, ROOM_ROUTE)
+    assert result.counts["sequential_matches"] == {"matched": len(scans) - 2,
+                                                    "too few scan points": 1}  # fmt: skip
+    assert result.counts["scans_used"] == len(scans)
+    pos, _ = errors(result.scan_poses, ROOM_ROUTE)
+    assert pos.max() < 0.02
+
+
+# 5. Aliasing and degenerate geometry -------------------------------------------------------------
+
+CORRIDOR_LENGTH = 30.0  # [m]
+CORRIDOR_WIDTH = 2.0  # [m]
+SHORT_RANGE = 3.0  # [m] a depth-camera-like range: the corridor's end walls stay out of sight
+ALIAS_PERIOD = 1.2  # [m] spacing of identical niches along one wall
+
+
+def corridor(period_m: float | None) -> np.ndarray:
+    """A straight corridor along x; with ``period_m``, identical 0.3 m niches on the far wall."""
+    w, n = CORRIDOR_WIDTH, CORRIDOR_LENGTH
+    segs = [[-1.0, 0.0, n, 0.0], [-1.0, w, n, w], [-1.0, 0.0, -1.0, w], [n, 0.0, n, w]]
+    if period_m is not None:
+        for x in np.arange(0.5, n - 1.0, period_m):
+            segs += [
+                [x, w, x, w - 0.3],
+                [x, w - 0.3, x + 0.3, w - 0.3],
+                [x + 0.3, w - 0.3, x + 0.3, w],
+            ]
+    return np.array(segs, dtype=np.float64)
+
+
+# 12 m down the corridor, turn round, and back: the return leg revisits every place.
+OUT_AND_BACK = legs_route((2.0, 1.0, 0.0), [(12.0, 0.0), (12.0, math.pi)])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_aliased_loop_candidates_do_not_corrupt_the_map(seed: int) -> None:
+    # Niches every 1.2 m and a 3 m range: places 1.2 m apart look identical, and late on the
+    # return leg the loop search window (3 sigma of 3 %/m drift) spans more than one period.
+    # Measured (seeds 0, 1, 2): accepted closures off by at most 0.15, 0.10, 0.14 m; map max error
+    # 0.13, 0.08, 0.09 m; odometry 0.39, 0.60, 0.37 m.
+    odom = corrupt_odometry(OUT_AND_BACK, scale_error=0.03, yaw_bias_rad_per_m=0.0,
+                            sigma_xy_m=0.005, sigma_yaw_rad=0.002, seed=seed)  # fmt: skip
+    scans = scans_along(corridor(ALIAS_PERIOD), OUT_AND_BACK, noise_m=0.01, seed=seed,
+                        range_max=SHORT_RANGE)  # fmt: skip
+    result = run_mapper(scans, odom)
+    loops = [e for e in result.edges if e["kind"] == "loop"]
+    assert loops  # closures were found, so the aliasing was actually exercised
+    kt = keyframe_truth(result, OUT_AND_BACK, scans)
+    for e in loops:
+        true_delta = ominus(kt[e["from"]], kt[e["to"]])
+        # Far below half a period: no closure snapped to a neighbouring niche.
+        assert np.hypot(*(np.asarray(e["delta"])[:2] - true_delta[:2])) < 0.3
+    pos, _ = errors(result.scan_poses, OUT_AND_BACK)
+    odom_pos, _ = errors(odom, OUT_AND_BACK)
+    assert pos.max() < 0.25
+    assert pos.max() < odom_pos.max()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="BUG: in a featureless corridor (motion along it unobservable by the scans) the "
+    "mapper trusts scan matching along the corridor axis: scan edges are off by up to 0.17 m per "
+    "0.6 m step (mostly short) yet carry ICP's sigma_x of ~1.5 cm, so the map ends 1.05-1.35 m "
+    "off where odometry is 0.37-0.60 m off",
+)
+def test_featureless_corridor_map_is_no_worse_than_odometry() -> None:
+    # Measured without loop closing (seeds 0-2): map max error 1.05, 1.20, 1.35 m; odometry 0.39,
+    # 0.60, 0.37 m. With loop closing: 0.84, 1.18, 1.29 m.
+    seed = 0
+    odom = corrupt_odometry(OUT_AND_BACK, scale_error=0.03, yaw_bias_rad_per_m=0.0,
+                            sigma_xy_m=0.005, sigma_yaw_rad=0.002, seed=seed)  # fmt: skip
+    scans = scans_along(corridor(None), OUT_AND_BACK, noise_m=0.01, seed=seed,
+                        range_max=SHORT_RANGE)  # fmt: skip
+    result = run_mapper(scans, odom, MapperConfig(do_loop_closing=False))
+    pos, _ = errors(result.scan_poses, OUT_AND_BACK)
+    odom_pos, _ = errors(odom, OUT_AND_BACK)
+    assert pos.max() <= odom_pos.max() + 0.1
+
+
+# 6. The graph handed back ------------------------------------------------------------------------
+
+
+def test_edges_are_well_formed(corrupted_loop: LoopRun) -> None:
+    result = corrupted_loop.result
+    n_kf = len(result.keyframes)
+    kinds = [e["kind"] for e in result.edges]
+    assert set(kinds) <= {"scan", "odometry", "loop"}
+    sequential = sorted(e["to"] for e in result.edges if e["kind"] in ("scan", "odometry"))
+    assert sequential == list(range(1, n_kf))  # one chain edge into every keyframe after the first
+    loops = result.counts["loop_closures"]
+    assert isinstance(loops, dict)
+    assert kinds.count("loop") == loops["accepted"]
+    for e in result.edges:
+        i, j = e["from"], e["to"]
+        assert isinstance(i, int) and isinstance(j, int)
+        assert 0 <= i < j < n_kf
+        if e["kind"] == "loop":
+            assert j - i > CFG.loop_match_minimum_chain_size
+            assert e["robust"] is True
+        else:
+            assert j == i + 1
+        assert np.all(np.isfinite(e["delta"])) and len(e["delta"]) == 3
+        info = np.asarray(e["information"])
+        assert info.shape == (3, 3)
+        np.testing.assert_allclose(info, info.T, rtol=1e-12, atol=0.0)
+        assert np.linalg.eigvalsh(info).min() > 0.0
