@@ -342,6 +342,11 @@ class MapperConfig:
         le=1.0,
         doc="track by ICP from odometry alone when this many points match (1 = always search)",
     )
+    scan_match_degeneracy_ratio: float = param(
+        20.0,
+        gt=1.0,
+        doc="ICP position variance ratio above which the weak axis is left to odometry",
+    )
     scan_match_min_sigma: float = param(
         0.01, unit="m", gt=0.0, doc="floor of the ICP residual sigma behind a match covariance"
     )
@@ -403,7 +408,11 @@ class MapperConfig:
 
 @dataclass(frozen=True)
 class LocalizerConfig:
-    """Scan-to-map tracking and global relocalisation (Cartographer / AMCL names where they fit)."""
+    """Scan-to-map tracking and global relocalisation (Cartographer / AMCL names where they fit).
+
+    Confidence everywhere is the mean likelihood ``exp(-d^2 / 2 sigma_hit^2)`` of the scan's
+    points at a pose, ``d`` the distance to the nearest occupied map cell (AMCL's likelihood
+    field without the random component)."""
 
     # Tracking.
     linear_search_window: float = param(
@@ -412,44 +421,92 @@ class LocalizerConfig:
     angular_search_window: float = param(
         0.349, unit="rad", gt=0.0, doc="half-width of the tracking search in yaw (20 deg)"
     )
+    angular_search_step: float = param(
+        0.0175, unit="rad", gt=0.0, doc="yaw step of the tracking search (ICP refines below it)"
+    )
     min_score: float = param(
         0.55, ge=0.0, le=1.0, doc="accept a tracking match at or above this confidence"
     )
-    update_min_d: float = param(0.25, unit="m", ge=0.0, doc="match after this much travel")
-    update_min_a: float = param(0.2, unit="rad", ge=0.0, doc="match after this much turning")
+    update_min_d: float = param(
+        0.0, unit="m", ge=0.0, doc="match after this much travel (AMCL 0.25; 0 = every scan)"
+    )
+    update_min_a: float = param(
+        0.0, unit="rad", ge=0.0, doc="match after this much turning (AMCL 0.2; 0 = every scan)"
+    )
     # Lost detection.
     lost_score: float = param(
-        0.3, ge=0.0, le=1.0, doc="smoothed confidence below this counts as lost"
+        0.3, ge=0.0, le=1.0, doc="confidence below this counts towards being lost"
     )
-    lost_time: float = param(2.0, unit="s", gt=0.0, doc="declare lost after this long below")
+    lost_time: float = param(2.0, unit="s", ge=0.0, doc="declare lost after this long below")
     # Global relocalisation.
+    global_search_resolution: float = param(
+        0.1, unit="m", gt=0.0, doc="cell size of the global search (coarser than the map is ok)"
+    )
+    global_search_angular_resolution: float = param(
+        0.0349, unit="rad", gt=0.0, doc="yaw step of the exhaustive global search (full turn)"
+    )
+    global_search_sigma: float = param(
+        0.2, unit="m", gt=0.0, doc="smear of the global search field (tolerates the coarse lattice)"
+    )
+    global_search_min_score: float = param(
+        0.35, ge=0.0, le=1.0, doc="global candidates below this coarse score are pruned"
+    )
+    global_search_max_hypotheses: int = param(
+        5, ge=1, doc="distinct global candidates kept for verification"
+    )
+    global_search_candidate_ratio: float = param(
+        0.75, gt=0.0, le=1.0, doc="keep global candidates scoring at least this times the best"
+    )
     global_localization_min_score: float = param(
         0.6, ge=0.0, le=1.0, doc="accept a global candidate at or above this confidence"
     )
     relocalization_verification_scans: int = param(
-        3, ge=1, doc="consecutive scans that must agree before a relocalisation is accepted"
+        3, ge=1, doc="consecutive scans (incl. the searched one) a hypothesis must match"
     )
     relocalization_agreement_distance: float = param(
-        0.25, unit="m", gt=0.0, doc="verification scans agree within this distance"
+        0.25, unit="m", gt=0.0, doc="verification match within this distance of the prediction"
     )
     relocalization_agreement_angle: float = param(
-        0.2, unit="rad", gt=0.0, doc="verification scans agree within this yaw"
+        0.2, unit="rad", gt=0.0, doc="verification match within this yaw of the prediction"
     )
-    global_search_angular_resolution: float = param(
-        0.0349, unit="rad", gt=0.0, doc="yaw step of the exhaustive global search"
+    relocalization_ambiguity_ratio: float = param(
+        0.9,
+        gt=0.0,
+        le=1.0,
+        doc="two verified hypotheses within this score ratio are ambiguous: keep relocalising",
     )
-    # Likelihood field (AMCL laser model).
-    laser_likelihood_max_dist: float = param(
-        2.0, unit="m", gt=0.0, doc="distance-transform cap for the likelihood field"
+    # Likelihood field and scan handling.
+    sigma_hit: float = param(
+        0.05, unit="m", gt=0.0, doc="std dev of the hit model behind confidence (AMCL 0.2)"
     )
-    sigma_hit: float = param(0.2, unit="m", gt=0.0, doc="std dev of the hit model")
-    z_hit: float = param(0.5, ge=0.0, le=1.0, doc="weight of the hit component")
-    z_rand: float = param(0.5, ge=0.0, le=1.0, doc="weight of the random component")
-    max_beams: int = param(60, ge=2, doc="beams per scan used for matching")
+    laser_max_range: float = param(
+        30.0, unit="m", gt=0.0, doc="returns beyond this are not matched (AMCL laser_max_range)"
+    )
+    max_beams: int = param(120, ge=10, doc="scan points used by the global search")
+    scan_voxel_size: float = param(
+        0.05, unit="m", ge=0.0, doc="scan points kept per square cell for tracking (0 = all)"
+    )
+    icp_max_correspondence_distance: float = param(
+        0.3, unit="m", gt=0.0, doc="point-to-line ICP: farthest neighbour accepted as a match"
+    )
+    icp_max_iterations: int = param(20, ge=1, doc="point-to-line ICP Gauss-Newton iterations")
+    scan_match_degeneracy_ratio: float = param(
+        20.0,
+        gt=1.0,
+        doc="ICP position variance ratio above which the weak axis is left to odometry",
+    )
+    scan_match_min_sigma: float = param(
+        0.01, unit="m", gt=0.0, doc="floor of the ICP residual sigma behind a match covariance"
+    )
+    # Odometry motion noise (AMCL diff-drive model: variances from rotation and translation).
+    alpha1: float = param(0.2, ge=0.0, doc="rotation noise from rotation")
+    alpha2: float = param(0.2, ge=0.0, doc="rotation noise from translation")
+    alpha3: float = param(0.2, ge=0.0, doc="translation noise from translation")
+    alpha4: float = param(0.2, ge=0.0, doc="translation noise from rotation")
 
     def validate(self) -> str | None:
         if self.lost_score > self.min_score:
             return f"lost_score ({self.lost_score}) must not exceed min_score ({self.min_score})"
-        if self.z_hit + self.z_rand <= 0.0 or self.z_hit + self.z_rand > 1.0 + 1e-9:
-            return f"z_hit + z_rand must be in (0, 1], got {self.z_hit + self.z_rand}"
+        if self.angular_search_step > self.angular_search_window:
+            return "angular_search_step exceeds angular_search_window"
         return None

@@ -57,6 +57,7 @@ LOOP_MIN_ANGULAR_WINDOW = 0.2  # [rad] smallest loop-closure angular half-window
 ODOM_MIN_SIGMA = (0.01, 0.005)  # [m, rad] floor of an odometry edge's sigmas
 LOOP_MIN_SIGMA = (0.02, 0.01)  # [m, rad] floor of a loop closure's sigmas
 RELOCALISE_PROBE_SPACING = 2.0  # [m] keyframes probed along the saved path, and their window
+UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
 
 
@@ -83,6 +84,41 @@ def odometry_covariance(delta: np.ndarray, config: MapperConfig) -> np.ndarray:
     s_yaw = max(config.odom_rotation_noise * abs(delta[2])
                 + config.odom_rotation_noise_per_meter * dist, ODOM_MIN_SIGMA[1])  # fmt: skip
     return np.diag([s_xy**2, s_xy**2, s_yaw**2])
+
+
+def fuse_with_odometry(
+    prior: np.ndarray, prior_cov_robot: np.ndarray, match: MatchOutcome, degeneracy_ratio: float
+) -> MatchOutcome:
+    """Kalman update of the odometry prediction by the scan match.
+
+    ICP's covariance claims information along every axis, including along a featureless
+    corridor, where noisy wall normals fake it. A translational direction whose variance is
+    ``degeneracy_ratio`` times that of the best-constrained one is treated as unobserved (its
+    variance set to ``UNOBSERVED_VARIANCE``), so the prediction carries the pose along it.
+    ``prior_cov_robot`` is in the robot frame of the prediction; the result is in the map."""
+    c, s = math.cos(prior[2]), math.sin(prior[2])
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    p_cov = rot @ prior_cov_robot @ rot.T
+    r_cov = np.array(match.covariance, dtype=np.float64)
+    evals, evecs = np.linalg.eigh(r_cov[:2, :2])
+    degenerate = bool(evals[1] > degeneracy_ratio * max(evals[0], 1e-12))
+    if degenerate:
+        # Keep the well-observed axis, drop the information along the other (and its coupling).
+        well = evecs[:, :1]
+        r_xy = (
+            well @ np.diag(evals[:1]) @ well.T + evecs[:, 1:] @ evecs[:, 1:].T * UNOBSERVED_VARIANCE
+        )
+        r_cov = r_cov.copy()
+        r_cov[:2, :2] = r_xy
+        r_cov[:2, 2] = r_cov[2, :2] = 0.0
+    innovation = match.pose - prior
+    innovation[2] = float(wrap_angle(innovation[2]))
+    gain = p_cov @ np.linalg.inv(p_cov + r_cov)
+    pose = prior + gain @ innovation
+    pose[2] = float(wrap_angle(pose[2]))
+    cov = (np.eye(3) - gain) @ p_cov
+    return MatchOutcome(match.ok, match.reason, pose, 0.5 * (cov + cov.T), match.response,
+                        match.inlier_fraction, degenerate)  # fmt: skip
 
 
 # 2. Records ------------------------------------------------------------------------------------
@@ -118,6 +154,7 @@ class MatchOutcome:
     covariance: np.ndarray  # (3, 3)
     response: float  # likelihood-field score at the final pose, in [0, 1]
     inlier_fraction: float
+    degenerate: bool = False  # a translational axis was left to odometry (a corridor)
 
 
 @dataclass(frozen=True, eq=False)
@@ -210,6 +247,10 @@ class Mapper:
         match = self._match_local(kf, prior)
         self.timings["sequential_matching"] += time.perf_counter() - t0
         self.matches[match.reason or "matched"] += 1
+        if match.ok:
+            step = ominus(self._track_odom, odom)
+            match = fuse_with_odometry(prior, odometry_covariance(step, self.config), match,
+                                       self.config.scan_match_degeneracy_ratio)  # fmt: skip
         pose = match.pose if match.ok else prior
         if is_keyframe:
             self._add_keyframe(kf, delta, match, pose)
@@ -261,7 +302,9 @@ class Mapper:
             # ICP's covariance describes the fit, not the drift of matching against a local map
             # that itself drifts: add a fraction of the odometry noise so loops can close.
             edge_delta, kind = ominus(prev_pose, pose), "scan"
-            floor = cfg.scan_match_noise_fraction**2 * odometry_covariance(edge_delta, cfg)
+            # Along an axis the scans could not see, the edge is as uncertain as odometry.
+            fraction = 1.0 if match.degenerate else cfg.scan_match_noise_fraction
+            floor = fraction**2 * odometry_covariance(edge_delta, cfg)
             cov = match.covariance + floor
         else:
             edge_delta, cov, kind = odom_delta, odometry_covariance(odom_delta, cfg), "odometry"

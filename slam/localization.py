@@ -1,0 +1,706 @@
+"""Localisation-only mode: track the pose against a saved map, relocalise globally when lost.
+
+The map is never modified. :class:`MapModel` derives from an :class:`OccupancyGrid` (ours or any
+Nav2 map) what matching needs; :class:`Localizer` is a thin stateful shell over the pure kernels
+below. Per scan (:meth:`Localizer.update`):
+
+1. **Predict** the map pose from the last estimate and the odometry increment since the last
+   scan (``x' = x (+) u``), growing the covariance with AMCL's diff-drive noise (``alpha1..4``).
+2. **Match** the scan against the map: point-to-line ICP from the prediction; when ICP does not
+   hold (no convergence, a step outside half the search window, or a score below ``min_score``)
+   an exact correlative search over ``linear_search_window`` x ``angular_search_window`` around
+   the prediction, refined by ICP.
+3. **Fuse** prediction and match in a Kalman update (Joseph form, wrapped yaw residual): along a
+   featureless corridor ICP's covariance is large in one direction and odometry carries it.
+4. **Confidence** is the mean likelihood ``exp(-d^2 / 2 sigma_hit^2)`` of the scan points at the
+   fused pose (``d`` to the nearest occupied cell), in [0, 1]. Below ``lost_score`` for
+   ``lost_time`` the status becomes ``"lost"`` and the following scans relocalise globally.
+5. ``map_to_odom = pose (+) odom^-1`` so the odom frame stays continuous and the map frame jumps.
+
+**Global relocalisation** (no initial pose, or lost): :func:`global_search` is an exact
+multi-resolution branch-and-bound over every free cell of a coarse field (``global_search_
+resolution``, smear ``global_search_sigma``) and a full turn at ``global_search_angular_
+resolution``; it keeps every lattice pose scoring at least ``global_search_candidate_ratio``
+times the best, and non-maximum suppression leaves a few distinct hypotheses. Each is refined on
+the fine field (correlative + ICP), then propagated by odometry and re-matched on the following
+scans; a hypothesis is accepted after ``relocalization_verification_scans`` consecutive matches
+that agree with its prediction and score at least ``global_localization_min_score``, and only
+when no other verified hypothesis scores within ``relocalization_ambiguity_ratio`` of it (a
+symmetric map stays ``"relocalising"`` with a reason instead of guessing).
+
+Memory of the global field: it is not padded by the search window (the whole map) but by the
+scan's reach (``laser_max_range``) plus one top-level block, and its pyramid levels are uint8
+(likelihood x 255); a 60 m x 60 m map at 0.1 m with 30 m reach is ~1.2 M cells x 6 levels ~ 7 MB.
+
+Poses are those of the scan frame (the laser for laser logs, ``base_link`` for depth->scan
+scans) in ``map``; odometry is given for the same frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from sensors.types import LaserScan, MapError
+from slam.config import LocalizerConfig
+from slam.geometry import wrap_angle
+from slam.occupancy_grid import OccupancyGrid
+from slam.scan_matching import (
+    LikelihoodField,
+    ReferenceCloud,
+    build_likelihood_field,
+    build_reference,
+    correlative_match,
+    icp_refine,
+    scan_points,
+    transform_points,
+    voxel_filter,
+)
+
+log = logging.getLogger(__name__)
+
+MIN_SCAN_POINTS = 20  # valid returns a scan needs to be matched at all
+MIN_MAP_POINTS = 20  # occupied cells a map needs to be matched against
+GLOBAL_TOP_LEVEL = 5  # global pyramid: top blocks of 2^5 = 32 cells (3.2 m at 0.1 m)
+GLOBAL_GREEDY_SEEDS = 16  # top blocks descended greedily for a first leaf to prune with
+SCORE_CHUNK = 16384  # global candidates scored per gather (x points x 8 bytes of indices)
+UINT8_SCALE = 255.0  # likelihood in [0, 1] stored as uint8
+UNKNOWN_VARIANCE = 1.0e6  # [m^2, rad^2] covariance diagonal of a pose that is not established
+MIN_MATCH_SIGMA = (0.005, 0.002)  # [m, rad] floor of a scan match's sigmas in the fusion
+MIN_PREDICT_SIGMA = (0.002, 0.001)  # [m, rad] floor of the odometry noise per scan
+
+Status = Literal["tracking", "lost", "relocalising"]
+
+
+# 1. Pose algebra and the filter kernels ---------------------------------------------------------
+
+
+def oplus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a (+) b for (3,) poses, yaw wrapped."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
+                     float(wrap_angle(a[2] + b[2]))])  # fmt: skip
+
+
+def ominus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a^-1 (+) b: pose b in the frame of pose a."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b[2] - a[2]))])
+
+
+def inverse(a: np.ndarray) -> np.ndarray:
+    return ominus(a, np.zeros(3))
+
+
+def motion_noise(u: np.ndarray, config: LocalizerConfig) -> np.ndarray:
+    """(3, 3) covariance of an odometry increment ``u`` in the frame it starts from (AMCL's
+    diff-drive model): var_trans = alpha3 d^2 + alpha4 dtheta^2, var_rot = alpha1 dtheta^2 +
+    alpha2 d^2, the translation variance applied along and across the motion."""
+    d2, r2 = u[0] ** 2 + u[1] ** 2, float(wrap_angle(u[2])) ** 2
+    var_t = max(config.alpha3 * d2 + config.alpha4 * r2, MIN_PREDICT_SIGMA[0] ** 2)
+    var_r = max(config.alpha1 * r2 + config.alpha2 * d2, MIN_PREDICT_SIGMA[1] ** 2)
+    return np.diag([var_t, var_t, var_r])
+
+
+def predict(x: np.ndarray, p: np.ndarray, u: np.ndarray, q_u: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """x' = x (+) u; P' = F P F^T + G Q_u G^T with F = d(x (+) u)/dx = [[1, 0, -s u_x - c u_y],
+    [0, 1, c u_x - s u_y], [0, 0, 1]] and G = d(x (+) u)/du = blockdiag(R(yaw), 1)."""
+    c, s = math.cos(x[2]), math.sin(x[2])
+    f = np.array([[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]],
+                  [0.0, 0.0, 1.0]])  # fmt: skip
+    g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    p_new = f @ p @ f.T + g @ q_u @ g.T
+    return oplus(x, u), 0.5 * (p_new + p_new.T)
+
+
+def kalman_update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Direct pose measurement (H = I) with a wrapped yaw residual; Joseph-form covariance."""
+    y = z - x
+    y[2] = float(wrap_angle(y[2]))
+    s = p + r
+    k = np.linalg.solve(s.T, p.T).T  # P S^-1 (both symmetric)
+    x_new = x + k @ y
+    x_new[2] = float(wrap_angle(x_new[2]))
+    ik = np.eye(3) - k
+    p_new = ik @ p @ ik.T + k @ r @ k.T
+    return x_new, 0.5 * (p_new + p_new.T)
+
+
+# 2. The map model ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class GlobalField:
+    """Coarse uint8 likelihood pyramid for the global search, padded by the scan's reach.
+
+    ``levels[k][r, c]`` is the maximum of ``levels[0]`` over rows r..r+2^k-1 and cols
+    c..c+2^k-1; ``free[k]`` likewise says whether such a block holds a free cell (a candidate
+    scan origin). Cell (pad, pad) is the map's lower-left coarse cell."""
+
+    origin: np.ndarray  # (2,) [m] world (x, y) of the corner of padded cell (0, 0)
+    resolution: float  # [m/cell]
+    pad: int  # [cells] zero border on every side (scan reach + one top block)
+    map_cells: tuple[int, int]  # (rows, cols) of the map region inside the padding
+    reach_m: float  # [m] scan points farther than this from the origin are not scored
+    levels: tuple[np.ndarray, ...]  # each (Hp, Wp) uint8, likelihood x 255
+    free: tuple[np.ndarray, ...]  # each (Hp, Wp) bool
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.levels) + sum(a.nbytes for a in self.free)
+
+
+@dataclass(frozen=True, eq=False)
+class MapModel:
+    """What localisation needs from a map: occupied points, the fine likelihood field (tracking
+    search and confidence), the ICP reference, the global-search pyramid and the free mask."""
+
+    grid: OccupancyGrid
+    points: np.ndarray  # (M, 2) [m] centres of occupied cells
+    field: LikelihoodField  # fine field, smear sigma_hit, margin linear_search_window
+    reference: ReferenceCloud  # occupied cell centres with normals, for ICP
+    global_field: GlobalField
+    free: np.ndarray  # (H, W) bool free cells of the grid (free_thresh)
+    occupied: np.ndarray  # (H, W) bool occupied cells of the grid (occupied_thresh)
+
+    @classmethod
+    def from_grid(
+        cls, grid: OccupancyGrid, config: LocalizerConfig, occupied_thresh: float = 0.65,
+        free_thresh: float = 0.25,
+    ) -> MapModel:  # fmt: skip
+        """Raises :class:`MapError` for a map without occupied cells or without free space."""
+        geom = grid.geometry
+        occ = grid.occupied_mask(occupied_thresh)
+        free = grid.free_mask(free_thresh) & ~occ
+        n_occ, n_free = int(np.count_nonzero(occ)), int(np.count_nonzero(free))
+        if n_occ < MIN_MAP_POINTS:
+            raise MapError(f"the map has {n_occ} occupied cells (occupied_thresh "
+                           f"{occupied_thresh}); need at least {MIN_MAP_POINTS} to localise "
+                           f"against")  # fmt: skip
+        if n_free == 0:
+            raise MapError(f"the map has no free cells (free_thresh {free_thresh}): there is "
+                           f"nowhere the robot could be")  # fmt: skip
+        rows, cols = np.nonzero(occ)
+        pts = np.column_stack(geom.cell_to_world(rows, cols))
+        window_cells = 2 * config.linear_search_window / geom.resolution + 1
+        n_levels = int(math.ceil(math.log2(window_cells))) + 1
+        fine = build_likelihood_field(pts, geom.resolution, config.sigma_hit,
+                                      config.linear_search_window, n_levels)  # fmt: skip
+        ref = build_reference(pts)
+        gfield = build_global_field(grid, occ, free, config)
+        log.debug("map model: %d occupied, %d free cells; global field %.1f MB", n_occ, n_free,
+                  gfield.nbytes / 1e6)  # fmt: skip
+        return cls(grid, pts, fine, ref, gfield, free, occ)
+
+    def score(self, points: np.ndarray, pose: np.ndarray) -> float:
+        """Confidence: mean fine likelihood of scan ``points`` (scan frame) at ``pose``."""
+        if len(points) == 0:
+            return 0.0
+        return float(self.field.lookup(transform_points(pose, points)).mean())
+
+    def cell_class(self, xy: np.ndarray) -> str:
+        """"free", "occupied", "unknown" or "outside" for a world position."""
+        geom = self.grid.geometry
+        r, c = geom.world_to_cell(xy[0], xy[1])
+        if not bool(geom.contains(r, c)):
+            return "outside"
+        if self.occupied[r, c]:
+            return "occupied"
+        return "free" if self.free[r, c] else "unknown"
+
+
+def _block_max(a: np.ndarray, k: int) -> np.ndarray:
+    """Max over the 2^k x 2^k block anchored (top-left) at each cell, zero beyond the array."""
+    if k == 0:
+        return a
+    kernel = np.ones((2**k, 2**k), np.uint8)
+    return cv2.dilate(a, kernel, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def build_global_field(
+    grid: OccupancyGrid, occupied: np.ndarray, free: np.ndarray, config: LocalizerConfig
+) -> GlobalField:
+    """The coarse likelihood pyramid of the global search (see :class:`GlobalField`)."""
+    geom = grid.geometry
+    res = max(config.global_search_resolution, geom.resolution)
+    reach = config.laser_max_range
+    top = GLOBAL_TOP_LEVEL
+    pad = int(math.ceil(reach / res)) + 2 + 2**top
+    mh = int(math.ceil(geom.height * geom.resolution / res))
+    mw = int(math.ceil(geom.width * geom.resolution / res))
+    hp, wp = mh + 2 * pad, mw + 2 * pad
+    origin = np.array([geom.origin_x, geom.origin_y]) - pad * res
+
+    def coarse(mask: np.ndarray) -> np.ndarray:
+        rows, cols = np.nonzero(mask)
+        x, y = geom.cell_to_world(rows, cols)
+        out = np.zeros((hp, wp), np.uint8)
+        out[np.floor((y - origin[1]) / res).astype(np.int64),
+            np.floor((x - origin[0]) / res).astype(np.int64)] = 1  # fmt: skip
+        return out
+
+    occ_c = coarse(occupied)
+    # 1. Smear: the distance [m] from each coarse cell centre to the nearest occupied coarse cell.
+    dist = cv2.distanceTransform((1 - occ_c) * 255, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
+    lik = np.exp(-0.5 * (dist / config.global_search_sigma) ** 2)
+    field0 = np.round(lik * UINT8_SCALE).astype(np.uint8)
+    # 2. Candidate origins: coarse cells holding a free fine cell, and not an occupied one.
+    free_c = coarse(free) & (1 - occ_c)
+    levels = tuple(_block_max(field0, k) for k in range(top + 1))
+    frees = tuple(_block_max(free_c, k).astype(bool) for k in range(top + 1))
+    return GlobalField(origin, res, pad, (mh, mw), reach, levels, frees)
+
+
+# 3. Global search (batched branch-and-bound over the whole map) --------------------------------
+
+
+@dataclass(frozen=True)
+class GlobalCandidate:
+    pose: np.ndarray  # (3,) lattice pose of the scan origin in map
+    score: float  # coarse mean likelihood in [0, 1]
+
+
+def _global_scores(
+    flat: np.ndarray, offsets: np.ndarray, a: np.ndarray, r: np.ndarray, c: np.ndarray, w: int
+) -> np.ndarray:
+    """Mean coarse likelihood (0..1) of the points rotated by angle ``a[i]`` with the scan origin
+    at padded cell (r[i], c[i]); ``offsets`` (A, N) are the points' flat cell offsets."""
+    out = np.empty(len(a), np.float64)
+    n = offsets.shape[1]
+    for lo in range(0, len(a), SCORE_CHUNK):  # bounded memory: SCORE_CHUNK x N indices at once
+        hi = lo + SCORE_CHUNK
+        idx = offsets[a[lo:hi]] + (r[lo:hi] * w + c[lo:hi])[:, None]
+        out[lo:hi] = np.take(flat, idx).sum(axis=1, dtype=np.int64) / (n * UINT8_SCALE)
+    return out
+
+
+def global_search(
+    gf: GlobalField, points: np.ndarray, angle_step_rad: float, min_score: float,
+    candidate_ratio: float, max_hypotheses: int, separation_m: float, separation_rad: float,
+) -> tuple[list[GlobalCandidate], int]:  # fmt: skip
+    """Distinct lattice poses of scan ``points`` (N, 2, scan frame) over every free cell of the
+    map and a full turn, best first, with the number of blocks and leaves scored.
+
+    Exact on the lattice: a block's score bound is the mean of the max-pooled level at the
+    points' cells (a point's cell shifts by whole cells with the origin, because origins are cell
+    centres: ``index = origin cell + floor(0.5 + p / res)``). Every leaf scoring at least
+    ``max(min_score, candidate_ratio x best)`` is kept; non-maximum suppression then keeps up to
+    ``max_hypotheses`` separated by ``separation_m`` or ``separation_rad``."""
+    res, top = gf.resolution, len(gf.levels) - 1
+    pts = points[np.hypot(points[:, 0], points[:, 1]) <= gf.reach_m]
+    if len(pts) < MIN_SCAN_POINTS:
+        return [], 0
+    hp, wp = gf.levels[0].shape
+    n_ang = max(int(round(2 * math.pi / angle_step_rad)), 1)
+    yaws = 2 * math.pi * np.arange(n_ang) / n_ang
+    # 3a. Each angle's flat cell offsets of the points from the origin cell.
+    c_, s_ = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+    qx = c_ * pts[:, 0] - s_ * pts[:, 1]
+    qy = s_ * pts[:, 0] + c_ * pts[:, 1]
+    offsets = (np.floor(0.5 + qy / res).astype(np.int64) * wp
+               + np.floor(0.5 + qx / res).astype(np.int64))  # fmt: skip
+    flats = [lv.ravel() for lv in gf.levels]
+    # 3b. Top-level blocks that hold a free cell, at every angle.
+    mh, mw = gf.map_cells
+    step = 2**top
+    br, bc = np.meshgrid(np.arange(gf.pad, gf.pad + mh, step), np.arange(gf.pad, gf.pad + mw, step),
+                         indexing="ij")  # fmt: skip
+    br, bc = br.ravel(), bc.ravel()
+    keep = gf.free[top][br, bc]
+    br, bc = br[keep], bc[keep]
+    a = np.repeat(np.arange(n_ang), len(br))
+    r, c = np.tile(br, n_ang), np.tile(bc, n_ang)
+    bound = _global_scores(flats[top], offsets, a, r, c, wp)
+    evaluated = len(a)
+    # 3c. Greedy descent from the best top blocks: a first leaf score to prune with.
+    best = min_score
+    seeds = np.argsort(bound)[::-1][:GLOBAL_GREEDY_SEEDS]
+    for i in seeds:
+        ga, gr, gc = int(a[i]), int(r[i]), int(c[i])
+        ok = True
+        for lvl in range(top, 0, -1):
+            h = 2 ** (lvl - 1)
+            cr = np.array([gr, gr, gr + h, gr + h])
+            cc = np.array([gc, gc + h, gc, gc + h])
+            inside = gf.free[lvl - 1][cr, cc]
+            if not inside.any():
+                ok = False
+                break
+            cr, cc = cr[inside], cc[inside]
+            sc = _global_scores(flats[lvl - 1], offsets, np.full(len(cr), ga), cr, cc, wp)
+            evaluated += len(cr)
+            k = int(np.argmax(sc))
+            gr, gc = int(cr[k]), int(cc[k])
+        if ok:
+            best = max(best, float(sc[k]))
+    # 3d. Level by level: drop blocks that cannot reach the threshold, split the rest.
+    threshold = max(min_score, candidate_ratio * best)
+    for lvl in range(top, 0, -1):
+        keep = bound >= threshold
+        a, r, c = a[keep], r[keep], c[keep]
+        h = 2 ** (lvl - 1)
+        a = np.repeat(a, 4)
+        r = np.repeat(r, 4) + np.tile([0, 0, h, h], len(r))
+        c = np.repeat(c, 4) + np.tile([0, h, 0, h], len(c))
+        inside = gf.free[lvl - 1][r, c]
+        a, r, c = a[inside], r[inside], c[inside]
+        bound = _global_scores(flats[lvl - 1], offsets, a, r, c, wp)
+        evaluated += len(a)
+        if lvl == 1 and len(bound):
+            threshold = max(threshold, candidate_ratio * float(bound.max()))
+    keep = bound >= threshold
+    a, r, c, score = a[keep], r[keep], c[keep], bound[keep]
+    if len(score) == 0:
+        return [], evaluated
+    # 3e. Non-maximum suppression into distinct hypotheses.
+    x = gf.origin[0] + (c + 0.5) * res
+    y = gf.origin[1] + (r + 0.5) * res
+    yaw = wrap_angle(yaws[a])
+    out: list[GlobalCandidate] = []
+    alive = np.ones(len(score), bool)
+    while alive.any() and len(out) < max_hypotheses:
+        i = int(np.flatnonzero(alive)[np.argmax(score[alive])])
+        out.append(GlobalCandidate(np.array([x[i], y[i], float(yaw[i])]), float(score[i])))
+        near = ((np.hypot(x - x[i], y - y[i]) <= separation_m)
+                & (np.abs(wrap_angle(yaw - yaw[i])) <= separation_rad))  # fmt: skip
+        alive &= ~near
+    return out, evaluated
+
+
+# 4. Matching one scan against the map ----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MatchOutcome:
+    ok: bool
+    reason: str  # "" when ok
+    pose: np.ndarray  # (3,) matched pose (the prior when not ok)
+    covariance: np.ndarray  # (3, 3)
+    score: float  # confidence at ``pose``
+    method: str  # "icp", "correlative" or "none"
+
+
+def match_scan(
+    model: MapModel, points: np.ndarray, prior: np.ndarray, config: LocalizerConfig,
+    linear_window: float | None = None, angular_window: float | None = None,
+) -> MatchOutcome:  # fmt: skip
+    """ICP from ``prior``; when it does not hold, a correlative search around ``prior`` then ICP.
+    A match is ok when its confidence reaches ``min_score``."""
+    cfg = config
+    lin = cfg.linear_search_window if linear_window is None else linear_window
+    ang = cfg.angular_search_window if angular_window is None else angular_window
+    if len(points) < MIN_SCAN_POINTS:
+        return MatchOutcome(False, f"too few scan points ({len(points)})", prior,
+                            np.eye(3) * UNKNOWN_VARIANCE, 0.0, "none")  # fmt: skip
+
+    def icp(start: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, bool]:
+        res = icp_refine(model.reference, points, start, cfg.icp_max_correspondence_distance,
+                         max_iterations=cfg.icp_max_iterations,
+                         min_sigma_m=cfg.scan_match_min_sigma)  # fmt: skip
+        if not (np.all(np.isfinite(res.pose)) and math.isfinite(res.rmse)):
+            return start, np.eye(3) * UNKNOWN_VARIANCE, model.score(points, start), False
+        return res.pose, res.covariance, model.score(points, res.pose), res.converged
+
+    # 4a. ICP straight from the prior: most scans follow odometry closely.
+    pose, cov, score, converged = icp(prior)
+    step = ominus(prior, pose)
+    inside = (math.hypot(step[0], step[1]) <= lin / 2 and abs(step[2]) <= ang / 2)
+    if converged and inside and score >= cfg.min_score:
+        return MatchOutcome(True, "", pose, cov, score, "icp")
+    # 4b. Exact correlative search in the window, then ICP from its best lattice pose.
+    coarse = correlative_match(model.field, points, prior, lin, ang,
+                               min(cfg.angular_search_step, ang))  # fmt: skip
+    start = coarse.pose if coarse.score > 0.0 else prior
+    pose2, cov2, score2, _ = icp(start)
+    if coarse.score > score2:  # ICP slid off: keep the lattice pose
+        pose2, score2 = coarse.pose, coarse.score
+    if score2 > score or not (converged and inside):
+        pose, cov, score = pose2, cov2, score2
+    if score < cfg.min_score:
+        return MatchOutcome(False, f"match score {score:.2f} below min_score {cfg.min_score}",
+                            pose, cov, score, "correlative")  # fmt: skip
+    return MatchOutcome(True, "", pose, cov, score, "correlative")
+
+
+def _floored(cov: np.ndarray) -> np.ndarray:
+    return cov + np.diag([MIN_MATCH_SIGMA[0] ** 2, MIN_MATCH_SIGMA[0] ** 2,
+                          MIN_MATCH_SIGMA[1] ** 2])  # fmt: skip
+
+
+# 5. The localiser ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class LocalizationResult:
+    stamp_ns: int  # [ns] of the scan
+    pose: np.ndarray  # (3,) [m, m, rad] scan frame in map (odometry-propagated when not tracking)
+    covariance: np.ndarray  # (3, 3) over (x, y, yaw); UNKNOWN_VARIANCE diagonal when unknown
+    confidence: float  # [0, 1] mean scan likelihood at ``pose``; 0 while relocalising
+    status: Status
+    reason: str  # why (match method, rejection, ambiguity, ...)
+    map_to_odom: np.ndarray  # (3,) T_map_odom = pose (+) odom^-1
+
+
+@dataclass
+class _Hypothesis:
+    pose: np.ndarray  # (3,) map pose at the last scan
+    covariance: np.ndarray
+    scores: list[float] = field(default_factory=list)  # confidence at each matched scan
+
+    @property
+    def mean_score(self) -> float:
+        return float(np.mean(self.scores)) if self.scores else 0.0
+
+
+@dataclass
+class LocalizerStats:
+    scans: int = 0
+    global_searches: int = 0
+    relocalisations: int = 0
+    lost: int = 0
+    matches: dict[str, int] = field(default_factory=dict)
+
+
+class Localizer:
+    """Thin stateful shell: the pose estimate, the lost timer and the relocalisation hypotheses.
+
+    Without ``initial_pose`` the first scans relocalise globally. With it, tracking starts there;
+    when the first scan does not match there (or the pose is not in free space) the status is
+    ``"lost"`` with the reason and the following scans relocalise globally."""
+
+    def __init__(
+        self, model: MapModel, config: LocalizerConfig, initial_pose: np.ndarray | None = None
+    ) -> None:
+        self.model = model
+        self.config = config
+        self.stats = LocalizerStats()
+        self._pose: np.ndarray | None = None  # map pose estimate at the last scan
+        self._cov = np.eye(3) * UNKNOWN_VARIANCE
+        self._odom: np.ndarray | None = None  # odometry pose at the last scan
+        self._last_stamp: int | None = None
+        self._low_since: int | None = None  # [ns] first scan of the current low-confidence run
+        self._status: Status = "relocalising"
+        self._hypotheses: list[_Hypothesis] = []
+        self._initial_check = False  # the next scan checks the given initial pose
+        self._match_pose: np.ndarray | None = None  # pose of the last match (update_min_d/a)
+        if initial_pose is not None:
+            self.set_initial_pose(initial_pose)
+
+    @property
+    def status(self) -> Status:
+        return self._status
+
+    def set_initial_pose(self, pose: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        """Start tracking from ``pose`` (like RViz's /initialpose); checked on the next scan."""
+        self._pose = np.asarray(pose, dtype=np.float64).copy()
+        self._cov = (np.diag([self.config.linear_search_window**2] * 2
+                             + [self.config.angular_search_window**2])
+                     if covariance is None else np.asarray(covariance, float))  # fmt: skip
+        self._status = "tracking"
+        self._initial_check = True
+        self._hypotheses = []
+        self._low_since = None
+        self._match_pose = None
+
+    def _points(self, scan: LaserScan) -> np.ndarray:
+        pts = scan_points(scan, self.config.laser_max_range)
+        return voxel_filter(pts, self.config.scan_voxel_size)
+
+    def _result(self, stamp: int, odom: np.ndarray, reason: str, confidence: float,
+                status: Status | None = None) -> LocalizationResult:  # fmt: skip
+        pose = self._pose if self._pose is not None else np.zeros(3)
+        return LocalizationResult(
+            stamp_ns=stamp, pose=pose.copy(), covariance=self._cov.copy(),
+            confidence=float(confidence), status=status or self._status, reason=reason,
+            map_to_odom=oplus(pose, inverse(odom)),
+        )  # fmt: skip
+
+    def update(self, scan: LaserScan, odom_pose: np.ndarray) -> LocalizationResult:
+        """One scan with the odometry pose of its frame (see the module docstring)."""
+        odom = np.asarray(odom_pose, dtype=np.float64)
+        if odom.shape != (3,) or not np.all(np.isfinite(odom)):
+            return self._result(scan.stamp_ns, np.zeros(3), "rejected: non-finite odometry",
+                                0.0)  # fmt: skip
+        if self._last_stamp is not None and scan.stamp_ns <= self._last_stamp:
+            return self._result(scan.stamp_ns, odom, "rejected: time not increasing", 0.0)
+        self.stats.scans += 1
+        self._last_stamp = scan.stamp_ns
+        u = ominus(self._odom, odom) if self._odom is not None else np.zeros(3)
+        self._odom = odom
+        pts = self._points(scan)
+        # 1. Predict every pose we hold with the odometry increment.
+        if self._pose is not None:
+            self._pose, self._cov = predict(self._pose, self._cov, u, motion_noise(u, self.config))
+        for h in self._hypotheses:
+            h.pose, h.covariance = predict(h.pose, h.covariance, u, motion_noise(u, self.config))
+        if self._status == "lost":
+            self._status = "relocalising"
+            self._hypotheses = []
+        if self._status == "relocalising":
+            return self._relocalise(scan.stamp_ns, odom, pts)
+        return self._track(scan.stamp_ns, odom, pts)
+
+    # 5a. Tracking ------------------------------------------------------------------------------
+
+    def _track(self, stamp: int, odom: np.ndarray, pts: np.ndarray) -> LocalizationResult:
+        cfg = self.config
+        assert self._pose is not None
+        checking, self._initial_check = self._initial_check, False
+        if checking:
+            where = self.model.cell_class(self._pose[:2])
+            if where != "free":
+                return self._declare_lost(stamp, odom, f"initial pose rejected: it lies in "
+                                          f"{where} space; relocalising globally")  # fmt: skip
+        # 2. Skip matching until the robot has moved (AMCL update_min_d / update_min_a).
+        if self._match_pose is not None:
+            d = ominus(self._match_pose, self._pose)
+            if math.hypot(d[0], d[1]) < cfg.update_min_d and abs(d[2]) < cfg.update_min_a:
+                conf = self.model.score(pts, self._pose)
+                return self._result(stamp, odom, "not moved enough to match", conf)
+        match = match_scan(self.model, pts, self._pose, cfg)
+        self.stats.matches[match.method] = self.stats.matches.get(match.method, 0) + 1
+        if not match.ok and checking:
+            return self._declare_lost(stamp, odom, f"initial pose rejected: {match.reason}; "
+                                      f"relocalising globally", match.score)  # fmt: skip
+        if match.ok:
+            # 3. Fuse the prediction and the match.
+            self._pose, self._cov = kalman_update(self._pose, self._cov, match.pose,
+                                                  _floored(match.covariance))  # fmt: skip
+            self._match_pose = self._pose.copy()
+            reason = f"matched ({match.method})"
+        else:
+            reason = f"match rejected: {match.reason}; dead reckoning"
+        conf = self.model.score(pts, self._pose)
+        # 4. Lost when the confidence stays below lost_score for lost_time.
+        if conf < cfg.lost_score:
+            self._low_since = stamp if self._low_since is None else self._low_since
+            if (stamp - self._low_since) * 1e-9 >= cfg.lost_time:
+                return self._declare_lost(stamp, odom, f"confidence {conf:.2f} below lost_score "
+                                          f"{cfg.lost_score} for {cfg.lost_time} s", conf)  # fmt: skip
+        else:
+            self._low_since = None
+        return self._result(stamp, odom, reason, conf)
+
+    def _declare_lost(self, stamp: int, odom: np.ndarray, reason: str, conf: float = 0.0
+                      ) -> LocalizationResult:  # fmt: skip
+        self.stats.lost += 1
+        self._status = "lost"
+        self._low_since = None
+        self._match_pose = None
+        self._cov = np.eye(3) * UNKNOWN_VARIANCE
+        log.info("lost: %s", reason)
+        return self._result(stamp, odom, reason, conf)
+
+    # 5b. Global relocalisation -----------------------------------------------------------------
+
+    def _search(self, pts: np.ndarray) -> tuple[list[_Hypothesis], str]:
+        """Global search on this scan; each distinct candidate refined on the fine field."""
+        cfg = self.config
+        self.stats.global_searches += 1
+        gpts = voxel_filter(pts, self.model.global_field.resolution)
+        if len(gpts) > cfg.max_beams:
+            gpts = gpts[np.linspace(0, len(gpts) - 1, cfg.max_beams).round().astype(int)]
+        cands, _ = global_search(
+            self.model.global_field, gpts, cfg.global_search_angular_resolution,
+            cfg.global_search_min_score, cfg.global_search_candidate_ratio,
+            cfg.global_search_max_hypotheses, cfg.relocalization_agreement_distance,
+            cfg.relocalization_agreement_angle,
+        )  # fmt: skip
+        if not cands:
+            return [], (f"no global candidate reaches global_search_min_score "
+                        f"{cfg.global_search_min_score}")  # fmt: skip
+        hyps: list[_Hypothesis] = []
+        best_score = 0.0
+        for cand in cands:
+            m = match_scan(self.model, pts, cand.pose, cfg,
+                           linear_window=1.5 * self.model.global_field.resolution,
+                           angular_window=cfg.global_search_angular_resolution)  # fmt: skip
+            best_score = max(best_score, m.score)
+            if m.score < cfg.global_localization_min_score:
+                continue
+            if any(_agree(h.pose, m.pose, cfg) for h in hyps):
+                continue  # two candidates refined to the same pose
+            hyps.append(_Hypothesis(m.pose, _floored(m.covariance), [m.score]))
+        if not hyps:
+            return [], (f"best global candidate scores {best_score:.2f} < "
+                        f"global_localization_min_score {cfg.global_localization_min_score}")
+        return hyps, f"{len(hyps)} hypotheses"
+
+    def _relocalise(self, stamp: int, odom: np.ndarray, pts: np.ndarray) -> LocalizationResult:
+        cfg = self.config
+        if self._hypotheses:
+            # 1. Verify: re-match each propagated hypothesis; it must agree with its prediction.
+            alive: list[_Hypothesis] = []
+            for h in self._hypotheses:
+                m = match_scan(self.model, pts, h.pose, cfg)
+                if (m.ok and m.score >= cfg.global_localization_min_score
+                        and _agree(h.pose, m.pose, cfg)):  # fmt: skip
+                    h.pose, h.covariance = m.pose, _floored(m.covariance)
+                    h.scores.append(m.score)
+                    alive.append(h)
+            self._hypotheses = alive
+            if not alive:
+                reason = "every hypothesis failed verification; searching again"
+            else:
+                reason = ""
+        else:
+            reason = ""
+        if not self._hypotheses:
+            # 2. Search the whole map on this scan.
+            self._hypotheses, why = self._search(pts)
+            reason = f"{reason}; {why}" if reason else why
+        n_needed = cfg.relocalization_verification_scans
+        hyps = sorted(self._hypotheses, key=lambda h: h.mean_score, reverse=True)
+        self._hypotheses = hyps
+        if not hyps:
+            return self._result(stamp, odom, f"relocalising: {reason}", 0.0)
+        best = hyps[0]
+        rivals = [h for h in hyps[1:]
+                  if h.mean_score >= cfg.relocalization_ambiguity_ratio * best.mean_score]
+        if len(best.scores) < n_needed:
+            return self._result(stamp, odom, f"relocalising: {len(hyps)} hypotheses, best "
+                                f"verified on {len(best.scores)}/{n_needed} scans", 0.0)
+        if rivals:
+            return self._result(stamp, odom, f"relocalising: ambiguous, {len(rivals) + 1} "
+                                f"hypotheses score within {cfg.relocalization_ambiguity_ratio} "
+                                f"of the best ({best.mean_score:.2f})", 0.0)  # fmt: skip
+        # 3. Accept the one verified hypothesis and track from it.
+        self._pose, self._cov = best.pose.copy(), best.covariance.copy()
+        self._status = "tracking"
+        self._hypotheses = []
+        self._match_pose = self._pose.copy()
+        self._low_since = None
+        self.stats.relocalisations += 1
+        conf = self.model.score(pts, self._pose)
+        return self._result(stamp, odom, f"relocalised: verified on {len(best.scores)} scans, "
+                            f"mean score {best.mean_score:.2f}", conf)  # fmt: skip
+
+
+def _agree(a: np.ndarray, b: np.ndarray, config: LocalizerConfig) -> bool:
+    d = ominus(a, b)
+    return (math.hypot(d[0], d[1]) <= config.relocalization_agreement_distance
+            and abs(d[2]) <= config.relocalization_agreement_angle)  # fmt: skip
+
+
+__all__ = [
+    "GlobalCandidate",
+    "GlobalField",
+    "LocalizationResult",
+    "Localizer",
+    "MapModel",
+    "MatchOutcome",
+    "build_global_field",
+    "global_search",
+    "kalman_update",
+    "match_scan",
+    "motion_noise",
+    "predict",
+]
