@@ -8,10 +8,11 @@ the fused pose at the frame's stamp.
 
 from __future__ import annotations
 
+import logging
 import resource
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,9 @@ from slam.mapper import Mapper, MapperResult
 from slam.metrics import drift_report, interpolate_poses
 from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
 
+log = logging.getLogger(__name__)
+
+RGBD_PROFILE = Path(__file__).resolve().parents[1] / "config" / "profiles" / "rgbd_mapping.yaml"
 GRID_MARGIN_M = 1.0  # [m] around the mapped area
 IOU_TOLERANCE_CELLS = 1  # a mapped wall within one cell of the true one counts
 
@@ -50,17 +54,26 @@ def run_map(
     try:
         scene = src.recording.scene if isinstance(src, RecordingSource) else {}
         base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
+        if not isinstance(src, CarmenSource) and RGBD_PROFILE.is_file():
+            config_files = [RGBD_PROFILE, *config_files]  # yours still win
         cfg = load_config(config_files, overrides, base=base)
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
         summary: dict = {"command": "map", "source": str(source_path),
                          "source_kind": src.describe()}  # fmt: skip
+        mapper_cfg = cfg.mapper
+        if isinstance(src, CarmenSource) and src.log.stamp_source == "synthesised":
+            # Made-up stamps say nothing about time between scans: gate keyframes on motion.
+            mapper_cfg = replace(mapper_cfg, minimum_time_interval=0.0)
+            summary["note"] = "log has no usable stamps: minimum_time_interval set to 0"
+            log.warning("%s has no usable timestamps; keyframes gated on motion only", source_path)
         if continue_bundle is not None:
             previous = load_bundle(continue_bundle)
-            mapper = Mapper.from_bundle(cfg.mapper, previous)
+            mapper = Mapper.from_bundle(mapper_cfg, previous)
             summary["continued_from"] = str(continue_bundle)
         else:
-            mapper = Mapper(cfg.mapper)
+            mapper = Mapper(mapper_cfg)
+        summary["config_files"] = [str(p) for p in config_files]
         stream, total, frame = _scan_stream(src, source_path, cfg, run, summary, outputs,
                                             (config_files, overrides))  # fmt: skip
         t_map = time.perf_counter()
@@ -153,8 +166,8 @@ def _rgbd_stream(
     from rgbdnav.odometry_run import run_odometry
     from slam.depth_to_scan import DepthToScan
 
-    odom_out = run_odometry(source_path, run.file("odometry"), cli_config[0], cli_config[1],
-                            use_vo=True)  # fmt: skip
+    odom_out = run_odometry(source_path, run.file("odometry"), list(cli_config[0]),
+                            list(cli_config[1]), use_vo=True)  # fmt: skip
     outputs["odometry"] = run.file("odometry")
     stamps, xyz, quat = load_tum_trajectory(odom_out["fused odom"])
     yaw = yaw_from_quaternion(quat)

@@ -166,3 +166,13 @@ def test_map_of_the_start_of_mit_csail_is_locally_accurate(tmp_path: Path) -> No
     rel = json.loads((tmp_path / "e" / "summary.json").read_text())["relations_error"]
     assert rel["count"] > 100
     assert rel["trans_mean_m"] < 0.05 and rel["rot_mean_deg"] < 0.6
+
+
+def test_the_rgbd_mapping_profile_is_a_valid_config_that_trusts_odometry_more() -> None:
+    from rgbdnav.config import load_config
+    from rgbdnav.map_run import RGBD_PROFILE
+
+    default, profiled = load_config([], []), load_config([RGBD_PROFILE], [])
+    assert profiled.depth_to_scan.return_averaging_window > 0
+    assert profiled.mapper.odom_translation_noise < default.mapper.odom_translation_noise
+    assert profiled.mapper.scan_match_min_sigma > default.mapper.scan_match_min_sigma
