@@ -222,6 +222,12 @@ class DepthToScanConfig:
         0.017453292519943295, unit="rad", gt=0.0, doc="beam spacing (pi/180, as upstream)"
     )
     scan_time: float = param(0.033, unit="s", ge=0.0, doc="time between scans (LaserScan)")
+    return_averaging_window: float = param(
+        0.0,
+        unit="1/m",
+        ge=0.0,
+        doc="average returns within this * r^2 of the nearest (0 = nearest only, as upstream)",
+    )
 
     def validate(self) -> str | None:
         if self.range_min >= self.range_max:
@@ -425,7 +431,7 @@ class LocalizerConfig:
         0.0175, unit="rad", gt=0.0, doc="yaw step of the tracking search (ICP refines below it)"
     )
     min_score: float = param(
-        0.55, ge=0.0, le=1.0, doc="accept a tracking match at or above this confidence"
+        0.5, ge=0.0, le=1.0, doc="accept a tracking match at or above this confidence"
     )
     update_min_d: float = param(
         0.0, unit="m", ge=0.0, doc="match after this much travel (AMCL 0.25; 0 = every scan)"
@@ -477,12 +483,12 @@ class LocalizerConfig:
     )
     # Likelihood field and scan handling.
     sigma_hit: float = param(
-        0.05, unit="m", gt=0.0, doc="std dev of the hit model behind confidence (AMCL 0.2)"
+        0.1, unit="m", gt=0.0, doc="std dev of the hit model behind confidence (AMCL 0.2)"
     )
     laser_max_range: float = param(
         30.0, unit="m", gt=0.0, doc="returns beyond this are not matched (AMCL laser_max_range)"
     )
-    max_beams: int = param(120, ge=10, doc="scan points used by the global search")
+    max_beams: int = param(60, ge=10, doc="scan points used by the global search (AMCL 60)")
     scan_voxel_size: float = param(
         0.05, unit="m", ge=0.0, doc="scan points kept per square cell for tracking (0 = all)"
     )

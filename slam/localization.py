@@ -207,7 +207,7 @@ class MapModel:
         return float(self.field.lookup(transform_points(pose, points)).mean())
 
     def cell_class(self, xy: np.ndarray) -> str:
-        """"free", "occupied", "unknown" or "outside" for a world position."""
+        """ "free", "occupied", "unknown" or "outside" for a world position."""
         geom = self.grid.geometry
         r, c = geom.world_to_cell(xy[0], xy[1])
         if not bool(geom.contains(r, c)):
@@ -277,7 +277,7 @@ def _global_scores(
     n = offsets.shape[1]
     for lo in range(0, len(a), SCORE_CHUNK):  # bounded memory: SCORE_CHUNK x N indices at once
         hi = lo + SCORE_CHUNK
-        idx = offsets[a[lo:hi]] + (r[lo:hi] * w + c[lo:hi])[:, None]
+        idx = offsets[a[lo:hi]] + (r[lo:hi] * w + c[lo:hi]).astype(np.int32)[:, None]
         out[lo:hi] = np.take(flat, idx).sum(axis=1, dtype=np.int64) / (n * UINT8_SCALE)
     return out
 
@@ -305,15 +305,15 @@ def global_search(
     c_, s_ = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
     qx = c_ * pts[:, 0] - s_ * pts[:, 1]
     qy = s_ * pts[:, 0] + c_ * pts[:, 1]
-    offsets = (np.floor(0.5 + qy / res).astype(np.int64) * wp
-               + np.floor(0.5 + qx / res).astype(np.int64))  # fmt: skip
+    offsets = (np.floor(0.5 + qy / res).astype(np.int32) * np.int32(wp)
+               + np.floor(0.5 + qx / res).astype(np.int32))  # fmt: skip
     flats = [lv.ravel() for lv in gf.levels]
     # 3b. Top-level blocks that hold a free cell, at every angle.
     mh, mw = gf.map_cells
     step = 2**top
-    br, bc = np.meshgrid(np.arange(gf.pad, gf.pad + mh, step), np.arange(gf.pad, gf.pad + mw, step),
-                         indexing="ij")  # fmt: skip
-    br, bc = br.ravel(), bc.ravel()
+    grid_r, grid_c = np.meshgrid(np.arange(gf.pad, gf.pad + mh, step),
+                                 np.arange(gf.pad, gf.pad + mw, step), indexing="ij")  # fmt: skip
+    br, bc = grid_r.ravel(), grid_c.ravel()
     keep = gf.free[top][br, bc]
     br, bc = br[keep], bc[keep]
     a = np.repeat(np.arange(n_ang), len(br))
@@ -412,16 +412,16 @@ def match_scan(
     # 4a. ICP straight from the prior: most scans follow odometry closely.
     pose, cov, score, converged = icp(prior)
     step = ominus(prior, pose)
-    inside = (math.hypot(step[0], step[1]) <= lin / 2 and abs(step[2]) <= ang / 2)
+    inside = math.hypot(step[0], step[1]) <= lin / 2 and abs(step[2]) <= ang / 2
     if converged and inside and score >= cfg.min_score:
         return MatchOutcome(True, "", pose, cov, score, "icp")
     # 4b. Exact correlative search in the window, then ICP from its best lattice pose.
     coarse = correlative_match(model.field, points, prior, lin, ang,
                                min(cfg.angular_search_step, ang))  # fmt: skip
     start = coarse.pose if coarse.score > 0.0 else prior
-    pose2, cov2, score2, _ = icp(start)
-    if coarse.score > score2:  # ICP slid off: keep the lattice pose
-        pose2, score2 = coarse.pose, coarse.score
+    pose2, cov2, score2, converged2 = icp(start)
+    if coarse.score > 0.0 and (not converged2 or score2 < cfg.min_score <= coarse.score):
+        pose2, score2 = coarse.pose, coarse.score  # ICP slid off: keep the lattice pose
     if score2 > score or not (converged and inside):
         pose, cov, score = pose2, cov2, score2
     if score < cfg.min_score:
@@ -454,10 +454,15 @@ class _Hypothesis:
     pose: np.ndarray  # (3,) map pose at the last scan
     covariance: np.ndarray
     scores: list[float] = field(default_factory=list)  # confidence at each matched scan
+    unique: int = 0  # consecutive scans it led without a rival within the ambiguity ratio
+    agreed: bool = True  # its last match agreed with its odometry prediction
+    window: int = 1  # scores averaged for ranking: the last relocalization_verification_scans
 
     @property
     def mean_score(self) -> float:
-        return float(np.mean(self.scores)) if self.scores else 0.0
+        """Mean confidence over the last ``window`` scans: a rival that keeps fitting worse
+        drops out of the ambiguity ratio however well it fitted at first."""
+        return float(np.mean(self.scores[-self.window :])) if self.scores else 0.0
 
 
 @dataclass
@@ -583,8 +588,10 @@ class Localizer:
         if conf < cfg.lost_score:
             self._low_since = stamp if self._low_since is None else self._low_since
             if (stamp - self._low_since) * 1e-9 >= cfg.lost_time:
-                return self._declare_lost(stamp, odom, f"confidence {conf:.2f} below lost_score "
-                                          f"{cfg.lost_score} for {cfg.lost_time} s", conf)  # fmt: skip
+                why = (
+                    f"confidence {conf:.2f} below lost_score {cfg.lost_score} for {cfg.lost_time} s"
+                )
+                return self._declare_lost(stamp, odom, why, conf)
         else:
             self._low_since = None
         return self._result(stamp, odom, reason, conf)
@@ -626,53 +633,63 @@ class Localizer:
             best_score = max(best_score, m.score)
             if m.score < cfg.global_localization_min_score:
                 continue
-            if any(_agree(h.pose, m.pose, cfg) for h in hyps):
-                continue  # two candidates refined to the same pose
-            hyps.append(_Hypothesis(m.pose, _floored(m.covariance), [m.score]))
+            hyps.append(_Hypothesis(m.pose, _floored(m.covariance), [m.score],
+                                    window=cfg.relocalization_verification_scans))  # fmt: skip
+        hyps = _merge(hyps, cfg)
         if not hyps:
-            return [], (f"best global candidate scores {best_score:.2f} < "
-                        f"global_localization_min_score {cfg.global_localization_min_score}")
+            return [], (
+                f"best global candidate scores {best_score:.2f} < "
+                f"global_localization_min_score {cfg.global_localization_min_score}"
+            )
         return hyps, f"{len(hyps)} hypotheses"
 
     def _relocalise(self, stamp: int, odom: np.ndarray, pts: np.ndarray) -> LocalizationResult:
         cfg = self.config
+        reason = ""
         if self._hypotheses:
-            # 1. Verify: re-match each propagated hypothesis; it must agree with its prediction.
+            # 1. Verify: re-match each propagated hypothesis; it must still fit the map
+            #    (min_score); a match that disagrees with the odometry prediction is not counted.
             alive: list[_Hypothesis] = []
             for h in self._hypotheses:
                 m = match_scan(self.model, pts, h.pose, cfg)
-                if (m.ok and m.score >= cfg.global_localization_min_score
-                        and _agree(h.pose, m.pose, cfg)):  # fmt: skip
+                if m.ok:
+                    # A jump (e.g. along a corridor) does not kill the hypothesis; it only
+                    # restarts its streak, so it stays a rival.
+                    h.agreed = _agree(h.pose, m.pose, cfg)
                     h.pose, h.covariance = m.pose, _floored(m.covariance)
                     h.scores.append(m.score)
                     alive.append(h)
-            self._hypotheses = alive
+            self._hypotheses = _merge(alive, cfg)
             if not alive:
-                reason = "every hypothesis failed verification; searching again"
-            else:
-                reason = ""
-        else:
-            reason = ""
+                reason = "no hypothesis fits this scan any more; searching again"
         if not self._hypotheses:
             # 2. Search the whole map on this scan.
             self._hypotheses, why = self._search(pts)
             reason = f"{reason}; {why}" if reason else why
-        n_needed = cfg.relocalization_verification_scans
-        hyps = sorted(self._hypotheses, key=lambda h: h.mean_score, reverse=True)
-        self._hypotheses = hyps
+        hyps = self._hypotheses
         if not hyps:
             return self._result(stamp, odom, f"relocalising: {reason}", 0.0)
+        # 3. The leader counts a scan only while no other hypothesis scores within the ambiguity
+        #    ratio of it: rivals that die leave a leader that must still earn its streak.
+        n_needed = cfg.relocalization_verification_scans
         best = hyps[0]
-        rivals = [h for h in hyps[1:]
-                  if h.mean_score >= cfg.relocalization_ambiguity_ratio * best.mean_score]
-        if len(best.scores) < n_needed:
-            return self._result(stamp, odom, f"relocalising: {len(hyps)} hypotheses, best "
-                                f"verified on {len(best.scores)}/{n_needed} scans", 0.0)
+        rivals = [
+            h
+            for h in hyps[1:]
+            if h.mean_score >= cfg.relocalization_ambiguity_ratio * best.mean_score
+        ]
+        best.unique = best.unique + 1 if best.agreed and not rivals else 0
+        for h in hyps[1:]:
+            h.unique = 0
         if rivals:
             return self._result(stamp, odom, f"relocalising: ambiguous, {len(rivals) + 1} "
                                 f"hypotheses score within {cfg.relocalization_ambiguity_ratio} "
                                 f"of the best ({best.mean_score:.2f})", 0.0)  # fmt: skip
-        # 3. Accept the one verified hypothesis and track from it.
+        if best.unique < n_needed or best.mean_score < cfg.global_localization_min_score:
+            return self._result(stamp, odom, f"relocalising: {len(hyps)} hypotheses, best "
+                                f"unique on {best.unique}/{n_needed} scans, mean score "
+                                f"{best.mean_score:.2f}", 0.0)  # fmt: skip
+        # 4. Accept the one verified hypothesis and track from it.
         self._pose, self._cov = best.pose.copy(), best.covariance.copy()
         self._status = "tracking"
         self._hypotheses = []
@@ -680,8 +697,17 @@ class Localizer:
         self._low_since = None
         self.stats.relocalisations += 1
         conf = self.model.score(pts, self._pose)
-        return self._result(stamp, odom, f"relocalised: verified on {len(best.scores)} scans, "
-                            f"mean score {best.mean_score:.2f}", conf)  # fmt: skip
+        return self._result(stamp, odom, f"relocalised: unique on {best.unique} scans, mean "
+                            f"score {best.mean_score:.2f}", conf)  # fmt: skip
+
+
+def _merge(hyps: list[_Hypothesis], config: LocalizerConfig) -> list[_Hypothesis]:
+    """Best first (by mean score); a hypothesis that converged onto a better one is dropped."""
+    out: list[_Hypothesis] = []
+    for h in sorted(hyps, key=lambda h: h.mean_score, reverse=True):
+        if not any(_agree(o.pose, h.pose, config) for o in out):
+            out.append(h)
+    return out
 
 
 def _agree(a: np.ndarray, b: np.ndarray, config: LocalizerConfig) -> bool:

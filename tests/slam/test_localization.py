@@ -1,0 +1,353 @@
+"""Localisation against a saved map: tracking with corrupted odometry, confidence, global
+relocalisation (including ambiguous and foreign scans), refused maps and bad initial poses; on
+seeded synthetic scenes and, when ../shared/data is present, on the radish aces log."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# tests/ is no package: pytest's default (prepend) import mode puts tests/slam on sys.path.
+from scan_scenes import ROOM, raycast
+
+from sensors.types import LaserScan, MapError
+from slam.config import LocalizerConfig, MapperConfig
+from slam.geometry import wrap_angle
+from slam.localization import (
+    LocalizationResult,
+    Localizer,
+    MapModel,
+    global_search,
+    kalman_update,
+    ominus,
+    oplus,
+)
+from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+ACES = DATA / "radish" / "aces-corrected.log.gz"
+needs_aces = pytest.mark.skipif(not ACES.is_file(), reason="../shared/data/radish is absent")
+
+CFG = LocalizerConfig()
+DEG = math.pi / 180.0  # [rad/deg]
+SCAN_PERIOD_NS = 500_000_000  # [ns] 2 Hz
+FOV = 1.5 * math.pi  # [rad] a 270 deg laser
+N_BEAMS = 541
+RANGE_NOISE = 0.005  # [m] laser range noise sigma
+# A grid map knows a wall only to its cell: with ROOM's walls on cell boundaries every occupied
+# cell centre sits half a cell (2.5 cm) off the wall and tracking inherits that bias (measured
+# 2.6 cm median). Shifting the world by half a cell puts the walls on cell centres, so the
+# errors below are the localiser's own.
+SHIFT = 0.025  # [m]
+WORLD = ROOM + SHIFT
+
+
+# 1. Scenes, routes and odometry ----------------------------------------------------------------
+
+
+def circle_room(cx: float, cy: float, radius: float, n: int = 48) -> np.ndarray:
+    """A round room: no straight wall, so nothing of it fits ROOM's walls."""
+    a = np.linspace(0.0, 2 * math.pi, n + 1)
+    p = np.column_stack([cx + radius * np.cos(a), cy + radius * np.sin(a)])
+    return np.hstack([p[:-1], p[1:]])
+
+
+def plain_box(w: float, h: float) -> np.ndarray:
+    """A bare rectangle: symmetric under a half turn about its centre."""
+    return np.array([[0, 0, w, 0], [w, 0, w, h], [w, h, 0, h], [0, h, 0, 0]], dtype=np.float64)
+
+
+def ellipse_route(n: int = 60, cx: float = 4.5 + SHIFT, cy: float = 4.2 + SHIFT, rx: float = 2.5,
+                  ry: float = 1.0) -> np.ndarray:  # fmt: skip
+    """(n, 3) poses round an ellipse in WORLD (clear of its stub, pillar and cabinet), heading
+    along the tangent."""
+    t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
+    x, y = cx + rx * np.cos(t), cy + ry * np.sin(t)
+    yaw = np.unwrap(np.arctan2(ry * np.cos(t), -rx * np.sin(t)))
+    return np.column_stack([x, y, yaw])
+
+
+def scans_along(segments: np.ndarray, poses: np.ndarray, seed: int = 0) -> list[LaserScan]:
+    return [raycast(segments, p, n_beams=N_BEAMS, fov=FOV, noise_m=RANGE_NOISE, seed=seed + i,
+                    stamp_ns=(i + 1) * SCAN_PERIOD_NS)
+            for i, p in enumerate(poses)]  # fmt: skip
+
+
+def corrupt_odometry(truth: np.ndarray, seed: int, scale: float = 1.03,
+                     yaw_bias_per_m: float = 1.0 * DEG, sigma_m: float = 0.005,
+                     sigma_rad: float = 0.2 * DEG) -> np.ndarray:  # fmt: skip
+    """Odometry poses whose increments are the true ones scaled, biased in yaw per metre and
+    with seeded noise (starting at an arbitrary odom origin)."""
+    rng = np.random.default_rng(seed)
+    odom = [np.array([10.0, -3.0, 0.4])]
+    for a, b in zip(truth[:-1], truth[1:], strict=True):
+        u = ominus(a, b)
+        d = math.hypot(u[0], u[1])
+        noisy = np.array([u[0] * scale + rng.normal(0, sigma_m), u[1] * scale
+                          + rng.normal(0, sigma_m),
+                          u[2] + yaw_bias_per_m * d + rng.normal(0, sigma_rad)])  # fmt: skip
+        odom.append(oplus(odom[-1], noisy))
+    return np.array(odom)
+
+
+def build_grid(segments: np.ndarray, poses: np.ndarray) -> OccupancyGrid:
+    scans = [raycast(segments, p, n_beams=721, fov=2 * math.pi, seed=i)
+             for i, p in enumerate(poses)]  # fmt: skip
+    mcfg = MapperConfig()
+    geom = GridGeometry.from_bounds(*bounds_of_scans(poses, scans, mcfg.max_laser_range),
+                                    resolution=0.05, margin=1.0)  # fmt: skip
+    return integrate_scans(geom, poses, scans, mcfg)
+
+
+def mapping_poses() -> np.ndarray:
+    xy = [(1.0, 1.0), (1.5, 3.5), (2.0, 2.0), (4.0, 1.0), (6.5, 1.0), (4.5, 3.0), (7.0, 2.5),
+          (7.0, 5.0), (4.5, 5.0), (3.0, 4.2), (1.0, 4.2), (5.0, 4.6)]  # fmt: skip
+    return np.array([[x + SHIFT, y + SHIFT, 0.3 * i] for i, (x, y) in enumerate(xy)])
+
+
+@pytest.fixture(scope="module")
+def room_model() -> MapModel:
+    return MapModel.from_grid(build_grid(WORLD, mapping_poses()), CFG)
+
+
+def pose_error(truth: np.ndarray, est: np.ndarray) -> tuple[float, float]:
+    e = ominus(truth, est)
+    return math.hypot(e[0], e[1]), abs(float(e[2]))
+
+
+def run(loc: Localizer, scans: list[LaserScan], odom: np.ndarray) -> list[LocalizationResult]:
+    return [loc.update(s, o) for s, o in zip(scans, odom, strict=True)]
+
+
+# 2. Kernels --------------------------------------------------------------------------------------
+
+
+def test_kalman_update_averages_equal_covariances_across_the_yaw_wrap() -> None:
+    x = np.array([0.0, 0.0, math.pi - 0.01])
+    z = np.array([0.2, 0.0, -math.pi + 0.01])
+    p = np.eye(3) * 0.01
+    x_new, p_new = kalman_update(x, p, z, p)
+    np.testing.assert_allclose(x_new[:2], [0.1, 0.0], atol=1e-12)
+    assert abs(wrap_angle(x_new[2] - math.pi)) < 1e-9
+    np.testing.assert_allclose(p_new, p / 2, atol=1e-12)
+
+
+def test_map_to_odom_composes_with_odometry_to_the_map_pose(room_model: MapModel) -> None:
+    truth = ellipse_route()[:3]
+    odom = corrupt_odometry(truth, seed=1)
+    loc = Localizer(room_model, CFG, initial_pose=truth[0])
+    for r, o in zip(run(loc, scans_along(WORLD, truth), odom), odom, strict=True):
+        np.testing.assert_allclose(oplus(r.map_to_odom, o), r.pose, atol=1e-9)
+
+
+# 3. Maps the localiser refuses -------------------------------------------------------------------
+
+
+def test_map_without_occupied_cells_raises() -> None:
+    geom = GridGeometry(0.05, 0.0, 0.0, 40, 40)
+    grid = OccupancyGrid.from_occupancy_values(geom, np.zeros((40, 40), np.int8))
+    with pytest.raises(MapError, match="occupied cells"):
+        MapModel.from_grid(grid, CFG)
+
+
+def test_map_without_free_cells_raises() -> None:
+    geom = GridGeometry(0.05, 0.0, 0.0, 40, 40)
+    values = np.full((40, 40), -1, np.int8)
+    values[10, :] = 100
+    grid = OccupancyGrid.from_occupancy_values(geom, values)
+    with pytest.raises(MapError, match="no free cells"):
+        MapModel.from_grid(grid, CFG)
+
+
+# 4. Tracking -------------------------------------------------------------------------------------
+
+
+def test_tracking_with_corrupted_odometry_stays_within_3cm_and_1deg(
+    room_model: MapModel,
+) -> None:
+    truth = ellipse_route()
+    odom = corrupt_odometry(truth, seed=2)
+    loc = Localizer(room_model, CFG, initial_pose=truth[0])
+    results = run(loc, scans_along(WORLD, truth), odom)
+    assert {r.status for r in results} == {"tracking"}
+    errs = np.array([pose_error(t, r.pose) for t, r in zip(truth, results, strict=True)])
+    assert errs[:, 0].max() < 0.03
+    assert errs[:, 1].max() < 1.0 * DEG
+    # Dead reckoning alone drifts far beyond that over the same route.
+    drift = [pose_error(t, oplus(truth[0], ominus(odom[0], o)))[0]
+             for t, o in zip(truth, odom, strict=True)]  # fmt: skip
+    assert max(drift) > 0.15
+
+
+def test_confidence_is_high_when_tracking_and_low_for_scans_of_another_scene(
+    room_model: MapModel,
+) -> None:
+    truth = ellipse_route()[:10]
+    odom = corrupt_odometry(truth, seed=3)
+    tracked = run(Localizer(room_model, CFG, initial_pose=truth[0]), scans_along(WORLD, truth),
+                  odom)  # fmt: skip
+    assert min(r.confidence for r in tracked) > 0.85
+    other = scans_along(circle_room(4.5, 4.2, 3.0), truth)
+    foreign = run(Localizer(room_model, CFG, initial_pose=truth[0]), other, odom)
+    assert max(r.confidence for r in foreign) < CFG.lost_score
+    assert foreign[0].status == "lost"
+    assert all(r.status != "tracking" for r in foreign)
+
+
+def test_tracking_declares_lost_after_lost_time_below_lost_score(room_model: MapModel) -> None:
+    truth = ellipse_route()[:12]
+    odom = corrupt_odometry(truth, seed=4)
+    scans = scans_along(WORLD, truth[:4]) + scans_along(circle_room(4.5, 4.2, 3.0), truth[4:])
+    scans = [LaserScan((i + 1) * SCAN_PERIOD_NS, s.angle_min, s.angle_increment, s.ranges,
+                       s.range_min, s.range_max) for i, s in enumerate(scans)]  # fmt: skip
+    results = run(Localizer(room_model, CFG, initial_pose=truth[0]), scans, odom)
+    statuses = [r.status for r in results]
+    first_lost = statuses.index("lost")
+    # Low from scan 4 on; lost once lost_time (2 s = 4 scans at 2 Hz) has passed.
+    assert first_lost == 4 + round(CFG.lost_time * 1e9 / SCAN_PERIOD_NS)
+    assert "below lost_score" in results[first_lost].reason
+    assert all(s == "relocalising" for s in statuses[first_lost + 1 :])
+
+
+# 5. Global relocalisation and initial poses ------------------------------------------------------
+
+
+def test_global_relocalisation_finds_the_pose_from_scratch(room_model: MapModel) -> None:
+    truth = ellipse_route()[20:30]
+    odom = corrupt_odometry(truth, seed=5)
+    results = run(Localizer(room_model, CFG), scans_along(WORLD, truth), odom)
+    n = CFG.relocalization_verification_scans
+    assert all(r.status == "relocalising" and r.confidence == 0.0 for r in results[: n - 1])
+    done = [i for i, r in enumerate(results) if r.status == "tracking"]
+    assert done and done[0] == n - 1
+    for i in done:
+        d, a = pose_error(truth[i], results[i].pose)
+        assert d < 0.03 and a < 1.0 * DEG
+    assert results[done[0]].confidence > CFG.global_localization_min_score
+
+
+def test_scan_from_another_building_never_gives_a_confident_pose(room_model: MapModel) -> None:
+    truth = ellipse_route()[:8]
+    odom = corrupt_odometry(truth, seed=6)
+    for world in (circle_room(4.5, 4.2, 3.0), plain_box(3.0, 3.0) + [3.0, 2.5, 3.0, 2.5]):
+        results = run(Localizer(room_model, CFG), scans_along(world, truth), odom)
+        assert all(r.status == "relocalising" and r.confidence == 0.0 for r in results)
+
+
+def test_symmetric_map_stays_relocalising_with_an_ambiguity_reason() -> None:
+    box = plain_box(8.0, 6.0)
+    model = MapModel.from_grid(build_grid(box, mapping_poses()), CFG)
+    truth = ellipse_route()[:8]
+    results = run(Localizer(model, CFG), scans_along(box, truth), corrupt_odometry(truth, 7))
+    assert all(r.status == "relocalising" for r in results)
+    assert any("ambiguous" in r.reason for r in results)
+
+
+def test_global_search_ranks_the_true_pose_first_and_its_mirror_image_second() -> None:
+    box = plain_box(8.0, 6.0)
+    model = MapModel.from_grid(build_grid(box, mapping_poses()), CFG)
+    pose = np.array([2.0, 2.5, 0.3])
+    scan = raycast(box, pose, n_beams=N_BEAMS, fov=FOV)
+    from slam.scan_matching import scan_points
+
+    cands, evaluated = global_search(model.global_field, scan_points(scan), 2 * DEG, 0.3, 0.75,
+                                     5, 0.25, 0.2)  # fmt: skip
+    mirror = np.array([8.0 - pose[0], 6.0 - pose[1], pose[2] + math.pi])
+    found = [min(pose_error(p, c.pose)[0] for c in cands[:2]) for p in (pose, mirror)]
+    assert max(found) < 0.15
+    assert evaluated < 2_000_000  # pruning: far fewer than the free cells x 180 angles
+
+
+def test_initial_pose_in_a_wall_is_reported_lost_then_relocalised(room_model: MapModel) -> None:
+    truth = ellipse_route()[20:30]
+    odom = corrupt_odometry(truth, seed=8)
+    wall = np.array([3.0 + SHIFT, 1.0, 0.0])  # on the inner wall stub
+    results = run(Localizer(room_model, CFG, initial_pose=wall), scans_along(WORLD, truth), odom)
+    assert results[0].status == "lost"
+    assert "initial pose rejected" in results[0].reason
+    done = [i for i, r in enumerate(results) if r.status == "tracking"]
+    assert done
+    d, a = pose_error(truth[done[0]], results[done[0]].pose)
+    assert d < 0.03 and a < 1.0 * DEG
+
+
+def test_wrong_initial_pose_in_free_space_falls_back_to_global(room_model: MapModel) -> None:
+    truth = ellipse_route()[20:30]
+    odom = corrupt_odometry(truth, seed=9)
+    wrong = oplus(truth[0], np.array([1.5, 0.0, 1.0]))
+    loc = Localizer(room_model, CFG, initial_pose=wrong)
+    results = run(loc, scans_along(WORLD, truth), odom)
+    assert results[0].status == "lost" and "below min_score" in results[0].reason
+    assert results[-1].status == "tracking"
+    assert pose_error(truth[-1], results[-1].pose)[0] < 0.03
+
+
+def test_initial_pose_near_the_truth_tracks_from_the_first_scan(room_model: MapModel) -> None:
+    truth = ellipse_route()[:5]
+    near = oplus(truth[0], np.array([0.15, -0.1, 5 * DEG]))
+    results = run(Localizer(room_model, CFG, initial_pose=near), scans_along(WORLD, truth),
+                  corrupt_odometry(truth, 10))  # fmt: skip
+    assert all(r.status == "tracking" for r in results)
+    assert pose_error(truth[0], results[0].pose)[0] < 0.03
+
+
+# 6. Real data: the radish aces log ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def aces() -> tuple[list[LaserScan], np.ndarray, MapModel]:
+    from sensors.carmen import CarmenSource
+
+    src = CarmenSource(ACES)
+    scans = list(src.scans())
+    lp = src.laser_poses()
+    assert lp is not None
+    truth = np.column_stack([lp.x, lp.y, lp.yaw])
+    mcfg = MapperConfig()
+    every = slice(0, None, 2)  # the map from every other scan; the others are unseen
+    geom = GridGeometry.from_bounds(*bounds_of_scans(truth[every], scans[every],
+                                                     mcfg.max_laser_range),
+                                    resolution=0.05, margin=1.0)  # fmt: skip
+    grid = integrate_scans(geom, truth[every], scans[every], mcfg)
+    return scans, truth, MapModel.from_grid(grid, CFG)
+
+
+@needs_aces
+def test_aces_tracking_with_corrupted_odometry_median_within_5cm_and_1deg(
+    aces: tuple[list[LaserScan], np.ndarray, MapModel],
+) -> None:
+    scans, truth, model = aces
+    n = 300
+    odom = corrupt_odometry(truth[:n], seed=11, sigma_m=0.01, sigma_rad=0.3 * DEG)
+    results = run(Localizer(model, CFG, initial_pose=truth[0]), scans[:n], odom)
+    errs = np.array([pose_error(t, r.pose) for t, r in zip(truth[:n], results, strict=True)])
+    assert np.median(errs[:, 0]) <= 0.05
+    assert np.median(errs[:, 1]) <= 1.0 * DEG
+    assert np.percentile(errs[:, 0], 95) <= 0.2
+    assert sum(r.status == "tracking" for r in results) >= 0.95 * n
+
+
+@needs_aces
+def test_aces_global_relocalisation_from_random_scans_has_no_confident_wrong_pose(
+    aces: tuple[list[LaserScan], np.ndarray, MapModel],
+) -> None:
+    scans, truth, model = aces
+    max_scans = 12  # [scans] ~8 m of travel at most
+    rng = np.random.default_rng(12)
+    starts = rng.choice(len(scans) - max_scans, 10, replace=False)
+    odom = corrupt_odometry(truth, seed=13, sigma_m=0.01, sigma_rad=0.3 * DEG)
+    good = wrong = 0
+    for s in starts:
+        loc = Localizer(model, CFG)
+        for i in range(s, s + max_scans):
+            r = loc.update(scans[i], odom[i])
+            if r.status == "tracking":
+                d, a = pose_error(truth[i], r.pose)
+                ok = d < 0.2 and a < 5 * DEG
+                good, wrong = good + ok, wrong + (not ok)
+                break
+    assert wrong == 0
+    assert good >= 9
