@@ -27,7 +27,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/rgbdnav odometry scenes/house.yaml --out $(DEMO_OUT)
+	$(VENV)/bin/rgbdnav map scenes/house.yaml --out $(DEMO_OUT)
 
 # pytest's exit code is kept in .venv/pytest-exit-code so .ci/run can tell "no tests" (5) apart.
 test: $(STAMP)

@@ -74,8 +74,8 @@ def run_map(
         else:
             mapper = Mapper(mapper_cfg)
         summary["config_files"] = [str(p) for p in config_files]
-        stream, total, frame = _scan_stream(src, source_path, cfg, run, summary, outputs,
-                                            (config_files, overrides))  # fmt: skip
+        stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs,
+                                           (config_files, overrides))  # fmt: skip
         t_map = time.perf_counter()
         first_ns = last_ns = None
         for k, (scan, odom) in enumerate(stream):
@@ -133,7 +133,7 @@ def run_map(
 # 1. Scans with odometry --------------------------------------------------------------------
 
 
-def _scan_stream(
+def scan_stream(
     src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
     outputs: dict[str, Path], cli_config: tuple[Sequence[Path], Sequence[str]],
 ) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
@@ -258,12 +258,16 @@ def _score_against_truth(
     ok = g.contains(r, c)
     truth = np.zeros((g.height, g.width), bool)
     truth[r[ok], c[ok]] = True
-    seen = cv2.dilate(grid.observed.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    # A sensor sees surfaces: the truth is the occupied cells next to free space (not the
+    # inside of a wall or cabinet), and only where the robot looked.
+    ring = np.ones((3, 3), np.uint8)
+    surface = truth & (cv2.dilate((~truth).astype(np.uint8), ring) > 0)
+    seen = cv2.dilate(grid.observed.astype(np.uint8), ring) > 0
     mapped = grid.occupied_mask(cfg.mapper.occupied_thresh)
     summary["grid_vs_floor_plan"] = {
-        **occupancy_iou(mapped, truth & seen, IOU_TOLERANCE_CELLS),
+        **occupancy_iou(mapped, surface & seen, IOU_TOLERANCE_CELLS),
         "tolerance_cells": IOU_TOLERANCE_CELLS,
-        "note": "true walls restricted to cells the robot observed",
+        "truth": "floor-plan surface cells (occupied next to free) the robot observed",
     }
 
 

@@ -176,3 +176,18 @@ def test_the_rgbd_mapping_profile_is_a_valid_config_that_trusts_odometry_more() 
     assert profiled.depth_to_scan.return_averaging_window > 0
     assert profiled.mapper.odom_translation_noise < default.mapper.odom_translation_noise
     assert profiled.mapper.scan_match_min_sigma > default.mapper.scan_match_min_sigma
+
+
+def test_occupancy_iou_counts_a_wall_one_cell_off_as_matching_and_two_cells_off_as_not() -> None:
+    from rgbdnav.map_run import occupancy_iou
+
+    truth = np.zeros((10, 10), bool)
+    truth[:, 5] = True
+    one_off = np.roll(truth, 1, axis=1)
+    two_off = np.roll(truth, 2, axis=1)
+    assert occupancy_iou(one_off, truth, 1)["iou"] == 1.0
+    res = occupancy_iou(two_off, truth, 1)
+    assert res["iou"] == 0.0 and res["false_positive"] == 10 and res["false_negative"] == 10
+    half = one_off.copy()
+    half[5:, :] = False  # rows 0-4 mapped: 5 TP; row 5 is within a cell of row 4: 4 FN
+    assert occupancy_iou(half, truth, 1)["iou"] == pytest.approx(5 / 9, abs=1e-4)
