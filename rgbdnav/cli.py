@@ -278,6 +278,49 @@ def map_(
 
 @app.command()
 @_known_errors
+def localize(
+    source: Annotated[
+        Path, typer.Argument(help="CARMEN log (.clf/.log[.gz]), recording folder, or world YAML.")
+    ],
+    map_: Annotated[
+        Path, typer.Option("--map", "-m", help="Map bundle folder, or a Nav2 map.yaml.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    initial_pose: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option(
+            "--initial-pose",
+            metavar="X Y YAW",
+            help="Start tracking here (map frame, m m rad); without it, relocalise globally.",
+        ),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed when SOURCE is a world.")] = 0,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Localise against a saved map (no mapping): trajectory, per-scan status and confidence."""
+    _setup_logging(verbose)
+    from rgbdnav.config import load_config
+    from rgbdnav.localize_run import describe, load_map, run_localize
+
+    if _is_world(source):
+        load_map(map_)  # refuse a bad map before spending minutes rendering the world
+    cfg = load_config(config or [], set_ or [])
+    recording = _recording_for(source, cfg, seed, quiet)
+    with _Progress("localising", quiet) as progress:
+        outputs, summary = run_localize(recording, map_, out, config or [], set_ or [],
+                                        initial_pose, progress)  # fmt: skip
+    typer.echo(f"source      {source}" + (f" (recording: {recording})" if recording != source
+                                           else ""))  # fmt: skip
+    typer.echo(f"result      {describe(summary)}")
+    for label, path in outputs.items():
+        typer.echo(f"{label:<11} {path}")
+
+
+@app.command()
+@_known_errors
 def board(
     port: Annotated[str | None, typer.Argument(help="Serial port or pyserial URL.")] = None,
     emulator: Annotated[

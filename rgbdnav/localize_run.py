@@ -1,0 +1,324 @@
+"""`rgbdnav localize`: track a CARMEN log or an RGB-D recording against a saved map.
+
+The map is a bundle folder written by ``rgbdnav map`` or any Nav2 ``map.yaml`` (slam_toolbox,
+map_server, ...). Scans and their odometry come from the same stream as ``rgbdnav map``
+(:func:`rgbdnav.map_run.scan_stream`): a laser log's per-scan laser poses, or for a recording
+the EKF-fused odometry with depth turned into scans. Each scan goes through
+:meth:`slam.localization.Localizer.update`. The run directory holds:
+
+``trajectory.tum``
+    The scan-frame pose in ``map`` of every scan on which the localiser is ``tracking``. Scans
+    while lost or relocalising have no established pose and no line (counted in the summary).
+``localization.csv``
+    One row per scan, header ``stamp_s,x_m,y_m,yaw_rad,confidence,status,reason``: stamp [s],
+    pose [m, m, rad] (empty when the scan has no pose), confidence in [0, 1], status
+    (``tracking`` | ``lost`` | ``relocalising``) and the localiser's reason.
+``summary.json``
+    Counts per status, lost episodes, relocalisations with the scans each took, confidence
+    percentiles, throughput, the map, and errors against ground truth when the source has it.
+``map.png``
+    Occupied map cells with the localised trajectory (and ground truth).
+``config.yaml``
+    The resolved configuration.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import resource
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rgbdnav.config import load_config, source_options
+from rgbdnav.map_run import RGBD_PROFILE, scan_stream
+from rgbdnav.report import plot_trajectories
+from rgbdnav.run_dir import RunDir
+from sensors.atomic import atomic_write_text
+from sensors.carmen import CarmenSource
+from sensors.recording_source import RecordingSource
+from sensors.source import PoseStream, open_source
+from sensors.tum import write_tum_trajectory
+from sensors.types import ConfigError, MapError, SensorError
+from slam.geometry import wrap_angle
+from slam.localization import LocalizationResult, Localizer, MapModel
+from slam.map_bundle import load_bundle, load_map_yaml
+from slam.metrics import interpolate_poses
+from slam.occupancy_grid import OccupancyGrid
+
+log = logging.getLogger(__name__)
+
+CSV_HEADER = ("stamp_s", "x_m", "y_m", "yaw_rad", "confidence", "status", "reason")
+# A plain map.yaml is already thresholded into nav_msgs percentages (100 occupied, 0 free,
+# -1 unknown; "scale" maps in between), so its cells are classified like map_server's own
+# defaults rather than by the thresholds that made the pixels.
+NAV2_OCCUPIED_THRESH = 0.65  # [probability] value >= 65 % is occupied
+NAV2_FREE_THRESH = 0.25  # [probability] value < 25 % is free
+EPISODES_LISTED = 50  # lost episodes / relocalisations itemised in summary.json (all are counted)
+WRONG_POSITION_M = 0.2  # [m] a tracked pose this far from ground truth counts as wrong
+WRONG_HEADING_RAD = np.radians(5.0)  # [rad] likewise for heading
+NS_PER_S = 1_000_000_000
+
+
+# 1. The map ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class LoadedMap:
+    grid: OccupancyGrid
+    occupied_thresh: float  # [probability] classifying the grid's cells for localisation
+    free_thresh: float  # [probability]
+    kind: str  # "bundle" | "map.yaml"
+    path: Path
+
+
+def load_map(path: Path) -> LoadedMap:
+    """A map bundle folder or a Nav2 map.yaml; :class:`MapError` for anything else."""
+    if path.is_dir():
+        bundle = load_bundle(path)
+        loaded = LoadedMap(bundle.grid, bundle.occupied_thresh, bundle.free_thresh, "bundle",
+                           path)  # fmt: skip
+    elif path.is_file() and path.suffix.lower() in (".yaml", ".yml"):
+        loaded = LoadedMap(load_map_yaml(path), NAV2_OCCUPIED_THRESH, NAV2_FREE_THRESH,
+                           "map.yaml", path)  # fmt: skip
+    elif path.is_file():
+        raise MapError(f"{path}: not a map: give a map bundle folder or its map.yaml")
+    else:
+        raise MapError(f"{path}: no such map (a map bundle folder or a map.yaml)")
+    if not 0.0 < loaded.free_thresh < loaded.occupied_thresh < 1.0:
+        raise MapError(f"{path}: need 0 < free_thresh ({loaded.free_thresh}) < occupied_thresh "
+                       f"({loaded.occupied_thresh}) < 1")  # fmt: skip
+    return loaded
+
+
+# 2. Pure summaries of a run ------------------------------------------------------------------
+
+
+def has_pose(result: LocalizationResult) -> bool:
+    """Only a tracking scan has an established pose (lost / relocalising: unknown covariance);
+    a rejected scan (bad odometry or stamp) is not part of the trajectory."""
+    return result.status == "tracking" and not result.reason.startswith("rejected")
+
+
+def episodes(results: Sequence[LocalizationResult]) -> tuple[list[dict], list[dict], dict | None]:
+    """Lost episodes, relocalisations and the unresolved tail of a run.
+
+    A relocalisation is a scan that starts tracking after scans without a pose; it took
+    ``scans`` = the scans from the first one without a pose up to and including itself. A lost
+    episode starts at a scan whose status turns ``lost``."""
+    lost: list[dict] = []
+    relocs: list[dict] = []
+    start: int | None = None  # first scan of the current stretch without a pose
+    start_kind = ""
+    prev = "tracking"
+    for k, r in enumerate(results):
+        if r.reason.startswith("rejected"):
+            continue  # the localiser ignored the scan: its status is the previous one
+        if r.status == "lost" and prev != "lost":
+            lost.append({"scan": k, "stamp_s": r.stamp_ns / NS_PER_S, "reason": r.reason})
+        if r.status != "tracking" and start is None:
+            start, start_kind = k, ("lost" if r.status == "lost" else "start of run")
+        elif r.status == "tracking" and start is not None:
+            relocs.append({"scan": k, "stamp_s": r.stamp_ns / NS_PER_S, "scans": k - start + 1,
+                           "after": start_kind, "reason": r.reason})  # fmt: skip
+            if lost and start_kind == "lost":
+                lost[-1]["scans_to_relocalise"] = k - start + 1
+            start = None
+        prev = r.status
+    tail = None
+    if start is not None:
+        tail = {"since_scan": start, "scans": len(results) - start, "after": start_kind,
+                "last_reason": results[-1].reason}  # fmt: skip
+    return lost, relocs, tail
+
+
+def _stats(values: np.ndarray, digits: int = 4) -> dict[str, float | int | None]:
+    if len(values) == 0:
+        return {"count": 0, "median": None, "p95": None, "max": None}
+    return {"count": len(values), "median": round(float(np.median(values)), digits),
+            "p95": round(float(np.percentile(values, 95)), digits),
+            "max": round(float(values.max()), digits)}  # fmt: skip
+
+
+def errors_against_truth(
+    stamps_ns: np.ndarray, poses: np.ndarray, gt: PoseStream
+) -> dict[str, Any]:
+    """Position [m] and heading [deg] errors of tracked poses against ground truth interpolated
+    at their stamps, and how many of them are confidently wrong (beyond WRONG_*)."""
+    gx, gy, gyaw, inside = interpolate_poses(gt.stamps_ns, gt.x, gt.y, gt.yaw, stamps_ns)
+    p = poses[inside]
+    d = np.hypot(p[:, 0] - gx[inside], p[:, 1] - gy[inside])
+    a = np.abs(wrap_angle(p[:, 2] - gyaw[inside]))
+    wrong = int(np.count_nonzero((d > WRONG_POSITION_M) | (a > WRONG_HEADING_RAD)))
+    return {
+        "matched": int(np.count_nonzero(inside)),
+        "position_error_m": _stats(d),
+        "heading_error_deg": _stats(np.degrees(a), 3),
+        "tracked_but_wrong": wrong,
+        "wrong_means": f"> {WRONG_POSITION_M} m or > {np.degrees(WRONG_HEADING_RAD):.0f} deg",
+        "note": "assumes the map frame is the ground truth's frame (true for maps that "
+                "rgbdnav map built from a recording of the same world)",
+    }  # fmt: skip
+
+
+def _stamp_text(stamp_ns: int) -> str:
+    return f"{stamp_ns // NS_PER_S}.{stamp_ns % NS_PER_S:09d}"
+
+
+def csv_text(results: Sequence[LocalizationResult]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_HEADER)
+    for r in results:
+        pose = [f"{r.pose[0]:.6f}", f"{r.pose[1]:.6f}", f"{r.pose[2]:.6f}"] if has_pose(r) else [
+            "", "", ""]  # fmt: skip
+        w.writerow([_stamp_text(r.stamp_ns), *pose, f"{r.confidence:.4f}", r.status, r.reason])
+    return buf.getvalue()
+
+
+# 3. The run ----------------------------------------------------------------------------------
+
+
+def run_localize(
+    source_path: Path,
+    map_path: Path,
+    out: Path,
+    config_files: Sequence[Path],
+    overrides: Sequence[str],
+    initial_pose: Sequence[float] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[dict[str, Path], dict[str, Any]]:
+    """Localise every scan of ``source_path`` in the map; (files written, summary)."""
+    t0 = time.perf_counter()
+    # 1. The map first: a bad map fails before the source is read or anything is written.
+    loaded = load_map(map_path)
+    init = None
+    if initial_pose is not None:
+        init = np.asarray(initial_pose, dtype=np.float64)
+        if init.shape != (3,) or not np.all(np.isfinite(init)):
+            raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got "
+                              f"{list(initial_pose)}")  # fmt: skip
+    cfg = load_config(config_files, overrides)
+    src = open_source(source_path, source_options(cfg))
+    try:
+        scene = src.recording.scene if isinstance(src, RecordingSource) else {}
+        base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
+        if not isinstance(src, CarmenSource) and RGBD_PROFILE.is_file():
+            config_files = [RGBD_PROFILE, *config_files]  # depth->scan as the map was made
+        cfg = load_config(config_files, overrides, base=base)
+        t_model = time.perf_counter()
+        model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
+                                   loaded.free_thresh)  # fmt: skip
+        model_s = time.perf_counter() - t_model
+        g = loaded.grid.geometry
+        summary: dict[str, Any] = {
+            "command": "localize", "source": str(source_path), "source_kind": src.describe(),
+            "config_files": [str(p) for p in config_files],
+            "map": {"path": str(map_path), "kind": loaded.kind, "resolution": g.resolution,
+                    "width": g.width, "height": g.height, "origin": [g.origin_x, g.origin_y],
+                    "occupied_thresh": loaded.occupied_thresh,
+                    "free_thresh": loaded.free_thresh,
+                    "occupied_cells": int(np.count_nonzero(model.occupied)),
+                    "free_cells": int(np.count_nonzero(model.free))},
+        }  # fmt: skip
+        if init is not None:
+            summary["initial_pose"] = {"pose": init.tolist(), "cell": model.cell_class(init[:2])}
+        run = RunDir(out)
+        outputs = {"config": run.write_config(cfg)}
+        stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs,
+                                           (config_files, overrides))  # fmt: skip
+        # 2. Localise every scan.
+        loc = Localizer(model, cfg.localizer, init)
+        results: list[LocalizationResult] = []
+        update_s = 0.0
+        for k, (scan, odom) in enumerate(stream):
+            t = time.perf_counter()
+            results.append(loc.update(scan, odom))
+            update_s += time.perf_counter() - t
+            if progress is not None:
+                progress(k + 1, total)
+        if not results:
+            raise SensorError(f"{source_path}: no usable scans to localise")
+        # 3. Trajectory (tracked scans only) and the per-scan table.
+        posed = [r for r in results if has_pose(r)]
+        stamps = np.array([r.stamp_ns for r in posed], dtype=np.int64)
+        poses = np.array([r.pose for r in posed], dtype=np.float64).reshape(-1, 3)
+        write_tum_trajectory(run.file("trajectory.tum"), stamps, poses[:, 0], poses[:, 1],
+                             poses[:, 2])  # fmt: skip
+        outputs["trajectory"] = run.file("trajectory.tum")
+        atomic_write_text(run.file("localization.csv"), csv_text(results))
+        outputs["per-scan"] = run.file("localization.csv")
+        # 4. Summary.
+        statuses = [r.status for r in results]
+        lost, relocs, tail = episodes(results)
+        conf = np.array([r.confidence for r in posed])
+        scans_to_reloc = np.array([e["scans"] for e in relocs], dtype=np.float64)
+        duration_s = (results[-1].stamp_ns - results[0].stamp_ns) / NS_PER_S
+        summary.update({
+            "frame": frame,
+            "counts": {"scans": len(results),
+                       **{s: statuses.count(s) for s in ("tracking", "lost", "relocalising")},
+                       "with_pose": len(posed), "without_pose": len(results) - len(posed),
+                       "rejected": sum(r.reason.startswith("rejected") for r in results)},
+            "lost_episodes": {"count": len(lost), "episodes": lost[:EPISODES_LISTED]},
+            "relocalisations": {"count": len(relocs),
+                                "scans_to_relocalise": _stats(scans_to_reloc, 1),
+                                "events": relocs[:EPISODES_LISTED]},
+            "unresolved_at_end": tail,
+            "confidence_when_tracking": {**_stats(conf),
+                                         "p05": (round(float(np.percentile(conf, 5)), 4)
+                                                 if len(conf) else None)},
+            "localizer": {"global_searches": loc.stats.global_searches,
+                          "matches": loc.stats.matches},
+            "timings_s": {"map_model": round(model_s, 3), "localisation": round(update_s, 3),
+                          "wall": round(time.perf_counter() - t0, 3)},
+            "scans_per_s": round(len(results) / update_s, 1) if update_s > 0 else None,
+            "data_duration_s": round(duration_s, 3),
+            "real_time_factor": round(duration_s / update_s, 2) if update_s > 0 else None,
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        })  # fmt: skip
+        paths = [("localised", poses[:, 0], poses[:, 1])]
+        gt = src.groundtruth()
+        if gt is not None and gt.frame == "base_link" and frame == "base_link":
+            if len(posed):
+                summary["vs_groundtruth"] = errors_against_truth(stamps, poses, gt)
+            paths.insert(0, ("ground truth", gt.x, gt.y))
+        paths = [p for p in paths if len(p[1])]
+        if not paths:
+            # Nothing was localised: mark the map's centre so the picture still shows the map.
+            cx = g.origin_x + g.width * g.resolution / 2
+            cy = g.origin_y + g.height * g.resolution / 2
+            paths = [("no pose established", np.array([cx]), np.array([cy]))]
+        plot_trajectories(run.file("map.png"), paths, f"{source_path.name} in {map_path.name}",
+                          occupied=model.occupied, origin=(g.origin_x, g.origin_y),
+                          resolution=g.resolution)  # fmt: skip
+        outputs["picture"] = run.file("map.png")
+        outputs["summary"] = run.write_summary(summary)
+        return outputs, summary
+    finally:
+        src.close()
+
+
+def describe(summary: dict[str, Any]) -> str:
+    """One line for the terminal: how much was tracked, relocalisations and lost episodes."""
+    c = summary["counts"]
+    rel = summary["relocalisations"]
+    conf = summary["confidence_when_tracking"]["median"]
+    text = (f"tracked {c['tracking']}/{c['scans']} scans, {rel['count']} relocalisation(s), "
+            f"{summary['lost_episodes']['count']} lost episode(s)")  # fmt: skip
+    if conf is not None:
+        text += f", median confidence {conf:.2f}"
+    tail = summary["unresolved_at_end"]
+    if tail is not None:
+        text += f"; no pose for the last {tail['scans']} scans ({tail['last_reason']})"
+    return text
+
+
+__all__ = ["LoadedMap", "csv_text", "describe", "episodes", "errors_against_truth", "has_pose",
+           "load_map", "run_localize"]  # fmt: skip
