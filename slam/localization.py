@@ -57,6 +57,7 @@ from slam.scan_matching import (
     build_reference,
     correlative_match,
     icp_refine,
+    release_degenerate_axis,
     scan_points,
     transform_points,
     voxel_filter,
@@ -561,7 +562,8 @@ class Localizer:
         checking, self._initial_check = self._initial_check, False
         if checking:
             where = self.model.cell_class(self._pose[:2])
-            if where != "free":
+            # Unknown is allowed: a depth camera never sees the floor under its own start.
+            if where in ("occupied", "outside"):
                 return self._declare_lost(stamp, odom, f"initial pose rejected: it lies in "
                                           f"{where} space; relocalising globally")  # fmt: skip
         # 2. Skip matching until the robot has moved (AMCL update_min_d / update_min_a).
@@ -577,8 +579,10 @@ class Localizer:
                                       f"relocalising globally", match.score)  # fmt: skip
         if match.ok:
             # 3. Fuse the prediction and the match.
-            self._pose, self._cov = kalman_update(self._pose, self._cov, match.pose,
-                                                  _floored(match.covariance))  # fmt: skip
+            r_cov, _ = release_degenerate_axis(_floored(match.covariance),
+                                               cfg.scan_match_degeneracy_ratio,
+                                               UNKNOWN_VARIANCE)  # fmt: skip
+            self._pose, self._cov = kalman_update(self._pose, self._cov, match.pose, r_cov)
             self._match_pose = self._pose.copy()
             reason = f"matched ({match.method})"
         else:

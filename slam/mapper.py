@@ -43,6 +43,7 @@ from slam.scan_matching import (
     build_reference,
     correlative_match,
     icp_refine,
+    release_degenerate_axis,
     scan_points,
     transform_points,
     voxel_filter,
@@ -89,28 +90,14 @@ def odometry_covariance(delta: np.ndarray, config: MapperConfig) -> np.ndarray:
 def fuse_with_odometry(
     prior: np.ndarray, prior_cov_robot: np.ndarray, match: MatchOutcome, degeneracy_ratio: float
 ) -> MatchOutcome:
-    """Kalman update of the odometry prediction by the scan match.
-
-    ICP's covariance claims information along every axis, including along a featureless
-    corridor, where noisy wall normals fake it. A translational direction whose variance is
-    ``degeneracy_ratio`` times that of the best-constrained one is treated as unobserved (its
-    variance set to ``UNOBSERVED_VARIANCE``), so the prediction carries the pose along it.
+    """Kalman update of the odometry prediction by the scan match, with the match's weak axis
+    (a featureless corridor) left to the prediction (:func:`release_degenerate_axis`).
     ``prior_cov_robot`` is in the robot frame of the prediction; the result is in the map."""
     c, s = math.cos(prior[2]), math.sin(prior[2])
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     p_cov = rot @ prior_cov_robot @ rot.T
-    r_cov = np.array(match.covariance, dtype=np.float64)
-    evals, evecs = np.linalg.eigh(r_cov[:2, :2])
-    degenerate = bool(evals[1] > degeneracy_ratio * max(evals[0], 1e-12))
-    if degenerate:
-        # Keep the well-observed axis, drop the information along the other (and its coupling).
-        well = evecs[:, :1]
-        r_xy = (
-            well @ np.diag(evals[:1]) @ well.T + evecs[:, 1:] @ evecs[:, 1:].T * UNOBSERVED_VARIANCE
-        )
-        r_cov = r_cov.copy()
-        r_cov[:2, :2] = r_xy
-        r_cov[:2, 2] = r_cov[2, :2] = 0.0
+    r_cov, degenerate = release_degenerate_axis(match.covariance, degeneracy_ratio,
+                                                UNOBSERVED_VARIANCE)  # fmt: skip
     innovation = match.pose - prior
     innovation[2] = float(wrap_angle(innovation[2]))
     gain = p_cov @ np.linalg.inv(p_cov + r_cov)

@@ -374,6 +374,25 @@ def icp_refine(
     return IcpResult(pose, 0.5 * (cov + cov.T), rmse, inliers, it, converged)
 
 
+def release_degenerate_axis(
+    covariance: np.ndarray, degeneracy_ratio: float, unobserved_variance: float
+) -> tuple[np.ndarray, bool]:
+    """A match covariance with its weak translational axis set to ``unobserved_variance``.
+
+    ICP's covariance claims information along every axis, including along a featureless
+    corridor where noisy wall normals fake it. A translational direction whose variance is
+    ``degeneracy_ratio`` times that of the best-constrained one is treated as unobserved (its
+    coupling to yaw dropped), so a filter keeps its prediction along it."""
+    cov = np.array(covariance, dtype=np.float64)
+    evals, evecs = np.linalg.eigh(cov[:2, :2])
+    if evals[1] <= degeneracy_ratio * max(float(evals[0]), 1e-12):
+        return cov, False
+    well, weak = evecs[:, :1], evecs[:, 1:]
+    cov[:2, :2] = well @ np.diag(evals[:1]) @ well.T + weak @ weak.T * unobserved_variance
+    cov[:2, 2] = cov[2, :2] = 0.0
+    return cov, True
+
+
 __all__ = [
     "CorrelativeResult",
     "IcpResult",
@@ -383,6 +402,7 @@ __all__ = [
     "build_reference",
     "correlative_match",
     "icp_refine",
+    "release_degenerate_axis",
     "scan_points",
     "transform_points",
     "voxel_filter",

@@ -384,3 +384,19 @@ def test_build_reference_normals_are_perpendicular_to_a_straight_wall() -> None:
     np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-12)
     np.testing.assert_allclose(normals @ direction, 0.0, atol=1e-9)
     np.testing.assert_array_equal(ref.normals[ref.size], [0.0, 0.0])
+
+
+def test_release_degenerate_axis_frees_the_weak_direction_and_keeps_a_well_posed_one() -> None:
+    from slam.scan_matching import release_degenerate_axis
+
+    # A corridor along x: along-track variance 400 times the across-track one.
+    corridor = np.diag([0.02**2 * 400, 0.02**2, 0.001**2])
+    corridor[0, 2] = corridor[2, 0] = 1e-6
+    out, degenerate = release_degenerate_axis(corridor, 20.0, 1e6)
+    assert degenerate
+    assert out[0, 0] == pytest.approx(1e6) and out[1, 1] == pytest.approx(0.02**2)
+    assert out[0, 2] == 0.0 and out[2, 2] == corridor[2, 2]
+    room = np.diag([0.01**2, 0.02**2, 0.001**2])  # variance ratio 4: both axes observed
+    same, degenerate = release_degenerate_axis(room, 20.0, 1e6)
+    assert not degenerate
+    np.testing.assert_array_equal(same, room)
