@@ -14,6 +14,14 @@ Run: ``.venv/bin/python bench/bench_localization.py [--out docs/benchmarks.md] [
    reports ``tracking``. Success: within 0.2 m and 5 deg of the corrected pose; a tracked pose
    farther off is a false positive (confident and wrong); no fix within the scans is a miss.
    Seconds per relocalisation: wall time of the ``update`` calls from the start scan to the fix.
+4. **Kidnapped robot**: ``--kidnaps`` seeded teleports. A ``Localizer`` tracks from the true pose
+   ``KIDNAP_WARMUP`` scans before a random scan k; then the scan stream jumps to a random scan j at
+   least ``KIDNAP_MIN_PATH_M`` further along the path (either way) while the odometry continues
+   smoothly: its increments after the jump are those of the new stretch composed onto the
+   pre-jump odometry pose, and the stamps continue from the pre-jump stamp with the new stretch's
+   own periods (lost_time is in seconds). Counted per kidnapping, in scans after the jump (the
+   first is 1): when "lost" is declared, when it is recovered (tracking within 0.2 m and 5 deg),
+   and the scans before that reported as tracking at a wrong pose with confidence >= min_score.
 
 Results replace the "localization" section of the output markdown file, stamped with date and
 machine.
@@ -22,6 +30,7 @@ machine.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import logging
 import multiprocessing as mp
@@ -37,7 +46,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench_mapper import corrupt_trajectory  # noqa: E402  (bench/ is on sys.path)
+from bench_mapper import corrupt_trajectory, integrate, relative_poses  # noqa: E402  (bench/ is on sys.path)
 from common import machine, publish  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -62,6 +71,12 @@ MAX_RELOC_SCANS = 15  # [scans] fed from a start before it counts as a miss (~1 
 RELOC_BUDGET_S = 300.0  # [s] per log: stop drawing starts after this (the table says)
 SUCCESS_M = 0.2  # [m]
 SUCCESS_RAD = np.radians(5.0)  # [rad]
+# Kidnapped robot.
+KIDNAPS = 10  # teleports per log
+KIDNAP_SEED = 0
+KIDNAP_MIN_PATH_M = 20.0  # [m] the scan stream jumps at least this far along the path
+KIDNAP_WARMUP = 5  # [scans] tracked from the true pose before the jump
+MAX_KIDNAP_SCANS = 30  # [scans] fed after the jump before it counts as not recovered
 
 
 # 1. Pure kernels ---------------------------------------------------------------------------------
@@ -72,6 +87,39 @@ def pose_errors(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
     d = np.hypot(est[:, 0] - ref[:, 0], est[:, 1] - ref[:, 1])
     a = np.abs(np.angle(np.exp(1j * (est[:, 2] - ref[:, 2]))))
     return np.column_stack([d, a])
+
+
+def kidnap_stream(
+    truth: np.ndarray, stamps: np.ndarray, k: int, j: int, warmup: int, n_after: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """A kidnapping in a log: scan indices ``k - warmup .. k - 1`` then ``j .. j + n_after - 1``
+    (``j >= 1``), with the (N, 3) path the wheels feel and the (N,) int64 stamps [ns]. After the
+    jump the felt increments are the new stretch's ``truth[i - 1]^-1 truth[i]`` composed onto the
+    pre-jump pose, and the stamps continue from ``stamps[k - 1]`` with the new stretch's periods."""
+    before = np.arange(k - warmup, k)
+    after = np.arange(j, min(j + n_after, len(truth)))
+    steps = np.vstack([relative_poses(truth[before[:-1]], truth[before[1:]]),
+                       relative_poses(truth[after - 1], truth[after])])  # fmt: skip
+    felt = integrate(truth[before[0]], steps)
+    t = np.concatenate([stamps[before], stamps[k - 1] + (stamps[after] - stamps[j - 1])])
+    return np.concatenate([before, after]), felt, t
+
+
+def draw_kidnappings(
+    path_m: np.ndarray, count: int, min_path_m: float, warmup: int, n_after: int,
+    rng: np.random.Generator,
+) -> list[tuple[int, int]]:  # fmt: skip
+    """``count`` (k, j): k a scan with ``warmup`` before it, j a scan with ``n_after`` from it and
+    at least ``min_path_m`` of path (cumulative ``path_m`` [m]) away from scan k - 1."""
+    n = len(path_m)
+    out: list[tuple[int, int]] = []
+    while len(out) < count:
+        k = int(rng.integers(warmup, n))
+        far = np.flatnonzero(np.abs(path_m - path_m[k - 1]) >= min_path_m)
+        far = far[(far >= 1) & (far <= n - n_after)]
+        if len(far):
+            out.append((k, int(rng.choice(far))))
+    return out
 
 
 def percentiles(values: np.ndarray) -> tuple[float, float]:
@@ -88,6 +136,51 @@ def percentiles(values: np.ndarray) -> tuple[float, float]:
 class CaseSpec:
     name: str
     starts: int = STARTS
+    kidnaps: int = KIDNAPS
+
+
+def _kidnappings(
+    model: Any, cfg: Any, scans: list[Any], truth: np.ndarray, count: int
+) -> dict[str, Any]:
+    """Section 4 of the module docstring: one row of the kidnapping table."""
+    from slam.localization import Localizer
+
+    stamps = np.array([s.stamp_ns for s in scans], dtype=np.int64)
+    path_m = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))])
+    draws = draw_kidnappings(path_m, count, KIDNAP_MIN_PATH_M, KIDNAP_WARMUP, MAX_KIDNAP_SCANS,
+                             np.random.default_rng(KIDNAP_SEED))  # fmt: skip
+    cases: list[dict[str, Any]] = []
+    t_all = time.perf_counter()
+    for n_case, (k, j) in enumerate(draws):
+        idx, felt, t = kidnap_stream(truth, stamps, k, j, KIDNAP_WARMUP, MAX_KIDNAP_SCANS)
+        odom = corrupt_trajectory(felt, ODOM_SCALE_ERROR, ODOM_YAW_BIAS, ODOM_SIGMA_XY,
+                                  ODOM_SIGMA_YAW, np.random.default_rng(ODOM_SEED + n_case))  # fmt: skip
+        loc = Localizer(model, cfg, initial_pose=truth[idx[0]])
+        case: dict[str, Any] = {
+            "k": k, "j": j, "jump_m": float(np.hypot(*(truth[j, :2] - truth[k - 1, :2]))),
+            "path_m": float(abs(path_m[j] - path_m[k - 1])), "lost": None, "lost_s": None,
+            "recovered": None, "confident_wrong": 0, "wrong_low": 0, "pre_jump_ok": True,
+        }  # fmt: skip
+        for m, (i, o, stamp) in enumerate(zip(idx, odom, t, strict=True)):
+            r = loc.update(dataclasses.replace(scans[i], stamp_ns=int(stamp)), o)
+            n_after = m - KIDNAP_WARMUP + 1  # 1 = the first scan after the jump
+            if n_after <= 0:
+                case["pre_jump_ok"] &= r.status == "tracking"
+                continue
+            if r.status == "lost" and case["lost"] is None:
+                case["lost"], case["lost_s"] = n_after, (stamp - t[KIDNAP_WARMUP - 1]) * 1e-9
+            if r.status != "tracking":
+                continue
+            d, a = pose_errors(r.pose[None], truth[i][None])[0]
+            if d <= SUCCESS_M and a <= SUCCESS_RAD:
+                case["recovered"] = n_after
+                break
+            if r.confidence >= cfg.min_score:
+                case["confident_wrong"] += 1
+            else:
+                case["wrong_low"] += 1
+        cases.append(case)
+    return {"cases": cases, "wall_s": time.perf_counter() - t_all}
 
 
 def _build_map(scans: list[Any], poses: np.ndarray) -> Any:
@@ -179,6 +272,8 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
         "wrong_err": wrong_err, "seconds": fix_s, "scans": fix_scans,
         "wall_s": time.perf_counter() - t_all,
     }  # fmt: skip
+    # 3. Kidnappings: the tracked scan stream jumps far along the path, odometry does not.
+    out["kidnap"] = _kidnappings(model, cfg, scans, truth, spec.kidnaps)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # [MiB]
     return out
 
@@ -237,6 +332,55 @@ def reloc_table(runs: list[dict[str, Any]]) -> str:
     return "\n".join(rows)
 
 
+def _med_max(values: list[Any], fmt: str = ".0f") -> str:
+    v = np.array([x for x in values if x is not None], dtype=np.float64)
+    return f"{np.median(v):{fmt}} / {v.max():{fmt}}" if len(v) else "—"
+
+
+def kidnap_table(runs: list[dict[str, Any]]) -> str:
+    rows = [
+        "| log | kidnappings | jump: path / straight-line median [m] | lost declared after: "
+        "scans median / max (never) | seconds to lost median / max | recovered after: scans "
+        "median / max (never) | tracked wrong & confident: scans (kidnappings) | tracked wrong, "
+        "confidence < min_score: scans | success | wall [s] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in runs:
+        cs = r["kidnap"]["cases"]
+        lost = [c["lost"] for c in cs]
+        rec = [c["recovered"] for c in cs]
+        cw = [c["confident_wrong"] for c in cs]
+        ok = sum(c["recovered"] is not None and c["confident_wrong"] == 0 for c in cs)
+        rows.append(
+            f"| {r['name']} | {len(cs)} "
+            f"| {np.median([c['path_m'] for c in cs]):.0f} / "
+            f"{np.median([c['jump_m'] for c in cs]):.0f} "
+            f"| {_med_max(lost)} ({lost.count(None)}) "
+            f"| {_med_max([c['lost_s'] for c in cs], '.1f')} "
+            f"| {_med_max(rec)} ({rec.count(None)}) "
+            f"| **{sum(cw)} ({sum(x > 0 for x in cw)})** "
+            f"| {sum(c['wrong_low'] for c in cs)} "
+            f"| **{ok}/{len(cs)}** | {r['kidnap']['wall_s']:.0f} |"
+        )
+    return "\n".join(rows)
+
+
+def kidnap_notes(runs: list[dict[str, Any]]) -> str:
+    notes = []
+    for r in runs:
+        for c in r["kidnap"]["cases"]:
+            bad = c["recovered"] is None or c["confident_wrong"] or not c["pre_jump_ok"]
+            if bad:
+                notes.append(
+                    f"- {r['name']} scan {c['k']} -> {c['j']} ({c['jump_m']:.1f} m): lost after "
+                    f"{c['lost']}, recovered after {c['recovered']} of {MAX_KIDNAP_SCANS} scans, "
+                    f"{c['confident_wrong']} scans tracked wrong and confident"
+                    + ("" if c["pre_jump_ok"] else "; not tracking before the jump")
+                    + "."
+                )
+    return "\n".join(notes) or "- Every kidnapping recovered with no confident wrong pose."
+
+
 def wrong_notes(runs: list[dict[str, Any]]) -> str:
     notes = []
     for r in runs:
@@ -252,19 +396,24 @@ def main() -> None:
     ap.add_argument("--out", type=Path, help="markdown file to update (docs/benchmarks.md)")
     ap.add_argument("--only", nargs="+", choices=list(RADISH), default=list(RADISH))
     ap.add_argument("--starts", type=int, default=STARTS, help="relocalisation starts per log")
+    ap.add_argument("--kidnaps", type=int, default=KIDNAPS, help="kidnappings per log")
     args = ap.parse_args()
+    from slam.config import LocalizerConfig
+
     missing = [str(RADISH[n]) for n in args.only if not RADISH[n].is_file()]
     if missing:
         sys.exit(f"benchmark logs not found: {', '.join(missing)}")
     runs = []
     for name in args.only:
-        run = in_fresh_process(CaseSpec(name, args.starts))
+        run = in_fresh_process(CaseSpec(name, args.starts, args.kidnaps))
         runs.append(run)
         print(f"{name}: tracking {run['scans'] / run['tracking']['scans_per_s']:.1f} s, "
-              f"relocalisation {run['reloc']['wall_s']:.1f} s", file=sys.stderr)  # fmt: skip
+              f"relocalisation {run['reloc']['wall_s']:.1f} s, "
+              f"kidnapping {run['kidnap']['wall_s']:.1f} s", file=sys.stderr)  # fmt: skip
 
     only = "" if list(args.only) == list(RADISH) else f" --only {' '.join(args.only)}"
     starts = "" if args.starts == STARTS else f" --starts {args.starts}"
+    starts += "" if args.kidnaps == KIDNAPS else f" --kidnaps {args.kidnaps}"
     body = f"""## Localisation against a saved map (Radish logs)
 
 Measured {dt.date.today().isoformat()} on {machine("numpy", "scipy", "cv2")}.
@@ -293,6 +442,24 @@ until {RELOC_BUDGET_S:.0f} s per log have passed (the starts column says if that
 {reloc_table(runs)}
 
 {wrong_notes(runs)}
+
+### Kidnapped robot
+
+{args.kidnaps} kidnappings per log (seed {KIDNAP_SEED}): tracking from the true pose
+{KIDNAP_WARMUP} scans before a random scan, the scan stream then jumps to a random scan at least
+{KIDNAP_MIN_PATH_M:.0f} m further along the path (either way; the straight-line jump can be
+shorter) while the odometry continues smoothly (the new stretch's increments composed onto the
+pre-jump odometry, same corruption as above) and the stamps continue with the new stretch's own
+periods, so `lost_time` ({LocalizerConfig().lost_time} s) spans a different number of scans per
+log. Scans are counted after the jump (the first is 1), at most {MAX_KIDNAP_SCANS}; seconds from the
+last scan before it. Recovered:
+tracking within {SUCCESS_M} m and {np.degrees(SUCCESS_RAD):.0f} deg. Wrong: a "tracking" scan
+before the recovery farther off; confident when its confidence is at least `min_score`
+({LocalizerConfig().min_score}). Success: recovered, and never wrong and confident.
+
+{kidnap_table(runs)}
+
+{kidnap_notes(runs)}
 """
     publish(body, args.out, SECTION)
 

@@ -410,21 +410,34 @@ def match_scan(
             return start, np.eye(3) * UNKNOWN_VARIANCE, model.score(points, start), False
         return res.pose, res.covariance, model.score(points, res.pose), res.converged
 
+    tol = model.field.resolution  # one lattice cell of slack for ICP's sub-cell refinement
+
+    def within(p: np.ndarray) -> bool:
+        d = ominus(prior, p)
+        return math.hypot(d[0], d[1]) <= lin + tol and abs(d[2]) <= ang + tol
+
     # 4a. ICP straight from the prior: most scans follow odometry closely.
     pose, cov, score, converged = icp(prior)
     step = ominus(prior, pose)
     inside = math.hypot(step[0], step[1]) <= lin / 2 and abs(step[2]) <= ang / 2
     if converged and inside and score >= cfg.min_score:
         return MatchOutcome(True, "", pose, cov, score, "icp")
-    # 4b. Exact correlative search in the window, then ICP from its best lattice pose.
+    # 4b. Exact correlative search in the window, then ICP from its best lattice pose. Only
+    #     poses inside the window compete: ICP can slide far off (a mirror-image room) and the
+    #     filter would follow a confident jump.
     coarse = correlative_match(model.field, points, prior, lin, ang,
                                min(cfg.angular_search_step, ang))  # fmt: skip
     start = coarse.pose if coarse.score > 0.0 else prior
     pose2, cov2, score2, converged2 = icp(start)
-    if coarse.score > 0.0 and (not converged2 or score2 < cfg.min_score <= coarse.score):
-        pose2, score2 = coarse.pose, coarse.score  # ICP slid off: keep the lattice pose
-    if score2 > score or not (converged and inside):
-        pose, cov, score = pose2, cov2, score2
+    candidates = [(score, pose, cov)] if converged and within(pose) else []
+    if converged2 and within(pose2):
+        candidates.append((score2, pose2, cov2))
+    elif coarse.score > 0.0:
+        candidates.append((coarse.score, coarse.pose, cov2))  # ICP slid off: the lattice pose
+    if not candidates:
+        return MatchOutcome(False, "no match inside the search window", prior, cov, 0.0,
+                            "correlative")  # fmt: skip
+    score, pose, cov = max(candidates, key=lambda c: c[0])
     if score < cfg.min_score:
         return MatchOutcome(False, f"match score {score:.2f} below min_score {cfg.min_score}",
                             pose, cov, score, "correlative")  # fmt: skip
@@ -588,8 +601,9 @@ class Localizer:
         else:
             reason = f"match rejected: {match.reason}; dead reckoning"
         conf = self.model.score(pts, self._pose)
-        # 4. Lost when the confidence stays below lost_score for lost_time.
-        if conf < cfg.lost_score:
+        # 4. Lost when the confidence stays below lost_score, or matches keep being rejected,
+        #    for lost_time (a scan fitting 30-50 % of a wrong place must not keep it "tracking").
+        if conf < cfg.lost_score or not match.ok:
             self._low_since = stamp if self._low_since is None else self._low_since
             if (stamp - self._low_since) * 1e-9 >= cfg.lost_time:
                 why = (

@@ -5,6 +5,7 @@ seeded synthetic scenes and, when ../shared/data is present, on the radish aces 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -351,3 +352,114 @@ def test_aces_global_relocalisation_from_random_scans_has_no_confident_wrong_pos
                 break
     assert wrong == 0
     assert good >= 9
+
+
+# 7. The kidnapped robot ---------------------------------------------------------------------------
+
+KIDNAP_PERIOD_NS = 200_000_000  # [ns] 5 Hz laser: lost_time (2 s) is 10 scans
+KIDNAP_ROUTE_SCANS = 115  # [scans] per lap of the ellipse route: ~0.1 m per scan, 0.5 m/s
+KIDNAP_SCANS_AFTER = 30  # [scans] fed after the teleport
+RECOVERED_M = 0.05  # [m]
+RECOVERED_RAD = 1.0 * DEG  # [rad]
+WRONG_M = 0.3  # [m] a tracked pose farther off than this is wrong
+
+
+def kidnapped_route(k: int, jump: int, n_after: int = KIDNAP_SCANS_AFTER
+                    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(truth, odometry) of a robot driving round the ellipse route that is picked up after scan
+    ``k - 1`` and set down ``jump`` route scans further on. The wheels know nothing of it: the
+    odometry increments after the teleport are those of the new stretch, composed onto the
+    pre-teleport odometry (then corrupted like every route's)."""
+    route = ellipse_route(n=KIDNAP_ROUTE_SCANS)
+    n = len(route)
+    idx = np.concatenate([np.arange(k), (np.arange(k, k + n_after) + jump) % n])
+    felt = [route[0]]  # the path the wheels report
+    for i in idx[1:]:
+        felt.append(oplus(felt[-1], ominus(route[(i - 1) % n], route[i])))
+    return route[idx], corrupt_odometry(np.array(felt), seed=21)
+
+
+def kidnap_scans(truth: np.ndarray) -> list[LaserScan]:
+    return [raycast(WORLD, p, n_beams=N_BEAMS, fov=FOV, noise_m=RANGE_NOISE, seed=100 + i,
+                    stamp_ns=(i + 1) * KIDNAP_PERIOD_NS)
+            for i, p in enumerate(truth)]  # fmt: skip
+
+
+@dataclass(frozen=True)
+class KidnapOutcome:
+    first_not_tracking: int | None  # [scans after the teleport] first non-"tracking" status
+    recovered: int | None  # [scans after the teleport] tracking within 5 cm / 1 deg again
+    confident_wrong: int  # tracked > WRONG_M off with confidence >= min_score
+    low_wrong: int  # tracked > WRONG_M off with confidence < lost_score
+    wrong: int  # tracked > WRONG_M off at any confidence
+    errors_after: list[float]  # [m] position errors from the recovery on
+
+
+def kidnap(model: MapModel, k: int, jump: int) -> KidnapOutcome:
+    truth, odom = kidnapped_route(k, jump)
+    results = run(Localizer(model, CFG, initial_pose=truth[0]), kidnap_scans(truth), odom)
+    assert all(r.status == "tracking" for r in results[:k])
+    after = list(zip(truth[k:], results[k:], strict=True))
+    errs = [pose_error(t, r.pose) for t, r in after]
+    left = next((i for i, (_, r) in enumerate(after) if r.status != "tracking"), None)
+    fixed = [r.status == "tracking" and d < RECOVERED_M and a < RECOVERED_RAD
+             for (_, r), (d, a) in zip(after, errs, strict=True)]  # fmt: skip
+    rec = fixed.index(True) if any(fixed) else None
+    wrong = [r for (_, r), (d, _) in zip(after, errs, strict=True)
+             if r.status == "tracking" and d > WRONG_M]  # fmt: skip
+    return KidnapOutcome(
+        left, rec, sum(r.confidence >= CFG.min_score for r in wrong),
+        sum(r.confidence < CFG.lost_score for r in wrong), len(wrong),
+        [d for d, _ in errs[rec:]] if rec is not None else [],
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(("k", "jump"), [(30, 57), (30, 26), (50, 74), (80, 42)])
+def test_kidnapped_robot_is_declared_lost_after_lost_time_then_relocalised_within_5cm(
+    room_model: MapModel, k: int, jump: int
+) -> None:
+    # These teleports move the robot 2.0-4.4 m and turn it by 75-180 deg.
+    out = kidnap(room_model, k, jump)
+    n_lost = round(CFG.lost_time * 1e9 / KIDNAP_PERIOD_NS)  # 10 scans at 5 Hz
+    # 1. Until lost_time has passed the robot still reports "tracking" (dead reckoning), but with
+    #    a confidence below lost_score on every one of those scans: never confident and wrong.
+    assert out.first_not_tracking == n_lost
+    assert out.wrong == out.low_wrong == n_lost
+    assert out.confident_wrong == 0
+    # 2. Lost, then the global search and relocalization_verification_scans more scans.
+    assert out.recovered == n_lost + CFG.relocalization_verification_scans
+    assert max(out.errors_after) < RECOVERED_M
+
+
+@pytest.mark.parametrize(
+    ("k", "jump"),
+    [
+        # Fixed: a match that ICP slid 1.9 m out of its 0.3 m window (the room's mirror image)
+        # was accepted; rejected matches at 0.3-0.5 confidence never started the lost timer.
+        pytest.param(50, 50),
+        pytest.param(80, 18),
+        pytest.param(20, 10, marks=pytest.mark.xfail(strict=True, reason=(
+            "OPEN: right after a 1.45 m jump along the route the view still fits the map 1.3 m "
+            "off at >= min_score for 3 scans; lost after 21 scans (4 s), recovered at 24"))),
+    ],
+)  # fmt: skip
+def test_kidnapped_robot_never_tracks_a_wrong_pose_confidently_and_recovers(
+    room_model: MapModel, k: int, jump: int
+) -> None:
+    out = kidnap(room_model, k, jump)
+    assert out.confident_wrong == 0
+    assert out.recovered is not None
+
+
+def test_tracking_match_never_leaves_the_linear_search_window(room_model: MapModel) -> None:
+    from slam.localization import match_scan
+    from slam.scan_matching import scan_points, voxel_filter
+
+    # Scan 10 after the (50, 50) teleport above: the truth and the dead-reckoned prior there.
+    truth, _ = kidnapped_route(50, 50)
+    scan = kidnap_scans(truth)[60]
+    prior = np.array([1.686, 3.914, -1.819])  # the localiser's prediction, to 1 mm
+    pts = voxel_filter(scan_points(scan, CFG.laser_max_range), CFG.scan_voxel_size)
+    m = match_scan(room_model, pts, prior, CFG)
+    step = ominus(prior, m.pose)
+    assert not m.ok or max(abs(step[0]), abs(step[1])) <= CFG.linear_search_window + 0.05
