@@ -44,6 +44,9 @@ class CostmapConfig:
     obstacle_min_range: float = param(0.0, unit="m", ge=0.0, doc="mark obstacles from here")
     raytrace_max_range: float = param(3.0, unit="m", gt=0.0, doc="clear free space up to here")
     raytrace_min_range: float = param(0.0, unit="m", ge=0.0, doc="clear free space from here")
+    inf_is_valid: bool = param(
+        True, doc="no-return beams clear up to raytrace_max_range (Nav2 code default false)"
+    )
     # Inflation layer.
     inflation_radius: float = param(
         0.55, unit="m", ge=0.0, doc="inflate lethal cells out to this distance"
@@ -208,4 +211,9 @@ class SmootherConfig:
         for i, (lo, hi) in enumerate(zip(self.min_velocity, self.max_velocity, strict=True)):
             if lo > hi:
                 return f"min_velocity[{i}] ({lo}) must not exceed max_velocity[{i}] ({hi})"
+            # Nav2 rejects these too: the limits must bracket zero so a stop is always allowed.
+            if lo > 0.0:
+                return f"min_velocity[{i}] ({lo}) must not be positive"
+            if hi < 0.0:
+                return f"max_velocity[{i}] ({hi}) must not be negative"
         return None
