@@ -42,6 +42,8 @@ bench: $(STAMP)
 	$(PY) bench/bench_vo.py --out docs/benchmarks.md
 	$(PY) bench/bench_pose_graph.py --out docs/benchmarks.md
 	$(PY) bench/bench_mapper.py --out docs/benchmarks.md
+	$(PY) bench/bench_localization.py --out docs/benchmarks.md
+	$(PY) bench/bench_nav.py --out docs/benchmarks.md
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check sensors slam nav rgbdnav tests bench

@@ -1,0 +1,287 @@
+"""Global planner: optimality against a heapq reference, cost awareness, refusals, smoothing."""
+
+from __future__ import annotations
+
+import heapq
+import math
+
+import numpy as np
+import pytest
+
+from nav.config import LETHAL_OBSTACLE, NO_INFORMATION, PlannerConfig
+from nav.planner import (
+    GridPlanner,
+    plan_straight_line,
+    points_passable,
+    replan_needed,
+    resample_path,
+)
+from slam.occupancy_grid import GridGeometry
+
+RES = 0.1  # [m/cell]
+
+
+def geometry(h: int, w: int) -> GridGeometry:
+    return GridGeometry(RES, 0.0, 0.0, w, h)
+
+
+def centre(row: int, col: int) -> tuple[float, float]:
+    return ((col + 0.5) * RES, (row + 0.5) * RES)
+
+
+def reference_cost(
+    cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int], cfg: PlannerConfig
+) -> float:
+    """Plain heapq Dijkstra: entering a cell costs |step| (neutral + factor * cost); unknown is
+    lethal_cost - 1 when allowed; diagonals may not cut past an impassable cell."""
+    h, w = cost.shape
+
+    def passable(r: int, c: int) -> bool:
+        if not (0 <= r < h and 0 <= c < w):
+            return False
+        v = int(cost[r, c])
+        if v == NO_INFORMATION:
+            return cfg.allow_unknown
+        return v < cfg.lethal_cost
+
+    def enter(r: int, c: int) -> float:
+        v = int(cost[r, c])
+        v = cfg.lethal_cost - 1 if v == NO_INFORMATION else v
+        return cfg.neutral_cost + cfg.cost_factor * v
+
+    dist = {start: 0.0}
+    heap = [(0.0, start)]
+    while heap:
+        d, (r, c) = heapq.heappop(heap)
+        if (r, c) == goal:
+            return d
+        if d > dist[(r, c)]:
+            continue
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if (dr, dc) == (0, 0) or not passable(r + dr, c + dc):
+                    continue
+                if dr and dc and not (passable(r + dr, c) and passable(r, c + dc)):
+                    continue
+                nd = d + math.hypot(dr, dc) * enter(r + dr, c + dc)
+                if nd < dist.get((r + dr, c + dc), math.inf):
+                    dist[(r + dr, c + dc)] = nd
+                    heapq.heappush(heap, (nd, (r + dr, c + dc)))
+    return math.inf
+
+
+def random_costmap(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    cost = rng.integers(0, 200, size=(h, w)).astype(np.uint8)
+    cost[rng.random((h, w)) < 0.2] = LETHAL_OBSTACLE
+    cost[rng.random((h, w)) < 0.05] = NO_INFORMATION
+    return cost
+
+
+@pytest.mark.parametrize("use_astar", [False, True])
+@pytest.mark.parametrize("seed", range(6))
+def test_path_cost_equals_reference_dijkstra(seed: int, use_astar: bool) -> None:
+    rng = np.random.default_rng(seed)
+    cost = random_costmap(rng, 14, 17)
+    start, goal = (1, 1), (12, 15)
+    cost[start] = cost[goal] = 0
+    cfg = PlannerConfig(use_astar=use_astar, smooth_path=False, tolerance=0.0)
+    expected = reference_cost(cost, start, goal, cfg)
+    result = GridPlanner(cfg).plan(cost, geometry(14, 17), centre(*start), centre(*goal))
+    if math.isinf(expected):
+        assert not result.success and "unreachable" in result.reason
+        return
+    assert result.success, result.reason
+    assert result.cost == pytest.approx(expected, rel=1e-9)
+    cells = result.cells
+    assert tuple(cells[0]) == start and tuple(cells[-1]) == goal
+    assert np.abs(np.diff(cells, axis=0)).max() == 1  # 8-connected
+    on_path = cost[cells[:, 0], cells[:, 1]]
+    assert np.all((on_path < cfg.lethal_cost) | (on_path == NO_INFORMATION))
+
+
+def test_path_avoids_lethal_cells_and_walls() -> None:
+    cost = np.zeros((20, 30), dtype=np.uint8)
+    cost[0:16, 15] = LETHAL_OBSTACLE  # wall with a gap at the top
+    result = GridPlanner(PlannerConfig(smooth_path=False)).plan(
+        cost, geometry(20, 30), centre(2, 2), centre(2, 27)
+    )
+    assert result.success
+    assert np.all(cost[result.cells[:, 0], result.cells[:, 1]] < LETHAL_OBSTACLE)
+    assert result.cells[:, 0].max() >= 16  # went round the wall
+    assert points_passable(result.poses[:, :2], cost, geometry(20, 30), PlannerConfig()).all()
+
+
+def test_cost_aware_path_prefers_cheaper_cells() -> None:
+    # A short corridor of cost 200 (row 5) and a longer free detour (row 15).
+    cost = np.full((20, 30), LETHAL_OBSTACLE, dtype=np.uint8)
+    cost[5, 2:28] = 200
+    cost[5:16, 2] = 0
+    cost[5:16, 27] = 0
+    cost[15, 2:28] = 0
+    cost[5, 2] = cost[5, 27] = 0
+    geo, start, goal = geometry(20, 30), centre(5, 2), centre(5, 27)
+    cheap = GridPlanner(PlannerConfig(smooth_path=False)).plan(cost, geo, start, goal)
+    assert cheap.success and cheap.cells[:, 0].max() == 15
+    blind = GridPlanner(PlannerConfig(smooth_path=False, cost_factor=0.0)).plan(
+        cost, geo, start, goal
+    )
+    assert blind.success and blind.cells[:, 0].max() == 5
+    assert blind.length_m < cheap.length_m
+
+
+def test_start_in_obstacle_is_refused() -> None:
+    cost = np.zeros((10, 10), dtype=np.uint8)
+    cost[3, 3] = LETHAL_OBSTACLE
+    result = GridPlanner().plan(cost, geometry(10, 10), centre(3, 3), centre(8, 8))
+    assert not result.success and "start" in result.reason and "obstacle" in result.reason
+
+
+def test_goal_in_wall_is_refused_even_with_tolerance() -> None:
+    cost = np.zeros((10, 10), dtype=np.uint8)
+    cost[8, 8] = LETHAL_OBSTACLE
+    result = GridPlanner(PlannerConfig(tolerance=1.0)).plan(
+        cost, geometry(10, 10), centre(1, 1), centre(8, 8)
+    )
+    assert not result.success and "wall" in result.reason
+
+
+def test_goal_in_unknown_is_refused_when_unknown_not_allowed() -> None:
+    cost = np.zeros((10, 10), dtype=np.uint8)
+    cost[8, 8] = NO_INFORMATION
+    geo = geometry(10, 10)
+    refused = GridPlanner(PlannerConfig(allow_unknown=False)).plan(
+        cost, geo, centre(1, 1), centre(8, 8)
+    )
+    assert not refused.success and "unknown" in refused.reason
+    assert (
+        GridPlanner(PlannerConfig(allow_unknown=True))
+        .plan(cost, geo, centre(1, 1), centre(8, 8))
+        .success
+    )
+
+
+def test_goal_outside_map_is_refused() -> None:
+    cost = np.zeros((10, 10), dtype=np.uint8)
+    result = GridPlanner().plan(cost, geometry(10, 10), centre(1, 1), (5.0, 0.5))
+    assert not result.success and "outside the map" in result.reason
+
+
+def enclosed_goal_map() -> np.ndarray:
+    """A free 3x3 pocket (rows 9..11, cols 9..11) closed by a one-cell wall ring."""
+    cost = np.zeros((20, 20), dtype=np.uint8)
+    cost[8:13, 8:13] = LETHAL_OBSTACLE
+    cost[9:12, 9:12] = 0
+    return cost
+
+
+def test_unreachable_goal_is_refused_without_tolerance() -> None:
+    result = GridPlanner(PlannerConfig(tolerance=0.0)).plan(
+        enclosed_goal_map(), geometry(20, 20), centre(1, 1), centre(10, 10)
+    )
+    assert not result.success and "unreachable" in result.reason
+
+
+@pytest.mark.parametrize("use_astar", [False, True])
+def test_tolerance_accepts_nearest_reachable_cell(use_astar: bool) -> None:
+    cfg = PlannerConfig(tolerance=0.35, use_astar=use_astar, smooth_path=False)
+    result = GridPlanner(cfg).plan(
+        enclosed_goal_map(), geometry(20, 20), centre(1, 1), centre(10, 10)
+    )
+    assert result.success, result.reason
+    # Nearest reachable cells lie just outside the ring, 3 cells (0.3 m) from the goal.
+    assert result.goal_offset_m == pytest.approx(0.3, abs=1e-9)
+    assert result.goal_offset_m <= cfg.tolerance
+
+
+def test_smoothing_keeps_path_collision_free_and_shortens_it() -> None:
+    cost = np.zeros((40, 60), dtype=np.uint8)
+    cost[10:30, 25:35] = LETHAL_OBSTACLE
+    cost[8:32, 23:37] = np.maximum(cost[8:32, 23:37], 253)  # inscribed band
+    cost[10:30, 25:35] = LETHAL_OBSTACLE
+    geo = geometry(40, 60)
+    start, goal = centre(20, 3), centre(20, 56)
+    raw = GridPlanner(PlannerConfig(smooth_path=False)).plan(cost, geo, start, goal)
+    smooth = GridPlanner(PlannerConfig(smooth_path=True)).plan(cost, geo, start, goal)
+    assert raw.success and smooth.success
+    assert smooth.length_m < raw.length_m - 0.05
+    cfg = PlannerConfig()
+    assert points_passable(smooth.poses[:, :2], cost, geo, cfg).all()
+    # Resampled to about one point per cell, ends where it was asked to.
+    steps = np.hypot(*np.diff(smooth.poses[:, :2], axis=0).T)
+    assert steps.max() <= RES + 1e-9
+    np.testing.assert_allclose(smooth.poses[0, :2], start, atol=1e-12)
+    np.testing.assert_allclose(smooth.poses[-1, :2], goal, atol=1e-12)
+
+
+def test_poses_face_along_the_path_and_end_at_goal_yaw() -> None:
+    cost = np.zeros((10, 30), dtype=np.uint8)
+    result = GridPlanner().plan(cost, geometry(10, 30), centre(5, 2), centre(5, 25), goal_yaw=1.0)
+    assert result.success
+    np.testing.assert_allclose(result.poses[:-1, 2], 0.0, atol=1e-9)
+    assert result.poses[-1, 2] == pytest.approx(1.0)
+
+
+def test_straight_line_planner_in_open_space() -> None:
+    cost = np.zeros((20, 20), dtype=np.uint8)
+    result = plan_straight_line(cost, geometry(20, 20), (0.25, 0.25), (1.65, 1.65), goal_yaw=0.3)
+    assert result.success
+    assert result.length_m == pytest.approx(math.hypot(1.4, 1.4), rel=1e-9)
+    np.testing.assert_allclose(result.poses[:-1, 2], math.pi / 4, atol=1e-9)
+    assert result.poses[-1, 2] == pytest.approx(0.3)
+
+
+def test_straight_line_planner_fails_when_blocked() -> None:
+    cost = np.zeros((20, 20), dtype=np.uint8)
+    cost[:, 10] = LETHAL_OBSTACLE
+    result = plan_straight_line(cost, geometry(20, 20), (0.25, 1.0), (1.75, 1.0))
+    assert not result.success and "blocked at (1.0" in result.reason
+
+
+def test_replan_needed_when_path_cell_becomes_lethal() -> None:
+    cost = np.zeros((20, 20), dtype=np.uint8)
+    geo = geometry(20, 20)
+    result = GridPlanner().plan(cost, geo, centre(10, 1), centre(10, 18))
+    assert result.success and not replan_needed(result.poses, cost, geo)
+    blocked = cost.copy()
+    blocked[10, 9] = LETHAL_OBSTACLE
+    assert replan_needed(result.poses, blocked, geo)
+    # A lethal cell off the path does not matter.
+    elsewhere = cost.copy()
+    elsewhere[2, 2] = LETHAL_OBSTACLE
+    assert not replan_needed(result.poses, elsewhere, geo)
+
+
+def test_resample_keeps_endpoints_and_spacing() -> None:
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 0.55]])
+    out = resample_path(xy, 0.1)
+    np.testing.assert_allclose(out[[0, -1]], xy[[0, -1]])
+    assert np.hypot(*np.diff(out, axis=0).T).max() <= 0.1 + 1e-12
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_smoothed_paths_never_enter_impassable_cells_on_random_maps(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cost = np.zeros((50, 50), dtype=np.uint8)
+    for _ in range(12):
+        r, c = rng.integers(0, 45, size=2)
+        h, w = rng.integers(2, 8, size=2)
+        cost[r : r + h, c : c + w] = LETHAL_OBSTACLE
+    cost[1, 1] = cost[48, 48] = 0
+    geo = geometry(50, 50)
+    result = GridPlanner().plan(cost, geo, centre(1, 1), centre(48, 48))
+    assert result.success, result.reason
+    assert points_passable(result.poses[:, :2], cost, geo, PlannerConfig()).all()
+
+
+def test_goal_in_inscribed_cell_uses_tolerance() -> None:
+    cost = np.zeros((20, 20), dtype=np.uint8)
+    cost[10:13, 10:13] = 253  # inscribed: impassable with the default lethal_cost, not a wall
+    geo = geometry(20, 20)
+    refused = GridPlanner(PlannerConfig(tolerance=0.0)).plan(
+        cost, geo, centre(1, 1), centre(11, 11)
+    )
+    assert not refused.success and "impassable cost 253" in refused.reason
+    result = GridPlanner(PlannerConfig(tolerance=0.25)).plan(
+        cost, geo, centre(1, 1), centre(11, 11)
+    )
+    assert result.success and result.goal_offset_m == pytest.approx(0.2, abs=1e-9)
