@@ -37,12 +37,10 @@ from typing import Any
 import numpy as np
 
 from rgbdnav.config import load_config, source_options
-from rgbdnav.map_run import RGBD_PROFILE, scan_stream
+from rgbdnav.map_run import scan_stream, source_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from sensors.atomic import atomic_write_text
-from sensors.carmen import CarmenSource
-from sensors.recording_source import RecordingSource
 from sensors.source import PoseStream, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, MapError, SensorError
@@ -207,11 +205,8 @@ def run_localize(
     cfg = load_config(config_files, overrides)
     src = open_source(source_path, source_options(cfg))
     try:
-        scene = src.recording.scene if isinstance(src, RecordingSource) else {}
-        base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
-        if not isinstance(src, CarmenSource) and RGBD_PROFILE.is_file():
-            config_files = [RGBD_PROFILE, *config_files]  # depth->scan as the map was made
-        cfg = load_config(config_files, overrides, base=base)
+        # depth->scan with the RGB-D profile, as the map was made
+        _, config_files, cfg = source_config(src, config_files, overrides)
         t_model = time.perf_counter()
         model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
                                    loaded.free_thresh)  # fmt: skip

@@ -52,11 +52,7 @@ def run_map(
     cfg = load_config(config_files, overrides)
     src = open_source(source_path, source_options(cfg))
     try:
-        scene = src.recording.scene if isinstance(src, RecordingSource) else {}
-        base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
-        if not isinstance(src, CarmenSource) and RGBD_PROFILE.is_file():
-            config_files = [RGBD_PROFILE, *config_files]  # yours still win
-        cfg = load_config(config_files, overrides, base=base)
+        scene, config_files, cfg = source_config(src, config_files, overrides)
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
         summary: dict = {"command": "map", "source": str(source_path),
@@ -128,6 +124,20 @@ def run_map(
         return outputs
     finally:
         src.close()
+
+
+def source_config(
+    src: Source, config_files: Sequence[Path], overrides: Sequence[str]
+) -> tuple[dict, list[Path], Config]:
+    """The source's scene (recordings), the config files with the RGB-D profile put first for
+    depth-camera sources (yours still win), and the config resolved over the recording's own
+    robot description."""
+    scene = src.recording.scene if isinstance(src, RecordingSource) else {}
+    base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
+    files = list(config_files)
+    if not isinstance(src, CarmenSource) and RGBD_PROFILE.is_file():
+        files = [RGBD_PROFILE, *files]
+    return scene, files, load_config(files, overrides, base=base)
 
 
 # 1. Scans with odometry --------------------------------------------------------------------

@@ -48,7 +48,7 @@ import numpy as np
 
 from sensors.types import LaserScan, MapError
 from slam.config import LocalizerConfig
-from slam.geometry import wrap_angle
+from slam.geometry import ominus, oplus, wrap_angle
 from slam.occupancy_grid import OccupancyGrid
 from slam.scan_matching import (
     LikelihoodField,
@@ -79,20 +79,6 @@ Status = Literal["tracking", "lost", "relocalising"]
 
 
 # 1. Pose algebra and the filter kernels ---------------------------------------------------------
-
-
-def oplus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a (+) b for (3,) poses, yaw wrapped."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
-                     float(wrap_angle(a[2] + b[2]))])  # fmt: skip
-
-
-def ominus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a^-1 (+) b: pose b in the frame of pose a."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b[2] - a[2]))])
 
 
 def inverse(a: np.ndarray) -> np.ndarray:

@@ -33,7 +33,7 @@ import numpy as np
 
 from sensors.types import LaserScan, MapError
 from slam.config import MapperConfig
-from slam.geometry import wrap_angle
+from slam.geometry import ominus, oplus, wrap_angle
 from slam.map_bundle import MapBundle
 from slam.pose_graph import Edge, EdgeKind, PoseGraph
 from slam.scan_matching import (
@@ -62,20 +62,7 @@ UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
 
 
-# 1. Pose algebra on (3,) arrays -----------------------------------------------------------------
-
-
-def oplus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
-                     float(wrap_angle(a[2] + b[2]))])  # fmt: skip
-
-
-def ominus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a^-1 (+) b: pose b in the frame of pose a."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b[2] - a[2]))])
+# 1. Odometry noise --------------------------------------------------------------------------------
 
 
 def odometry_covariance(delta: np.ndarray, config: MapperConfig) -> np.ndarray:

@@ -35,3 +35,17 @@ def test_between_inverts_compose() -> None:
     x, y, yaw = compose(a.x, a.y, a.yaw, 0.3, -0.4, 1.2)
     d = between(a, Pose2(float(x), float(y), float(yaw)))
     assert (d.x, d.y, d.yaw) == pytest.approx((0.3, -0.4, 1.2))
+
+
+def test_oplus_and_ominus_of_arrays_invert_each_other_and_agree_with_compose() -> None:
+    import numpy as np
+
+    from slam.geometry import ominus, oplus
+
+    a = np.array([1.0, -2.0, 3.0])
+    b = np.array([0.3, 0.4, -2.9])
+    ab = oplus(a, b)
+    cx, cy, cyaw = compose(*a, *b)
+    np.testing.assert_allclose(ab[:2], [cx, cy], atol=1e-12)
+    assert abs(wrap_angle(ab[2] - cyaw)) < 1e-12 and -np.pi <= ab[2] < np.pi
+    np.testing.assert_allclose(ominus(a, ab), [b[0], b[1], wrap_angle(b[2])], atol=1e-12)
