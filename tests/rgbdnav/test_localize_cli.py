@@ -18,7 +18,8 @@ from rgbdnav.cli import app
 from sensors.tum import load_tum_trajectory, yaw_from_quaternion
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "slam"))
-from scan_scenes import ROOM, raycast  # noqa: E402
+from scan_scenes import corrupt_steps as _corrupt  # noqa: E402
+from scan_scenes import write_flaser_log as _write_log  # noqa: E402
 
 runner = CliRunner()
 DEG = math.pi / 180.0  # [rad/deg]
@@ -35,37 +36,6 @@ def _route(n: int, cx: float = 4.3, cy: float = 2.9, rx: float = 1.1, ry: float 
     x, y = cx + rx * np.cos(s), cy + ry * np.sin(s)
     yaw = np.arctan2(ry * np.cos(s), -rx * np.sin(s)) + (math.pi if turns < 0 else 0.0)
     return np.column_stack([x, y, np.angle(np.exp(1j * yaw))])
-
-
-def _write_log(path: Path, truth: np.ndarray, odom: np.ndarray, t0: float = 100.0) -> Path:
-    """FLASER lines (361 beams, 0.5 deg) from exact ray casting at ``truth``, pose fields
-    ``odom``; 5 Hz."""
-    lines = []
-    for k, (p, o) in enumerate(zip(truth, odom, strict=True)):
-        scan = raycast(ROOM, p, noise_m=0.005, seed=k)
-        r = np.where(np.isfinite(scan.ranges), scan.ranges, 81.91)
-        t = t0 + 0.2 * k
-        pose = f"{o[0]:.6f} {o[1]:.6f} {o[2]:.6f}"
-        lines.append(
-            f"FLASER 361 {' '.join(f'{v:.3f}' for v in r)} {pose} {pose} {t:.6f} h {t:.6f}"
-        )
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-def _corrupt(truth: np.ndarray, scale: float, yaw_bias_per_step: float) -> np.ndarray:
-    """Integrate the truth's increments with a scale error and a yaw bias."""
-    out = [truth[0].copy()]
-    for a, b in zip(truth[:-1], truth[1:], strict=True):
-        c, s = math.cos(a[2]), math.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        lx, ly, dyaw = c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]
-        p = out[-1]
-        cp, sp = math.cos(p[2]), math.sin(p[2])
-        lx, ly = lx * scale, ly * scale
-        out.append(np.array([p[0] + cp * lx - sp * ly, p[1] + sp * lx + cp * ly,
-                             p[2] + dyaw + yaw_bias_per_step]))  # fmt: skip
-    return np.array(out)
 
 
 def _in_frame(poses: np.ndarray, frame: tuple[float, float, float]) -> np.ndarray:

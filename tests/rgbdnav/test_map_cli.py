@@ -17,7 +17,8 @@ from sensors.tum import load_tum_trajectory, yaw_from_quaternion
 from slam.map_bundle import load_bundle
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "slam"))
-from scan_scenes import ROOM, raycast  # noqa: E402
+from scan_scenes import corrupt_steps as _corrupt  # noqa: E402
+from scan_scenes import write_flaser_log as _write_log  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 MIT = DATA / "carmen" / "mit-csail.clf"
@@ -31,37 +32,6 @@ def _route(n: int) -> np.ndarray:
     x, y = 4.0 + 2.2 * np.cos(s), 3.0 + 1.3 * np.sin(s)
     yaw = np.arctan2(1.3 * np.cos(s), -2.2 * np.sin(s))
     return np.column_stack([x, y, yaw])
-
-
-def _write_log(path: Path, truth: np.ndarray, odom: np.ndarray, t0: float = 100.0) -> Path:
-    """FLASER lines (361 beams, 0.5 deg) from exact ray casting at ``truth``, pose fields
-    ``odom``; 5 Hz."""
-    lines = []
-    for k, (p, o) in enumerate(zip(truth, odom, strict=True)):
-        scan = raycast(ROOM, p, noise_m=0.005, seed=k)
-        r = np.where(np.isfinite(scan.ranges), scan.ranges, 81.91)
-        t = t0 + 0.2 * k
-        pose = f"{o[0]:.6f} {o[1]:.6f} {o[2]:.6f}"
-        lines.append(
-            f"FLASER 361 {' '.join(f'{v:.3f}' for v in r)} {pose} {pose} {t:.6f} h {t:.6f}"
-        )
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-def _corrupt(truth: np.ndarray, scale: float, yaw_bias_per_step: float) -> np.ndarray:
-    """Integrate the truth's increments with a scale error and a yaw bias."""
-    out = [truth[0].copy()]
-    for a, b in zip(truth[:-1], truth[1:], strict=True):
-        c, s = math.cos(a[2]), math.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        lx, ly, dyaw = c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]
-        p = out[-1]
-        cp, sp = math.cos(p[2]), math.sin(p[2])
-        lx, ly = lx * scale, ly * scale
-        out.append(np.array([p[0] + cp * lx - sp * ly, p[1] + sp * lx + cp * ly,
-                             p[2] + dyaw + yaw_bias_per_step]))  # fmt: skip
-    return np.array(out)
 
 
 def _trajectory(path: Path) -> np.ndarray:
