@@ -319,6 +319,52 @@ def localize(
         typer.echo(f"{label:<11} {path}")
 
 
+# Typer has no repeatable multi-value option, so `--goal X Y` pairs arrive as extra args.
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+@_known_errors
+def navigate(
+    ctx: typer.Context,
+    map_: Annotated[
+        Path, typer.Option("--map", "-m", help="Map bundle folder, or a Nav2 map.yaml.")
+    ],
+    sim: Annotated[Path, typer.Option("--sim", help="Simulator world YAML the robot drives in.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    start: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option("--start", metavar="X Y YAW", help="True start pose (default: the world's)."),
+    ] = None,
+    keepout: Annotated[
+        Path | None, typer.Option("--keepout", help="Keepout filter mask (Nav2 map.yaml).")
+    ] = None,
+    goal_timeout: Annotated[
+        float, typer.Option("--goal-timeout", help="Simulated seconds allowed per goal.")
+    ] = 60.0,
+    max_replans: Annotated[int, typer.Option("--max-replans", help="Replans per goal.")] = 5,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Drive to goals on a saved map in a simulated world (ground-truth localisation).
+
+    Goals: --goal X Y [--goal X Y ...] in the map frame (metres), driven in order.
+    """
+    _setup_logging(verbose)
+    from rgbdnav.navigate_run import describe, parse_goal_args, run_navigate
+
+    goal = parse_goal_args(ctx.args)
+    with _Progress("navigating", quiet) as progress:
+        outputs, summary = run_navigate(map_, goal, sim, out, config or [], set_ or [], start,
+                                        keepout, goal_timeout, max_replans, progress)  # fmt: skip
+    typer.echo(f"result      {describe(summary)}")
+    for g in summary["goals"]:
+        if g["status"] != "reached":
+            typer.echo(f"goal        ({g['goal'][0]:.2f}, {g['goal'][1]:.2f}) {g['status']}: "
+                       f"{g['reason']}")  # fmt: skip
+    for label, path in outputs.items():
+        typer.echo(f"{label:<11} {path}")
+
+
 @app.command()
 @_known_errors
 def board(
