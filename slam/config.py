@@ -339,6 +339,9 @@ class MapperConfig:
         0.3, unit="m", gt=0.0, doc="point-to-line ICP: farthest neighbour accepted as a match"
     )
     icp_max_iterations: int = param(20, ge=1, doc="point-to-line ICP Gauss-Newton iterations")
+    icp_huber_width: float = param(
+        0.05, unit="m", gt=0.0, doc="point-to-line residual beyond which ICP down-weights (Huber)"
+    )
     icp_min_inlier_fraction: float = param(
         0.5, ge=0.0, le=1.0, doc="scan points that must find a neighbour for a match to count"
     )

@@ -335,6 +335,7 @@ class Mapper:
         icp = icp_refine(
             local.reference, kf.match_points, coarse.pose, cfg.icp_max_correspondence_distance,
             max_iterations=cfg.icp_max_iterations, min_sigma_m=cfg.scan_match_min_sigma,
+            huber_m=cfg.icp_huber_width,
         )  # fmt: skip
         if not np.all(np.isfinite(icp.pose)) or icp.rmse == math.inf:
             return MatchOutcome(False, "ICP failed", prior, np.eye(3), coarse.score, 0.0)
@@ -361,6 +362,7 @@ class Mapper:
         icp = icp_refine(
             local.reference, kf.match_points, prior, cfg.icp_max_correspondence_distance,
             max_iterations=cfg.icp_max_iterations, min_sigma_m=cfg.scan_match_min_sigma,
+            huber_m=cfg.icp_huber_width,
         )  # fmt: skip
         step = icp.pose - prior
         inside = (math.hypot(step[0], step[1]) <= cfg.correlation_search_space_dimension / 4
