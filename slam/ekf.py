@@ -164,6 +164,16 @@ def update(
     return xn, (Pn + Pn.T) / 2, y, S, nis
 
 
+def pose_update(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`update` for a direct planar pose measurement (x, y, yaw; H = I): the yaw residual
+    and the updated yaw wrapped. Scan-match fusion in the mapper and the localiser."""
+    xn, Pn, _, _, _ = update(x, P, z, np.eye(3), R, angle_residual(np.array([False, False, True])))
+    xn[2] = wrap_angle(xn[2])
+    return xn, Pn
+
+
 def passes_gate(nis: float, threshold_sigma: float) -> bool:
     """robot_localization's checkMahalanobisThreshold: accept while NIS < threshold^2."""
     return nis < threshold_sigma * threshold_sigma
@@ -679,6 +689,7 @@ def fuse(
 
 __all__ = [
     "EkfError", "EkfStats", "FuseResult", "Measurement", "PlanarEkf", "PoseInput", "SensorSpec",
-    "TwistInput", "UpdateResult", "angle_residual", "fuse", "innovate", "passes_gate", "predict",
-    "se2_between", "sensor_specs", "transition", "update", "wheel_twist_inputs", "wrap_angle",
+    "TwistInput", "UpdateResult", "angle_residual", "fuse", "innovate", "passes_gate",
+    "pose_update", "predict", "se2_between", "sensor_specs", "transition", "update",
+    "wheel_twist_inputs", "wrap_angle",
 ]  # fmt: skip

@@ -37,15 +37,19 @@ def between(a: Pose2, b: Pose2) -> Pose2:
     return Pose2(c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b.yaw - a.yaw)))
 
 
-def oplus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a (+) b for (3,) pose arrays (x, y, yaw), yaw wrapped."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
-                     float(wrap_angle(a[2] + b[2]))])  # fmt: skip
+def oplus(a: ArrayLike, b: ArrayLike) -> np.ndarray:
+    """a (+) b for pose arrays (..., 3) of (x, y, yaw) that broadcast together, yaw wrapped."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack([a[..., 0] + c * b[..., 0] - s * b[..., 1],
+                     a[..., 1] + s * b[..., 0] + c * b[..., 1],
+                     wrap_angle(a[..., 2] + b[..., 2])], axis=-1)  # fmt: skip
 
 
-def ominus(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a^-1 (+) b for (3,) pose arrays: pose b in the frame of pose a, yaw wrapped."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b[2] - a[2]))])
+def ominus(a: ArrayLike, b: ArrayLike) -> np.ndarray:
+    """a^-1 (+) b for pose arrays (..., 3): pose b in the frame of pose a, yaw wrapped."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])],
+                    axis=-1)  # fmt: skip

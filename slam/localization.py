@@ -48,6 +48,7 @@ import numpy as np
 
 from sensors.types import LaserScan, MapError
 from slam.config import LocalizerConfig
+from slam.ekf import pose_update as kalman_update
 from slam.geometry import ominus, oplus, wrap_angle
 from slam.occupancy_grid import OccupancyGrid
 from slam.scan_matching import (
@@ -105,20 +106,6 @@ def predict(x: np.ndarray, p: np.ndarray, u: np.ndarray, q_u: np.ndarray
     g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     p_new = f @ p @ f.T + g @ q_u @ g.T
     return oplus(x, u), 0.5 * (p_new + p_new.T)
-
-
-def kalman_update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Direct pose measurement (H = I) with a wrapped yaw residual; Joseph-form covariance."""
-    y = z - x
-    y[2] = float(wrap_angle(y[2]))
-    s = p + r
-    k = np.linalg.solve(s.T, p.T).T  # P S^-1 (both symmetric)
-    x_new = x + k @ y
-    x_new[2] = float(wrap_angle(x_new[2]))
-    ik = np.eye(3) - k
-    p_new = ik @ p @ ik.T + k @ r @ k.T
-    return x_new, 0.5 * (p_new + p_new.T)
 
 
 # 2. The map model ------------------------------------------------------------------------------

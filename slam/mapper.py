@@ -33,6 +33,7 @@ import numpy as np
 
 from sensors.types import LaserScan, MapError
 from slam.config import MapperConfig
+from slam.ekf import pose_update
 from slam.geometry import ominus, oplus, wrap_angle
 from slam.map_bundle import MapBundle
 from slam.pose_graph import Edge, EdgeKind, PoseGraph
@@ -85,13 +86,8 @@ def fuse_with_odometry(
     p_cov = rot @ prior_cov_robot @ rot.T
     r_cov, degenerate = release_degenerate_axis(match.covariance, degeneracy_ratio,
                                                 UNOBSERVED_VARIANCE)  # fmt: skip
-    innovation = match.pose - prior
-    innovation[2] = float(wrap_angle(innovation[2]))
-    gain = p_cov @ np.linalg.inv(p_cov + r_cov)
-    pose = prior + gain @ innovation
-    pose[2] = float(wrap_angle(pose[2]))
-    cov = (np.eye(3) - gain) @ p_cov
-    return MatchOutcome(match.ok, match.reason, pose, 0.5 * (cov + cov.T), match.response,
+    pose, cov = pose_update(prior, p_cov, match.pose, r_cov)
+    return MatchOutcome(match.ok, match.reason, pose, cov, match.response,
                         match.inlier_fraction, degenerate)  # fmt: skip
 
 
@@ -543,13 +539,13 @@ class Mapper:
         if not self._scan_stamps:
             return np.zeros((0, 3))
         kf = np.asarray(self._scan_kf)
-        from_prev = _apply(poses[kf], np.asarray(self._scan_offset))
+        from_prev = oplus(poses[kf], np.asarray(self._scan_offset))
         nxt = np.minimum(kf + 1, len(poses) - 1)
         # Only a next keyframe that was itself scan-matched shares the scans' tracking frame.
         has_next = (kf + 1 < len(poses)) & np.asarray(self._kf_matched)[nxt]
         track = np.asarray(self._scan_track)
         kf_track = np.asarray(self._kf_track)
-        from_next = _apply(poses[nxt], _relative(kf_track[nxt], track))
+        from_next = oplus(poses[nxt], ominus(kf_track[nxt], track))
         stamps = np.asarray(self._scan_stamps, dtype=np.int64)
         kf_stamps = np.array([k.stamp_ns for k in self.keyframes], dtype=np.int64)
         span = np.maximum(kf_stamps[nxt] - kf_stamps[kf], 1)
@@ -596,21 +592,6 @@ def _relative_delta(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d = b - a
     d[:, 2] = wrap_angle(d[:, 2])
     return d
-
-
-def _apply(base: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """Row-wise base (+) off for (S, 3) arrays."""
-    c, s = np.cos(base[:, 2]), np.sin(base[:, 2])
-    return np.column_stack([base[:, 0] + c * off[:, 0] - s * off[:, 1],
-                            base[:, 1] + s * off[:, 0] + c * off[:, 1],
-                            wrap_angle(base[:, 2] + off[:, 2])])  # fmt: skip
-
-
-def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise a^-1 (+) b for (S, 3) arrays."""
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[:, 2] - a[:, 2])])
 
 
 def _spread(points: np.ndarray, spacing: float) -> list[int]:

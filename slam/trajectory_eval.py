@@ -31,6 +31,7 @@ import numpy as np
 from sensors.recording import associate as _associate_stamps
 from sensors.tum import StampedText, read_stamped_text
 from sensors.types import RgbdNavError, SensorError, parse_stamp
+from slam.geometry import ominus
 
 AlignMode = Literal["se3", "sim3", "se2", "none"]
 DeltaUnit = Literal["m", "frames"]
@@ -358,14 +359,6 @@ def _nearest_index(stamps_ns: np.ndarray, query_ns: np.ndarray) -> tuple[np.ndar
     return idx, np.abs(stamps_ns[idx] - query_ns)
 
 
-def _relative_se2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(M, 3) poses b expressed in the frames of poses a, all (x, y, yaw)."""
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    dyaw = np.angle(np.exp(1j * (b[:, 2] - a[:, 2])))
-    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, dyaw])
-
-
 def relations_error(
     stamps_ns: np.ndarray,
     poses_xyyaw: np.ndarray,
@@ -389,10 +382,10 @@ def relations_error(
     ok = (d1 < max_diff_ns) & (d2 < max_diff_ns)
     if not ok.any():
         raise TrajectoryEvalError("no relation has estimate poses within the window at both ends")
-    d_est = _relative_se2(poses[i1[ok]], poses[i2[ok]])
+    d_est = ominus(poses[i1[ok]], poses[i2[ok]])
     d_ref = np.asarray(relations_xyyaw, dtype=np.float64)[ok]
     # E = d_est^-1 d_ref: d_ref expressed in the frame of d_est.
-    err = _relative_se2(d_est, d_ref)
+    err = ominus(d_est, d_ref)
     trans = np.hypot(err[:, 0], err[:, 1])
     rot = np.degrees(np.abs(err[:, 2]))
     return {
