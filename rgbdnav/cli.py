@@ -130,6 +130,17 @@ def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
     return cached
 
 
+def _echo_source(source: Path, recording: Path) -> None:
+    rendered = f" (recording: {recording})" if recording != source else ""
+    typer.echo(f"source      {source}{rendered}")
+
+
+def _echo_outputs(outputs: dict[str, Path]) -> None:
+    """One line per written file: what it is, where it is."""
+    for label, path in outputs.items():
+        typer.echo(f"{label:<11} {path}")
+
+
 @app.command()
 @_known_errors
 def info(
@@ -239,9 +250,8 @@ def odometry(
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("visual odometry", quiet or not vo) as progress:
         outputs = run_odometry(recording, out, config or [], set_ or [], vo, progress)
-    typer.echo(f"source      {source} (recording: {recording})")
-    for label, path in outputs.items():
-        typer.echo(f"{label:<11} {path}")
+    _echo_source(source, recording)
+    _echo_outputs(outputs)
 
 
 @app.command("map")
@@ -270,10 +280,8 @@ def map_(
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("mapping", quiet) as progress:
         outputs = run_map(recording, out, config or [], set_ or [], progress, continue_)
-    typer.echo(f"source      {source}" + (f" (recording: {recording})" if recording != source
-                                           else ""))  # fmt: skip
-    for label, path in outputs.items():
-        typer.echo(f"{label:<11} {path}")
+    _echo_source(source, recording)
+    _echo_outputs(outputs)
 
 
 @app.command()
@@ -312,11 +320,9 @@ def localize(
     with _Progress("localising", quiet) as progress:
         outputs, summary = run_localize(recording, map_, out, config or [], set_ or [],
                                         initial_pose, progress)  # fmt: skip
-    typer.echo(f"source      {source}" + (f" (recording: {recording})" if recording != source
-                                           else ""))  # fmt: skip
+    _echo_source(source, recording)
     typer.echo(f"result      {describe(summary)}")
-    for label, path in outputs.items():
-        typer.echo(f"{label:<11} {path}")
+    _echo_outputs(outputs)
 
 
 # Typer has no repeatable multi-value option, so `--goal X Y` pairs arrive as extra args.
@@ -361,8 +367,7 @@ def navigate(
         if g["status"] != "reached":
             typer.echo(f"goal        ({g['goal'][0]:.2f}, {g['goal'][1]:.2f}) {g['status']}: "
                        f"{g['reason']}")  # fmt: skip
-    for label, path in outputs.items():
-        typer.echo(f"{label:<11} {path}")
+    _echo_outputs(outputs)
 
 
 @app.command()
