@@ -65,7 +65,7 @@ def run_map(
             log.warning("%s has no usable timestamps; keyframes gated on motion only", source_path)
         if continue_bundle is not None:
             previous = load_bundle(continue_bundle)
-            mapper = Mapper.from_bundle(mapper_cfg, previous)
+            mapper = Mapper.from_bundle(mapper_cfg, previous, cfg.localizer)
             summary["continued_from"] = str(continue_bundle)
         else:
             mapper = Mapper(mapper_cfg)

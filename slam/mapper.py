@@ -32,9 +32,10 @@ from typing import Any
 import numpy as np
 
 from sensors.types import LaserScan, MapError
-from slam.config import MapperConfig
+from slam.config import LocalizerConfig, MapperConfig
 from slam.ekf import pose_update
 from slam.geometry import ominus, oplus, wrap_angle
+from slam.localization import Localizer, MapModel
 from slam.map_bundle import MapBundle
 from slam.pose_graph import Edge, EdgeKind, PoseGraph
 from slam.scan_matching import (
@@ -58,7 +59,6 @@ LOOP_MIN_LINEAR_WINDOW = 0.5  # [m] smallest loop-closure search half-window
 LOOP_MIN_ANGULAR_WINDOW = 0.2  # [rad] smallest loop-closure angular half-window
 ODOM_MIN_SIGMA = (0.01, 0.005)  # [m, rad] floor of an odometry edge's sigmas
 LOOP_MIN_SIGMA = (0.02, 0.01)  # [m, rad] floor of a loop closure's sigmas
-RELOCALISE_PROBE_SPACING = 2.0  # [m] keyframes probed along the saved path, and their window
 UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
 
@@ -178,6 +178,7 @@ class Mapper:
         self._local: _LocalMap | None = None
         self._relocalise = False  # continuing a saved map: place the first scan in it first
         self.relocalised: dict[str, object] | None = None
+        self._localizer: Localizer | None = None
 
     # 3a. Input ---------------------------------------------------------------------------------
 
@@ -399,11 +400,18 @@ class Mapper:
     # 3c. Continuing a saved map ----------------------------------------------------------------
 
     @classmethod
-    def from_bundle(cls, config: MapperConfig, bundle: MapBundle) -> Mapper:
-        """A mapper holding a saved map's keyframes and graph; the first scans it is fed are
-        relocalised in that map (global search around every stretch of the old path) and the
-        new keyframes extend the same graph."""
+    def from_bundle(
+        cls, config: MapperConfig, bundle: MapBundle, localizer: LocalizerConfig | None = None
+    ) -> Mapper:
+        """A mapper holding a saved map's keyframes and graph. The scans it is fed first go to
+        the localiser's global relocalisation (:mod:`slam.localization`: a search over the whole
+        map verified over several scans, ambiguity refused) until it tracks; from there the new
+        keyframes extend the same graph."""
         m = cls(config)
+        loc_cfg = localizer or LocalizerConfig()
+        model = MapModel.from_grid(bundle.grid, loc_cfg, bundle.occupied_thresh,
+                                   bundle.free_thresh)  # fmt: skip
+        m._localizer = Localizer(model, loc_cfg)
         poses = np.asarray(bundle.keyframe_poses, dtype=np.float64).reshape(-1, 3)
         if len(poses) == 0:
             raise MapError("the map bundle has no keyframes to continue from")
@@ -421,44 +429,41 @@ class Mapper:
         return m
 
     def _relocalise_in_map(self, scan: LaserScan, odom: np.ndarray) -> np.ndarray | None:
-        """Global search for the scan over the saved map: a correlative search (full turn, a
-        window as wide as the spacing of the probed positions) around keyframes spread along
-        the old path, the best verified by ICP and the fine response."""
+        """Feed the localiser until it tracks; then anchor the scan to the nearest saved
+        keyframe with a scan match around the localiser's pose (a loop edge)."""
+        assert self._localizer is not None
+        res = self._localizer.update(scan, odom)
+        if res.status != "tracking":
+            self.skipped["before relocalisation in the saved map"] += 1
+            return None
         cfg = self.config
         kf = self._make_keyframe(scan, odom)
         poses = self.graph.poses()
-        probes = _spread(poses[:, :2], RELOCALISE_PROBE_SPACING)
-        best: tuple[float, int, MatchOutcome] | None = None
-        for j in probes:
-            near = np.flatnonzero(np.hypot(*(poses[:, :2] - poses[j, :2]).T)
-                                  <= cfg.scan_buffer_maximum_scan_distance)  # fmt: skip
-            ids = [int(i) for i in near]
-            local = self._build_local(
-                self._world_points(ids, poses), RELOCALISE_PROBE_SPACING,
-                cfg.loop_search_space_resolution,
-                max(cfg.loop_search_space_smear_deviation, cfg.loop_search_space_resolution),
-            )  # fmt: skip
-            match = self._match(
-                kf, poses[j], local, linear_window=RELOCALISE_PROBE_SPACING,
-                angular_window=math.pi, angle_step=cfg.coarse_angle_resolution,
-                min_response=cfg.loop_match_minimum_response_fine, penalise=False,
-                min_coarse=cfg.loop_match_minimum_response_coarse,
-            )  # fmt: skip
-            if match.ok and (best is None or match.response > best[0]):
-                best = (match.response, j, match)
-        if best is None:
-            self.skipped["not relocalised in the saved map"] += 1
-            return None
-        _, j, match = best
-        node = self.graph.add_node(match.pose)
-        loop_cov = match.covariance + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
-                                               LOOP_MIN_SIGMA[1] ** 2])  # fmt: skip
-        self.graph.add_edge(j, node, ominus(poses[j], match.pose), loop_cov, kind="loop")
+        j = int(np.argmin(np.hypot(*(poses[:, :2] - res.pose[:2]).T)))
+        near = np.flatnonzero(np.hypot(*(poses[:, :2] - poses[j, :2]).T)
+                              <= cfg.scan_buffer_maximum_scan_distance)  # fmt: skip
+        lin = cfg.correlation_search_space_dimension / 2
+        local = self._build_local(self._world_points([int(i) for i in near], poses), lin,
+                                  cfg.correlation_search_space_resolution,
+                                  cfg.correlation_search_space_smear_deviation)  # fmt: skip
+        match = self._match(kf, res.pose, local, linear_window=lin,
+                            angular_window=cfg.coarse_search_angle_offset,
+                            angle_step=cfg.coarse_angle_resolution,
+                            min_response=cfg.loop_match_minimum_response_fine,
+                            penalise=True)  # fmt: skip
+        pose, cov = (match.pose, match.covariance) if match.ok else (res.pose, res.covariance)
+        node = self.graph.add_node(pose)
+        loop_cov = cov + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
+                                  LOOP_MIN_SIGMA[1] ** 2])  # fmt: skip
+        self.graph.add_edge(j, node, ominus(poses[j], pose), loop_cov, kind="loop")
         self.graph.update()
-        self._append_keyframe(kf, 0.0, match.pose, True)
+        self._append_keyframe(kf, 0.0, pose, True)
         self._relocalise = False
-        self.relocalised = {"keyframe": int(j), "response": round(float(match.response), 4),
-                            "pose": [round(float(v), 4) for v in match.pose]}  # fmt: skip
+        self._localizer = None
+        self.relocalised = {"keyframe": j, "confidence": round(float(res.confidence), 4),
+                            "scans_before": int(self.skipped["before relocalisation in the "
+                                                            "saved map"]),
+                            "pose": [round(float(v), 4) for v in pose]}  # fmt: skip
         return self._record(scan.stamp_ns, odom, self.graph.pose(node))
 
     # 3d. Loop closure ---------------------------------------------------------------------------
@@ -558,7 +563,8 @@ class Mapper:
         if self._relocalise and self._scans_seen:
             raise MapError(
                 f"none of the {self._scans_seen} scans could be placed in the saved map "
-                "(relocalisation found no verified match); the map was not extended"
+                "(the localiser's global relocalisation found no verified, unambiguous pose); "
+                "the map was not extended"
             )
         if batch_optimise and self.keyframes:
             t0 = time.perf_counter()
@@ -592,15 +598,6 @@ def _relative_delta(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d = b - a
     d[:, 2] = wrap_angle(d[:, 2])
     return d
-
-
-def _spread(points: np.ndarray, spacing: float) -> list[int]:
-    """Indices of points at least ``spacing`` apart, greedily in order."""
-    keep: list[int] = []
-    for i, p in enumerate(points):
-        if not keep or np.min(np.hypot(*(points[keep] - p).T)) >= spacing:
-            keep.append(i)
-    return keep
 
 
 def edge_dict(edge: Edge) -> dict[str, Any]:
