@@ -36,6 +36,8 @@ SetOpt = Annotated[
 ]
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
+RrdOpt = Annotated[Path | None, typer.Option(help="Save a rerun recording (.rrd) of the run here.")]
+ViewerOpt = Annotated[bool, typer.Option(help="Spawn the rerun viewer and stream the run to it.")]
 
 
 def _known_errors(fn: Any) -> Any:
@@ -266,6 +268,8 @@ def map_(
         typer.Option("--continue", help="Map bundle to extend: relocalise in it, then map on."),
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed when SOURCE is a world.")] = 0,
+    rrd: RrdOpt = None,
+    viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     quiet: QuietOpt = False,
@@ -279,7 +283,8 @@ def map_(
     cfg = load_config(config or [], set_ or [])
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("mapping", quiet) as progress:
-        outputs = run_map(recording, out, config or [], set_ or [], progress, continue_)
+        outputs = run_map(recording, out, config or [], set_ or [], progress, continue_, rrd,
+                          viewer)  # fmt: skip
     _echo_source(source, recording)
     _echo_outputs(outputs)
 
@@ -367,6 +372,80 @@ def navigate(
         if g["status"] != "reached":
             typer.echo(f"goal        ({g['goal'][0]:.2f}, {g['goal'][1]:.2f}) {g['status']}: "
                        f"{g['reason']}")  # fmt: skip
+    _echo_outputs(outputs)
+
+
+@app.command()
+@_known_errors
+def live(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    camera: Annotated[
+        str, typer.Option(help="sim, or an OpenNI2 device: openni:// (first) / openni://URI.")
+    ] = "sim",
+    board: Annotated[
+        str, typer.Option(help="sim, the board's serial port (/dev/ttyUSB0), or none.")
+    ] = "sim",
+    sim_world: Annotated[
+        Path | None, typer.Option("--sim-world", help="World YAML for --camera/--board sim.")
+    ] = Path("scenes/house.yaml"),
+    map_: Annotated[
+        Path | None,
+        typer.Option("--map", "-m", help="Localise in this map bundle / map.yaml (no mapping)."),
+    ] = None,
+    duration: Annotated[
+        float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")
+    ] = None,
+    drive: Annotated[
+        str, typer.Option(help="route: drive the route/goals on the estimated pose; idle: stay.")
+    ] = "route",
+    goal: Annotated[
+        list[str] | None,
+        typer.Option(help="A waypoint X,Y for --drive route (repeat; default: the world's route)."),
+    ] = None,
+    rrd: RrdOpt = None,
+    viewer: ViewerOpt = False,
+    drill: Annotated[
+        list[str] | None,
+        typer.Option(help="Fault drill for the simulated robot, ACTION@SECONDS[:ARG]: "
+                          "unplug_board@5, replug_board@8, stall_camera@10:2."),
+    ] = None,
+    repeat_route: Annotated[
+        bool, typer.Option(help="Drive the route again and again (soak tests).")
+    ] = False,
+    seed: Annotated[int, typer.Option(help="Seed of the simulated robot.")] = 0,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """The live run on the robot (or the simulated robot): map, or localise with --map."""
+    _setup_logging(verbose)
+    from rgbdnav.live_run import Drill, LiveOptions, run_live
+    from sensors.types import ConfigError
+
+    goals = []
+    for g in goal or []:
+        try:
+            x, y = (float(v) for v in g.split(","))
+        except ValueError:
+            raise ConfigError(f"--goal {g!r}: expected X,Y in metres, e.g. 4.5,1.5") from None
+        goals.append((x, y))
+    world = sim_world if "sim" in (camera, board) else None
+    opts = LiveOptions(out=out, camera=camera, board=board, world=world,
+                       config_files=config or [], overrides=set_ or [], map_bundle=map_,
+                       duration_s=duration, drive=drive, goals=goals, rrd=rrd, viewer=viewer,
+                       seed=seed, drills=[Drill.parse(d) for d in drill or []],
+                       repeat_route=repeat_route)  # fmt: skip
+    outputs, summary = run_live(opts)
+    lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
+    c = summary["counts"]
+    typer.echo(f"live        {summary['mode']} for {summary['wall_s']:.1f} s: "
+               f"{c.get('frames_processed', 0)} frames processed, "
+               f"{c.get('frames_dropped_front_end', 0)} dropped in the front end, "
+               f"latency p50 {lat['p50']} ms / p99 {lat['p99']} ms")
+    slam = summary.get("slam_vs_groundtruth")
+    if slam:
+        typer.echo(f"accuracy    ATE {slam.get('ate_rmse_m')} m against the simulator's truth")
     _echo_outputs(outputs)
 
 

@@ -26,6 +26,7 @@ from sensors.config import (
     SyncConfig,
     TopicsConfig,
     build_section,
+    param,
     section_to_dict,
 )
 from sensors.source import SourceOptions
@@ -39,6 +40,33 @@ from slam.config import (
 )
 
 REPO_CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """The live run: queues, stall detection, checkpoints and route driving (`rgbdnav live`)."""
+
+    frame_queue_size: int = param(4, ge=1, doc="camera frames waiting for the front end")
+    scan_queue_size: int = param(64, ge=1, doc="scans waiting for the mapper")
+    camera_stall_timeout: float = param(
+        1.0, unit="s", gt=0.0, doc="no frame for this long: a camera stall (mapping pauses)"
+    )
+    checkpoint_period: float = param(
+        30.0, unit="s", gt=0.0, doc="the map bundle is saved this often (and on exit)"
+    )
+    control_rate: float = param(10.0, unit="Hz", gt=0.0, doc="velocity commands to the board")
+    ekf_history_length: float = param(
+        2.0, unit="s", gt=0.0, doc="EKF history for late frames (smooth_lagged_data forced on)"
+    )
+    visualize_every: int = param(3, ge=1, doc="draw every n-th frame and scan")
+    visualize_queue_size: int = param(8, ge=1, doc="drawing jobs queued before they are dropped")
+    max_linear_speed: float = param(0.3, unit="m/s", gt=0.0, doc="--drive route forward speed")
+    max_angular_speed: float = param(0.6, unit="rad/s", gt=0.0, doc="--drive route turn rate")
+    turn_in_place_angle: float = param(
+        0.6, unit="rad", gt=0.0, doc="turn on the spot while the heading error is larger"
+    )
+    heading_gain: float = param(1.5, unit="1/s", gt=0.0, doc="turn rate per heading error")
+    waypoint_tolerance: float = param(0.2, unit="m", gt=0.0, doc="a route waypoint is reached")
 
 
 @dataclass(frozen=True)
@@ -58,6 +86,7 @@ class Config:
     board: BoardConfig = field(default_factory=BoardConfig)
     topics: TopicsConfig = field(default_factory=TopicsConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)
 
 
 # Annotations are strings under `from __future__ import annotations`; read types off an instance.

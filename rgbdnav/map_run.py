@@ -22,6 +22,13 @@ import numpy as np
 from rgbdnav.config import Config, load_config, source_options
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
+from rgbdnav.visualize import (
+    NullVisualizer,
+    Visualizer,
+    log_run,
+    make_visualizer,
+    occupied_cells_xy,
+)
 from sensors.carmen import CarmenSource
 from sensors.recording_source import RecordingSource
 from sensors.sim.world import floor_plan, world_from_dict
@@ -32,6 +39,7 @@ from slam.map_bundle import GraphEdge, MapBundle, load_bundle, save_bundle
 from slam.mapper import Mapper, MapperResult
 from slam.metrics import drift_report, interpolate_poses
 from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
+from slam.scan_matching import scan_points, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +55,11 @@ def run_map(
     overrides: Sequence[str],
     progress: Callable[[int, int], None] | None = None,
     continue_bundle: Path | None = None,
+    rrd: Path | None = None,
+    viewer: bool = False,
 ) -> dict[str, Path]:
     t0 = time.perf_counter()
+    vis = make_visualizer("map", rrd, viewer)  # fails before minutes of mapping, not after
     cfg = load_config(config_files, overrides)
     src = open_source(source_path, source_options(cfg))
     try:
@@ -121,9 +132,30 @@ def run_map(
                           resolution=g.resolution)  # fmt: skip
         outputs["picture"] = run.file("map.png")
         outputs["summary"] = run.write_summary(summary)
+        _visualize(vis, result, occ, g, gt if gt is not None and frame == "base_link" else None)
+        if rrd is not None:
+            outputs["rerun recording"] = rrd
         return outputs
     finally:
+        vis.close()
         src.close()
+
+
+def _visualize(vis: Visualizer, result: MapperResult, occupied: np.ndarray, g: GridGeometry,
+               gt: PoseStream | None) -> None:  # fmt: skip
+    """The run on rerun's time line: each keyframe's scan at its optimised pose, the path, the
+    final map (and the ground truth when the source has it)."""
+    if isinstance(vis, NullVisualizer):
+        return
+    kf_stamps = np.array([k.stamp_ns for k in result.keyframes], dtype=np.int64)
+    scans = [transform_points(p, scan_points(k.scan)) for k, p in
+             zip(result.keyframes, result.poses, strict=True)]  # fmt: skip
+    log_run(vis, kf_stamps, np.asarray(result.poses).reshape(-1, 3), scans,
+            occupied_cells_xy(occupied, (g.origin_x, g.origin_y), g.resolution),
+            None if gt is None else np.column_stack([gt.x, gt.y]))  # fmt: skip
+    if len(result.scan_stamps_ns):
+        p = result.scan_poses
+        vis.pose(int(result.scan_stamps_ns[-1]), p[-1], p[:, :2])
 
 
 def source_config(

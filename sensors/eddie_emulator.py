@@ -276,6 +276,13 @@ class EddieEmulator:
             self._advance(self.time_source())
             return self._counts()
 
+    def positions(self) -> tuple[float, float]:
+        """Integrated wheel travel (left, right) [positions], not floored: what the wheels really
+        did, for a simulator that moves a robot by them."""
+        with self._lock:
+            self._advance(self.time_source())
+            return self._left.pos, self._right.pos
+
     def speeds(self) -> tuple[float, float]:
         """Current wheel speeds (left, right) [positions/s]."""
         with self._lock:

@@ -220,3 +220,16 @@ def test_map_refuses_rgbd_frames_without_wheel_encoders_in_one_line(tmp_path: Pa
     result = runner.invoke(app, ["map", str(CABINET), "--out", str(tmp_path / "run"), "-q"])
     assert result.exit_code == 1
     assert result.output.startswith("error:") and "wheel encoders" in result.output
+
+
+def test_map_with_rrd_saves_a_rerun_recording_of_scans_path_and_map(tmp_path: Path) -> None:
+    truth = _route(40)
+    log = _write_log(tmp_path / "room.clf", truth, truth)
+    out = tmp_path / "run"
+    rrd = out / "run.rrd"
+    result = runner.invoke(app, ["map", str(log), "--out", str(out), "--rrd", str(rrd), "-q"])
+    assert result.exit_code == 0, result.output
+    data = rrd.read_bytes()
+    # The documented entity paths are in the recording (rrd keeps them as plain strings).
+    for path in (b"world/map", b"world/robot/scan", b"world/robot/trajectory", b"world/robot/pose"):
+        assert path in data, path

@@ -1,0 +1,160 @@
+"""The live run on the simulated robot (issue #9's targets), in real time on this machine.
+
+1. A live mapping run of the house (``rgbdnav live --camera sim --board sim``, the route driven
+   on the robot's own estimate) for ``--duration`` seconds (default 300): camera frames received,
+   processed and dropped in the front end, frame-to-pose latency p50/p99, the time per stage,
+   CPU use of the host process and of the simulated robot (a separate process, as a camera and a
+   board are separate hardware), peak memory, board polls per second, and the map's accuracy
+   against the simulator's truth beside the recorded run of the same route (``rgbdnav map
+   scenes/house.yaml``; its summary is read from ``--recorded`` or made there).
+2. ``--soak-minutes N``: the route driven again and again for N minutes; resident memory growth
+   after the warm-up (the first ``--warmup`` fraction of the run).
+
+Run: ``.venv/bin/python bench/bench_live.py [--duration 300] [--out docs/benchmarks.md]`` and
+``.venv/bin/python bench/bench_live.py --soak-minutes 30 [--out docs/benchmarks.md]``.
+Results replace the "live" (or "live-soak") section of the output markdown file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
+
+RGBDNAV = Path(sys.executable).with_name("rgbdnav")
+WORLD = REPO / "scenes" / "house.yaml"
+ATE_RATIO_TARGET = 1.2  # live ATE within 20 % of the recorded run's
+LATENCY_P50_TARGET_MS = 50.0
+LATENCY_P99_TARGET_MS = 100.0
+SOAK_GROWTH_TARGET = 0.10  # memory growth after warm-up
+
+
+def _run(args: list[str]) -> None:
+    print("$", " ".join(args), flush=True)
+    subprocess.run(args, cwd=REPO, check=True)
+
+
+def live_run(out: Path, duration_s: float, extra: list[str]) -> dict[str, Any]:
+    _run([str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "--duration",
+          str(duration_s), "-q", *extra])  # fmt: skip
+    return json.loads((out / "summary.json").read_text())
+
+
+def recorded_run(out: Path) -> dict[str, Any]:
+    summary = out / "summary.json"
+    if not summary.exists():
+        _run([str(RGBDNAV), "map", str(WORLD), "--out", str(out), "-q"])
+    return json.loads(summary.read_text())
+
+
+def _yes(ok: bool) -> str:
+    return "met" if ok else "**not met**"
+
+
+def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float) -> str:
+    c, lat, st = s["counts"], s["latency_ms"] or {}, s.get("stage_ms_median", {})
+    sim = s.get("sim_robot", {})
+    ate = s.get("slam_vs_groundtruth", {}).get("ate_rmse_m")
+    rec_ate = rec.get("slam_vs_groundtruth", {}).get("ate_rmse_m")
+    ratio = ate / rec_ate if ate is not None and rec_ate else None
+    dropped = c.get("frames_dropped_front_end", 0)
+    rows = [
+        ("run", f"{s['wall_s']:.0f} s of `rgbdnav live --camera sim --board sim` (house, route "
+                f"driven on the estimate; route finished: {s.get('route_finished')})"),
+        ("camera frames rendered / sent", f"{sim.get('frames_rendered')} / "
+                                          f"{c.get('frames_received', 0)} "
+                                          f"({sim.get('frames_dropped_camera')} not taken in time)"),
+        ("frames processed by the front end", str(c.get("frames_processed", 0))),
+        ("frames dropped in the front end (target 0)", f"{dropped}: {_yes(dropped == 0)}"),
+        ("frame-to-pose latency p50 / p99 / max",
+         f"{lat.get('p50')} / {lat.get('p99')} / {lat.get('max')} ms (targets "
+         f"{LATENCY_P50_TARGET_MS:.0f} / {LATENCY_P99_TARGET_MS:.0f}: "
+         f"{_yes((lat.get('p50') or 1e9) <= LATENCY_P50_TARGET_MS)} / "
+         f"{_yes((lat.get('p99') or 1e9) <= LATENCY_P99_TARGET_MS)})"),
+        ("median ms per stage", ", ".join(f"{k} {v}" for k, v in st.items())),
+        ("CPU", f"host process {s['cpu']['host_cpu_percent']} % of one core; simulated robot "
+                f"{s['cpu']['sim_robot_cpu_s'] / max(s['wall_s'], 1e-9) * 100:.0f} %"),
+        ("peak memory (RSS)", f"host {s['peak_rss_mb']['host']} MB, simulated robot "
+                              f"{s['peak_rss_mb']['sim_robot']} MB"),
+        ("board polls per second", f"{s.get('board_polls_per_s')} (board.poll_rate 50 Hz)"),
+        ("visualisation drawn / dropped", f"{s['visualization']['drawn']} / "
+                                          f"{s['visualization']['dropped']}"),
+        ("SLAM ATE vs truth (live)", f"{ate} m over {sim.get('true_path_length_m')} m"),
+        ("SLAM ATE vs truth (recorded run, `rgbdnav map scenes/house.yaml`)", f"{rec_ate} m"),
+        ("live / recorded ATE (target <= 1.2)",
+         "-" if ratio is None else f"{ratio:.2f}: {_yes(ratio <= ATE_RATIO_TARGET)}"),
+        ("errors", "; ".join(s["errors"]) or "none"),
+    ]  # fmt: skip
+    lines = [
+        f"## Live run on the simulated robot ({duration_s:.0f} s)",
+        "",
+        f"Date {dt.date.today().isoformat()}; machine: {machine('numpy', 'cv2')}.",
+        f"Command: `.venv/bin/python bench/bench_live.py --duration {duration_s:.0f}`. The "
+        "simulated robot (renderer + board emulator) runs in its own process on the same 2 "
+        "cores, so the host gets what the renderer leaves.",
+        "",
+        "| measure | result |",
+        "| --- | --- |",
+        *[f"| {a} | {b} |" for a, b in rows],
+    ]
+    return "\n".join(lines)
+
+
+def report_soak(s: dict[str, Any], minutes: float, warmup: float) -> str:
+    tl = s.get("rss_mb_timeline") or []
+    after = [(t, m) for t, m in tl if t >= warmup * s["wall_s"]]
+    base = after[0][1] if after else float("nan")
+    peak = max((m for _, m in after), default=float("nan"))
+    growth = (peak - base) / base if after else float("nan")
+    c = s["counts"]
+    lines = [
+        f"## Live soak ({minutes:.0f} min)",
+        "",
+        f"Date {dt.date.today().isoformat()}; machine: {machine('numpy')}.",
+        f"Command: `.venv/bin/python bench/bench_live.py --soak-minutes {minutes:.0f}` (the "
+        "house route driven again and again while mapping).",
+        "",
+        "| measure | result |",
+        "| --- | --- |",
+        f"| route laps / scans mapped / keyframes in the bundle | {c.get('route_laps', 0)} / "
+        f"{c.get('scans_mapped', 0)} / see summary |",
+        f"| RSS after warm-up ({warmup:.0%} of the run) | {base:.0f} MB |",
+        f"| peak RSS after warm-up | {peak:.0f} MB |",
+        f"| growth (target < {SOAK_GROWTH_TARGET:.0%}) | {growth:.1%}: "
+        f"{_yes(growth < SOAK_GROWTH_TARGET)} |",
+        f"| frames dropped in the front end | {c.get('frames_dropped_front_end', 0)} of "
+        f"{c.get('frames_received', 0)} |",
+        f"| errors | {'; '.join(s['errors']) or 'none'} |",
+    ]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration", type=float, default=300.0, help="live run length [s]")
+    ap.add_argument("--soak-minutes", type=float, default=None)
+    ap.add_argument("--warmup", type=float, default=0.2, help="soak warm-up fraction")
+    ap.add_argument("--recorded", type=Path, default=REPO / "runs" / "demo",
+                    help="run directory of the recorded run (made if missing)")  # fmt: skip
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    if args.soak_minutes:
+        s = live_run(REPO / "runs" / "bench_live_soak", args.soak_minutes * 60,
+                     ["--repeat-route"])  # fmt: skip
+        publish(report_soak(s, args.soak_minutes, args.warmup), args.out, "live-soak")
+        return
+    s = live_run(REPO / "runs" / "bench_live", args.duration, [])
+    publish(report_live(s, recorded_run(args.recorded), args.duration), args.out, "live")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,675 @@
+"""`rgbdnav live`: the robot's camera and control board, the front end, the mapper (or the
+localiser against a saved map) and visualisation, all running at once in real time.
+
+Threads, each with its own bounded queue, so a slow consumer can only lose its own work:
+
+1. **board**: :class:`sensors.eddie.OdometryPoller` polls DIST at ``board.poll_rate``; the driver's
+   host watchdog sends STOP when velocity commands stop (``board.watchdog_timeout``).
+2. **camera**: frames from the adapter (the simulated robot, or OpenNI2) into the frame queue; a
+   frame that finds the queue full is dropped and counted (``frames_dropped_front_end``).
+3. **front end**: wheel ticks and VO into the EKF (``odom -> base_link``), depth -> scan; the
+   scan with its odometry pose goes to the mapper queue. A camera silent for
+   ``live.camera_stall_timeout`` is a stall: counted, warned, and the mapper simply waits.
+4. **mapper** (or localiser): ``map -> odom``; the map bundle is checkpointed every
+   ``live.checkpoint_period`` and on exit, atomically.
+5. **controller** at ``live.control_rate``: drives the route/goals (``--drive route``) on the
+   estimated pose, or holds still (``--drive idle``); GOSPD through the driver.
+6. **visualiser**: rerun on its own thread; dropped first when the machine falls behind.
+
+SIGINT and SIGTERM end the run cleanly (motors stopped, final checkpoint, summary). After a
+``kill -9`` the last checkpoint in ``OUT/map`` is a complete bundle that ``map --continue`` and
+``localize --map`` load.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import resource
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rgbdnav.config import Config, load_config, source_options
+from rgbdnav.map_run import RGBD_PROFILE, build_grid, make_bundle
+from rgbdnav.report import plot_trajectories
+from rgbdnav.run_dir import RunDir
+from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, occupied_cells_xy
+from sensors.eddie import BoardError, EddieBoard, OdometryPoller
+from sensors.source import open_source
+from sensors.tum import write_tum_trajectory
+from sensors.types import ConfigError, RgbdFrame, SensorError, WheelTicks
+from slam.depth_to_scan import DepthToScan
+from slam.diff_drive import WheelErrorModel
+from slam.ekf import EkfError, PlanarEkf, TwistInput, wheel_twist_inputs
+from slam.geometry import ominus, oplus
+from slam.map_bundle import save_bundle
+from slam.mapper import Mapper
+from slam.metrics import drift_report
+from slam.scan_matching import scan_points, transform_points
+from slam.visual_odometry import VisualOdometry
+
+log = logging.getLogger(__name__)
+
+DRILLS = ("unplug_board", "replug_board", "stall_camera")
+JOIN_TIMEOUT_S = 30.0  # [s] a thread that does not finish its queue by then is reported
+MIN_LATENCIES = 1  # percentiles need at least one processed frame
+MEMORY_SAMPLE_S = 5.0  # [s] resident memory is sampled this often for the summary
+
+
+def rss_mb() -> float:
+    """Resident memory of this process now [MB] (Linux; NaN elsewhere)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return math.nan
+
+
+@dataclass(frozen=True)
+class Drill:
+    """A scheduled fault for the simulated robot: ``action@seconds[:argument]``."""
+
+    at_s: float
+    action: str
+    arg: float = 0.0
+
+    @staticmethod
+    def parse(text: str) -> Drill:
+        action, sep, rest = text.partition("@")
+        when, _, arg = rest.partition(":")
+        try:
+            at_s, value = float(when), float(arg) if arg else 0.0
+        except ValueError:
+            at_s = value = math.nan
+        if action not in DRILLS or not sep or not math.isfinite(at_s) or not math.isfinite(value):
+            raise ConfigError(
+                f"--drill {text!r}: expected ACTION@SECONDS[:ARG] with ACTION one of "
+                f"{', '.join(DRILLS)}, e.g. unplug_board@5 or stall_camera@10:2"
+            )
+        return Drill(at_s, action, value)
+
+
+@dataclass(frozen=True)
+class LiveOptions:
+    out: Path
+    camera: str = "sim"  # "sim" or an OpenNI2 target ("openni://", "openni://<uri>", x.oni)
+    board: str = "sim"  # "sim", a serial port / pyserial URL, or "none"
+    world: Path | None = None  # simulator world (camera or board "sim")
+    config_files: Sequence[Path] = ()
+    overrides: Sequence[str] = ()
+    map_bundle: Path | None = None  # localisation-only against this map
+    duration_s: float | None = None  # None: until SIGINT/SIGTERM
+    drive: str = "route"  # "route" | "idle"
+    goals: Sequence[tuple[float, float]] = ()  # route for --drive route (default: the world's)
+    rrd: Path | None = None
+    viewer: bool = False
+    seed: int = 0
+    drills: Sequence[Drill] = ()
+    repeat_route: bool = False  # drive the route again and again (soak runs)
+
+
+class Counters:
+    """Thread-safe event counts for the summary."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._c: Counter[str] = Counter()
+
+    def inc(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._c[name] += n
+
+    def as_dict(self) -> dict[str, int]:
+        with self._lock:
+            return dict(sorted(self._c.items()))
+
+
+@dataclass
+class _Shared:
+    """State handed between threads (each field written by one thread, read under the lock)."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    odom: np.ndarray | None = None  # latest odom -> base_link
+    map_to_odom: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    tracking: bool = True  # the pose in the map is trustworthy (localiser: tracking)
+
+    def pose_in_map(self) -> np.ndarray | None:
+        with self.lock:
+            return None if self.odom is None else oplus(self.map_to_odom, self.odom)
+
+
+# --- driving ----------------------------------------------------------------------------------
+
+
+def route_command(pose: np.ndarray, target: np.ndarray, max_v: float, max_w: float,
+                  turn_in_place: float, heading_gain: float) -> tuple[float, float]:  # fmt: skip
+    """(v, w) towards ``target``: turn in place while the heading error exceeds
+    ``turn_in_place`` [rad], otherwise drive while steering, slowing with cos(error)."""
+    dx, dy = float(target[0] - pose[0]), float(target[1] - pose[1])
+    err = math.atan2(math.sin(math.atan2(dy, dx) - pose[2]), math.cos(math.atan2(dy, dx) - pose[2]))
+    w = max(-max_w, min(max_w, heading_gain * err))
+    if abs(err) > turn_in_place:
+        return 0.0, w
+    return max_v * math.cos(err), w
+
+
+# --- the run ----------------------------------------------------------------------------------
+
+
+class LiveRun:
+    def __init__(self, opts: LiveOptions) -> None:
+        self.opts = opts
+        files = list(opts.config_files)
+        if RGBD_PROFILE.is_file():
+            files = [RGBD_PROFILE, *files]  # depth scans: the RGB-D mapping profile, yours win
+        cfg = load_config(files, opts.overrides)
+        # Frames reach the EKF later than wheel ticks (render, queue, VO): it must re-filter
+        # lagged data (robot_localization's smooth_lagged_data) instead of dropping it.
+        history = max(cfg.ekf.history_length, cfg.live.ekf_history_length)
+        self.cfg: Config = replace(cfg, ekf=replace(cfg.ekf, smooth_lagged_data=True,
+                                                    history_length=history))  # fmt: skip
+        self.config_files = files
+        if opts.drive not in ("route", "idle"):
+            raise ConfigError(f"--drive {opts.drive!r}: expected route or idle")
+        if (opts.camera == "sim" or opts.board == "sim") and opts.world is None:
+            raise ConfigError("--camera sim / --board sim need --sim-world WORLD.yaml")
+        if opts.drills and opts.camera != "sim":
+            raise ConfigError("--drill needs the simulated robot (--camera sim --board sim)")
+        self.counts = Counters()
+        self.stop = threading.Event()
+        self.shared = _Shared()
+        self.frame_q: queue.Queue[RgbdFrame | None] = queue.Queue(self.cfg.live.frame_queue_size)
+        self.scan_q: queue.Queue[tuple[Any, np.ndarray] | None] = queue.Queue(
+            self.cfg.live.scan_queue_size
+        )
+        self.ticks_q: queue.Queue[WheelTicks] = queue.Queue()
+        self.latency_ms: list[float] = []
+        self.rss_timeline: list[tuple[float, float]] = []  # (seconds into the run, MB)
+        self.stage_ms: dict[str, list[float]] = {"wheels_ekf": [], "vo": [], "depth_to_scan": [],
+                                                 "mapper": []}  # fmt: skip
+        self.odom_track: list[tuple[int, float, float, float]] = []
+        self.map_track: list[tuple[int, float, float, float]] = []
+        self.errors: list[str] = []
+        self.run = RunDir(opts.out)
+        self.sim: Any = None
+        self.board: EddieBoard | None = None
+        self.poller: OdometryPoller | None = None
+        self.vis: Any = NullVisualizer()
+        self.mapper: Mapper | None = None
+        self.localizer: Any = None
+        self._last_checkpoint = time.monotonic()
+        self._checkpoint_lock = threading.Lock()
+        self.start_pose = np.zeros(3)
+        self.route = np.zeros((0, 2))
+        self.route_done = False
+
+    # 1. Start: the simulated robot (if any), the board, the camera adapter.
+
+    def _start_devices(self) -> Iterator[RgbdFrame]:
+        opts, cfg = self.opts, self.cfg
+        sim_port = ""
+        if opts.camera == "sim" or opts.board == "sim":
+            from sensors.sim.live import SimRobot
+            from sensors.sim.world import load_world
+
+            world = load_world(opts.world)  # type: ignore[arg-type]
+            self.start_pose = np.array(world.start, dtype=np.float64)
+            self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2) if opts.goals \
+                else world.route  # fmt: skip
+            self.sim = SimRobot(opts.world, cfg.robot, cfg.camera, cfg.sim,  # type: ignore[arg-type]
+                                self.run.file("board.pty"), seed=opts.seed)  # fmt: skip
+            sim_port = self.sim.start()
+        else:
+            self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2)
+        port = sim_port if opts.board == "sim" else opts.board
+        if opts.board != "none":
+            self.board = EddieBoard(port, cfg.board, cfg.robot)
+            self.poller = OdometryPoller(self.board, cfg.board, callback=self.ticks_q.put,
+                                         read_speed_heading=False)  # fmt: skip
+        if opts.camera == "sim":
+            return self._sim_frames()
+        src = open_source(opts.camera, source_options(cfg))
+        return iter(src.frames())
+
+    def _sim_frames(self) -> Iterator[RgbdFrame]:
+        assert self.sim is not None and self.sim.intrinsics is not None
+        while not self.stop.is_set():
+            msg = self.sim.next_frame(timeout_s=0.1)
+            if msg is None:
+                yield None  # type: ignore[misc]  # lets the camera thread notice a stall
+                continue
+            yield RgbdFrame(msg.stamp_ns, msg.rgb, msg.depth_m, self.sim.intrinsics)
+
+    # 2. The threads.
+
+    def _camera_loop(self, frames: Iterator[RgbdFrame | None]) -> None:
+        try:
+            for frame in frames:
+                if self.stop.is_set():
+                    break
+                if frame is None:
+                    continue
+                self.counts.inc("frames_received")
+                try:
+                    self.frame_q.put_nowait(frame)
+                except queue.Full:
+                    self.counts.inc("frames_dropped_front_end")
+        except SensorError as err:
+            self.errors.append(f"camera: {err}")
+            log.error("camera failed: %s", err)
+        finally:
+            self.frame_q.put(None)
+
+    def _front_end_loop(self) -> None:
+        cfg = self.cfg
+        vo: VisualOdometry | None = None
+        d2s: DepthToScan | None = None
+        ekf = PlanarEkf(cfg.ekf, cfg.ekf.imu0_angular_velocity_variance,
+                        x0=None)  # fmt: skip
+        model = WheelErrorModel.from_robot(cfg.robot)
+        prev_ticks: WheelTicks | None = None
+        prev_frame_ns: int | None = None
+        stalled = False
+        vis_every = cfg.live.visualize_every
+        n = 0
+        while True:
+            try:
+                frame = self.frame_q.get(timeout=cfg.live.camera_stall_timeout)
+            except queue.Empty:
+                if not stalled and not self.stop.is_set():
+                    stalled = True
+                    self.counts.inc("camera_stalls")
+                    log.warning("no camera frame for %.1f s: mapping paused",
+                                cfg.live.camera_stall_timeout)  # fmt: skip
+                continue
+            if frame is None:
+                break
+            if stalled:
+                stalled = False
+                log.info("camera frames again: mapping resumed")
+            # a. Wheel ticks that arrived since the last frame.
+            t_a = time.perf_counter()
+            while True:
+                try:
+                    t = self.ticks_q.get_nowait()
+                except queue.Empty:
+                    break
+                if prev_ticks is not None and t.stamp_ns > prev_ticks.stamp_ns:
+                    (tw,) = wheel_twist_inputs(
+                        np.array([prev_ticks.stamp_ns, t.stamp_ns]),
+                        np.array([prev_ticks.left, t.left]), np.array([prev_ticks.right, t.right]),
+                        cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance)  # fmt: skip
+                    ekf.process("odom0", tw)
+                prev_ticks = t
+            # b. Visual odometry between this frame and the last processed one.
+            t_b = time.perf_counter()
+            if vo is None:
+                vo = VisualOdometry(frame.intrinsics, cfg.vo, cfg.robot)
+                d2s = DepthToScan(frame.intrinsics, cfg.robot, cfg.depth_to_scan)
+            res = vo.process(frame)
+            if prev_frame_ns is not None:
+                dt = (frame.stamp_ns - prev_frame_ns) / 1e9
+                d = res.delta_base
+                if res.success and d is not None and dt > 0:
+                    ekf.process("vo0", TwistInput(frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
+                                                  np.asarray(res.covariance) / dt**2))  # fmt: skip
+                else:
+                    self.counts.inc(f"vo_failures_{res.reason}")
+            prev_frame_ns = frame.stamp_ns
+            t_c = time.perf_counter()
+            try:
+                od = ekf.state_at(frame.stamp_ns)
+            except EkfError:  # no wheel reading yet, or the frame is older than the history
+                self.counts.inc("frames_without_odometry")
+                continue
+            odom = oplus(self.start_pose, [od.pose.x, od.pose.y, od.pose.yaw])
+            # c. The scan for the mapper, and the pose is out: latency ends here.
+            assert d2s is not None
+            t_d = time.perf_counter()
+            scan = d2s.from_frame(frame).scan
+            t_e = time.perf_counter()
+            self.stage_ms["wheels_ekf"].append(1e3 * (t_b - t_a + t_d - t_c))
+            self.stage_ms["vo"].append(1e3 * (t_c - t_b))
+            self.stage_ms["depth_to_scan"].append(1e3 * (t_e - t_d))
+            with self.shared.lock:
+                self.shared.odom = odom
+            self.latency_ms.append((time.monotonic_ns() - frame.stamp_ns) / 1e6)
+            self.counts.inc("frames_processed")
+            self.odom_track.append((frame.stamp_ns, float(odom[0]), float(odom[1]), float(odom[2])))
+            try:
+                self.scan_q.put_nowait((scan, odom))
+            except queue.Full:
+                self.counts.inc("scans_dropped_mapper_behind")
+            n += 1
+            if vis_every and n % vis_every == 0:
+                self.vis.frame(frame.stamp_ns, frame.rgb, frame.depth_m)
+        self.scan_q.put(None)
+
+    def _mapper_loop(self) -> None:
+        cfg = self.cfg
+        while (item := self.scan_q.get()) is not None:
+            scan, odom = item
+            if self.localizer is not None:
+                res = self.localizer.update(scan, odom)
+                pose, m2o = res.pose, res.map_to_odom
+                tracking = res.status == "tracking"
+                self.counts.inc(f"localizer_{res.status}")
+            else:
+                assert self.mapper is not None
+                t0 = time.perf_counter()
+                out = self.mapper.add_scan(scan, odom)
+                self.stage_ms["mapper"].append(1e3 * (time.perf_counter() - t0))
+                if out is None:
+                    self.counts.inc("scans_skipped_by_mapper")
+                    continue
+                pose, tracking = np.asarray(out), True
+                m2o = oplus(pose, ominus(odom, np.zeros(3)))
+            with self.shared.lock:
+                self.shared.map_to_odom = np.asarray(m2o, dtype=np.float64)
+                self.shared.tracking = tracking
+            self.map_track.append((scan.stamp_ns, float(pose[0]), float(pose[1]), float(pose[2])))
+            self.counts.inc("scans_mapped")
+            if len(self.map_track) % max(cfg.live.visualize_every, 1) == 0:
+                pts = transform_points(np.asarray(pose), scan_points(scan))
+                self.vis.scan(scan.stamp_ns, pts)
+                track = np.array([p[1:3] for p in self.map_track])
+                self.vis.pose(scan.stamp_ns, np.asarray(pose), track)
+            if (self.mapper is not None
+                    and time.monotonic() - self._last_checkpoint >= cfg.live.checkpoint_period):
+                self.checkpoint(final=False)  # fmt: skip
+
+    def _controller_loop(self) -> None:
+        lc = self.cfg.live
+        period = 1.0 / lc.control_rate
+        i = 0
+        failing = False
+        while not self.stop.wait(period):
+            if self.board is None:
+                continue
+            v = w = 0.0
+            pose = self.shared.pose_in_map()
+            if self.opts.repeat_route and i >= len(self.route):
+                i = 0
+                self.counts.inc("route_laps")
+            if self.opts.drive == "route" and pose is not None and i < len(self.route):
+                if math.hypot(*(self.route[i] - pose[:2])) < lc.waypoint_tolerance:
+                    i += 1
+                    self.counts.inc("waypoints_reached")
+                    self.route_done = i >= len(self.route) and not self.opts.repeat_route
+                elif self.shared.tracking:
+                    v, w = route_command(pose, self.route[i], lc.max_linear_speed,
+                                         lc.max_angular_speed, lc.turn_in_place_angle,
+                                         lc.heading_gain)  # fmt: skip
+            try:
+                self.board.set_velocity(v, w)
+            except BoardError as err:
+                if not failing:
+                    log.warning("board not answering, motors assumed stopped: %s", err)
+                failing = True
+                self.counts.inc("board_command_errors")
+                continue
+            if failing:
+                log.info("board answering again")
+                self.counts.inc("board_recovered")
+                failing = False
+
+    # 3. Checkpoints: the bundle so far, written atomically.
+
+    def checkpoint(self, final: bool) -> Path | None:
+        if self.mapper is None:
+            return None
+        with self._checkpoint_lock:
+            t0 = time.perf_counter()
+            result = self.mapper.finish(batch_optimise=final)
+            if not result.keyframes:
+                return None
+            grid = build_grid(result, self.cfg)
+            path = self.run.file("map")
+            save_bundle(make_bundle(result, grid, self.cfg, f"live {self.opts.camera}"), path)
+            self._last_checkpoint = time.monotonic()
+            self.counts.inc("checkpoints")
+            self.last_result, self.last_grid = result, grid
+            log.info("map checkpoint: %d keyframes in %.2f s", len(result.keyframes),
+                     time.perf_counter() - t0)  # fmt: skip
+            g = grid.geometry
+            occ = grid.occupied_mask(self.cfg.mapper.occupied_thresh)
+            self.vis.occupied(int(result.scan_stamps_ns[-1]) if len(result.scan_stamps_ns) else 0,
+                              occupied_cells_xy(occ, (g.origin_x, g.origin_y), g.resolution))
+            return path
+
+    # 4. The whole run.
+
+    def execute(self, progress: Callable[[float, float], None] | None = None) -> dict[str, Path]:
+        opts, cfg = self.opts, self.cfg
+        t0, cpu0 = time.monotonic(), resource.getrusage(resource.RUSAGE_SELF)
+        outputs = {"config": self.run.write_config(cfg)}
+        if opts.map_bundle is not None:
+            from rgbdnav.localize_run import load_map
+            from slam.localization import Localizer, MapModel
+
+            loaded = load_map(opts.map_bundle)
+            model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
+                                       loaded.free_thresh)  # fmt: skip
+            self.localizer = Localizer(model, cfg.localizer)
+        else:
+            self.mapper = Mapper(cfg.mapper)
+        vis = make_visualizer("live", opts.rrd, opts.viewer)
+        self.vis = AsyncVisualizer(vis, cfg.live.visualize_queue_size)
+        restore = self._install_signal_handlers()
+        threads: list[threading.Thread] = []
+        try:
+            frames = self._start_devices()
+            if self.localizer is not None and self.sim is not None:
+                # The simulated robot knows where it starts, as a user gives --initial-pose.
+                self.localizer.set_initial_pose(self.start_pose)
+            if self.poller is not None:
+                self.poller.start()
+            specs: list[tuple[str, Callable[..., None], tuple[Any, ...]]] = [
+                ("camera", self._camera_loop, (frames,)),
+                ("front-end", self._front_end_loop, ()),
+                ("mapper", self._mapper_loop, ()),
+                ("controller", self._controller_loop, ()),
+            ]
+            for name, fn, args in specs:
+                th = threading.Thread(target=self._guard, args=(name, fn, *args), name=name,
+                                      daemon=True)  # fmt: skip
+                th.start()
+                threads.append(th)
+            self._wait(t0, progress)
+        finally:
+            self.stop.set()
+            for th in threads:
+                th.join(timeout=JOIN_TIMEOUT_S)
+                if th.is_alive():
+                    self.errors.append(f"thread {th.name} did not finish within "
+                                       f"{JOIN_TIMEOUT_S:.0f} s")  # fmt: skip
+            if self.poller is not None:
+                self.poller.stop()
+            if self.board is not None:
+                self.board.close()  # STOP 0 if the motors may be running
+            sim_stats = None
+            if self.sim is not None:
+                try:
+                    sim_stats = self.sim.stop()
+                except SensorError as err:  # the map and the run's files still get written
+                    self.errors.append(f"simulated robot: {err}")
+            restore()
+        wall = time.monotonic() - t0
+        if self.mapper is not None and self.checkpoint(final=True) is not None:
+            outputs["map bundle"] = self.run.file("map")
+        self.vis.close()
+        outputs.update(self._write_outputs(wall, cpu0, sim_stats))
+        return outputs
+
+    def _guard(self, name: str, fn: Callable[..., None], *args: Any) -> None:
+        """A thread that dies takes the run down cleanly (motors stopped, map saved)."""
+        try:
+            fn(*args)
+        except Exception as err:
+            log.exception("%s thread failed", name)
+            self.errors.append(f"{name}: {type(err).__name__}: {err}")
+            self.stop.set()
+            if name == "front-end":
+                self.scan_q.put(None)
+
+    def _wait(self, t0: float, progress: Callable[[float, float], None] | None) -> None:
+        drills = sorted(self.opts.drills, key=lambda d: d.at_s)
+        total = self.opts.duration_s or math.inf
+        next_sample = 0.0
+        while not self.stop.is_set():
+            elapsed = time.monotonic() - t0
+            if elapsed >= next_sample:
+                self.rss_timeline.append((round(elapsed, 1), round(rss_mb(), 1)))
+                next_sample += MEMORY_SAMPLE_S
+            while drills and drills[0].at_s <= elapsed:
+                d = drills.pop(0)
+                log.warning("fault drill at %.1f s: %s", elapsed, d.action)
+                self.counts.inc(f"drill_{d.action}")
+                self.sim.order(d.action, d.arg)
+            if elapsed >= total:
+                break
+            if self.opts.drive == "route" and self.route_done:
+                break
+            if progress is not None and math.isfinite(total):
+                progress(elapsed, total)
+            self.stop.wait(0.1)
+
+    def _install_signal_handlers(self) -> Callable[[], None]:
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+        def handler(signum: int, _frame: Any) -> None:
+            log.warning("%s: stopping (motors, final map checkpoint)", signal.Signals(signum).name)
+            self.stop.set()
+
+        for s in old:
+            signal.signal(s, handler)
+
+        def restore() -> None:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+        return restore
+
+    def _write_outputs(self, wall: float, cpu0: Any, sim_stats: Any) -> dict[str, Path]:
+        outputs: dict[str, Path] = {}
+        run = self.run
+        if self.map_track:
+            m = np.array(self.map_track)
+            write_tum_trajectory(run.file("trajectory.tum"), m[:, 0].astype(np.int64), m[:, 1],
+                                 m[:, 2], m[:, 3])  # fmt: skip
+            outputs["trajectory"] = run.file("trajectory.tum")
+        if self.odom_track:
+            o = np.array(self.odom_track)
+            write_tum_trajectory(run.file("odom.tum"), o[:, 0].astype(np.int64), o[:, 1], o[:, 2],
+                                 o[:, 3])  # fmt: skip
+            outputs["odometry"] = run.file("odom.tum")
+        truth = np.array(sim_stats.truth if sim_stats is not None else []).reshape(-1, 4)
+        if len(truth):
+            write_tum_trajectory(run.file("groundtruth.tum"), truth[:, 0].astype(np.int64),
+                                 truth[:, 1], truth[:, 2], truth[:, 3])  # fmt: skip
+            outputs["ground truth"] = run.file("groundtruth.tum")
+        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+        kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+        lat = np.array(self.latency_ms)
+        summary: dict[str, Any] = {
+            "command": "live",
+            "camera": self.opts.camera,
+            "board": self.opts.board,
+            "world": str(self.opts.world) if self.opts.world else None,
+            "mode": "localization" if self.localizer is not None else "mapping",
+            "drive": self.opts.drive,
+            "config_files": [str(p) for p in self.config_files],
+            "wall_s": round(wall, 3),
+            "counts": self.counts.as_dict(),
+            "latency_ms": ({"p50": round(float(np.percentile(lat, 50)), 2),
+                            "p99": round(float(np.percentile(lat, 99)), 2),
+                            "max": round(float(lat.max()), 2)}
+                           if len(lat) >= MIN_LATENCIES else None),  # fmt: skip
+            "stage_ms_median": {k: round(float(np.median(v)), 2) for k, v in self.stage_ms.items()
+                                if v},  # fmt: skip
+            "cpu": {
+                "host_cpu_s": round(cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime,
+                                    2),
+                "host_cpu_percent": round(100 * (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime
+                                                 - cpu0.ru_stime) / max(wall, 1e-9), 1),
+                "sim_robot_cpu_s": round(kids.ru_utime + kids.ru_stime, 2),
+            },  # fmt: skip
+            "peak_rss_mb": {"host": round(cpu1.ru_maxrss / 1024, 1),
+                            "sim_robot": round(kids.ru_maxrss / 1024, 1)},  # fmt: skip
+            "rss_mb_timeline": self.rss_timeline,
+            "board_polls_per_s": round(self.poller.stats().polls / max(wall, 1e-9), 1)
+            if self.poller is not None else None,
+            "visualization": {"drawn": self.vis.drawn, "dropped": self.vis.dropped},
+            "errors": self.errors,
+        }
+        if self.poller is not None:
+            ps = self.poller.stats()
+            summary["board_link"] = {"port": str(self.board.url) if self.board else None,
+                                "polls": ps.polls, "errors": ps.errors,
+                                "last_error": ps.last_error}  # fmt: skip
+        if sim_stats is not None:
+            summary["sim_robot"] = {
+                "frames_rendered": sim_stats.frames_rendered,
+                "frames_dropped_camera": sim_stats.frames_dropped,
+                "stalled_frames": sim_stats.stalled_frames,
+                "collisions": sim_stats.collisions,
+                "board_disconnects": sim_stats.board_disconnects,
+                "true_path_length_m": round(float(np.sum(np.hypot(*np.diff(truth[:, 1:3], axis=0)
+                                                                  .T))), 3) if len(truth) > 1
+                else 0.0,
+            }  # fmt: skip
+            summary["route_finished"] = self.route_done
+        if len(truth) > 1:
+            for name, track in (("slam", self.map_track), ("odometry", self.odom_track)):
+                if len(track) >= 2:
+                    a = np.array(track)
+                    rep = drift_report(a[:, 0].astype(np.int64), (a[:, 1], a[:, 2], a[:, 3]),
+                                       truth[:, 0].astype(np.int64),
+                                       (truth[:, 1], truth[:, 2], truth[:, 3]))  # fmt: skip
+                    summary[f"{name}_vs_groundtruth"] = rep.as_dict()
+        paths = []
+        if len(truth):
+            paths.append(("ground truth", truth[:, 1], truth[:, 2]))
+        if self.odom_track:
+            o = np.array(self.odom_track)
+            paths.append(("odometry (EKF)", o[:, 1], o[:, 2]))
+        if self.map_track:
+            m = np.array(self.map_track)
+            paths.append(("SLAM" if self.mapper is not None else "localised", m[:, 1], m[:, 2]))
+        grid = getattr(self, "last_grid", None)
+        if paths:
+            kw: dict[str, Any] = {}
+            if grid is not None:
+                g = grid.geometry
+                kw = {"occupied": grid.occupied_mask(self.cfg.mapper.occupied_thresh),
+                      "origin": (g.origin_x, g.origin_y), "resolution": g.resolution}
+            plot_trajectories(run.file("map.png"), paths, "live run", **kw)
+            outputs["picture"] = run.file("map.png")
+        outputs["summary"] = run.write_summary(summary)
+        self.summary = summary
+        return outputs
+
+
+def run_live(opts: LiveOptions,
+             progress: Callable[[float, float], None] | None = None) -> tuple[dict[str, Path],
+                                                                              dict[str, Any]]:
+    """Run live until the duration, the end of the route, or SIGINT/SIGTERM."""
+    live = LiveRun(opts)
+    outputs = live.execute(progress)
+    return outputs, live.summary
+
+
+__all__ = ["Drill", "LiveOptions", "LiveRun", "route_command", "run_live"]

@@ -1,0 +1,261 @@
+"""The simulated robot in real time: the board emulator behind a pseudo-terminal turns the wheels,
+and a 30 Hz Kinect images the world at the pose those wheels really reached.
+
+Everything runs in a child process, as a real camera and a real control board run outside the
+host program: the host opens the board's serial port and reads camera frames through exactly
+the code paths it uses on the robot (:class:`sensors.eddie.EddieBoard`, a frame iterator).
+
+Truth in the child: the robot moves by the emulator's *continuous* wheel travel (the board
+reports its floor as encoder counts), through wheels that are not quite the nominal ones
+(``sim.wheel_diameter_error``, ``sim.track_width_error``) and slip (AR(1), ``sim.wheel_slip``).
+A pose closer to a wall or furniture than ``robot.radius`` is a collision: the robot stays where
+it was (a bumper) and the collision is counted.
+
+The serial port is a symlink (``port_link``) to the emulator's pty, as a udev rule gives a USB
+adapter a stable name; a drilled "board unplugged" closes the pty, and "replugged" serves a new
+one behind the same link.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+import os
+import queue
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sensors.config import CameraConfig, RobotConfig, SimConfig
+from sensors.types import CameraIntrinsics, SensorError
+
+log = logging.getLogger(__name__)
+
+FRAME_QUEUE_SIZE = 2  # frames in flight to the host: a USB camera's small buffer
+STARTUP_TIMEOUT_S = 60.0  # [s] importing and building the renderer in the child
+STOP_TIMEOUT_S = 30.0  # [s] finishing a frame and reporting, on a busy machine
+
+
+@dataclass(frozen=True)
+class SimFrameMsg:
+    """One camera frame as it crosses the process boundary, with the truth behind it."""
+
+    stamp_ns: int  # [ns] time.monotonic_ns() at capture (the clock the board driver stamps with)
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth_m: np.ndarray  # (H, W) float32 [m], 0 = invalid
+    true_pose: tuple[float, float, float]  # base_link in the world [m, m, rad]
+
+
+@dataclass
+class SimRobotStats:
+    frames_rendered: int = 0
+    frames_dropped: int = 0  # the host did not take them in time (camera-side overflow)
+    collisions: int = 0  # physics steps refused because the robot would hit something
+    stalled_frames: int = 0  # frames not sent during a drilled camera stall
+    board_disconnects: int = 0
+    truth: list[tuple[int, float, float, float]] = field(default_factory=list)
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _child(*args: Any) -> None:
+    """The child's entry: any failure is reported to the host, not lost with the process."""
+    replies = args[-1]
+    try:
+        _simulate(*args)
+    except BaseException as err:
+        import traceback
+
+        replies.put(("error", f"{type(err).__name__}: {err}\n{traceback.format_exc()}"))
+        raise
+
+
+def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: SimConfig,
+           seed: int, port_link: str, frames: Any, control: Any, replies: Any) -> None:  # fmt: skip
+    from scipy.ndimage import distance_transform_edt
+
+    from sensors.eddie_emulator import EddieEmulator
+    from sensors.sim.render import KinectRenderer
+    from sensors.sim.world import floor_plan, load_world
+
+    rng = np.random.default_rng(seed)
+    world = load_world(world_path)
+    renderer = KinectRenderer(world, camera, robot, sim, noise_seed=int(rng.integers(2**31)))
+    plan = floor_plan(world)
+    clearance = distance_transform_edt(~plan.occupied) * plan.resolution
+    # The true wheels: nominal geometry times a seeded error, as the recorded simulator does.
+    metres = robot.metres_per_tick * (1.0 + np.asarray(sim.wheel_diameter_error))  # [m/pos] L, R
+    track = robot.track_width * (1.0 + sim.track_width_error)
+    emu = EddieEmulator(robot)
+    link = Path(port_link)
+
+    def serve(path: str) -> None:
+        tmp = link.with_name(link.name + ".tmp")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(path)
+        os.replace(tmp, link)
+
+    serve(emu.serve_pty())
+    stats = SimRobotStats()
+    x, y, yaw = world.start
+    slip = np.zeros(2)
+    prev = np.array(emu.positions())
+    period_ns = int(round(1e9 / sim.camera_rate))
+    next_ns = time.monotonic_ns()
+    stall_until_ns = 0
+    replies.put(("ready", renderer.intrinsics))
+    host = os.getppid()
+    while os.getppid() == host:  # a host killed with -9 leaves no orphan rendering forever
+        # 1. Orders from the host (fault drills, stop).
+        try:
+            order = control.get_nowait()
+        except queue.Empty:
+            order = None
+        if order is not None:
+            kind = order[0]
+            if kind == "stop":
+                break
+            if kind == "unplug_board":
+                emu.inject(disconnect=True)
+                stats.board_disconnects += 1
+            elif kind == "replug_board":
+                serve(emu.reconnect())
+            elif kind == "stall_camera":
+                stall_until_ns = time.monotonic_ns() + int(order[1] * 1e9)
+        # 2. Move the robot by what the wheels did since the last frame.
+        now = np.array(emu.positions())
+        dt = period_ns / 1e9
+        slip = slip * math.exp(-dt / sim.slip_correlation_time) + sim.wheel_slip * math.sqrt(
+            1 - math.exp(-2 * dt / sim.slip_correlation_time)) * rng.standard_normal(2)  # fmt: skip
+        travel = (now - prev) * metres * (1.0 + slip)  # [m] left, right
+        prev = now
+        ds, dth = travel.mean(), (travel[1] - travel[0]) / track
+        nx = x + ds * math.cos(yaw + dth / 2)
+        ny = y + ds * math.sin(yaw + dth / 2)
+        r, c = plan.cell_of(np.array([[nx, ny]]))[0]
+        inside = 0 <= r < clearance.shape[0] and 0 <= c < clearance.shape[1]
+        if inside and clearance[r, c] >= robot.radius:
+            x, y = nx, ny
+        elif ds != 0.0:
+            stats.collisions += 1
+        yaw = _wrap(yaw + dth)
+        # 3. Image the world at the capture time, unless the camera is stalled.
+        stamp = time.monotonic_ns()
+        stats.truth.append((stamp, x, y, yaw))
+        if stamp < stall_until_ns:
+            stats.stalled_frames += 1
+        else:
+            rgb, depth = renderer.render(x, y, yaw, rng)
+            stats.frames_rendered += 1
+            try:
+                frames.put_nowait(SimFrameMsg(stamp, rgb, depth, (x, y, yaw)))
+            except queue.Full:
+                stats.frames_dropped += 1
+        # 4. Keep the 30 Hz phase; a frame that could not be rendered in time is skipped.
+        next_ns += period_ns
+        late = time.monotonic_ns() - next_ns
+        if late > 0:
+            next_ns += (late // period_ns + 1) * period_ns
+        time.sleep(max(0.0, (next_ns - time.monotonic_ns()) / 1e9))
+    emu.close()
+    frames.cancel_join_thread()  # frames the host no longer reads must not block our exit
+    replies.put(("stats", stats))
+
+
+class SimRobot:
+    """The child process: ``start()`` returns the serial port to open; ``frames()`` iterates
+    camera frames as they arrive; ``stop()`` returns the child's counters and ground truth."""
+
+    def __init__(self, world_path: str | Path, robot: RobotConfig, camera: CameraConfig,
+                 sim: SimConfig, port_link: str | Path, seed: int = 0) -> None:  # fmt: skip
+        self.world_path = str(world_path)
+        self.robot, self.camera, self.sim, self.seed = robot, camera, sim, seed
+        self.port_link = str(port_link)
+        ctx = mp.get_context("spawn")  # the host has threads: never fork it
+        self._frames: Any = ctx.Queue(maxsize=FRAME_QUEUE_SIZE)
+        self._control: Any = ctx.Queue()
+        self._replies: Any = ctx.Queue()
+        self._proc = ctx.Process(
+            target=_child, name="rgbdnav-sim-robot", daemon=True,
+            args=(self.world_path, robot, camera, sim, seed, self.port_link, self._frames,
+                  self._control, self._replies),
+        )  # fmt: skip
+        self.intrinsics: CameraIntrinsics | None = None
+        self._stats: SimRobotStats | None = None
+        self._error: str | None = None
+
+    def start(self) -> str:
+        self._proc.start()
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while True:
+            try:
+                kind, payload = self._replies.get(timeout=0.2)
+                break
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    raise SensorError(
+                        f"the simulated robot failed to start (exit code {self._proc.exitcode}); "
+                        "see the log above"
+                    ) from None
+                if time.monotonic() > deadline:
+                    self._proc.kill()
+                    raise SensorError(
+                        f"the simulated robot did not start within {STARTUP_TIMEOUT_S:.0f} s"
+                    ) from None
+        if kind == "error":
+            self._proc.join(timeout=STOP_TIMEOUT_S)
+            raise SensorError(f"the simulated robot failed to start: {payload.splitlines()[0]}")
+        self.intrinsics = payload
+        return self.port_link
+
+    def next_frame(self, timeout_s: float) -> SimFrameMsg | None:
+        """The next frame, or None after ``timeout_s`` without one (a stalled camera)."""
+        try:
+            msg: SimFrameMsg = self._frames.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+        return msg
+
+    def order(self, *order: Any) -> None:
+        """A fault drill: ("unplug_board",), ("replug_board",), ("stall_camera", seconds)."""
+        self._control.put(order)
+
+    def stop(self) -> SimRobotStats:
+        if self._stats is not None:
+            return self._stats
+        if self._proc.is_alive():
+            self._control.put(("stop",))
+            deadline = time.monotonic() + STOP_TIMEOUT_S
+            while time.monotonic() < deadline:
+                # Drain frames so the child's last put cannot block its exit.
+                try:
+                    self._frames.get_nowait()
+                except queue.Empty:
+                    pass
+                try:
+                    kind, payload = self._replies.get(timeout=0.05)
+                except queue.Empty:
+                    continue
+                if kind == "stats":
+                    self._stats = payload
+                    break
+                if kind == "error":
+                    self._error = payload
+                    break
+        self._proc.join(timeout=STOP_TIMEOUT_S)
+        if self._proc.is_alive():
+            self._proc.kill()
+        if self._stats is None:
+            why = self._error.splitlines()[0] if self._error else (
+                f"exit code {self._proc.exitcode}")  # fmt: skip
+            raise SensorError(f"the simulated robot failed: {why}")
+        return self._stats
+
+
+__all__ = ["SimFrameMsg", "SimRobot", "SimRobotStats"]

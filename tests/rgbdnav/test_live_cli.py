@@ -1,0 +1,127 @@
+"""`rgbdnav live` on the simulated robot (`--camera sim --board sim`): the same threads, queues,
+driver and checkpoints as on the robot, with only the camera and board adapters simulated."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from rgbdnav.cli import app
+from rgbdnav.live_run import Drill, route_command
+from sensors.types import ConfigError
+from slam.map_bundle import load_bundle
+
+REPO = Path(__file__).resolve().parents[2]
+WORLD = REPO / "scenes" / "house.yaml"
+RGBDNAV = Path(sys.executable).with_name("rgbdnav")
+runner = CliRunner()
+MIN_KEYFRAMES_TO_LOCALISE = 8  # a checkpoint with the start room's walls in it
+
+
+def _live(out: Path, *args: str) -> dict:
+    res = runner.invoke(app, ["live", "--out", str(out), "--sim-world", str(WORLD), "-q", *args])
+    assert res.exit_code == 0, res.output
+    return json.loads((out / "summary.json").read_text())
+
+
+def test_route_command_turns_in_place_then_drives_towards_the_target() -> None:
+    v, w = route_command([0.0, 0.0, 0.0], [0.0, 1.0], 0.3, 0.6, 0.6, 1.5)
+    assert v == 0.0 and w == pytest.approx(0.6)  # 90 deg off: turn left on the spot
+    v, w = route_command([0.0, 0.0, 0.0], [2.0, 0.2], 0.3, 0.6, 0.6, 1.5)
+    assert 0.29 < v <= 0.3 and 0.0 < w < 0.2  # nearly ahead: drive, steering a little left
+
+
+def test_a_drill_that_does_not_parse_names_the_expected_form() -> None:
+    assert Drill.parse("stall_camera@10:2") == Drill(10.0, "stall_camera", 2.0)
+    with pytest.raises(ConfigError, match="ACTION@SECONDS"):
+        Drill.parse("explode@3")
+
+
+def test_live_sim_maps_while_driving_the_route_and_checkpoints_the_bundle(tmp_path: Path) -> None:
+    out = tmp_path / "live"
+    s = _live(out, "--duration", "14", "--set", "live.checkpoint_period=4",
+              "--rrd", str(out / "run.rrd"))  # fmt: skip
+    c = s["counts"]
+    assert s["mode"] == "mapping" and s["errors"] == []
+    assert c["frames_processed"] >= 10 and c["scans_mapped"] >= 10
+    assert c["checkpoints"] >= 2  # periodic ones and the final one
+    assert s["sim_robot"]["true_path_length_m"] > 0.5  # it drove the route on its own estimate
+    assert s["sim_robot"]["collisions"] == 0
+    # A short run stays close to the simulator's truth (a loose bound: CI machines are busy).
+    assert s["slam_vs_groundtruth"]["ate_rmse_m"] < 0.3
+    assert s["latency_ms"]["p50"] > 0
+    bundle = load_bundle(out / "map")
+    assert len(bundle.keyframe_ids) >= 2
+    lines = (out / "trajectory.tum").read_text().splitlines()
+    assert len([ln for ln in lines if not ln.startswith("#")]) == c["scans_mapped"]
+    assert (out / "run.rrd").stat().st_size > 10_000
+    assert (out / "map.png").is_file()
+
+
+def test_fault_drills_stop_the_motors_pause_mapping_and_recover(tmp_path: Path) -> None:
+    out = tmp_path / "drills"
+    s = _live(out, "--duration", "14", "--drill", "unplug_board@3", "--drill", "replug_board@6",
+              "--drill", "stall_camera@8:2", "--set", "board.reconnect_interval=0.2")  # fmt: skip
+    c = s["counts"]
+    assert s["errors"] == []
+    assert c["drill_unplug_board"] == c["drill_replug_board"] == c["drill_stall_camera"] == 1
+    assert c["board_command_errors"] >= 1 and c["board_recovered"] >= 1
+    assert c["camera_stalls"] >= 1
+    assert s["sim_robot"]["stalled_frames"] > 0
+    assert c["scans_mapped"] >= 10  # mapping went on around the faults
+    assert load_bundle(out / "map") is not None
+
+
+def test_kill_9_leaves_a_checkpoint_that_loads_and_localises(tmp_path: Path) -> None:
+    out = tmp_path / "killed"
+    proc = subprocess.Popen(
+        [str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "-q",
+         "--set", "live.checkpoint_period=2"],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    keyframes = 0
+    try:
+        # Kill it once a checkpoint holds enough of the house to localise in.
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and keyframes < MIN_KEYFRAMES_TO_LOCALISE:
+            time.sleep(0.5)
+            if (out / "map" / "graph.json").exists():
+                keyframes = len(load_bundle(out / "map").keyframe_ids)  # renamed in atomically
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    assert keyframes >= MIN_KEYFRAMES_TO_LOCALISE, "no usable checkpoint was written"
+    assert len(load_bundle(out / "map").keyframe_ids) >= MIN_KEYFRAMES_TO_LOCALISE
+    s = _live(tmp_path / "again", "--map", str(out / "map"), "--duration", "8", "--drive", "idle")
+    assert s["mode"] == "localization" and s["errors"] == []
+    assert s["counts"].get("localizer_tracking", 0) > 0
+
+
+def test_sigterm_stops_the_motors_and_saves_the_map(tmp_path: Path) -> None:
+    out = tmp_path / "term"
+    proc = subprocess.Popen(
+        [str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "-q"],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    time.sleep(10)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["counts"]["checkpoints"] >= 1 and s["errors"] == []
+    assert load_bundle(out / "map") is not None
+
+
+def test_a_board_port_that_does_not_open_fails_in_one_line(tmp_path: Path) -> None:
+    res = runner.invoke(app, ["live", "--out", str(tmp_path / "x"), "--sim-world", str(WORLD),
+                              "--board", str(tmp_path / "no-such-tty"), "--duration", "5",
+                              "-q"])  # fmt: skip
+    assert res.exit_code == 1
+    assert "cannot open Eddie board" in res.output and "Traceback" not in res.output

@@ -1,0 +1,100 @@
+"""The simulated robot behind a pseudo-terminal, driven through the real board driver."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from sensors.config import BoardConfig, CameraConfig, RobotConfig, SimConfig
+from sensors.eddie import BoardError, EddieBoard
+from sensors.sim.live import SimRobot
+
+WORLD = Path(__file__).resolve().parents[3] / "scenes" / "house.yaml"
+FRAME_TIMEOUT_S = 5.0  # [s] generous: CI machines are shared
+
+
+@pytest.fixture
+def robot(tmp_path: Path):
+    sim = SimRobot(WORLD, RobotConfig(), CameraConfig(), SimConfig(), tmp_path / "board.pty")
+    sim.start()
+    yield sim
+    sim.stop()
+
+
+def test_gospd_through_the_driver_moves_the_camera_forward(robot: SimRobot) -> None:
+    first = robot.next_frame(FRAME_TIMEOUT_S)
+    assert first is not None and first.rgb.shape == (480, 640, 3)
+    with EddieBoard(robot.port_link, BoardConfig(), RobotConfig()) as board:
+        t_end = time.monotonic() + 1.5
+        while time.monotonic() < t_end:
+            board.set_velocity(0.2, 0.0)
+            time.sleep(0.05)
+        board.stop()
+        left, right = board.distance()
+    stopped_ns = time.monotonic_ns()
+    last = None
+    deadline = time.monotonic() + FRAME_TIMEOUT_S
+    while time.monotonic() < deadline and (last is None or last.stamp_ns < stopped_ns):
+        last = robot.next_frame(FRAME_TIMEOUT_S) or last
+    stats = robot.stop()
+    assert last is not None
+    dx = last.true_pose[0] - first.true_pose[0]
+    # 1.5 s at up to 0.2 m/s after the board's acceleration ramp: well over 0.1 m, along +x.
+    assert 0.1 < dx < 0.35
+    assert abs(last.true_pose[1] - first.true_pose[1]) < 0.05
+    assert left > 0 and right > 0 and abs(left - right) <= 2
+    assert stats.frames_rendered >= 10 and stats.collisions == 0
+    assert len(stats.truth) >= stats.frames_rendered
+
+
+def test_an_unplugged_board_fails_commands_until_it_is_replugged(tmp_path: Path) -> None:
+    robot = SimRobot(WORLD, RobotConfig(), CameraConfig(), SimConfig(), tmp_path / "board.pty")
+    robot.start()
+    cfg = BoardConfig(reconnect_interval=0.1, timeout=0.1)
+    try:
+        board = EddieBoard(robot.port_link, cfg, RobotConfig())
+        assert board.version() > 0
+        robot.order("unplug_board")
+        failed = False
+        deadline = time.monotonic() + FRAME_TIMEOUT_S
+        while time.monotonic() < deadline and not failed:
+            try:
+                board.version()
+                time.sleep(0.05)
+            except BoardError:
+                failed = True
+        assert failed, "commands kept succeeding after the board was unplugged"
+        robot.order("replug_board")
+        deadline = time.monotonic() + FRAME_TIMEOUT_S
+        version = None
+        while time.monotonic() < deadline and version is None:
+            try:
+                version = board.version()
+            except BoardError:
+                time.sleep(0.1)
+        assert version is not None, "the driver did not reconnect through the port's link"
+        board.close()
+    finally:
+        stats = robot.stop()
+    assert stats.board_disconnects == 1
+
+
+def test_a_stalled_camera_sends_no_frames_then_resumes(robot: SimRobot) -> None:
+    assert robot.next_frame(FRAME_TIMEOUT_S) is not None
+    robot.order("stall_camera", 1.0)
+    time.sleep(0.2)
+    while robot.next_frame(0.0) is not None:  # frames captured before the order
+        pass
+    assert robot.next_frame(0.6) is None
+    assert robot.next_frame(FRAME_TIMEOUT_S) is not None
+    assert robot.stop().stalled_frames >= 10
+
+
+def test_a_world_that_does_not_load_fails_in_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: nothing\n")
+    robot = SimRobot(bad, RobotConfig(), CameraConfig(), SimConfig(), tmp_path / "board.pty")
+    with pytest.raises(Exception, match="failed to start"):
+        robot.start()
