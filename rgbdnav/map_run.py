@@ -208,24 +208,28 @@ def _rgbd_stream(
     from rgbdnav.odometry_run import run_odometry
     from slam.depth_to_scan import DepthToScan
 
-    odom_out = run_odometry(source_path, run.file("odometry"), list(cli_config[0]),
-                            list(cli_config[1]), use_vo=True)  # fmt: skip
-    outputs["odometry"] = run.file("odometry")
-    stamps, xyz, quat = load_tum_trajectory(odom_out["fused odom"])
-    yaw = yaw_from_quaternion(quat)
     intrinsics = src.intrinsics()
     assert intrinsics is not None
     d2s = DepthToScan(intrinsics, cfg.robot, cfg.depth_to_scan)
+    # Scans are made in the odometry pass's frame loop: each frame is decoded once.
+    scans: list[LaserScan] = []
+    odom_out = run_odometry(source_path, run.file("odometry"), list(cli_config[0]),
+                            list(cli_config[1]), use_vo=True,
+                            on_frame=lambda f: scans.append(d2s.from_frame(f).scan))  # fmt: skip
+    outputs["odometry"] = run.file("odometry")
+    stamps, xyz, quat = load_tum_trajectory(odom_out["fused odom"])
+    yaw = yaw_from_quaternion(quat)
     n = len(src.stream_stamps().get("depth", ()))
     summary["odometry_source"] = "EKF fused (odometry/fused.tum)"
 
     def gen() -> Iterator[tuple[LaserScan, np.ndarray]]:
-        for frame in src.frames():
+        frame_scans = scans or (d2s.from_frame(f).scan for f in src.frames())
+        for scan in frame_scans:
             fx, fy, fyaw, inside = interpolate_poses(stamps, xyz[:, 0], xyz[:, 1], yaw,
-                                                     np.array([frame.stamp_ns]))  # fmt: skip
+                                                     np.array([scan.stamp_ns]))  # fmt: skip
             if not inside[0]:
                 continue  # no fused pose brackets this frame: counted by the odometry run
-            yield d2s.from_frame(frame).scan, np.array([fx[0], fy[0], fyaw[0]])
+            yield scan, np.array([fx[0], fy[0], fyaw[0]])
 
     return gen(), n, "base_link"
 

@@ -20,7 +20,7 @@ from sensors.sim.world import floor_plan, world_from_dict
 from sensors.source import Source, open_source
 from sensors.sync import interpolate_wheels, synchronise
 from sensors.tum import write_tum_trajectory
-from sensors.types import NS_PER_S, ImuSample, Pose2, SensorError
+from sensors.types import NS_PER_S, ImuSample, Pose2, RgbdFrame, SensorError
 from slam.diff_drive import (
     WheelErrorModel,
     integrate_ticks,
@@ -43,6 +43,7 @@ def run_odometry(
     overrides: Sequence[str],
     use_vo: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    on_frame: Callable[[RgbdFrame], None] | None = None,
 ) -> dict[str, Path]:
     """Odometry of any source with wheel encoders (recording, TUM folder + wheels, bag): wheel
     dead reckoning, visual odometry when it has RGB-D frames, and their EKF fusion with the gyro."""
@@ -50,7 +51,8 @@ def run_odometry(
     cfg = load_config(config_files, overrides)
     src = open_source(source_path, source_options(cfg))
     try:
-        return _run(src, source_path, out, config_files, overrides, t0, use_vo, progress)
+        return _run(src, source_path, out, config_files, overrides, t0, use_vo, progress,
+                    on_frame)  # fmt: skip
     finally:
         src.close()
 
@@ -69,7 +71,9 @@ class _VoTrack:
 
 
 def _visual_odometry(src: Source, cfg: Config, start: Pose2,
-                     progress: Callable[[int, int], None] | None) -> _VoTrack | None:  # fmt: skip
+                     progress: Callable[[int, int], None] | None,
+                     on_frame: Callable[[RgbdFrame], None] | None = None,
+                     ) -> _VoTrack | None:  # fmt: skip
     intrinsics = src.intrinsics()
     n = len(src.stream_stamps().get("rgb", ()))
     if intrinsics is None or n < 2:
@@ -83,6 +87,8 @@ def _visual_odometry(src: Source, cfg: Config, start: Pose2,
     for k, frame in enumerate(src.frames()):
         res = vo.process(frame)
         ms.append(res.ms)
+        if on_frame is not None:  # e.g. the mapper's depth -> scan, without decoding twice
+            on_frame(frame)
         if prev_t is not None:
             dt = (frame.stamp_ns - prev_t) / NS_PER_S
             d = res.delta_base
@@ -107,7 +113,8 @@ def _visual_odometry(src: Source, cfg: Config, start: Pose2,
 
 def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path],
          overrides: Sequence[str], t0: float, use_vo: bool,
-         progress: Callable[[int, int], None] | None) -> dict[str, Path]:  # fmt: skip
+         progress: Callable[[int, int], None] | None,
+         on_frame: Callable[[RgbdFrame], None] | None = None) -> dict[str, Path]:  # fmt: skip
     scene = src.recording.scene if isinstance(src, RecordingSource) else {}
     # A recording's own robot description sits under the user's files and --set.
     base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
@@ -177,7 +184,7 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
             "streams": dict(sync_stats.streams),
         }
     # 3. Visual odometry over the RGB-D frames (optional: the slowest step).
-    vo_track = _visual_odometry(src, cfg, start, progress) if use_vo else None
+    vo_track = _visual_odometry(src, cfg, start, progress, on_frame) if use_vo else None
     # 4. EKF: wheel twists (+ gyro, + VO twists) -> odom -> base_link. A sensor whose
     #    <sensor>_config selects nothing is not an input (and is not named as one).
     streams: dict[str, list] = {}

@@ -218,3 +218,25 @@ def test_a_sensor_switched_off_in_the_ekf_config_is_not_fused_or_named(
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ekf"]["inputs"] == ["odom0"]
     assert summary["ekf"]["stats"]["sensors"]["imu0"]["received"] == 0
+
+
+def test_map_of_a_recording_decodes_each_frame_once(
+    recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from sensors.recording_source import RecordingSource
+
+    decoded = []
+    frames = RecordingSource.frames
+
+    def counting(self: RecordingSource):  # type: ignore[no-untyped-def]
+        for f in frames(self):
+            decoded.append(f.stamp_ns)
+            yield f
+
+    monkeypatch.setattr(RecordingSource, "frames", counting)
+    out = tmp_path / "map"
+    result = runner.invoke(app, ["map", str(recording), "--out", str(out), "-q"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(decoded) == len(set(decoded)) == 45  # VO and depth -> scan share one decode
+    assert summary["counts"]["scans"] == 45
