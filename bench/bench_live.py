@@ -80,7 +80,11 @@ def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float) -> st
          f"{LATENCY_P50_TARGET_MS:.0f} / {LATENCY_P99_TARGET_MS:.0f}: "
          f"{_yes((lat.get('p50') or 1e9) <= LATENCY_P50_TARGET_MS)} / "
          f"{_yes((lat.get('p99') or 1e9) <= LATENCY_P99_TARGET_MS)})"),
+        ("of which camera -> host (simulated capture: render + transfer), p50",
+         f"{s.get('camera_to_host_ms_p50')} ms"),
         ("median ms per stage", ", ".join(f"{k} {v}" for k, v in st.items())),
+        ("VO skipped on a frame because another was waiting",
+         f"{c.get('vo_skipped_behind', 0)} frames"),
         ("CPU", f"host process {s['cpu']['host_cpu_percent']} % of one core; simulated robot "
                 f"{s['cpu']['sim_robot_cpu_s'] / max(s['wall_s'], 1e-9) * 100:.0f} %"),
         ("peak memory (RSS)", f"host {s['peak_rss_mb']['host']} MB, simulated robot "

@@ -56,6 +56,12 @@ class CostmapConfig:
     )
     inflate_unknown: bool = param(False, doc="inflate unknown cells as if lethal")
     inflate_around_unknown: bool = param(False, doc="inflate around unknown cells")
+    # Keepout filter.
+    inflate_keepout: bool = param(
+        True,
+        doc="inflate keepout zones like obstacles so the footprint stays out (Nav2 filters "
+        "run after inflation: false lets the robot centre reach the zone's edge)",
+    )
 
     def validate(self) -> str | None:
         if self.obstacle_min_range >= self.obstacle_max_range:
@@ -217,3 +223,36 @@ class SmootherConfig:
             if hi < 0.0:
                 return f"max_velocity[{i}] ({hi}) must not be negative"
         return None
+
+
+@dataclass(frozen=True)
+class NavigateConfig:
+    """A navigate run (``rgbdnav navigate``): per-goal limits, waypoint following, localisation
+    and the progress checker (nav2_waypoint_follower / nav2_controller names where they exist)."""
+
+    localization: Literal["localizer", "groundtruth"] = param(
+        "localizer", doc="localizer: scan-to-map + wheel odometry; groundtruth: the true pose"
+    )
+    goal_timeout: float = param(60.0, unit="s", gt=0.0, doc="simulated time allowed per goal")
+    max_replans: int = param(5, ge=0, doc="replans per goal before it fails")
+    waypoint_pause_duration: float = param(
+        0.0, unit="s", ge=0.0, doc="WaitAtWaypoint task at each reached goal (0 = none)"
+    )
+    stop_on_failure: bool = param(False, doc="skip the remaining goals after a failed one")
+    required_movement_radius: float = param(
+        0.5, unit="m", gt=0.0, doc="progress checker: move this far ..."
+    )
+    movement_time_allowance: float = param(
+        10.0, unit="s", gt=0.0, doc="... within this long, or recover (clear costmap, back up)"
+    )
+    global_relocalization: bool = param(
+        False,
+        doc="let the localiser relocalise globally while driving (turning in place until it "
+        "tracks); false: put it back on the odometry pose (wheels moving = not kidnapped)",
+    )
+    relocalize_spin_speed: float = param(
+        0.4, unit="rad/s", gt=0.0, doc="turn in place at this while relocalising globally"
+    )
+    relocalize_timeout: float = param(
+        30.0, unit="s", gt=0.0, doc="a goal fails after this long without a believable fix"
+    )

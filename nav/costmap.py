@@ -21,8 +21,11 @@ Layers, combined in Nav2's order into the master grid by :meth:`Costmap.master`:
    for d <= ``inflation_radius``, untouched beyond. A cell's cost becomes the max of its old
    value and the inflated cost, except an unknown cell, which takes the inflated cost only when
    it is >= ``INSCRIBED`` (or > ``FREE`` with ``inflate_unknown``).
-4. **Keepout filter** (``KeepoutFilter``, applied after inflation like Nav2's costmap filters, so
-   it is not inflated): mask values 0..100 become ``round(v * LETHAL / 100)`` (100 = keepout =
+4. **Keepout filter** (``KeepoutFilter``, applied after inflation like Nav2's costmap filters;
+   with ``inflate_keepout`` (the default) also combined *before* inflation, so the zone is
+   inflated like an obstacle and the whole footprint stays out -- with Nav2's order only the
+   robot centre does, and a pure pursuit arc that cuts a zone's corner blocks the robot there):
+   mask values 0..100 become ``round(v * LETHAL / 100)`` (100 = keepout =
    ``LETHAL``), unknown mask cells are skipped; a mask cell raises the master cost, and replaces
    ``NO_INFORMATION``. The mask is resampled by world coordinates of the costmap cell centres, so
    a mask with its own origin and resolution in the shared map frame lands on the right cells.
@@ -314,6 +317,10 @@ class Costmap:
             self._dirty = (min(d[0], box[0]), max(d[1], box[1]),
                            min(d[2], box[2]), max(d[3], box[3]))  # fmt: skip
 
+    def obstacle_count(self) -> int:
+        """Cells the obstacle layer currently marks lethal."""
+        return int(np.count_nonzero(self._obstacles == LETHAL))
+
     def reset_obstacles(self) -> None:
         """Forget everything the obstacle layer has seen."""
         self._obstacles.fill(NO_INFORMATION if self.config.track_unknown_space else FREE)
@@ -391,9 +398,12 @@ class Costmap:
         box = (slice(top, bottom + 1), slice(left, right + 1))
         master = self._static[box].copy()  # static: updateWithTrueOverwrite
         combine_max(master, self._obstacles[box])  # obstacle: updateWithMax
+        keepout = None if self._keepout is None else self._keepout[box]
+        if keepout is not None and self.config.inflate_keepout:
+            combine_max(master, keepout)  # inflated like an obstacle: the footprint stays out
         inflate(master, self.geometry.resolution, self.config)
-        if self._keepout is not None:  # filters run after the layers
-            combine_max(master, self._keepout[box])
+        if keepout is not None:  # Nav2: filters run after the layers
+            combine_max(master, keepout)
         return master
 
     # 4. Queries.

@@ -35,14 +35,24 @@ ZERO_TWIST: Twist = (0.0, 0.0, 0.0)
 NS_PER_S = 1_000_000_000
 
 
-def eddie_profile() -> SmootherConfig:
-    """Eddie's tuning: differential drive (vy = 0), 1.4 m/s top speed, gentle 0.2 rad/s turns."""
+def eddie_profile(max_wheel_speed: float | None = None) -> SmootherConfig:
+    """Eddie's tuning: differential drive (vy = 0), 1.4 m/s top speed, gentle 0.2 rad/s turns.
+
+    The 1.4 m/s comes from the issue's Eddie profile; the board driver never lets a wheel go
+    faster than ``robot.max_wheel_speed`` (0.9 m/s in ``config/robots/eddie.yaml``) and scales
+    both wheels down together above it, so a smoother allowing 1.4 m/s would ramp past what the
+    wheels do. Give ``max_wheel_speed`` [m/s] to clamp the linear limits to it (a straight run
+    at that speed; turning at the same time makes the driver scale the twist down further).
+    """
+    v_max = 1.4 if max_wheel_speed is None else min(1.4, max_wheel_speed)  # [m/s]
+    if not v_max > 0.0:
+        raise ValueError(f"max_wheel_speed must be > 0, got {max_wheel_speed}")
     return SmootherConfig(
         smoothing_frequency=20.0,
         scale_velocities=True,
         feedback="OPEN_LOOP",
-        max_velocity=(1.4, 0.0, 0.2),
-        min_velocity=(-1.4, 0.0, -0.2),
+        max_velocity=(v_max, 0.0, 0.2),
+        min_velocity=(-v_max, 0.0, -0.2),
         max_accel=(1.125, 0.0, 1.125),
         max_decel=(-1.125, 0.0, -1.125),
         deadband_velocity=(0.0, 0.0, 0.0),

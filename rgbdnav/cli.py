@@ -347,18 +347,33 @@ def navigate(
     keepout: Annotated[
         Path | None, typer.Option("--keepout", help="Keepout filter mask (Nav2 map.yaml).")
     ] = None,
+    localization: Annotated[
+        str | None,
+        typer.Option("--localization", help="localizer (scan-to-map + wheel odometry, the "
+                     "default) or groundtruth (the true simulated pose)."),
+    ] = None,
     goal_timeout: Annotated[
-        float, typer.Option("--goal-timeout", help="Simulated seconds allowed per goal.")
-    ] = 60.0,
-    max_replans: Annotated[int, typer.Option("--max-replans", help="Replans per goal.")] = 5,
+        float | None,
+        typer.Option("--goal-timeout", help="Simulated seconds allowed per goal (default 60)."),
+    ] = None,
+    max_replans: Annotated[
+        int | None, typer.Option("--max-replans", help="Replans per goal (default 5).")
+    ] = None,
+    waypoint_pause: Annotated[
+        float | None,
+        typer.Option("--waypoint-pause", help="Seconds to wait at each reached goal (default 0)."),
+    ] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of wheel slip and depth noise.")] = 0,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
-    """Drive to goals on a saved map in a simulated world (ground-truth localisation).
+    """Drive to goals on a saved map in a simulated world (localiser or ground truth).
 
     Goals: --goal X Y [--goal X Y ...] in the map frame (metres), driven in order.
+    --localization, --goal-timeout, --max-replans and --waypoint-pause override the navigate
+    settings (nav.config.NavigateConfig).
     """
     _setup_logging(verbose)
     from rgbdnav.navigate_run import describe, parse_goal_args, run_navigate
@@ -366,7 +381,9 @@ def navigate(
     goal = parse_goal_args(ctx.args)
     with _Progress("navigating", quiet) as progress:
         outputs, summary = run_navigate(map_, goal, sim, out, config or [], set_ or [], start,
-                                        keepout, goal_timeout, max_replans, progress)  # fmt: skip
+                                        keepout, goal_timeout, max_replans, progress,
+                                        localization=localization, seed=seed,
+                                        waypoint_pause_s=waypoint_pause)  # fmt: skip
     typer.echo(f"result      {describe(summary)}")
     for g in summary["goals"]:
         if g["status"] != "reached":
@@ -396,7 +413,8 @@ def live(
         float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")
     ] = None,
     drive: Annotated[
-        str, typer.Option(help="route: drive the route/goals on the estimated pose; idle: stay.")
+        str, typer.Option(help="route: drive the route/goals on the estimated pose (auto); "
+                               "teleop: keyboard (manual; Tab switches to auto); idle: stay.")
     ] = "route",
     goal: Annotated[
         list[str] | None,

@@ -16,7 +16,13 @@ from typing import Any
 
 import yaml
 
-from nav.config import CostmapConfig, FollowerConfig, PlannerConfig, SmootherConfig
+from nav.config import (
+    CostmapConfig,
+    FollowerConfig,
+    NavigateConfig,
+    PlannerConfig,
+    SmootherConfig,
+)
 from sensors.atomic import atomic_write_text
 from sensors.config import (
     BoardConfig,
@@ -55,6 +61,9 @@ class LiveConfig:
         30.0, unit="s", gt=0.0, doc="the map bundle is saved this often (and on exit)"
     )
     control_rate: float = param(10.0, unit="Hz", gt=0.0, doc="velocity commands to the board")
+    skip_vo_when_behind: bool = param(
+        True, doc="frames waiting: skip VO on this one instead of dropping the next frame"
+    )
     ekf_history_length: float = param(
         2.0, unit="s", gt=0.0, doc="EKF history for late frames (smooth_lagged_data forced on)"
     )
@@ -67,6 +76,12 @@ class LiveConfig:
     )
     heading_gain: float = param(1.5, unit="1/s", gt=0.0, doc="turn rate per heading error")
     waypoint_tolerance: float = param(0.2, unit="m", gt=0.0, doc="a route waypoint is reached")
+    board_kill_switch: int = param(
+        1, unit="s", ge=0, le=26, doc="WATCH: board stops the motors without commands (0 = off)"
+    )
+    teleop_key_timeout: float = param(
+        0.6, unit="s", gt=0.0, doc="manual mode stops when no key came for this long (key_timeout)"
+    )
 
 
 @dataclass(frozen=True)
@@ -83,6 +98,7 @@ class Config:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     follower: FollowerConfig = field(default_factory=FollowerConfig)
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
+    navigate: NavigateConfig = field(default_factory=NavigateConfig)
     board: BoardConfig = field(default_factory=BoardConfig)
     topics: TopicsConfig = field(default_factory=TopicsConfig)
     sim: SimConfig = field(default_factory=SimConfig)

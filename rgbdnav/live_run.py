@@ -28,6 +28,7 @@ import math
 import queue
 import resource
 import signal
+import sys
 import threading
 import time
 from collections import Counter
@@ -38,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from nav.teleop import TeleopState, teleop_key
 from rgbdnav.config import Config, load_config, source_options
 from rgbdnav.map_run import RGBD_PROFILE, build_grid, make_bundle
 from rgbdnav.report import plot_trajectories
@@ -62,7 +64,13 @@ log = logging.getLogger(__name__)
 DRILLS = ("unplug_board", "replug_board", "stall_camera")
 JOIN_TIMEOUT_S = 30.0  # [s] a thread that does not finish its queue by then is reported
 MIN_LATENCIES = 1  # percentiles need at least one processed frame
+MODE_SWITCH_KEY = "\t"  # Tab: manual (teleop keys) <-> auto (route)
+GIL_SWITCH_INTERVAL_S = 0.001  # [s] (Python's default 0.005)
 MEMORY_SAMPLE_S = 5.0  # [s] resident memory is sampled this often for the summary
+
+
+def _interactive() -> bool:
+    return sys.stdin is not None and sys.stdin.isatty()
 
 
 def rss_mb() -> float:
@@ -180,8 +188,8 @@ class LiveRun:
         self.cfg: Config = replace(cfg, ekf=replace(cfg.ekf, smooth_lagged_data=True,
                                                     history_length=history))  # fmt: skip
         self.config_files = files
-        if opts.drive not in ("route", "idle"):
-            raise ConfigError(f"--drive {opts.drive!r}: expected route or idle")
+        if opts.drive not in ("route", "idle", "teleop"):
+            raise ConfigError(f"--drive {opts.drive!r}: expected route, teleop or idle")
         if (opts.camera == "sim" or opts.board == "sim") and opts.world is None:
             raise ConfigError("--camera sim / --board sim need --sim-world WORLD.yaml")
         if opts.drills and opts.camera != "sim":
@@ -194,7 +202,8 @@ class LiveRun:
             self.cfg.live.scan_queue_size
         )
         self.ticks_q: queue.Queue[WheelTicks] = queue.Queue()
-        self.latency_ms: list[float] = []
+        self.latency_ms: list[float] = []  # frame stamp -> its pose out of the front end
+        self.arrival_ms: list[float] = []  # frame stamp -> frame in this process (the adapter)
         self.rss_timeline: list[tuple[float, float]] = []  # (seconds into the run, MB)
         self.stage_ms: dict[str, list[float]] = {"wheels_ekf": [], "vo": [], "depth_to_scan": [],
                                                  "mapper": []}  # fmt: skip
@@ -213,6 +222,8 @@ class LiveRun:
         self.start_pose = np.zeros(3)
         self.route = np.zeros((0, 2))
         self.route_done = False
+        self.keys: queue.Queue[str] = queue.Queue()  # terminal keys (tests put them here)
+        self.mode = "manual" if opts.drive == "teleop" else "auto"
 
     # 1. Start: the simulated robot (if any), the board, the camera adapter.
 
@@ -235,6 +246,13 @@ class LiveRun:
         port = sim_port if opts.board == "sim" else opts.board
         if opts.board != "none":
             self.board = EddieBoard(port, cfg.board, cfg.robot)
+            if cfg.live.board_kill_switch:
+                # The board's own kill switch stops the motors if this host dies or the cable
+                # goes; the driver's watchdog covers a host that lives but stops commanding.
+                try:
+                    self.board.watchdog(cfg.live.board_kill_switch)
+                except BoardError as err:
+                    log.warning("could not arm the board's kill switch (WATCH): %s", err)
             self.poller = OdometryPoller(self.board, cfg.board, callback=self.ticks_q.put,
                                          read_speed_heading=False)  # fmt: skip
         if opts.camera == "sim":
@@ -261,6 +279,7 @@ class LiveRun:
                 if frame is None:
                     continue
                 self.counts.inc("frames_received")
+                self.arrival_ms.append((time.monotonic_ns() - frame.stamp_ns) / 1e6)
                 try:
                     self.frame_q.put_nowait(frame)
                 except queue.Full:
@@ -317,16 +336,23 @@ class LiveRun:
             if vo is None:
                 vo = VisualOdometry(frame.intrinsics, cfg.vo, cfg.robot)
                 d2s = DepthToScan(frame.intrinsics, cfg.robot, cfg.depth_to_scan)
-            res = vo.process(frame)
-            if prev_frame_ns is not None:
-                dt = (frame.stamp_ns - prev_frame_ns) / 1e9
-                d = res.delta_base
-                if res.success and d is not None and dt > 0:
-                    ekf.process("vo0", TwistInput(frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
-                                                  np.asarray(res.covariance) / dt**2))  # fmt: skip
-                else:
-                    self.counts.inc(f"vo_failures_{res.reason}")
-            prev_frame_ns = frame.stamp_ns
+            # Behind (frames waiting)? Skip VO on this frame rather than drop the next one:
+            # the next VO pair spans both frames and the wheels carry the EKF meanwhile.
+            if cfg.live.skip_vo_when_behind and prev_frame_ns is not None \
+                    and not self.frame_q.empty():  # fmt: skip
+                self.counts.inc("vo_skipped_behind")
+            else:
+                res = vo.process(frame)
+                if prev_frame_ns is not None:
+                    dt = (frame.stamp_ns - prev_frame_ns) / 1e9
+                    d = res.delta_base
+                    if res.success and d is not None and dt > 0:
+                        ekf.process("vo0", TwistInput(
+                            frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
+                            np.asarray(res.covariance) / dt**2))  # fmt: skip
+                    else:
+                        self.counts.inc(f"vo_failures_{res.reason}")
+                prev_frame_ns = frame.stamp_ns
             t_c = time.perf_counter()
             try:
                 od = ekf.state_at(frame.stamp_ns)
@@ -340,7 +366,8 @@ class LiveRun:
             scan = d2s.from_frame(frame).scan
             t_e = time.perf_counter()
             self.stage_ms["wheels_ekf"].append(1e3 * (t_b - t_a + t_d - t_c))
-            self.stage_ms["vo"].append(1e3 * (t_c - t_b))
+            if prev_frame_ns == frame.stamp_ns:  # VO ran on this frame
+                self.stage_ms["vo"].append(1e3 * (t_c - t_b))
             self.stage_ms["depth_to_scan"].append(1e3 * (t_e - t_d))
             with self.shared.lock:
                 self.shared.odom = odom
@@ -390,27 +417,51 @@ class LiveRun:
                 self.checkpoint(final=False)  # fmt: skip
 
     def _controller_loop(self) -> None:
+        """Velocity commands at live.control_rate: the teleop keys in manual mode, the route in
+        auto mode (Tab switches). Commands go out even when zero, so the board's watchdog only
+        stops the motors when this loop itself stops."""
         lc = self.cfg.live
         period = 1.0 / lc.control_rate
         i = 0
         failing = False
+        teleop = TeleopState(speed=lc.max_linear_speed, turn=lc.max_angular_speed,
+                             speed_limit=self.cfg.robot.max_wheel_speed)  # fmt: skip
+        manual_twist, last_key = (0.0, 0.0), -math.inf
         while not self.stop.wait(period):
+            # 1. Keys: Tab switches mode; in manual mode they steer, as teleop_twist_keyboard.
+            while True:
+                try:
+                    key = self.keys.get_nowait()
+                except queue.Empty:
+                    break
+                if key == MODE_SWITCH_KEY:
+                    self.mode = "auto" if self.mode == "manual" else "manual"
+                    manual_twist, teleop = (0.0, 0.0), replace(teleop, x=0, th=0)
+                    self.counts.inc("mode_switches")
+                    log.info("drive mode: %s", self.mode)
+                elif self.mode == "manual":
+                    manual_twist, teleop = teleop_key(key, teleop)
+                    last_key = time.monotonic()
             if self.board is None:
                 continue
             v = w = 0.0
-            pose = self.shared.pose_in_map()
-            if self.opts.repeat_route and i >= len(self.route):
-                i = 0
-                self.counts.inc("route_laps")
-            if self.opts.drive == "route" and pose is not None and i < len(self.route):
-                if math.hypot(*(self.route[i] - pose[:2])) < lc.waypoint_tolerance:
-                    i += 1
-                    self.counts.inc("waypoints_reached")
-                    self.route_done = i >= len(self.route) and not self.opts.repeat_route
-                elif self.shared.tracking:
-                    v, w = route_command(pose, self.route[i], lc.max_linear_speed,
-                                         lc.max_angular_speed, lc.turn_in_place_angle,
-                                         lc.heading_gain)  # fmt: skip
+            if self.mode == "manual":
+                if time.monotonic() - last_key <= lc.teleop_key_timeout:
+                    v, w = manual_twist
+            elif self.opts.drive == "route":
+                pose = self.shared.pose_in_map()
+                if self.opts.repeat_route and i >= len(self.route):
+                    i = 0
+                    self.counts.inc("route_laps")
+                if pose is not None and i < len(self.route):
+                    if math.hypot(*(self.route[i] - pose[:2])) < lc.waypoint_tolerance:
+                        i += 1
+                        self.counts.inc("waypoints_reached")
+                        self.route_done = i >= len(self.route) and not self.opts.repeat_route
+                    elif self.shared.tracking:
+                        v, w = route_command(pose, self.route[i], lc.max_linear_speed,
+                                             lc.max_angular_speed, lc.turn_in_place_angle,
+                                             lc.heading_gain)  # fmt: skip
             try:
                 self.board.set_velocity(v, w)
             except BoardError as err:
@@ -423,6 +474,23 @@ class LiveRun:
                 log.info("board answering again")
                 self.counts.inc("board_recovered")
                 failing = False
+
+    def _keyboard_loop(self) -> None:
+        """Keys from the terminal (cbreak mode: Ctrl-C still interrupts), restored on exit."""
+        import select
+        import termios
+        import tty
+
+        fd = sys.stdin.fileno()
+        old = termios.tcgetattr(fd)
+        try:
+            tty.setcbreak(fd)
+            while not self.stop.is_set():
+                ready, _, _ = select.select([fd], [], [], 0.1)
+                if ready:
+                    self.keys.put(sys.stdin.read(1))
+        finally:
+            termios.tcsetattr(fd, termios.TCSADRAIN, old)
 
     # 3. Checkpoints: the bundle so far, written atomically.
 
@@ -467,6 +535,10 @@ class LiveRun:
         vis = make_visualizer("live", opts.rrd, opts.viewer)
         self.vis = AsyncVisualizer(vis, cfg.live.visualize_queue_size)
         restore = self._install_signal_handlers()
+        # The board poller and watchdog are I/O threads beside CPU-bound ones: hand the GIL
+        # over more often so they are not kept waiting for up to the default 5 ms.
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         threads: list[threading.Thread] = []
         try:
             frames = self._start_devices()
@@ -481,6 +553,10 @@ class LiveRun:
                 ("mapper", self._mapper_loop, ()),
                 ("controller", self._controller_loop, ()),
             ]
+            if self.opts.drive != "idle" and _interactive():
+                specs.append(("keyboard", self._keyboard_loop, ()))
+                log.info("keys: teleop_twist_keyboard (u i o / j k l / m , .), Tab switches "
+                         "manual/auto, Ctrl-C ends the run")  # fmt: skip
             for name, fn, args in specs:
                 th = threading.Thread(target=self._guard, args=(name, fn, *args), name=name,
                                       daemon=True)  # fmt: skip
@@ -505,6 +581,7 @@ class LiveRun:
                 except SensorError as err:  # the map and the run's files still get written
                     self.errors.append(f"simulated robot: {err}")
             restore()
+            sys.setswitchinterval(switch)
         wall = time.monotonic() - t0
         if self.mapper is not None and self.checkpoint(final=True) is not None:
             outputs["map bundle"] = self.run.file("map")
@@ -598,6 +675,8 @@ class LiveRun:
                             "p99": round(float(np.percentile(lat, 99)), 2),
                             "max": round(float(lat.max()), 2)}
                            if len(lat) >= MIN_LATENCIES else None),  # fmt: skip
+            "camera_to_host_ms_p50": round(float(np.median(self.arrival_ms)), 2)
+            if self.arrival_ms else None,
             "stage_ms_median": {k: round(float(np.median(v)), 2) for k, v in self.stage_ms.items()
                                 if v},  # fmt: skip
             "cpu": {

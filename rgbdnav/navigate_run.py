@@ -1,28 +1,50 @@
-"""`rgbdnav navigate`: drive to goals on a saved map, closed loop in a 2D kinematic simulation.
+"""`rgbdnav navigate`: drive to goals on a saved map, closed loop in a 2D simulation.
 
 The robot lives in a simulator world (``sensors.sim.world``); the navigator only knows the map.
 Each simulation step, in simulated time (never wall time):
 
 1. At ``costmap.update_frequency`` a depth-camera scan (the camera's horizontal field of view
-   and depth range, one beam per ``SCAN_COLUMNS_PER_BEAM`` image columns) is ray-cast against the
-   world's floor plan at the true camera pose and fed to the costmap's obstacle layer, so
+   and depth range, one beam per ``SCAN_COLUMNS_PER_BEAM`` image columns, Kinect range noise
+   growing with z^2) is ray-cast against the world's floor plan at the true camera pose. With
+   ``localization="localizer"`` (the default) it goes to the localiser
+   (:class:`slam.localization.Localizer`, tracking against the map from the start pose it is
+   given) with the wheel-odometry pose, which gives ``T_map_odom``; the navigator's pose is
+   ``T_map_odom (+) odometry``. An answer that moves ``T_map_odom`` by more than two search
+   windows is believed only when ``JUMP_CONFIRM_SCANS`` consecutive answers agree on it; when
+   the localiser loses track the navigator puts it back on the odometry pose
+   (``set_initial_pose``, as an operator would) instead of letting it search the whole map,
+   since turning wheels mean the robot was not kidnapped -- or, with
+   ``navigate.global_relocalization``, turns in place until the global search settles. A goal
+   fails after ``relocalize_timeout`` without a believable answer. With ``"groundtruth"`` the
+   navigator is handed the true pose.
+   The scan then marks and clears the costmap's obstacle layer at the *estimated* pose, so
    obstacles that are in the world but not in the map appear; the path ahead is re-checked.
 2. At ``follower.controller_frequency`` the regulated pure pursuit follower turns the path and
-   the pose into (v, w); ``blocked`` or an invalidated path triggers a replan (at most
-   ``--max-replans`` per goal).
-3. At ``smoother.smoothing_frequency`` the velocity smoother limits the command and the true
-   robot, a unicycle, integrates the *smoothed* command over one smoother period.
+   the estimated pose into (v, w); ``blocked``, an invalidated path or no progress
+   (:class:`nav.behaviors.ProgressChecker`) triggers a replan (at most ``max_replans`` per
+   goal); a blocked arc (the controller failing) first runs the next behaviour of Nav2's
+   recovery round-robin (clear the costmap, spin, wait, back up), a replan that fails runs the
+   round until one succeeds, and being stuck clears the costmap and backs up.
+3. At ``smoother.smoothing_frequency`` the velocity smoother limits the command, which goes to
+   the wheels as a ``GOSPD`` line through the Eddie board emulator; the true pose follows the
+   wheels with diameter/track errors and slip, and wheel odometry integrates the encoder counts
+   (:mod:`rgbdnav.nav_drive`).
 
-Localisation is ground truth in this version: the navigator is handed the true pose (the
-localiser is not wired in). A goal in a wall, a keepout zone, outside the map or unreachable is
-refused with a reason; after every goal (reached or not) the robot is brought to rest. A
-collision is a step at which the true circular footprint (``costmap.robot_radius``) overlaps an
-occupied floor-plan cell. The run directory holds:
+A goal in a wall, a keepout zone, outside the map or unreachable is refused with a reason;
+after every goal (reached or not) the robot is brought to rest, then the waypoint task (a pause)
+runs. A collision is a step at which the true circular footprint (``costmap.robot_radius``)
+overlaps an occupied floor-plan cell; a keepout entry a step at which the true robot centre is
+in a keepout cell (the filter's semantics: the planner never puts the centre there). The run
+directory holds:
 
 ``trajectory.tum``   the true base_link pose at every simulation step.
-``commands.csv``     ``t_s,goal,status,cmd_v_mps,cmd_w_radps,smoothed_v_mps,smoothed_w_radps``.
-``summary.json``     per-goal outcome with reason, collisions, distance driven, simulated time.
-``map.png``          the map with each goal's first plan and the driven path.
+``estimated.tum``    the navigator's base_link pose (localiser or ground truth) at every step.
+``commands.csv``     ``t_s,goal,status,cmd_v_mps,cmd_w_radps,smoothed_v_mps,smoothed_w_radps,
+                     gospd_left,gospd_right`` (GOSPD in encoder positions/s).
+``summary.json``     per-goal outcome with reason, collisions, keepout entries, localisation
+                     error, distance driven, simulated time, control-step cost.
+``map.png``          the map with each goal's first plan, the driven and the estimated path.
+``velocity.png``     commanded vs smoothed velocity and acceleration with the smoother's limits.
 ``config.yaml``      the resolved configuration.
 """
 
@@ -34,38 +56,56 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from nav.behaviors import (
+    RECOVERY_SEQUENCE,
+    Behavior,
+    ProgressChecker,
+    behavior_twist,
+    next_waypoint,
+    wait_at_waypoint,
+    waypoints,
+)
+from nav.config import NavigateConfig
 from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap, inscribed_radius
 from nav.path_follower import compute_velocity
 from nav.planner import GridPlanner, PlanResult, replan_needed
 from nav.velocity_smoother import VelocitySmoother
 from rgbdnav.config import Config, load_config
 from rgbdnav.localize_run import LoadedMap, load_map
+from rgbdnav.map_run import RGBD_PROFILE
+from rgbdnav.nav_charts import velocity_chart
+from rgbdnav.nav_drive import EmulatedDrive, WheelOdometry
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from sensors.atomic import atomic_write_text
 from sensors.sim.world import FloorPlan, floor_plan, load_world
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, LaserScan, MapError, Pose2
+from slam.geometry import ominus, oplus, wrap_angle
+from slam.localization import Localizer, MapModel
 from slam.map_bundle import load_map_yaml
 from slam.occupancy_grid import OccupancyGrid
 
 log = logging.getLogger(__name__)
 
+LOCALIZATION_MODES: tuple[str, ...] = ("groundtruth", "localizer")
 NS_PER_S = 1_000_000_000
 SCAN_COLUMNS_PER_BEAM = 2  # [px] image columns per simulated scan beam (640 px -> 320 beams)
 RAY_STEP_CELLS = 0.5  # [cells] ray-marching step in the floor plan
 STOP_EPS = 1e-3  # [m/s, rad/s] smoothed speeds below this count as at rest
 MAX_STOP_S = 10.0  # [s] longest braking we simulate before giving up on "at rest"
-DEFAULT_GOAL_TIMEOUT_S = 60.0  # [s] simulated time allowed per goal
-DEFAULT_MAX_REPLANS = 5  # replans per goal before it fails
+STUCK_BEHAVIORS = (RECOVERY_SEQUENCE[0], RECOVERY_SEQUENCE[3])  # clear the costmap, back up
+JUMP_WINDOWS = 2.0  # an answer moving map->odom by more search windows is a jump ...
+JUMP_CONFIRM_SCANS = 3  # ... believed once this many consecutive answers agree on it
+CONFIRM_WINDOWS = 0.5  # [search windows] agreement between those answers
 CSV_HEADER = ("t_s", "goal", "status", "cmd_v_mps", "cmd_w_radps", "smoothed_v_mps",
-              "smoothed_w_radps")  # fmt: skip
+              "smoothed_w_radps", "gospd_left", "gospd_right")  # fmt: skip
 
 
 # 1. Pure kernels ----------------------------------------------------------------------------
@@ -100,11 +140,14 @@ def cast_scan(
     return r.astype(np.float32)
 
 
-def unicycle_step(pose: np.ndarray, v: float, w: float, dt: float) -> np.ndarray:
-    """Midpoint integration of (v [m/s], w [rad/s]) over dt [s]: x += v dt cos(yaw + w dt / 2)."""
-    mid = pose[2] + 0.5 * w * dt
-    yaw = math.atan2(math.sin(pose[2] + w * dt), math.cos(pose[2] + w * dt))
-    return np.array([pose[0] + v * dt * math.cos(mid), pose[1] + v * dt * math.sin(mid), yaw])
+def depth_range_sigma(
+    ranges: np.ndarray, focal_px: float, baseline_m: float, disparity_sigma_px: float,
+    subpixel: int,
+) -> np.ndarray:  # fmt: skip
+    """Kinect v1 range noise [m]: disparity noise and 1/``subpixel``-px quantisation through
+    z = f b / d give sigma_z = z^2 sigma_d / (f b), sigma_d^2 = sigma_n^2 + (1/subpixel)^2 / 12."""
+    sigma_d = math.sqrt(disparity_sigma_px**2 + (1.0 / subpixel) ** 2 / 12.0)  # [px]
+    return np.asarray(ranges, dtype=np.float64) ** 2 * sigma_d / (focal_px * baseline_m)
 
 
 def clearance_map(plan: FloorPlan) -> np.ndarray:
@@ -170,15 +213,32 @@ def goal_problem(
 @dataclass
 class _Log:
     stamps_ns: list[int] = field(default_factory=list)
-    poses: list[np.ndarray] = field(default_factory=list)
-    rows: list[tuple[float, int, str, float, float, float, float]] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)  # true base_link in the world
+    estimates: list[np.ndarray] = field(default_factory=list)  # what the navigator believes
+    rows: list[tuple[float, int, str, float, float, float, float, int, int]] = field(
+        default_factory=list
+    )
+    loc_status: list[str] = field(default_factory=list)  # one per scan (localizer mode)
+    loc_confidence: list[float] = field(default_factory=list)
 
 
 class _Sim:
-    """Holds the world, the navigator's costmap and the clocks; one instance per run."""
+    """Holds the world, the robot (board emulator + slip), the navigator's costmap, localiser
+    and clocks; one instance per run."""
 
-    def __init__(self, cfg: Config, plan: FloorPlan, costmap: Costmap, start: np.ndarray) -> None:
-        self.cfg, self.plan, self.costmap = cfg, plan, costmap
+    def __init__(
+        self,
+        cfg: Config,
+        plan: FloorPlan,
+        costmap: Costmap,
+        start: np.ndarray,
+        localizer: Localizer | None,
+        keepout: OccupancyGrid | None,
+        rng: np.random.Generator,
+        nav: NavigateConfig,
+    ) -> None:
+        self.cfg, self.plan, self.costmap, self.rng, self.nav = cfg, plan, costmap, rng, nav
+        self.progress = ProgressChecker(nav.required_movement_radius, nav.movement_time_allowance)
         self.dist = clearance_map(plan)
         self.radius = cfg.costmap.robot_radius  # [m]
         self.inscribed = inscribed_radius(cfg.costmap)  # [m]
@@ -191,41 +251,131 @@ class _Sim:
         fov = 2.0 * math.atan(cam.width / (2.0 * cam.fx))  # [rad] horizontal field of view
         n = max(2, cam.width // SCAN_COLUMNS_PER_BEAM)
         self.angles = np.linspace(fov / 2, -fov / 2, n)[::-1].copy()  # ascending, REP-117
-        self.t_ns = 0
+        r = cfg.robot
+        self.T_base_laser = np.array([r.camera_x, r.camera_y, 0.0])
+        # The robot: GOSPD into the board emulator, slip, encoder counts back.
+        self.drive = EmulatedDrive(r, cfg.sim, start, rng)
+        self.odometry = WheelOdometry(r, self.drive.ticks())
+        self.localizer = localizer
+        # odom starts at the start pose; the localiser is told the start (an initial pose).
+        self.T_map_odom = np.asarray(start, dtype=np.float64).copy()
+        if localizer is not None:
+            localizer.set_initial_pose(oplus(start, self.T_base_laser))
+        self.localized = True  # the localiser tracks (always, with ground truth)
+        self.last_fix_ns = 0  # [ns] of the last believed localiser answer
+        self.pending_jump: np.ndarray | None = None  # an unconfirmed far map -> odom answer
+        self.pending_count = 0  # consecutive answers agreeing with it
+        self.rejected_jumps = 0
+        self.confirmed_jumps = 0
+        self.reseeds = 0
+        self.keepout_dist: np.ndarray | None = None
+        self.keepout_geometry = None if keepout is None else keepout.geometry
+        if keepout is not None:
+            from scipy.ndimage import distance_transform_edt
+
+            mask = keepout.occupied_mask()
+            self.keepout_dist = np.asarray(distance_transform_edt(~mask)) * \
+                keepout.geometry.resolution  # fmt: skip
         self.next_ctrl_ns = 0
         self.next_scan_ns = 0
-        self.pose = start.astype(np.float64)
         self.cmd = (0.0, 0.0)  # last controller command (v, w)
         self.vel = (0.0, 0.0)  # smoothed command being executed (v, w)
         self.collision_steps = 0
         self.collision_events = 0
         self.in_collision = False
+        self.keepout_steps = 0
+        self.keepout_events = 0
+        self.in_keepout = False
         self.min_clearance = math.inf
+        self.min_keepout_distance = math.inf
         self.scans = 0
+        self.control_steps = 0
+        self.control_s = 0.0  # [s] wall time in costmap updates + controller cycles
         self.log = _Log()
         self._record(-1, "start")
 
-    # 3a. Sensing.
-    def laser_pose(self) -> Pose2:
-        r = self.cfg.robot
-        x, y, yaw = self.pose
-        c, s = math.cos(yaw), math.sin(yaw)
-        return Pose2(x + c * r.camera_x - s * r.camera_y, y + s * r.camera_x + c * r.camera_y, yaw)
+    @property
+    def t_ns(self) -> int:
+        return self.drive.t_ns
 
+    @property
+    def pose(self) -> np.ndarray:
+        """The true base_link pose (the world's; the navigator never reads it in localizer
+        mode)."""
+        return self.drive.pose
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """The navigator's base_link pose in the map: T_map_odom (+) odometry, or the truth."""
+        if self.localizer is None:
+            return self.drive.pose.copy()
+        return oplus(self.T_map_odom, self.odometry.pose)
+
+    # 3a. Sensing.
     def sense(self) -> bool:
-        """Scan into the costmap when one is due; True when it did."""
+        """Scan when one is due: localise (localizer mode), then mark/clear the costmap at the
+        estimated laser pose. True when it scanned."""
         if self.t_ns < self.next_scan_ns:
             return False
         self.next_scan_ns += self.scan_ns
-        lp = self.laser_pose()
-        cam = self.cfg.camera
-        ranges = cast_scan(self.plan, lp.as_array(), self.angles, cam.depth_min, cam.depth_max)
+        cam, sim = self.cfg.camera, self.cfg.sim
+        true_laser = oplus(self.pose, self.T_base_laser)
+        ranges = cast_scan(self.plan, true_laser, self.angles, cam.depth_min, cam.depth_max)
+        sigma = depth_range_sigma(ranges, cam.disparity_focal, cam.baseline,
+                                  sim.disparity_noise, sim.disparity_subpixel)  # fmt: skip
+        finite = np.isfinite(ranges)
+        ranges[finite] += (sigma[finite] * self.rng.standard_normal(int(finite.sum()))).astype(
+            np.float32
+        )
         inc = float(self.angles[1] - self.angles[0])
         scan = LaserScan(self.t_ns, float(self.angles[0]), inc, ranges, cam.depth_min,
                          cam.depth_max)  # fmt: skip
-        self.costmap.update_scan(scan, lp)
+        if self.localizer is not None:
+            self.localize(scan)
+        self.costmap.update_scan(scan, Pose2(*oplus(self.estimate, self.T_base_laser).tolist()))
         self.scans += 1
         return True
+
+    def localize(self, scan: LaserScan) -> None:
+        """One scan into the localiser; T_map_odom from its answer when the answer is
+        believable (see :class:`nav.config.NavigateConfig` ``global_relocalization``)."""
+        assert self.localizer is not None
+        result = self.localizer.update(scan, oplus(self.odometry.pose, self.T_base_laser))
+        self.log.loc_status.append(result.status)
+        self.log.loc_confidence.append(result.confidence)
+        good = result.status == "tracking"
+        if good and not (self.nav.global_relocalization
+                         and result.reason.startswith("relocalised")):  # fmt: skip
+            # A tracking match lies inside the search window of the prediction: an answer
+            # moving map -> odom further is a glitch unless the next answers confirm it.
+            if self._outside(self.T_map_odom, result.map_to_odom, JUMP_WINDOWS):
+                same = self.pending_jump is not None and not self._outside(
+                    self.pending_jump, result.map_to_odom, CONFIRM_WINDOWS)
+                self.pending_count = self.pending_count + 1 if same else 1
+                self.pending_jump = result.map_to_odom
+                if self.pending_count < JUMP_CONFIRM_SCANS:
+                    self.rejected_jumps += 1
+                    return
+                self.confirmed_jumps += 1
+            self.pending_jump, self.pending_count = None, 0
+        if good:
+            self.T_map_odom = result.map_to_odom
+            self.last_fix_ns = self.t_ns
+            self.localized = True
+        elif self.nav.global_relocalization:
+            self.localized = False  # drive_to turns in place until it tracks again
+        else:
+            # The wheels report continuous motion, so the robot was not kidnapped: put the
+            # localiser back on the odometry-propagated pose instead of a global search.
+            self.localizer.set_initial_pose(oplus(self.estimate, self.T_base_laser))
+            self.reseeds += 1
+
+    def _outside(self, a: np.ndarray, b: np.ndarray, windows: float) -> bool:
+        """Whether map -> odom ``b`` differs from ``a`` by more than ``windows`` search windows."""
+        d = ominus(a, b)
+        cfg = self.cfg.localizer
+        return bool(math.hypot(d[0], d[1]) > windows * cfg.linear_search_window
+                    or abs(d[2]) > windows * cfg.angular_search_window)  # fmt: skip
 
     # 3b. Acting: one smoother period of motion.
     def command(self, v: float, w: float) -> None:
@@ -236,43 +386,103 @@ class _Sim:
     def step(self, goal: int, status: str) -> None:
         out = self.smoother.tick(self.t_ns)
         self.vel = (out[0], out[2])
-        self.pose = unicycle_step(self.pose, out[0], out[2], self.dt_ns / NS_PER_S)
-        self.t_ns += self.dt_ns
-        clear = clearance_at(self.plan, self.dist, self.pose[0], self.pose[1])
+        self.drive.command(out[0], out[2])
+        self.drive.advance(self.dt_ns)
+        self.odometry.update(self.drive.ticks())
+        x, y = float(self.pose[0]), float(self.pose[1])
+        clear = clearance_at(self.plan, self.dist, x, y)
         self.min_clearance = min(self.min_clearance, clear)
         hit = clear < self.radius
         self.collision_steps += hit
         self.collision_events += hit and not self.in_collision
         self.in_collision = hit
+        if self.keepout_dist is not None and self.keepout_geometry is not None:
+            g = self.keepout_geometry
+            row, col = g.world_to_cell(x, y)
+            d = float(self.keepout_dist[row, col]) if bool(g.contains(row, col)) else math.inf
+            self.min_keepout_distance = min(self.min_keepout_distance, d)
+            inside = d == 0.0
+            self.keepout_steps += inside
+            self.keepout_events += inside and not self.in_keepout
+            self.in_keepout = inside
         self._record(goal, status)
 
     def _record(self, goal: int, status: str) -> None:
         self.log.stamps_ns.append(self.t_ns)
         self.log.poses.append(self.pose.copy())
-        self.log.rows.append((self.t_ns / NS_PER_S, goal, status, *self.cmd, *self.vel))
+        self.log.estimates.append(self.estimate)
+        self.log.rows.append((self.t_ns / NS_PER_S, goal, status, *self.cmd, *self.vel,
+                              *self.drive.sent))  # fmt: skip
+
+    def at_rest(self) -> bool:
+        return max(abs(self.vel[0]), abs(self.vel[1])) < STOP_EPS and not np.any(
+            self.drive.speeds
+        )
 
     def stop(self, goal: int) -> None:
-        """Command zero and let the smoother bring the robot to rest."""
+        """Command zero and let the smoother and the board bring the wheels to rest."""
         self.command(0.0, 0.0)
         for _ in range(math.ceil(MAX_STOP_S * NS_PER_S / self.dt_ns)):
-            if max(abs(self.vel[0]), abs(self.vel[1])) < STOP_EPS:
+            if self.at_rest():
                 break
             self.step(goal, "stopping")
-        self.vel = (0.0, 0.0)
 
     # 3c. Planning.
     def make_plan(self, goal: tuple[float, float]) -> PlanResult:
+        est = self.estimate
         return self.planner.plan(self.costmap.master().copy(), self.costmap.geometry,
-                                 (float(self.pose[0]), float(self.pose[1])), goal)  # fmt: skip
+                                 (float(est[0]), float(est[1])), goal)  # fmt: skip
 
-    def drive(
+    def run_behavior(self, k: int, behavior: Behavior) -> str:
+        """Run one behaviour (a recovery or a waypoint task) to its end; its name."""
+        if behavior.clears_costmap:
+            self.costmap.reset_obstacles()
+            return behavior.name
+        start, t0 = self.estimate, self.t_ns
+        while True:
+            self.sense()
+            twist = behavior_twist(behavior, start, self.estimate, (self.t_ns - t0) / NS_PER_S,
+                                   lambda x, y: bool(self.costmap.is_free(x, y)))  # fmt: skip
+            if twist is None:
+                break
+            self.command(*twist)
+            self.step(k, f"behavior:{behavior.name}")
+        self.stop(k)
+        return behavior.name
+
+    def costmap_has_obstacles(self) -> bool:
+        return bool(self.costmap.obstacle_count() > 0)
+
+    def recover_and_replan(
+        self, k: int, goal: tuple[float, float], outcome: dict[str, Any]
+    ) -> PlanResult:
+        """Plan again; while that fails, run Nav2's recovery round one behaviour at a time."""
+        plan = self.make_plan(goal)
+        for behavior in RECOVERY_SEQUENCE:
+            if plan.success:
+                break
+            self.stop(k)
+            outcome["recoveries"].append(self.run_behavior(k, behavior))
+            plan = self.make_plan(goal)
+        return plan
+
+    def drive_to(
         self, k: int, goal: tuple[float, float], timeout_s: float, max_replans: int
     ) -> dict[str, Any]:
-        """Plan to and follow one goal; its outcome (reached / failed) with a reason."""
+        """Plan to and follow one goal; its outcome (reached / failed / refused) with a reason."""
         cfg = self.cfg
         t0, travelled0 = self.t_ns, len(self.log.poses)
-        outcome: dict[str, Any] = {"goal": list(goal), "replans": 0}
+        outcome: dict[str, Any] = {"goal": list(goal), "replans": 0, "recoveries": []}
+        self.last_fix_ns = max(self.last_fix_ns, t0)  # each goal gets relocalize_timeout
         plan = self.make_plan(goal)
+        if not plan.success and self.costmap_has_obstacles():
+            # Maybe only what the camera saw blocks it: forget that once, as Nav2's recovery
+            # would; no motion before a first plan.
+            outcome["recoveries"].append(self.run_behavior(k, RECOVERY_SEQUENCE[0]))
+            plan = self.make_plan(goal)
+        if not plan.success and plan.reason.startswith("start"):
+            # The robot stands in an inflated (or lethal) cell: moving may free it.
+            plan = self.recover_and_replan(k, goal, outcome)
         if not plan.success:
             outcome.update(status="refused", reason=f"no path: {plan.reason}")
             return outcome
@@ -280,30 +490,58 @@ class _Sim:
         outcome["planned_length_m"] = round(plan.length_m, 3)
         path = plan.poses
         status, reason = "failed", ""
+        anchor, anchor_ns = self.estimate, self.t_ns  # progress checker
+        controller_failures = 0  # recovery round-robin position
         while True:
             if (self.t_ns - t0) / NS_PER_S > timeout_s:
                 reason = f"timeout after {timeout_s:g} s"
                 break
             replan_why = ""
+            w0 = time.perf_counter()
             if self.sense():
-                ahead = path_ahead(path[:, :2], self.pose[:2], self.inscribed)
+                ahead = path_ahead(path[:, :2], self.estimate[:2], self.inscribed)
                 if replan_needed(ahead, self.costmap.master(), self.costmap.geometry,
                                  cfg.planner):  # fmt: skip
                     replan_why = "path blocked by a new obstacle"
+            est = self.estimate
+            fix_age_s = (self.t_ns - self.last_fix_ns) / NS_PER_S
+            if self.localizer is not None and fix_age_s > self.nav.relocalize_timeout:
+                reason = (f"no believable localiser answer for {self.nav.relocalize_timeout:g} s "
+                          f"(last status {self.log.loc_status[-1]})")  # fmt: skip
+                self.control_s += time.perf_counter() - w0
+                break
+            if not self.localized:
+                # Never drive on a pose the localiser does not vouch for: turn in place (new
+                # views for the global relocalisation) until it tracks again.
+                self.command(0.0, self.nav.relocalize_spin_speed)
+                self.control_s += time.perf_counter() - w0
+                self.step(k, "relocalising")
+                anchor, anchor_ns = self.estimate, self.t_ns
+                continue
+            if self.progress.moved(anchor, est):
+                anchor, anchor_ns = est, self.t_ns
+            elif self.progress.stuck((self.t_ns - anchor_ns) / NS_PER_S):
+                pc = self.progress
+                replan_why = (f"no progress: moved less than {pc.required_movement_radius} m in "
+                              f"{pc.movement_time_allowance:g} s")  # fmt: skip
+                anchor, anchor_ns = est, self.t_ns
             if not replan_why and self.t_ns >= self.next_ctrl_ns:
                 self.next_ctrl_ns += self.ctrl_ns
                 cmd = compute_velocity(
-                    Pose2(*self.pose), path, self.vel, cfg.follower,
+                    Pose2(*est.tolist()), path, self.vel, cfg.follower,
                     cost_fn=lambda x, y: float(self.costmap.cost_at(x, y)),
                     is_free=lambda x, y: bool(self.costmap.is_free(x, y)),
                     inscribed_radius_m=self.inscribed,
                 )  # fmt: skip
+                self.control_steps += 1
                 if cmd.status == "goal_reached":
                     status, reason = "reached", ""
+                    self.control_s += time.perf_counter() - w0
                     break
                 if cmd.status == "blocked":
                     replan_why = cmd.reason
                 self.command(cmd.v, cmd.w)
+            self.control_s += time.perf_counter() - w0
             if replan_why:
                 if outcome["replans"] >= max_replans:
                     reason = f"gave up after {max_replans} replans; last: {replan_why}"
@@ -315,18 +553,32 @@ class _Sim:
                     break
                 outcome["replans"] += 1
                 log.debug("goal %d: replanning (%s)", k, replan_why)
-                plan = self.make_plan(goal)
+                if replan_why.startswith("no progress"):
+                    self.stop(k)
+                    for behavior in STUCK_BEHAVIORS:
+                        outcome["recoveries"].append(self.run_behavior(k, behavior))
+                elif replan_why.startswith("collision ahead"):
+                    # The controller failed (Nav2: FollowPath fails): the next behaviour of the
+                    # recovery round-robin before planning again.
+                    self.stop(k)
+                    behavior = RECOVERY_SEQUENCE[controller_failures % len(RECOVERY_SEQUENCE)]
+                    controller_failures += 1
+                    outcome["recoveries"].append(self.run_behavior(k, behavior))
+                plan = self.recover_and_replan(k, goal, outcome)
                 if not plan.success:
-                    reason = f"replan failed ({replan_why}): {plan.reason}"
+                    reason = f"replan failed ({replan_why}) after recoveries: {plan.reason}"
                     break
                 path = plan.poses
+                anchor, anchor_ns = self.estimate, self.t_ns
             self.step(k, "driving")
         self.stop(k)
         driven = np.array(self.log.poses[travelled0 - 1 :])[:, :2]
+        est = self.estimate
         outcome.update(
             status=status, reason=reason, time_s=round((self.t_ns - t0) / NS_PER_S, 2),
             driven_m=round(polyline_length(driven), 3),
             final_error_m=round(float(np.hypot(*(self.pose[:2] - np.asarray(goal)))), 3),
+            estimated_error_m=round(float(np.hypot(*(est[:2] - np.asarray(goal)))), 3),
         )  # fmt: skip
         return outcome
 
@@ -363,13 +615,54 @@ def _check_goals(goals: Sequence[Sequence[float]]) -> list[tuple[float, float]]:
     return out
 
 
-def commands_csv(rows: Sequence[tuple[float, int, str, float, float, float, float]]) -> str:
+def commands_csv(
+    rows: Sequence[tuple[float, int, str, float, float, float, float, int, int]],
+) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_HEADER)
-    for t, goal, status, cv, cw, sv, sw in rows:
-        w.writerow([f"{t:.3f}", goal, status, f"{cv:.4f}", f"{cw:.4f}", f"{sv:.4f}", f"{sw:.4f}"])
+    for t, goal, status, cv, cw, sv, sw, gl, gr in rows:
+        w.writerow([f"{t:.3f}", goal, status, f"{cv:.4f}", f"{cw:.4f}", f"{sv:.4f}", f"{sw:.4f}",
+                    gl, gr])  # fmt: skip
     return buf.getvalue()
+
+
+def pose_errors(truth: np.ndarray, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-step position error [m] and absolute heading error [rad] of (N, 3) pose arrays."""
+    d = np.hypot(*(estimate[:, :2] - truth[:, :2]).T)
+    return d, np.abs(wrap_angle(estimate[:, 2] - truth[:, 2]))
+
+
+def _stats(a: np.ndarray, digits: int = 3) -> dict[str, float | None]:
+    if len(a) == 0:
+        return {"mean": None, "p95": None, "max": None}
+    return {"mean": round(float(a.mean()), digits),
+            "p95": round(float(np.percentile(a, 95)), digits),
+            "max": round(float(a.max()), digits)}  # fmt: skip
+
+
+def navigate_settings(
+    cfg: Config,
+    localization: str | None = None,
+    goal_timeout_s: float | None = None,
+    max_replans: int | None = None,
+    waypoint_pause_s: float | None = None,
+) -> NavigateConfig:
+    """The ``navigate`` section with the command line's explicit values on top; ConfigError
+    naming the option on a bad value."""
+    base = cfg.navigate
+    given: dict[str, Any] = {"localization": localization, "goal_timeout": goal_timeout_s,
+             "max_replans": max_replans, "waypoint_pause_duration": waypoint_pause_s}  # fmt: skip
+    nav: NavigateConfig = replace(base, **{k: v for k, v in given.items() if v is not None})
+    if nav.localization not in LOCALIZATION_MODES:
+        raise ConfigError(f"--localization must be one of {', '.join(LOCALIZATION_MODES)}, got "
+                          f"{nav.localization!r}")  # fmt: skip
+    if not nav.waypoint_pause_duration >= 0.0:
+        raise ConfigError(f"--waypoint-pause must be >= 0, got {nav.waypoint_pause_duration}")
+    if not nav.goal_timeout > 0.0 or nav.max_replans < 0:
+        raise ConfigError(f"need --goal-timeout > 0 and --max-replans >= 0, got "
+                          f"{nav.goal_timeout} and {nav.max_replans}")  # fmt: skip
+    return nav
 
 
 def run_navigate(
@@ -381,20 +674,26 @@ def run_navigate(
     overrides: Sequence[str] = (),
     start: Sequence[float] | None = None,
     keepout_path: Path | None = None,
-    goal_timeout_s: float = DEFAULT_GOAL_TIMEOUT_S,
-    max_replans: int = DEFAULT_MAX_REPLANS,
+    goal_timeout_s: float | None = None,
+    max_replans: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    *,
+    localization: str | None = None,
+    seed: int = 0,
+    waypoint_pause_s: float | None = None,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
-    """Drive to every goal in turn; (files written, summary)."""
+    """Drive to every goal in turn; (files written, summary). ``seed`` seeds the wheel slip and
+    the depth noise; the other keywords override the ``navigate`` settings
+    (:func:`navigate_settings`)."""
     wall0 = time.perf_counter()
     # 1. Inputs first: a bad map, world, goal or start fails before anything is written.
     loaded = load_map(map_path)
     goal_list = _check_goals(goals)
-    if not goal_timeout_s > 0.0 or max_replans < 0:
-        raise ConfigError(f"need --goal-timeout > 0 and --max-replans >= 0, got "
-                          f"{goal_timeout_s} and {max_replans}")  # fmt: skip
+    # The navigator's scans are depth-camera scans: the RGB-D profile first, yours still win.
+    files = [RGBD_PROFILE, *config_files] if RGBD_PROFILE.is_file() else list(config_files)
+    cfg = load_config(files, overrides)
+    nav = navigate_settings(cfg, localization, goal_timeout_s, max_replans, waypoint_pause_s)
     world = load_world(world_path)
-    cfg = load_config(config_files, overrides)
     fp = floor_plan(world, resolution=loaded.grid.geometry.resolution)
     s = np.asarray(world.start if start is None else start, dtype=np.float64)
     if s.shape != (3,) or not np.all(np.isfinite(s)):
@@ -405,7 +704,12 @@ def run_navigate(
     if keepout_path is not None:
         keepout = load_map_yaml(keepout_path)
         costmap.set_keepout(keepout)
-    sim = _Sim(cfg, fp, costmap, s)
+    localizer = None
+    if nav.localization == "localizer":
+        model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
+                                   loaded.free_thresh)  # fmt: skip
+        localizer = Localizer(model, cfg.localizer)
+    sim = _Sim(cfg, fp, costmap, s, localizer, keepout, np.random.default_rng(seed), nav)
     if clearance_at(fp, sim.dist, s[0], s[1]) < sim.radius:
         raise MapError(f"start ({s[0]:.2f}, {s[1]:.2f}) puts the robot inside an obstacle of "
                        f"the world {world_path}")  # fmt: skip
@@ -413,59 +717,107 @@ def run_navigate(
     outputs = {"config": run.write_config(cfg)}
 
     # 2. Drive to each goal in turn; a refused or failed goal moves on to the next one.
-    sim.sense()  # look before planning the first goal
+    sim.sense()  # look (and localise) before planning the first goal
     outcomes: list[dict[str, Any]] = []
-    for k, goal in enumerate(goal_list):
+    route = waypoints(goal_list, wait_at_waypoint(nav.waypoint_pause_duration))
+    for k, wp in enumerate(route):
+        goal = (wp.x, wp.y)
+        if next_waypoint([o["status"] for o in outcomes], len(route),
+                         nav.stop_on_failure) is None:  # fmt: skip
+            outcomes.append({"goal": list(goal), "status": "skipped", "replans": 0,
+                             "recoveries": [],
+                             "reason": "an earlier goal failed and stop_on_failure is set"})
+            continue
         problem = goal_problem(goal, costmap, loaded, keepout, cfg.planner.allow_unknown)
         if problem is not None:
-            outcome = {"goal": list(goal), "status": "refused", "reason": problem, "replans": 0}
+            outcome = {"goal": list(goal), "status": "refused", "reason": problem, "replans": 0,
+                       "recoveries": []}  # fmt: skip
         else:
-            outcome = sim.drive(k, goal, goal_timeout_s, max_replans)
+            outcome = sim.drive_to(k, goal, nav.goal_timeout, nav.max_replans)
         sim.stop(k)  # refused or not, the robot ends every goal at rest
+        if wp.task is not None and outcome["status"] == "reached":
+            outcome["task"] = sim.run_behavior(k, wp.task)
         log.info("goal %d (%.2f, %.2f): %s %s", k, *goal, outcome["status"], outcome["reason"])
         outcomes.append(outcome)
         if progress is not None:
-            progress(k + 1, len(goal_list))
+            progress(k + 1, len(route))
 
-    # 3. Trajectory, commands, picture, summary.
+    # 3. Trajectories, commands, pictures, summary.
     stamps = np.array(sim.log.stamps_ns, dtype=np.int64)
     poses = np.array(sim.log.poses, dtype=np.float64)
-    write_tum_trajectory(run.file("trajectory.tum"), stamps, poses[:, 0], poses[:, 1],
-                         poses[:, 2])  # fmt: skip
-    outputs["trajectory"] = run.file("trajectory.tum")
+    estimates = np.array(sim.log.estimates, dtype=np.float64)
+    for name, p in (("trajectory", poses), ("estimated", estimates)):
+        write_tum_trajectory(run.file(f"{name}.tum"), stamps, p[:, 0], p[:, 1], p[:, 2])
+        outputs[name] = run.file(f"{name}.tum")
     atomic_write_text(run.file("commands.csv"), commands_csv(sim.log.rows))
     outputs["commands"] = run.file("commands.csv")
     g = loaded.grid.geometry
     paths = [(f"plan {i + 1}", o["first_plan"][:, 0], o["first_plan"][:, 1])
              for i, o in enumerate(outcomes) if "first_plan" in o]  # fmt: skip
-    paths.append(("driven", poses[:, 0], poses[:, 1]))
+    paths.append(("driven (true)", poses[:, 0], poses[:, 1]))
+    if localizer is not None:
+        paths.append(("estimated (localiser)", estimates[:, 0], estimates[:, 1]))
     plot_trajectories(run.file("map.png"), paths, f"navigate in {map_path.name}",
                       occupied=loaded.grid.occupied_mask(loaded.occupied_thresh),
                       origin=(g.origin_x, g.origin_y), resolution=g.resolution)  # fmt: skip
     outputs["picture"] = run.file("map.png")
+    velocity_chart(run.file("velocity.png"), sim.log.rows, cfg.smoother)
+    outputs["velocity chart"] = run.file("velocity.png")
     for o in outcomes:
         o.pop("first_plan", None)
+    err_m, err_yaw = pose_errors(poses, estimates)
+    statuses = sim.log.loc_status
     sim_s = sim.t_ns / NS_PER_S
     wall_s = time.perf_counter() - wall0
     summary: dict[str, Any] = {
         "command": "navigate", "map": str(map_path), "map_kind": loaded.kind,
         "world": str(world_path), "keepout": None if keepout_path is None else str(keepout_path),
-        "start": s.tolist(),
-        "localisation": "ground truth: the navigator is given the true simulated pose "
-                        "(the localiser is not wired in this version)",
+        "start": s.tolist(), "seed": seed, "navigate": asdict(nav),
+        "localization": {
+            "mode": nav.localization,
+            "description": ("the localiser (scan-to-map tracking from the given start pose) "
+                            "fused with wheel odometry from the board's encoder counts; an answer "
+                            "jumping more than two search windows is believed only once "
+                            f"{JUMP_CONFIRM_SCANS} consecutive answers agree on it"
+                            + ("" if nav.global_relocalization else
+                               ", and a localiser that loses track is put back on the "
+                               "odometry pose (no global relocalisation while driving)")
+                            if localizer is not None else
+                            "ground truth: the navigator is given the true simulated pose"),
+            "position_error_m": _stats(err_m), "heading_error_deg": _stats(np.degrees(err_yaw),
+                                                                           2),
+            "scans": {st: statuses.count(st) for st in ("tracking", "lost", "relocalising")},
+            "confidence_mean": (round(float(np.mean(sim.log.loc_confidence)), 3)
+                                if sim.log.loc_confidence else None),
+            "odometry_distance_m": round(sim.odometry.distance_m, 3),
+            "tracking_jumps_rejected": sim.rejected_jumps,
+            "tracking_jumps_confirmed": sim.confirmed_jumps,
+            "reseeded_from_odometry": sim.reseeds,
+        },
         "goals": outcomes,
         "counts": {st: sum(o["status"] == st for o in outcomes)
-                   for st in ("reached", "failed", "refused")},
+                   for st in ("reached", "failed", "refused", "skipped")},
         "collisions": {"events": sim.collision_events, "steps": sim.collision_steps,
                        "seconds": round(sim.collision_steps * sim.dt_ns / NS_PER_S, 2),
                        "robot_radius_m": sim.radius,
                        "min_clearance_m": round(sim.min_clearance, 3)},
+        "keepout_entries": {"events": sim.keepout_events, "steps": sim.keepout_steps,
+                            "min_distance_m": (round(sim.min_keepout_distance, 3)
+                                               if math.isfinite(sim.min_keepout_distance)
+                                               else None)},
+        "recoveries": sum(len(o["recoveries"]) for o in outcomes),
         "path_length_m": round(polyline_length(poses[:, :2]), 3),
         "sim_time_s": round(sim_s, 2),
         "scans": sim.scans,
+        "gospd_lines": sim.drive.gospd_lines,
         "rates_hz": {"controller": cfg.follower.controller_frequency,
                      "smoother": cfg.smoother.smoothing_frequency,
                      "costmap": cfg.costmap.update_frequency},
+        "control": {"steps": sim.control_steps,
+                    "ms_per_step": (round(1e3 * sim.control_s / sim.control_steps, 3)
+                                    if sim.control_steps else None),
+                    "what": "wall time per controller cycle incl. due scans: localiser, "
+                            "costmap update, path check, follower"},
         "wall_s": round(wall_s, 3),
         "real_time_factor": round(sim_s / wall_s, 1) if wall_s > 0 else None,
     }  # fmt: skip
@@ -478,9 +830,12 @@ def describe(summary: dict[str, Any]) -> str:
     c = summary["counts"]
     n = len(summary["goals"])
     return (f"{c['reached']}/{n} goals reached, {c['failed']} failed, {c['refused']} refused; "
-            f"{summary['collisions']['events']} collision(s), {summary['path_length_m']:.2f} m "
-            f"in {summary['sim_time_s']:.1f} s simulated")  # fmt: skip
+            f"{summary['collisions']['events']} collision(s), "
+            f"{summary['keepout_entries']['events']} keepout entr(ies), "
+            f"{summary['path_length_m']:.2f} m in {summary['sim_time_s']:.1f} s simulated "
+            f"({summary['localization']['mode']} localisation)")  # fmt: skip
 
 
-__all__ = ["cast_scan", "clearance_map", "commands_csv", "describe", "goal_problem",
-           "parse_goal_args", "path_ahead", "run_navigate", "unicycle_step"]  # fmt: skip
+__all__ = ["LOCALIZATION_MODES", "cast_scan", "clearance_map", "commands_csv",
+           "depth_range_sigma", "describe", "goal_problem", "navigate_settings",
+           "parse_goal_args", "path_ahead", "pose_errors", "run_navigate"]  # fmt: skip

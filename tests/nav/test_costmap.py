@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -211,11 +212,21 @@ def test_keepout_mask_with_other_origin_and_resolution_lands_on_world_cells() ->
     assert not cm.is_free(0.6, 0.3)
 
 
-def test_keepout_is_applied_after_inflation() -> None:
+def test_keepout_is_applied_after_inflation_in_nav2_order() -> None:
     geom = GridGeometry(0.05, 0.0, 0.0, 40, 40)
-    cm = Costmap(geom, CFG, np.zeros(geom.shape, np.int8))
+    cm = Costmap(geom, replace(CFG, inflate_keepout=False), np.zeros(geom.shape, np.int8))
     cm.set_keepout(keepout_mask())
     assert cm.cost_at(0.45, 0.3) == FREE
+
+
+def test_inflated_keepout_keeps_the_whole_footprint_out() -> None:
+    geom = GridGeometry(0.05, 0.0, 0.0, 40, 40)
+    cm = Costmap(geom, CFG, np.zeros(geom.shape, np.int8))  # inflate_keepout: the default
+    cm.set_keepout(keepout_mask())
+    assert cm.cost_at(0.6, 0.3) == LETHAL  # in the zone
+    assert cm.cost_at(0.35, 0.3) == INSCRIBED  # 0.15 m from it: the footprint would overlap
+    assert cm.cost_at(0.25, 0.3) < INSCRIBED  # 0.25 m: clear of it, inflated cost
+    assert cm.cost_at(0.25, 0.3) > FREE
 
 
 def test_keepout_mask_from_map_yaml(tmp_path: Path) -> None:
@@ -284,3 +295,13 @@ def test_incremental_master_equals_full_recompute(around_unknown: bool) -> None:
         if i % 3 == 0:
             incremental.master()
     np.testing.assert_array_equal(incremental.master(), full.master())
+
+
+def test_obstacle_count_is_what_the_obstacle_layer_marks_until_reset() -> None:
+    geom = GridGeometry(0.05, 0.0, 0.0, 40, 40)
+    cm = Costmap(geom, NO_INFLATION, np.zeros(geom.shape, np.int8))
+    assert cm.obstacle_count() == 0
+    cm.update_scan(scan([1.0]), Pose2(0.5, 1.0, 0.0))  # one return at x = 1.5
+    assert cm.obstacle_count() == 1
+    cm.reset_obstacles()
+    assert cm.obstacle_count() == 0

@@ -252,3 +252,12 @@ def test_shell_respects_limits_through_gaps_and_timeouts(
         tick += 1
         prev = s.tick(tick * NS // 20)
     assert prev == (0.0, 0.0, 0.0) and s.stopped
+
+
+def test_eddie_profile_clamps_to_the_wheel_speed_limit() -> None:
+    cfg = eddie_profile(max_wheel_speed=0.9)  # config/robots/eddie.yaml robot.max_wheel_speed
+    assert cfg.max_velocity == (0.9, 0.0, 0.2)
+    assert cfg.min_velocity == (-0.9, 0.0, -0.2)
+    assert eddie_profile(max_wheel_speed=2.0).max_velocity[0] == 1.4  # never above the profile
+    with pytest.raises(ValueError, match="max_wheel_speed"):
+        eddie_profile(max_wheel_speed=0.0)

@@ -15,8 +15,9 @@ import yaml
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.navigate_run import cast_scan, parse_goal_args, unicycle_step
-from sensors.sim.world import FloorPlan, floor_plan, load_world
+from rgbdnav.nav_charts import accelerations
+from rgbdnav.navigate_run import cast_scan, depth_range_sigma, parse_goal_args
+from sensors.sim.world import FloorPlan, floor_plan, load_world, world_from_dict
 from sensors.tum import load_tum_trajectory
 from sensors.types import ConfigError
 from slam.map_bundle import save_map_yaml
@@ -52,7 +53,9 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     world = dict(ROOM, furniture=[{"name": "box", "center": list(BOX_CENTRE),
                                    "size": [2 * BOX_HALF, 2 * BOX_HALF, 0.8]}])  # fmt: skip
     (d / "world.yaml").write_text(yaml.safe_dump(world))
-    plan = floor_plan(load_world(d / "bare.yaml"))
+    # The map's walls are one cell thick, as a scan-built map's are (the world's are 0.1 m).
+    (d / "thin.yaml").write_text(yaml.safe_dump(dict(ROOM, wall_thickness=0.01)))
+    plan = floor_plan(load_world(d / "thin.yaml"))
     save_map_yaml(_grid(plan, np.where(plan.occupied, 100, 0)), d / "map.yaml")
     x, y = (c.ravel() for c in np.meshgrid(
         plan.origin_x + (np.arange(plan.occupied.shape[1]) + 0.5) * plan.resolution,
@@ -76,7 +79,8 @@ def test_two_goals_are_reached_around_a_box_missing_from_the_map(
 ) -> None:
     # Facing away from the box at the start, the first plan runs straight through it; the camera
     # sees it once the robot turns, and the path is replanned around it.
-    code, output, summary = _navigate(scene, tmp_path, "--start", "1.0", "2.0", str(math.pi),
+    code, output, summary = _navigate(scene, tmp_path, "--localization", "groundtruth",
+                                      "--start", "1.0", "2.0", str(math.pi),
                                       "--goal", "5.0", "2.0", "--goal", "1.0", "3.0")  # fmt: skip
     assert code == 0, output
     assert "2/2 goals reached" in output
@@ -86,8 +90,10 @@ def test_two_goals_are_reached_around_a_box_missing_from_the_map(
         assert g["final_error_m"] <= 0.25 + 1e-6  # follower.xy_goal_tolerance
     assert summary["collisions"]["events"] == 0
     assert summary["collisions"]["min_clearance_m"] >= ROBOT_RADIUS
-    assert "ground truth" in summary["localisation"]
-    for name in ("trajectory.tum", "commands.csv", "summary.json", "map.png", "config.yaml"):
+    assert summary["localization"]["mode"] == "groundtruth"
+    assert summary["localization"]["position_error_m"]["max"] == 0.0
+    for name in ("trajectory.tum", "estimated.tum", "commands.csv", "summary.json", "map.png",
+                 "velocity.png", "config.yaml"):
         assert (tmp_path / name).is_file(), name
     _, xyz, _ = load_tum_trajectory(tmp_path / "trajectory.tum")
     x, y = xyz[:, 0], xyz[:, 1]
@@ -104,6 +110,66 @@ def test_two_goals_are_reached_around_a_box_missing_from_the_map(
     assert abs(smoothed[-1]) < 1e-2  # at rest at the end
 
 
+def test_the_localiser_in_the_loop_drives_on_wheel_odometry_and_scan_matching(
+    scene: dict[str, Path], tmp_path: Path
+) -> None:
+    # Default mode: the navigator only has T_map_odom from the localiser and the encoder counts
+    # the board emulator reports; the wheels slip and their diameters differ from nominal.
+    code, output, summary = _navigate(scene, tmp_path, "--start", "1.0", "2.0", str(math.pi),
+                                      "--goal", "5.0", "2.0", "--goal", "1.0", "3.0")  # fmt: skip
+    assert code == 0, output
+    assert "(localizer localisation)" in output
+    loc = summary["localization"]
+    assert loc["mode"] == "localizer" and "wheel odometry" in loc["description"]
+    assert loc["scans"]["tracking"] >= 0.9 * summary["scans"]
+    assert 0.0 < loc["position_error_m"]["max"] < 0.3  # not the truth, but close to it
+    assert loc["heading_error_deg"]["max"] < 10.0
+    assert summary["counts"]["reached"] == 2
+    for g in summary["goals"]:  # reached by the estimate: the truth is off by at most its error
+        assert g["estimated_error_m"] <= 0.25 + 1e-6
+        assert g["final_error_m"] <= 0.25 + loc["position_error_m"]["max"] + 1e-3
+    assert summary["collisions"]["events"] == 0
+    assert summary["gospd_lines"] > 10
+    _, true_xyz, _ = load_tum_trajectory(tmp_path / "trajectory.tum")
+    _, est_xyz, _ = load_tum_trajectory(tmp_path / "estimated.tum")
+    err = np.hypot(*(true_xyz[:, :2] - est_xyz[:, :2]).T)
+    assert float(err.max()) == pytest.approx(loc["position_error_m"]["max"], abs=1e-3)
+    with open(tmp_path / "commands.csv") as f:
+        rows = list(csv.DictReader(f))
+    # the smoothed twist is what went to the board, as GOSPD wheel speeds [positions/s]
+    m_per_pos = math.pi * 0.1524 / 36
+    for r in rows[::25]:
+        v, w = float(r["smoothed_v_mps"]), float(r["smoothed_w_radps"])
+        assert int(r["gospd_left"]) == pytest.approx((v - 0.15 * w) / m_per_pos, abs=0.51)
+        assert int(r["gospd_right"]) == pytest.approx((v + 0.15 * w) / m_per_pos, abs=0.51)
+
+
+def test_waypoint_pause_waits_at_each_reached_goal(scene: dict[str, Path], tmp_path: Path) -> None:
+    code, output, summary = _navigate(scene, tmp_path, "--localization", "groundtruth",
+                                      "--waypoint-pause", "2", "--goal", "2.0", "1.0")  # fmt: skip
+    assert code == 0, output
+    (goal,) = summary["goals"]
+    assert goal["status"] == "reached" and goal["task"] == "wait"
+    with open(tmp_path / "commands.csv") as f:
+        t = [float(r["t_s"]) for r in csv.DictReader(f) if r["status"] == "behavior:wait"]
+    assert t[-1] - t[0] == pytest.approx(2.0, abs=0.1)
+
+
+@pytest.mark.parametrize(
+    ("option", "match"),
+    [(["--localization", "amcl"], "--localization must be one of groundtruth, localizer"),
+     (["--waypoint-pause", "-1"], "--waypoint-pause must be >= 0"),
+     (["--goal-timeout", "0"], "need --goal-timeout > 0")],
+)  # fmt: skip
+def test_a_bad_navigate_setting_is_a_one_line_error(
+    scene: dict[str, Path], tmp_path: Path, option: list[str], match: str
+) -> None:
+    code, output, _ = _navigate(scene, tmp_path / "run", *option, "--goal", "2.0", "1.0")
+    assert code == 1
+    assert match in output and len(output.strip().splitlines()) == 1
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_goal_in_a_wall_is_refused_and_the_run_goes_on(
     scene: dict[str, Path], tmp_path: Path
 ) -> None:
@@ -115,7 +181,7 @@ def test_a_goal_in_a_wall_is_refused_and_the_run_goes_on(
     assert "wall" in first["reason"]
     assert "refused: goal (0.00, 2.00) is in a wall" in output
     assert second["status"] == "reached"
-    assert summary["counts"] == {"reached": 1, "failed": 0, "refused": 1}
+    assert summary["counts"] == {"reached": 1, "failed": 0, "refused": 1, "skipped": 0}
 
 
 def test_a_goal_in_a_keepout_zone_is_refused(scene: dict[str, Path], tmp_path: Path) -> None:
@@ -157,8 +223,92 @@ def test_cast_scan_returns_the_wall_distance() -> None:
     assert np.isnan(cast_scan(plan, np.array([2.8, 2.0, 0.0]), angles[1:2], 0.5, 4.5)).all()
 
 
-def test_unicycle_step_drives_an_arc_of_the_commanded_radius() -> None:
-    pose = np.array([0.0, 0.0, 0.0])
-    for _ in range(100):  # a quarter circle of radius 1 m in 100 steps
-        pose = unicycle_step(pose, math.pi / 2, math.pi / 2, 0.01)
-    np.testing.assert_allclose(pose, [1.0, 1.0, math.pi / 2], atol=1e-4)
+def test_a_door_blocked_by_an_unmapped_box_fails_after_clearing_recoveries(
+    tmp_path: Path,
+) -> None:
+    # A wall across the room at x = 3 with one door; the world has a box in the door the map
+    # does not. Each replan fails on the seen box, Nav2's recovery round starts by clearing the
+    # costmap, the plan goes through the door again, the camera sees the box again...
+    wall = {"from": [3, 0], "to": [3, 4], "doors": [{"at": 2.0, "width": 1.0}]}
+    bare = dict(ROOM, walls=[*ROOM["walls"], wall], wall_thickness=0.01)
+    save_plan = floor_plan(world_from_dict(bare))
+    save_map_yaml(_grid(save_plan, np.where(save_plan.occupied, 100, 0)), tmp_path / "map.yaml")
+    world = dict(ROOM, walls=[*ROOM["walls"], wall],
+                 furniture=[{"name": "box", "center": [3.0, 2.0], "size": [0.5, 1.2, 0.8]}])
+    (tmp_path / "world.yaml").write_text(yaml.safe_dump(world))
+    scene = {"map": tmp_path / "map.yaml", "world": tmp_path / "world.yaml"}
+    code, output, summary = _navigate(scene, tmp_path / "run", "--localization", "groundtruth",
+                                      "--max-replans", "2", "--goal", "5.0", "2.0")  # fmt: skip
+    assert code == 0, output
+    (goal,) = summary["goals"]
+    assert goal["status"] == "failed"
+    assert "gave up after 2 replans" in goal["reason"] or "replan failed" in goal["reason"]
+    assert goal["recoveries"] and goal["recoveries"][0] == "clear_costmap"
+    assert summary["collisions"]["events"] == 0
+    _, xyz, _ = load_tum_trajectory(tmp_path / "run" / "trajectory.tum")
+    assert xyz[:, 0].max() < 3.0 - 0.25 - ROBOT_RADIUS + 0.1  # never got through the door
+
+
+def test_depth_noise_grows_with_the_square_of_the_range() -> None:
+    sigma = depth_range_sigma(np.array([1.0, 2.0, 4.0]), 580.0, 0.075, 0.07, 8)
+    sigma_d = math.sqrt(0.07**2 + (1 / 8) ** 2 / 12)  # [px]
+    np.testing.assert_allclose(sigma, np.array([1.0, 4.0, 16.0]) * sigma_d / (580 * 0.075))
+    assert 0.02 < sigma[2] < 0.04  # a few cm at 4 m, as a Kinect v1
+
+
+def test_velocity_chart_accelerations_are_finite_differences() -> None:
+    t = np.array([0.0, 0.05, 0.1, 0.1, 0.2])
+    v = np.array([0.0, 0.1, 0.3, 0.3, 0.3])
+    tm, a = accelerations(t, v)
+    np.testing.assert_allclose(tm, [0.025, 0.075, 0.15])  # the zero-length interval is dropped
+    np.testing.assert_allclose(a, [2.0, 4.0, 0.0])
+
+
+def _jumpy_localizer(jump_from: int, jump_to: int) -> type:
+    """A Localizer whose answers number jump_from .. jump_to (1-based) claim to be tracking
+    with map -> odom 3 m away."""
+    import dataclasses
+
+    from slam.localization import Localizer
+
+    class Jumpy(Localizer):
+        calls = 0
+
+        def update(self, scan, odom_pose):  # type: ignore[no-untyped-def]
+            r = super().update(scan, odom_pose)
+            Jumpy.calls += 1
+            if jump_from <= Jumpy.calls <= jump_to:
+                return dataclasses.replace(r, status="tracking", reason="matched (icp)",
+                                           map_to_odom=r.map_to_odom + [3.0, 0.0, 0.0])
+            return r
+
+    return Jumpy
+
+
+def test_a_one_scan_localiser_jump_is_not_believed(
+    scene: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import rgbdnav.navigate_run as navigate_run
+
+    monkeypatch.setattr(navigate_run, "Localizer", _jumpy_localizer(8, 9))
+    code, output, summary = _navigate(scene, tmp_path, "--goal", "3.0", "1.0")
+    assert code == 0, output
+    loc = summary["localization"]
+    assert loc["tracking_jumps_rejected"] == 2 and loc["tracking_jumps_confirmed"] == 0
+    assert loc["position_error_m"]["max"] < 0.3  # the 3 m never reached the navigator
+    assert summary["goals"][0]["status"] == "reached"
+
+
+def test_a_localiser_jump_confirmed_by_three_answers_is_believed(
+    scene: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import rgbdnav.navigate_run as navigate_run
+
+    monkeypatch.setattr(navigate_run, "Localizer", _jumpy_localizer(8, 10_000))
+    code, output, summary = _navigate(scene, tmp_path, "--goal-timeout", "3",
+                                      "--goal", "3.0", "1.0")  # fmt: skip
+    assert code == 0, output
+    loc = summary["localization"]
+    assert loc["tracking_jumps_rejected"] == 2  # answers 8 and 9; 10 confirms
+    assert loc["tracking_jumps_confirmed"] == 1
+    assert loc["position_error_m"]["max"] > 2.5  # the navigator now believes the (wrong) 3 m
