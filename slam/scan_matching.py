@@ -39,6 +39,8 @@ MIN_POINTS = 10  # fewer matched points than this is not a match
 SCORE_CHUNK = 8192  # candidates scored per gather (x scan points x 8 bytes of indices)
 PLANARITY_MAX = 0.2  # smaller/larger eigenvalue ratio above which a neighbourhood is no line
 DEGENERATE_EIGENVALUE = 1e-9  # information floor relative to the strongest direction
+GRID_GRADIENT_SIGMA_CELLS = 1.0  # [cells] occupancy blur before the gradient (grid normals)
+GRID_TENSOR_SIGMA_CELLS = 1.5  # [cells] structure tensor window (grid normals)
 
 
 # 1. Scan points ---------------------------------------------------------------------------------
@@ -311,6 +313,41 @@ def build_reference(points: np.ndarray) -> ReferenceCloud:
     return ReferenceCloud(np.vstack([points, zero]), np.vstack([normals, zero]), tree)
 
 
+def build_grid_reference(
+    occupied: np.ndarray, origin_xy: tuple[float, float], resolution: float
+) -> ReferenceCloud:
+    """ICP reference of an occupancy grid (row 0 at the bottom, Nav2 origin): the occupied cells
+    next to a non-occupied one (a scan only ever hits those), with normals from the grid's
+    structure tensor instead of nearest-neighbour PCA.
+
+    Nearest-neighbour PCA fails on maps: the k nearest cells of a wall two or more cells thick
+    form a blob, not a line, so every normal came out zero and ICP had nothing to pull on (maps
+    from floor plans, from other tools, or any Nav2 map with thick walls). The structure tensor
+    ``J = G_s * [gx^2, gx gy; gx gy, gy^2]`` of the blurred occupancy has its dominant eigenvector
+    across the wall whatever its thickness; its coherence ``sqrt((Jxx - Jyy)^2 + 4 Jxy^2) /
+    (Jxx + Jyy)`` rejects corners and clutter with the same eigenvalue-ratio rule as
+    :func:`build_reference` (ratio <= PLANARITY_MAX <=> coherence >= (1 - r) / (1 + r))."""
+    occ = np.asarray(occupied, dtype=bool)
+    ring = np.ones((3, 3), np.uint8)
+    surface = occ & (cv2.dilate((~occ).astype(np.uint8), ring) > 0)
+    rows, cols = np.nonzero(surface)
+    if len(rows) == 0:
+        raise ValueError("the grid has no occupied cell next to free or unknown space")
+    img = cv2.GaussianBlur(occ.astype(np.float32), (0, 0), GRID_GRADIENT_SIGMA_CELLS)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)  # along columns = +x
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)  # along rows = +y (row 0 at the bottom)
+    jxx, jxy, jyy = (cv2.GaussianBlur(g, (0, 0), GRID_TENSOR_SIGMA_CELLS)[rows, cols]
+                     for g in (gx * gx, gx * gy, gy * gy))  # fmt: skip
+    phi = 0.5 * np.arctan2(2 * jxy, jxx - jyy)  # dominant gradient direction = the normal
+    coherence = np.hypot(jxx - jyy, 2 * jxy) / np.maximum(jxx + jyy, 1e-12)
+    linear = coherence >= (1 - PLANARITY_MAX) / (1 + PLANARITY_MAX)
+    normals = np.where(linear[:, None], np.column_stack([np.cos(phi), np.sin(phi)]), 0.0)
+    pts = np.column_stack([origin_xy[0] + (cols + 0.5) * resolution,
+                           origin_xy[1] + (rows + 0.5) * resolution])  # fmt: skip
+    zero = np.zeros((1, 2))
+    return ReferenceCloud(np.vstack([pts, zero]), np.vstack([normals, zero]), cKDTree(pts))
+
+
 @dataclass(frozen=True)
 class IcpResult:
     pose: np.ndarray  # (3,) refined (x, y, yaw)
@@ -398,6 +435,7 @@ __all__ = [
     "IcpResult",
     "LikelihoodField",
     "ReferenceCloud",
+    "build_grid_reference",
     "build_likelihood_field",
     "build_reference",
     "correlative_match",

@@ -400,3 +400,57 @@ def test_release_degenerate_axis_frees_the_weak_direction_and_keeps_a_well_posed
     same, degenerate = release_degenerate_axis(room, 20.0, 1e6)
     assert not degenerate
     np.testing.assert_array_equal(same, room)
+
+
+def _thick_walled_room(res: float = 0.05, origin: float = -0.5) -> np.ndarray:
+    """ROOM as a grid a map server would hold: 0.3 m outer walls, a 0.2 m stub wall, the pillar
+    and the corner cabinet filled (faces where ROOM's segments are), row 0 at the bottom."""
+    n_x, n_y = int(9.0 / res), int(7.0 / res)
+    x = origin + (np.arange(n_x) + 0.5) * res
+    y = origin + (np.arange(n_y) + 0.5) * res
+    gx, gy = np.meshgrid(x, y)
+    outside = (gx < 0) | (gx > 8) | (gy < 0) | (gy > 6)
+    walls = outside & (gx > -0.3) & (gx < 8.3) & (gy > -0.3) & (gy < 6.3)
+    stub = (gx > 2.8) & (gx < 3.0) & (gy > 0) & (gy < 2.5)
+    pillar = (gx > 5.5) & (gx < 6.0) & (gy > 3.5) & (gy < 4.0)
+    cabinet = (gx > 1.0) & (gx < 2.2) & (gy > 5.0) & (gy < 6.0)
+    return walls | stub | pillar | cabinet
+
+
+def test_grid_reference_has_normals_across_walls_of_any_thickness() -> None:
+    from slam.scan_matching import build_grid_reference
+
+    occ = _thick_walled_room()
+    ref = build_grid_reference(occ, (-0.5, -0.5), 0.05)
+    pts, normals = ref.points[: ref.size], ref.normals[: ref.size]
+    # Cells along the long bottom wall's inner face (y just below 0), away from corners.
+    face = (np.abs(pts[:, 1] + 0.025) < 1e-9) & (pts[:, 0] > 3.5) & (pts[:, 0] < 7.5)
+    assert face.sum() > 50
+    np.testing.assert_allclose(np.abs(normals[face, 1]), 1.0, atol=1e-3)
+    # Only cells a scan can hit: none from the inside of the 0.3 m walls.
+    assert ref.size < 0.6 * occ.sum()
+    # Nearest-neighbour PCA on the same cells finds no line at all: the bug this replaces.
+    rows, cols = np.nonzero(occ)
+    pca = build_reference(np.column_stack([-0.5 + (cols + 0.5) * 0.05,
+                                           -0.5 + (rows + 0.5) * 0.05]))  # fmt: skip
+    assert np.count_nonzero(np.any(pca.normals != 0, axis=1)) < 0.05 * pca.size
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_icp_against_a_thick_walled_grid_map_recovers_the_pose(seed: int) -> None:
+    from slam.scan_matching import build_grid_reference
+
+    ref = build_grid_reference(_thick_walled_room(), (-0.5, -0.5), 0.05)
+    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270))
+    sign = np.random.default_rng(seed).choice([-1.0, 1.0], 3)
+    res = icp_refine(ref, pts, ICP_TRUTH + sign * ICP_PERTURBATION, MAX_CORRESPONDENCE)
+    assert res.converged
+    np.testing.assert_allclose(res.pose[:2], ICP_TRUTH[:2], atol=0.02)  # cells: 2.5 cm bias
+    assert abs(float(wrap_angle(res.pose[2] - ICP_TRUTH[2]))) < math.radians(0.5)
+
+
+def test_grid_reference_of_a_grid_without_walls_is_an_error() -> None:
+    from slam.scan_matching import build_grid_reference
+
+    with pytest.raises(ValueError, match="no occupied cell"):
+        build_grid_reference(np.zeros((10, 10), bool), (0.0, 0.0), 0.05)
