@@ -364,6 +364,8 @@ def navigate(
         typer.Option("--waypoint-pause", help="Seconds to wait at each reached goal (default 0)."),
     ] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of wheel slip and depth noise.")] = 0,
+    rrd: RrdOpt = None,
+    viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     quiet: QuietOpt = False,
@@ -383,7 +385,8 @@ def navigate(
         outputs, summary = run_navigate(map_, goal, sim, out, config or [], set_ or [], start,
                                         keepout, goal_timeout, max_replans, progress,
                                         localization=localization, seed=seed,
-                                        waypoint_pause_s=waypoint_pause)  # fmt: skip
+                                        waypoint_pause_s=waypoint_pause, rrd=rrd,
+                                        viewer=viewer)  # fmt: skip
     typer.echo(f"result      {describe(summary)}")
     for g in summary["goals"]:
         if g["status"] != "reached":

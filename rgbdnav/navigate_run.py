@@ -83,6 +83,7 @@ from rgbdnav.nav_charts import velocity_chart
 from rgbdnav.nav_drive import EmulatedDrive, WheelOdometry
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
+from rgbdnav.visualize import Visualizer, log_run, make_visualizer, occupied_cells_xy
 from sensors.atomic import atomic_write_text
 from sensors.sim.world import FloorPlan, floor_plan, load_world
 from sensors.tum import write_tum_trajectory
@@ -681,10 +682,12 @@ def run_navigate(
     localization: str | None = None,
     seed: int = 0,
     waypoint_pause_s: float | None = None,
+    rrd: Path | None = None,
+    viewer: bool = False,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
     """Drive to every goal in turn; (files written, summary). ``seed`` seeds the wheel slip and
     the depth noise; the other keywords override the ``navigate`` settings
-    (:func:`navigate_settings`)."""
+    (:func:`navigate_settings`); ``rrd``/``viewer`` log the run to rerun."""
     wall0 = time.perf_counter()
     # 1. Inputs first: a bad map, world, goal or start fails before anything is written.
     loaded = load_map(map_path)
@@ -763,6 +766,11 @@ def run_navigate(
     outputs["picture"] = run.file("map.png")
     velocity_chart(run.file("velocity.png"), sim.log.rows, cfg.smoother)
     outputs["velocity chart"] = run.file("velocity.png")
+    if rrd is not None or viewer:
+        _visualize(make_visualizer("navigate", rrd, viewer), stamps, poses, estimates, outcomes,
+                   loaded, costmap)  # fmt: skip
+        if rrd is not None:
+            outputs["rerun recording"] = rrd
     for o in outcomes:
         o.pop("first_plan", None)
     err_m, err_yaw = pose_errors(poses, estimates)
@@ -823,6 +831,27 @@ def run_navigate(
     }  # fmt: skip
     outputs["summary"] = run.write_summary(summary)
     return outputs, summary
+
+
+def _visualize(vis: Visualizer, stamps: np.ndarray, poses: np.ndarray, estimates: np.ndarray,
+               outcomes: list[dict[str, Any]], loaded: LoadedMap, costmap: Costmap) -> None:
+    """The run on rerun's time line: the estimated pose and path (world/robot), the true path
+    (world/truth), each goal's first plan, the map and the final costmap's lethal cells."""
+    try:
+        log_run(vis, stamps, estimates, None,
+                occupied_cells_xy(loaded.grid.occupied_mask(loaded.occupied_thresh),
+                                  (loaded.grid.geometry.origin_x, loaded.grid.geometry.origin_y),
+                                  loaded.grid.geometry.resolution),
+                poses[:, :2])  # fmt: skip
+        t_end = int(stamps[-1]) if len(stamps) else 0
+        for o in outcomes:
+            if "first_plan" in o:
+                vis.plan(t_end, o["first_plan"][:, :2])
+        cg = costmap.geometry
+        lethal = (costmap.master() >= INSCRIBED) & (costmap.master() != NO_INFORMATION)
+        vis.costmap(t_end, occupied_cells_xy(lethal, (cg.origin_x, cg.origin_y), cg.resolution))
+    finally:
+        vis.close()
 
 
 def describe(summary: dict[str, Any]) -> str:

@@ -155,6 +155,19 @@ def test_waypoint_pause_waits_at_each_reached_goal(scene: dict[str, Path], tmp_p
     assert t[-1] - t[0] == pytest.approx(2.0, abs=0.1)
 
 
+def test_navigate_with_rrd_logs_plan_paths_map_and_costmap(
+    scene: dict[str, Path], tmp_path: Path
+) -> None:
+    rrd = tmp_path / "nav.rrd"
+    code, output, _ = _navigate(scene, tmp_path, "--localization", "groundtruth", "--rrd",
+                                str(rrd), "--goal", "2.0", "1.0")  # fmt: skip
+    assert code == 0, output
+    data = rrd.read_bytes()
+    for path in (b"world/plan", b"world/truth", b"world/robot/trajectory", b"world/map",
+                 b"world/costmap"):  # fmt: skip
+        assert path in data, path
+
+
 @pytest.mark.parametrize(
     ("option", "match"),
     [(["--localization", "amcl"], "--localization must be one of groundtruth, localizer"),
