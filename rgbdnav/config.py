@@ -61,6 +61,9 @@ class LiveConfig:
         30.0, unit="s", gt=0.0, doc="the map bundle is saved this often (and on exit)"
     )
     control_rate: float = param(10.0, unit="Hz", gt=0.0, doc="velocity commands to the board")
+    pose_before_vo: bool = param(
+        True, doc="a frame's pose leaves before its VO is fused (VO corrects the next frames)"
+    )
     skip_vo_when_behind: bool = param(
         True, doc="frames waiting: skip VO on this one instead of dropping the next frame"
     )

@@ -331,57 +331,70 @@ class LiveRun:
                         cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance)  # fmt: skip
                     ekf.process("odom0", tw)
                 prev_ticks = t
-            # b. Visual odometry between this frame and the last processed one.
             t_b = time.perf_counter()
             if vo is None:
                 vo = VisualOdometry(frame.intrinsics, cfg.vo, cfg.robot)
                 d2s = DepthToScan(frame.intrinsics, cfg.robot, cfg.depth_to_scan)
-            # Behind (frames waiting)? Skip VO on this frame rather than drop the next one:
-            # the next VO pair spans both frames and the wheels carry the EKF meanwhile.
-            if cfg.live.skip_vo_when_behind and prev_frame_ns is not None \
-                    and not self.frame_q.empty():  # fmt: skip
-                self.counts.inc("vo_skipped_behind")
-            else:
-                res = vo.process(frame)
-                if prev_frame_ns is not None:
-                    dt = (frame.stamp_ns - prev_frame_ns) / 1e9
-                    d = res.delta_base
-                    if res.success and d is not None and dt > 0:
-                        ekf.process("vo0", TwistInput(
-                            frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
-                            np.asarray(res.covariance) / dt**2))  # fmt: skip
-                    else:
-                        self.counts.inc(f"vo_failures_{res.reason}")
-                prev_frame_ns = frame.stamp_ns
+            vo_ms = None
+            if not cfg.live.pose_before_vo:
+                vo_ms, prev_frame_ns = self._visual_odometry(vo, ekf, frame, prev_frame_ns)
+            # b. The pose at the frame's stamp and the scan go out: latency ends here.
             t_c = time.perf_counter()
             try:
                 od = ekf.state_at(frame.stamp_ns)
             except EkfError:  # no wheel reading yet, or the frame is older than the history
                 self.counts.inc("frames_without_odometry")
+                od = None
+            if od is not None:
+                odom = oplus(self.start_pose, [od.pose.x, od.pose.y, od.pose.yaw])
+                assert d2s is not None
+                t_d = time.perf_counter()
+                scan = d2s.from_frame(frame).scan
+                self.stage_ms["depth_to_scan"].append(1e3 * (time.perf_counter() - t_d))
+                self.stage_ms["wheels_ekf"].append(1e3 * (t_b - t_a + t_d - t_c))
+                with self.shared.lock:
+                    self.shared.odom = odom
+                self.latency_ms.append((time.monotonic_ns() - frame.stamp_ns) / 1e6)
+                self.counts.inc("frames_processed")
+                self.odom_track.append((frame.stamp_ns, float(odom[0]), float(odom[1]),
+                                        float(odom[2])))  # fmt: skip
+                try:
+                    self.scan_q.put_nowait((scan, odom))
+                except queue.Full:
+                    self.counts.inc("scans_dropped_mapper_behind")
+            # c. VO after the pose is out: it corrects the filter for the frames that follow.
+            if cfg.live.pose_before_vo:
+                vo_ms, prev_frame_ns = self._visual_odometry(vo, ekf, frame, prev_frame_ns)
+            if vo_ms is not None:
+                self.stage_ms["vo"].append(vo_ms)
+            if od is None:
                 continue
-            odom = oplus(self.start_pose, [od.pose.x, od.pose.y, od.pose.yaw])
-            # c. The scan for the mapper, and the pose is out: latency ends here.
-            assert d2s is not None
-            t_d = time.perf_counter()
-            scan = d2s.from_frame(frame).scan
-            t_e = time.perf_counter()
-            self.stage_ms["wheels_ekf"].append(1e3 * (t_b - t_a + t_d - t_c))
-            if prev_frame_ns == frame.stamp_ns:  # VO ran on this frame
-                self.stage_ms["vo"].append(1e3 * (t_c - t_b))
-            self.stage_ms["depth_to_scan"].append(1e3 * (t_e - t_d))
-            with self.shared.lock:
-                self.shared.odom = odom
-            self.latency_ms.append((time.monotonic_ns() - frame.stamp_ns) / 1e6)
-            self.counts.inc("frames_processed")
-            self.odom_track.append((frame.stamp_ns, float(odom[0]), float(odom[1]), float(odom[2])))
-            try:
-                self.scan_q.put_nowait((scan, odom))
-            except queue.Full:
-                self.counts.inc("scans_dropped_mapper_behind")
             n += 1
             if vis_every and n % vis_every == 0:
                 self.vis.frame(frame.stamp_ns, frame.rgb, frame.depth_m)
         self.scan_q.put(None)
+
+    def _visual_odometry(self, vo: VisualOdometry, ekf: PlanarEkf, frame: RgbdFrame,
+                         prev_frame_ns: int | None) -> tuple[float | None, int | None]:  # fmt: skip
+        """VO between ``frame`` and the last frame VO ran on, fused as a twist; (ms or None
+        when skipped, the stamp VO pairs the next frame with)."""
+        # Behind (frames waiting)? Skip VO on this frame rather than drop the next one: the
+        # next VO pair spans both frames and the wheels carry the EKF meanwhile.
+        if self.cfg.live.skip_vo_when_behind and prev_frame_ns is not None \
+                and not self.frame_q.empty():  # fmt: skip
+            self.counts.inc("vo_skipped_behind")
+            return None, prev_frame_ns
+        t0 = time.perf_counter()
+        res = vo.process(frame)
+        if prev_frame_ns is not None:
+            dt = (frame.stamp_ns - prev_frame_ns) / 1e9
+            d = res.delta_base
+            if res.success and d is not None and dt > 0:
+                ekf.process("vo0", TwistInput(frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
+                                              np.asarray(res.covariance) / dt**2))  # fmt: skip
+            else:
+                self.counts.inc(f"vo_failures_{res.reason}")
+        return 1e3 * (time.perf_counter() - t0), frame.stamp_ns
 
     def _mapper_loop(self) -> None:
         cfg = self.cfg
