@@ -270,6 +270,7 @@ def run_localize(
                                          "p05": (round(float(np.percentile(conf, 5)), 4)
                                                  if len(conf) else None)},
             "localizer": {"global_searches": loc.stats.global_searches,
+                          "kidnap_checks": loc.stats.kidnap_checks,
                           "matches": loc.stats.matches},
             "timings_s": {"map_model": round(model_s, 3), "localisation": round(update_s, 3),
                           "wall": round(time.perf_counter() - t0, 3)},

@@ -447,6 +447,19 @@ class LocalizerConfig:
         0.3, ge=0.0, le=1.0, doc="confidence below this counts towards being lost"
     )
     lost_time: float = param(2.0, unit="s", ge=0.0, doc="declare lost after this long below")
+    lost_min_scans: int = param(
+        3, ge=1, doc="...and after at least this many scans below (sparse logs: 2-3 s per scan)"
+    )
+    kidnap_check_ratio: float = param(
+        0.7,
+        ge=0.0,
+        le=1.0,
+        doc="confidence below this times its recent median searches the map for a better pose "
+        "(a clearly better one declares lost at once; 0 = never)",
+    )
+    kidnap_check_scans: int = param(
+        5, ge=1, doc="tracked scans whose median confidence the kidnap check compares against"
+    )
     # Global relocalisation.
     global_search_resolution: float = param(
         0.1, unit="m", gt=0.0, doc="cell size of the global search (coarser than the map is ok)"
@@ -483,6 +496,13 @@ class LocalizerConfig:
         gt=0.0,
         le=1.0,
         doc="two verified hypotheses within this score ratio are ambiguous: keep relocalising",
+    )
+    relocalization_history_m: float = param(
+        1.0,
+        unit="m",
+        ge=0.0,
+        doc="while relocalising, hypotheses are also scored on the scans of this much recent "
+        "odometry travel stacked by odometry (a wider view than one scan; 0 = off)",
     )
     # Likelihood field and scan handling.
     sigma_hit: float = param(

@@ -15,18 +15,37 @@ below. Per scan (:meth:`Localizer.update`):
 4. **Confidence** is the mean likelihood ``exp(-d^2 / 2 sigma_hit^2)`` of the scan points at the
    fused pose (``d`` to the nearest occupied cell), in [0, 1]. Below ``lost_score`` for
    ``lost_time`` the status becomes ``"lost"`` and the following scans relocalise globally.
+   **Kidnap check**: a confidence that falls below ``kidnap_check_ratio`` x the median of the
+   last ``kidnap_check_scans`` runs the global search on that scan (once per drop); a place
+   that fits clearly better declares ``"lost"`` at once, and relocalisation starts from those
+   hypotheses plus the tracked pose, which wins ties (the prior is on its side). A 1.45 m jump
+   along a corridor-like route used to keep "tracking" 1.3 m off at confidence 0.5.
 5. ``map_to_odom = pose (+) odom^-1`` so the odom frame stays continuous and the map frame jumps.
 
 **Global relocalisation** (no initial pose, or lost): :func:`global_search` is an exact
 multi-resolution branch-and-bound over every free cell of a coarse field (``global_search_
 resolution``, smear ``global_search_sigma``) and a full turn at ``global_search_angular_
 resolution``; it keeps every lattice pose scoring at least ``global_search_candidate_ratio``
-times the best, and non-maximum suppression leaves a few distinct hypotheses. Each is refined on
-the fine field (correlative + ICP), then propagated by odometry and re-matched on the following
-scans; a hypothesis is accepted after ``relocalization_verification_scans`` consecutive matches
-that agree with its prediction and score at least ``global_localization_min_score``, and only
-when no other verified hypothesis scores within ``relocalization_ambiguity_ratio`` of it (a
-symmetric map stays ``"relocalising"`` with a reason instead of guessing).
+times the best, and non-maximum suppression leaves a few distinct hypotheses. The search runs
+from a high threshold (0.95 x a beam-descent leaf's score) down to that floor and stops as soon
+as the leaves above the threshold already give ``global_search_max_hypotheses`` picks (greedy
+suppression takes leaves best first, so lower leaves could not change them): the same answer,
+2-4x fewer blocks scored on cluttered maps. Each candidate is refined on the fine field
+(correlative + ICP), then propagated by odometry and re-matched on the following scans; a
+hypothesis is accepted after ``relocalization_verification_scans`` consecutive matches that agree
+with its prediction and score at least ``global_localization_min_score``, and only when no other
+verified hypothesis scores within ``relocalization_ambiguity_ratio`` of it (a symmetric map stays
+``"relocalising"`` with a reason instead of guessing). For narrow scans (a 60 deg depth camera
+sees a wall or a corner that fits many places) three more safeguards apply:
+
+- hypotheses are also scored on the scans of the last ``relocalization_history_m`` of odometry
+  travel stacked by odometry (a wider view); they are ranked by the lower of the two scores, and
+  a rival must be within the ambiguity ratio on both;
+- while ambiguous, the current scan is searched again every ``relocalization_verification_scans``
+  scans and its places join the hypotheses (at most twice ``global_search_max_hypotheses``): the
+  true place may have ranked below the cut on the first scan;
+- a leader that is left alone because its rivals died is checked by one more search before it
+  is accepted.
 
 Memory of the global field: it is not padded by the search window (the whole map) but by the
 scan's reach (``laser_max_range``) plus one top-level block, and its pyramid levels are uint8
@@ -40,6 +59,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -54,8 +74,8 @@ from slam.occupancy_grid import OccupancyGrid
 from slam.scan_matching import (
     LikelihoodField,
     ReferenceCloud,
+    build_grid_reference,
     build_likelihood_field,
-    build_reference,
     correlative_match,
     icp_refine,
     release_degenerate_axis,
@@ -69,7 +89,9 @@ log = logging.getLogger(__name__)
 MIN_SCAN_POINTS = 20  # valid returns a scan needs to be matched at all
 MIN_MAP_POINTS = 20  # occupied cells a map needs to be matched against
 GLOBAL_TOP_LEVEL = 5  # global pyramid: top blocks of 2^5 = 32 cells (3.2 m at 0.1 m)
-GLOBAL_GREEDY_SEEDS = 16  # top blocks descended greedily for a first leaf to prune with
+GLOBAL_BEAM_WIDTH = 256  # blocks per level of the beam descent to a first leaf
+GLOBAL_THRESHOLD_RATIOS = (0.95, 0.9, 0.85, 0.8)  # [x best] global search thresholds
+MAX_HISTORY_SCANS = 50  # scans stacked for relocalisation evidence (memory bound)
 SCORE_CHUNK = 16384  # global candidates scored per gather (x points x 8 bytes of indices)
 UINT8_SCALE = 255.0  # likelihood in [0, 1] stored as uint8
 UNKNOWN_VARIANCE = 1.0e6  # [m^2, rad^2] covariance diagonal of a pose that is not established
@@ -168,7 +190,10 @@ class MapModel:
         n_levels = int(math.ceil(math.log2(window_cells))) + 1
         fine = build_likelihood_field(pts, geom.resolution, config.sigma_hit,
                                       config.linear_search_window, n_levels)  # fmt: skip
-        ref = build_reference(pts)
+        # ICP's reference: the cells a scan can hit (beside a non-occupied one), with normals
+        # from the grid's structure tensor: nearest-neighbour PCA finds no line in a wall two
+        # or more cells thick (a CAD floor plan, a thick Nav2 wall) and ICP would get nothing.
+        ref = build_grid_reference(occ, (geom.origin_x, geom.origin_y), geom.resolution)
         gfield = build_global_field(grid, occ, free, config)
         log.debug("map model: %d occupied, %d free cells; global field %.1f MB", n_occ, n_free,
                   gfield.nbytes / 1e6)  # fmt: skip
@@ -236,6 +261,20 @@ def build_global_field(
 # 3. Global search (batched branch-and-bound over the whole map) --------------------------------
 
 
+def coarse_score(gf: GlobalField, points: np.ndarray, pose: np.ndarray) -> float:
+    """Mean coarse likelihood (0..1) of scan ``points`` at ``pose``, the global search's score
+    (points beyond the field count 0)."""
+    pts = points[np.hypot(points[:, 0], points[:, 1]) <= gf.reach_m]
+    if len(pts) == 0:
+        return 0.0
+    w = transform_points(pose, pts)
+    c = np.floor((w[:, 0] - gf.origin[0]) / gf.resolution).astype(np.int64)
+    r = np.floor((w[:, 1] - gf.origin[1]) / gf.resolution).astype(np.int64)
+    hp, wp = gf.levels[0].shape
+    ok = (r >= 0) & (r < hp) & (c >= 0) & (c < wp)
+    return float(gf.levels[0][r[ok], c[ok]].sum(dtype=np.int64)) / (len(pts) * UINT8_SCALE)
+
+
 @dataclass(frozen=True)
 class GlobalCandidate:
     pose: np.ndarray  # (3,) lattice pose of the scan origin in map
@@ -294,47 +333,75 @@ def global_search(
     r, c = np.tile(br, n_ang), np.tile(bc, n_ang)
     bound = _global_scores(flats[top], offsets, a, r, c, wp)
     evaluated = len(a)
-    # 3c. Greedy descent from the best top blocks: a first leaf score to prune with.
+    # 3c. Beam descent from the best top blocks: a first leaf score to prune with (the higher,
+    #     the fewer blocks the exact search opens).
     best = min_score
-    seeds = np.argsort(bound)[::-1][:GLOBAL_GREEDY_SEEDS]
-    for i in seeds:
-        ga, gr, gc = int(a[i]), int(r[i]), int(c[i])
-        ok = True
-        for lvl in range(top, 0, -1):
-            h = 2 ** (lvl - 1)
-            cr = np.array([gr, gr, gr + h, gr + h])
-            cc = np.array([gc, gc + h, gc, gc + h])
-            inside = gf.free[lvl - 1][cr, cc]
-            if not inside.any():
-                ok = False
-                break
-            cr, cc = cr[inside], cc[inside]
-            sc = _global_scores(flats[lvl - 1], offsets, np.full(len(cr), ga), cr, cc, wp)
-            evaluated += len(cr)
-            k = int(np.argmax(sc))
-            gr, gc = int(cr[k]), int(cc[k])
-        if ok:
-            best = max(best, float(sc[k]))
-    # 3d. Level by level: drop blocks that cannot reach the threshold, split the rest.
-    threshold = max(min_score, candidate_ratio * best)
+    ba, br, bc, bb = a, r, c, bound
     for lvl in range(top, 0, -1):
-        keep = bound >= threshold
-        a, r, c = a[keep], r[keep], c[keep]
-        h = 2 ** (lvl - 1)
-        a = np.repeat(a, 4)
-        r = np.repeat(r, 4) + np.tile([0, 0, h, h], len(r))
-        c = np.repeat(c, 4) + np.tile([0, h, 0, h], len(c))
-        inside = gf.free[lvl - 1][r, c]
-        a, r, c = a[inside], r[inside], c[inside]
-        bound = _global_scores(flats[lvl - 1], offsets, a, r, c, wp)
-        evaluated += len(a)
-        if lvl == 1 and len(bound):
-            threshold = max(threshold, candidate_ratio * float(bound.max()))
-    keep = bound >= threshold
-    a, r, c, score = a[keep], r[keep], c[keep], bound[keep]
-    if len(score) == 0:
-        return [], evaluated
-    # 3e. Non-maximum suppression into distinct hypotheses.
+        sel = np.argsort(bb)[::-1][:GLOBAL_BEAM_WIDTH]
+        ba, br, bc = _children(gf, lvl, ba[sel], br[sel], bc[sel])
+        bb = _global_scores(flats[lvl - 1], offsets, ba, br, bc, wp)
+        evaluated += len(ba)
+    if len(bb):
+        best = max(best, float(bb.max()))
+    # 3d. Branch and bound, from a high threshold down to the floor. Greedy non-maximum
+    #     suppression takes leaves best first, so when the leaves at or above a threshold already
+    #     give max_hypotheses picks, the leaves below it cannot change them: the lower
+    #     thresholds (and the blocks only they would open) are never needed. Blocks pruned at a
+    #     threshold wait at their level, so lowering it resumes rather than restarts.
+    pending: list[tuple[np.ndarray, ...]] = [(np.zeros(0, np.int64),) * 3 + (np.zeros(0),)
+                                             for _ in range(top)]  # fmt: skip
+    pending.append((a, r, c, bound))
+    cands: list[GlobalCandidate] = []
+    for ratio in _threshold_ratios(candidate_ratio):
+        floor = max(min_score, candidate_ratio * best)
+        threshold = max(floor, ratio * best)
+        for lvl in range(top, 0, -1):
+            a, r, c, bound = pending[lvl]
+            go = bound >= threshold
+            wait = ~go & (bound >= floor)
+            pending[lvl] = (a[wait], r[wait], c[wait], bound[wait])
+            a, r, c = _children(gf, lvl, a[go], r[go], c[go])
+            bound = _global_scores(flats[lvl - 1], offsets, a, r, c, wp)
+            evaluated += len(a)
+            pa, pr, pc, pb = pending[lvl - 1]
+            pending[lvl - 1] = (np.concatenate([pa, a]), np.concatenate([pr, r]),
+                                np.concatenate([pc, c]), np.concatenate([pb, bound]))  # fmt: skip
+        a, r, c, score = pending[0]
+        if len(score):
+            best = max(best, float(score.max()))  # an exact leaf beats the greedy one
+            threshold = max(threshold, max(min_score, candidate_ratio * best))
+        keep = score >= threshold
+        cands = _suppress(gf, yaws, a[keep], r[keep], c[keep], score[keep], max_hypotheses,
+                          separation_m, separation_rad)  # fmt: skip
+        if len(cands) >= max_hypotheses:
+            break
+    return cands, evaluated
+
+
+def _children(gf: GlobalField, lvl: int, a: np.ndarray, r: np.ndarray, c: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The level ``lvl - 1`` sub-blocks (same angle) of level-``lvl`` blocks that hold a free
+    cell."""
+    h = 2 ** (lvl - 1)
+    a = np.repeat(a, 4)
+    r = np.repeat(r, 4) + np.tile([0, 0, h, h], len(r))
+    c = np.repeat(c, 4) + np.tile([0, h, 0, h], len(c))
+    inside = gf.free[lvl - 1][r, c]
+    return a[inside], r[inside], c[inside]
+
+
+def _threshold_ratios(candidate_ratio: float) -> list[float]:
+    """Thresholds of the global search as fractions of the best score, high to low."""
+    return [q for q in GLOBAL_THRESHOLD_RATIOS if q > candidate_ratio] + [candidate_ratio]
+
+
+def _suppress(
+    gf: GlobalField, yaws: np.ndarray, a: np.ndarray, r: np.ndarray, c: np.ndarray,
+    score: np.ndarray, max_hypotheses: int, separation_m: float, separation_rad: float,
+) -> list[GlobalCandidate]:  # fmt: skip
+    """Greedy non-maximum suppression of lattice leaves into distinct hypotheses, best first."""
+    res = gf.resolution
     x = gf.origin[0] + (c + 0.5) * res
     y = gf.origin[1] + (r + 0.5) * res
     yaw = wrap_angle(yaws[a])
@@ -346,7 +413,7 @@ def global_search(
         near = ((np.hypot(x - x[i], y - y[i]) <= separation_m)
                 & (np.abs(wrap_angle(yaw - yaw[i])) <= separation_rad))  # fmt: skip
         alive &= ~near
-    return out, evaluated
+    return out
 
 
 # 4. Matching one scan against the map ----------------------------------------------------------
@@ -444,12 +511,29 @@ class _Hypothesis:
     unique: int = 0  # consecutive scans it led without a rival within the ambiguity ratio
     agreed: bool = True  # its last match agreed with its odometry prediction
     window: int = 1  # scores averaged for ranking: the last relocalization_verification_scans
+    tracked: bool = False  # the pose tracked before a kidnap check: it has the prior on its side
+    since_ns: int = 0  # [ns] stamp of the kidnap check (``tracked`` only)
+    evidence: float | None = None  # confidence of the recent scans stacked by odometry
 
     @property
     def mean_score(self) -> float:
         """Mean confidence over the last ``window`` scans: a rival that keeps fitting worse
         drops out of the ambiguity ratio however well it fitted at first."""
         return float(np.mean(self.scores[-self.window :])) if self.scores else 0.0
+
+    @property
+    def rank_score(self) -> float:
+        """What hypotheses are ranked by: the mean score, capped by the stacked evidence."""
+        return self.mean_score if self.evidence is None else min(self.mean_score, self.evidence)
+
+    def rivals(self, best: _Hypothesis, ratio: float) -> bool:
+        """Scores within ``ratio`` of ``best``, on the last scans and on the stacked ones: a
+        place that fits each narrow scan on its own, but not the scans together where
+        odometry puts them, is no rival."""
+        if self.mean_score < ratio * best.mean_score:
+            return False
+        return self.evidence is None or best.evidence is None or (
+            self.evidence >= ratio * best.evidence)
 
 
 @dataclass
@@ -458,6 +542,7 @@ class LocalizerStats:
     global_searches: int = 0
     relocalisations: int = 0
     lost: int = 0
+    kidnap_checks: int = 0  # global searches run on a sudden confidence drop while tracking
     matches: dict[str, int] = field(default_factory=dict)
 
 
@@ -479,10 +564,16 @@ class Localizer:
         self._odom: np.ndarray | None = None  # odometry pose at the last scan
         self._last_stamp: int | None = None
         self._low_since: int | None = None  # [ns] first scan of the current low-confidence run
+        self._low_scans = 0  # scans in the current low-confidence run
         self._status: Status = "relocalising"
         self._hypotheses: list[_Hypothesis] = []
+        self._contested = False  # the hypotheses were ambiguous at some scan since the search
+        self._since_search = 0  # ambiguous scans since the last global search
+        self._history: list[tuple[np.ndarray, np.ndarray]] = []  # (odom, points) relocalising
         self._initial_check = False  # the next scan checks the given initial pose
         self._match_pose: np.ndarray | None = None  # pose of the last match (update_min_d/a)
+        self._recent: deque[float] = deque(maxlen=config.kidnap_check_scans)  # confidences
+        self._drop_checked = False  # the current confidence drop was searched already
         if initial_pose is not None:
             self.set_initial_pose(initial_pose)
 
@@ -500,7 +591,13 @@ class Localizer:
         self._initial_check = True
         self._hypotheses = []
         self._low_since = None
+        self._low_scans = 0
         self._match_pose = None
+        self._recent.clear()
+        self._drop_checked = False
+        self._contested = False
+        self._since_search = 0
+        self._history = []
 
     def _points(self, scan: LaserScan) -> np.ndarray:
         pts = scan_points(scan, self.config.laser_max_range)
@@ -534,8 +631,7 @@ class Localizer:
         for h in self._hypotheses:
             h.pose, h.covariance = predict(h.pose, h.covariance, u, motion_noise(u, self.config))
         if self._status == "lost":
-            self._status = "relocalising"
-            self._hypotheses = []
+            self._status = "relocalising"  # with the hypotheses a kidnap check left, if any
         if self._status == "relocalising":
             return self._relocalise(scan.stamp_ns, odom, pts)
         return self._track(scan.stamp_ns, odom, pts)
@@ -558,6 +654,13 @@ class Localizer:
             if math.hypot(d[0], d[1]) < cfg.update_min_d and abs(d[2]) < cfg.update_min_a:
                 conf = self.model.score(pts, self._pose)
                 return self._result(stamp, odom, "not moved enough to match", conf)
+        if len(pts) < MIN_SCAN_POINTS:
+            # A scan with nothing in range (a depth camera facing open space) is no evidence
+            # either way: dead-reckon, and neither start nor stop the lost timer (nor check a
+            # given initial pose: that waits for the next scan).
+            self._initial_check = checking
+            what = "initial pose kept unchecked" if checking else "dead reckoning"
+            return self._result(stamp, odom, f"too few scan points ({len(pts)}): {what}", 0.0)
         match = match_scan(self.model, pts, self._pose, cfg)
         self.stats.matches[match.method] = self.stats.matches.get(match.method, 0) + 1
         if not match.ok and checking:
@@ -574,41 +677,106 @@ class Localizer:
         else:
             reason = f"match rejected: {match.reason}; dead reckoning"
         conf = self.model.score(pts, self._pose)
-        # 4. Lost when the confidence stays below lost_score, or matches keep being rejected,
+        # 4. Kidnapped? A sudden drop in confidence searches the whole map on this scan; a pose
+        #    elsewhere that fits clearly better means the robot is not where we track it.
+        kidnapped = self._kidnap_check(stamp, pts, conf)
+        if kidnapped is not None:
+            hyps, why = kidnapped
+            return self._declare_lost(stamp, odom, why, conf, hyps)
+        # 5. Lost when the confidence stays below lost_score, or matches keep being rejected,
         #    for lost_time (a scan fitting 30-50 % of a wrong place must not keep it "tracking").
+        #    A sparse log (a scan every 2-3 s) also needs lost_min_scans such scans in a row.
         if conf < cfg.lost_score or not match.ok:
             self._low_since = stamp if self._low_since is None else self._low_since
-            if (stamp - self._low_since) * 1e-9 >= cfg.lost_time:
-                why = (
-                    f"confidence {conf:.2f} below lost_score {cfg.lost_score} for {cfg.lost_time} s"
-                )
+            self._low_scans += 1
+            if ((stamp - self._low_since) * 1e-9 >= cfg.lost_time
+                    and self._low_scans >= cfg.lost_min_scans):
+                why = (f"confidence {conf:.2f} below lost_score {cfg.lost_score} or matches "
+                       f"rejected for {cfg.lost_time} s ({self._low_scans} scans)")  # fmt: skip
                 return self._declare_lost(stamp, odom, why, conf)
         else:
             self._low_since = None
+            self._low_scans = 0
         return self._result(stamp, odom, reason, conf)
 
-    def _declare_lost(self, stamp: int, odom: np.ndarray, reason: str, conf: float = 0.0
-                      ) -> LocalizationResult:  # fmt: skip
+    def _kidnap_check(self, stamp: int, pts: np.ndarray, conf: float
+                      ) -> tuple[list[_Hypothesis], str] | None:  # fmt: skip
+        """The relocalisation hypotheses and a reason when this scan's confidence fell below
+        ``kidnap_check_ratio`` x the median of the last ``kidnap_check_scans`` tracked scans and
+        the global search finds a pose that scores ``global_localization_min_score``, more than
+        the tracked one by the ambiguity ratio and at least that ratio of the median; None
+        otherwise (also when the drop was searched already: one search per drop, not per
+        scan)."""
+        cfg = self.config
+        assert self._pose is not None
+        ref = float(np.median(self._recent)) if len(self._recent) else 0.0
+        if conf >= cfg.kidnap_check_ratio * ref:
+            self._recent.append(conf)
+            self._drop_checked = False
+            return None
+        if self._drop_checked or len(self._recent) < cfg.kidnap_check_scans:
+            return None
+        self._drop_checked = True
+        self.stats.kidnap_checks += 1
+        hyps, _ = self._search(pts, self._pose)  # only places fitting at least as well
+        # Clearly better: beyond the ambiguity ratio of the tracked pose, and within it of the
+        # confidence tracking had (a drop in a poorly mapped stretch can leave a far corridor
+        # fitting better than the right pose, though not as well as the map fitted before).
+        floor = max(cfg.global_localization_min_score, conf / cfg.relocalization_ambiguity_ratio,
+                    cfg.relocalization_ambiguity_ratio * ref)  # fmt: skip
+        better = [h for h in hyps if h.mean_score > floor and not _agree(h.pose, self._pose, cfg)]
+        if not better:
+            return None
+        d = ominus(self._pose, better[0].pose)
+        # The tracked pose stays a hypothesis: if the drop was an occlusion it can win again.
+        tracked = _Hypothesis(self._pose.copy(), self._cov.copy(), [conf],
+                              window=cfg.relocalization_verification_scans,
+                              tracked=True, since_ns=stamp)  # fmt: skip
+        return _merge([*hyps, tracked], cfg), (
+            f"kidnapped? confidence fell to {conf:.2f} from a median {ref:.2f}; a pose "
+            f"{math.hypot(d[0], d[1]):.2f} m / {math.degrees(abs(d[2])):.0f} deg away scores "
+            f"{better[0].mean_score:.2f}; relocalising"
+        )
+
+    def _declare_lost(
+        self, stamp: int, odom: np.ndarray, reason: str, conf: float = 0.0,
+        hypotheses: list[_Hypothesis] | None = None,
+    ) -> LocalizationResult:  # fmt: skip
         self.stats.lost += 1
         self._status = "lost"
+        self._hypotheses = hypotheses or []
+        self._contested = False
+        self._since_search = 0
+        self._history = []
         self._low_since = None
+        self._low_scans = 0
         self._match_pose = None
+        self._recent.clear()
+        self._drop_checked = False
         self._cov = np.eye(3) * UNKNOWN_VARIANCE
         log.info("lost: %s", reason)
         return self._result(stamp, odom, reason, conf)
 
     # 5b. Global relocalisation -----------------------------------------------------------------
 
-    def _search(self, pts: np.ndarray) -> tuple[list[_Hypothesis], str]:
-        """Global search on this scan; each distinct candidate refined on the fine field."""
+    def _search(self, pts: np.ndarray, rival_of: np.ndarray | None = None, ratio: float = 1.0
+                ) -> tuple[list[_Hypothesis], str]:  # fmt: skip
+        """Global search on this scan; each distinct candidate refined on the fine field. With
+        ``rival_of`` (a leader's or the tracked pose) only places whose coarse score reaches
+        ``ratio`` x that pose's are wanted, which prunes the search from its first level."""
         cfg = self.config
         self.stats.global_searches += 1
-        gpts = voxel_filter(pts, self.model.global_field.resolution)
+        gf = self.model.global_field
+        gpts = voxel_filter(pts, gf.resolution)
         if len(gpts) > cfg.max_beams:
             gpts = gpts[np.linspace(0, len(gpts) - 1, cfg.max_beams).round().astype(int)]
+        min_score = cfg.global_search_min_score
+        if rival_of is not None:
+            lead = coarse_score(gf, gpts, rival_of)
+            min_score = max(min_score, ratio * lead)
         cands, _ = global_search(
-            self.model.global_field, gpts, cfg.global_search_angular_resolution,
-            cfg.global_search_min_score, cfg.global_search_candidate_ratio,
+            gf, gpts, cfg.global_search_angular_resolution,
+            min_score, cfg.global_search_candidate_ratio,
             cfg.global_search_max_hypotheses, cfg.relocalization_agreement_distance,
             cfg.relocalization_agreement_angle,
         )  # fmt: skip
@@ -650,55 +818,145 @@ class Localizer:
                     h.pose, h.covariance = m.pose, _floored(m.covariance)
                     h.scores.append(m.score)
                     alive.append(h)
+                elif h.tracked and (stamp - h.since_ns) * 1e-9 < cfg.lost_time:
+                    # Like tracking, the pose tracked before the kidnap check dead-reckons
+                    # through rejected matches for lost_time.
+                    h.scores.append(self.model.score(pts, h.pose))
+                    h.agreed = True
+                    alive.append(h)
             self._hypotheses = _merge(alive, cfg)
             if not alive:
                 reason = "no hypothesis fits this scan any more; searching again"
         if not self._hypotheses:
             # 2. Search the whole map on this scan.
             self._hypotheses, why = self._search(pts)
+            self._contested = False
+            self._since_search = 0
             reason = f"{reason}; {why}" if reason else why
         hyps = self._hypotheses
         if not hyps:
+            self._remember(odom, pts)
             return self._result(stamp, odom, f"relocalising: {reason}", 0.0)
+        # 2b. Score every hypothesis on the recent scans stacked by odometry (a wider view).
+        cloud = self._remember(odom, pts)
+        for h in hyps:
+            h.evidence = None if cloud is None else self.model.score(cloud, h.pose)
+        hyps.sort(key=lambda h: h.rank_score, reverse=True)
         # 3. The leader counts a scan only while no other hypothesis scores within the ambiguity
         #    ratio of it: rivals that die leave a leader that must still earn its streak.
         n_needed = cfg.relocalization_verification_scans
         best = hyps[0]
-        rivals = [
-            h
-            for h in hyps[1:]
-            if h.mean_score >= cfg.relocalization_ambiguity_ratio * best.mean_score
-        ]
+        rivals = [h for h in hyps[1:] if h.rivals(best, cfg.relocalization_ambiguity_ratio)]
         best.unique = best.unique + 1 if best.agreed and not rivals else 0
         for h in hyps[1:]:
             h.unique = 0
+        # 3b. After a kidnap check the pose tracked before it wins every tie: it was verified on
+        #     many scans, and a kidnapping is rare. It still had to fit this scan (min_score)
+        #     and agree with its odometry; only a place that fits clearly better replaces it.
+        held = next((h for h in hyps if h.tracked), None)
+        if (held is not None and held.agreed
+                and held.mean_score >= cfg.global_localization_min_score
+                and held.rivals(best, cfg.relocalization_ambiguity_ratio)):
+            return self._accept(stamp, odom, pts, held, f"relocalised: the pose tracked before "
+                                f"the kidnap check holds (mean score {held.mean_score:.2f}, "
+                                f"best elsewhere {best.mean_score:.2f})")  # fmt: skip
         if rivals:
+            self._contested = True
+            self._since_search += 1
+            if self._since_search >= n_needed:
+                # Rivals that keep fitting may all be wrong (the true place ranked below
+                # max_hypotheses on the searched scan): search the current scan again and let
+                # its places compete too.
+                self._add_searched(pts, hyps)
             return self._result(stamp, odom, f"relocalising: ambiguous, {len(rivals) + 1} "
                                 f"hypotheses score within {cfg.relocalization_ambiguity_ratio} "
                                 f"of the best ({best.mean_score:.2f})", 0.0)  # fmt: skip
-        if best.unique < n_needed or best.mean_score < cfg.global_localization_min_score:
+        weak = best.evidence is not None and best.evidence < cfg.global_localization_min_score
+        if (best.unique < n_needed or best.mean_score < cfg.global_localization_min_score
+                or weak):
             return self._result(stamp, odom, f"relocalising: {len(hyps)} hypotheses, best "
                                 f"unique on {best.unique}/{n_needed} scans, mean score "
                                 f"{best.mean_score:.2f}", 0.0)  # fmt: skip
-        # 4. Accept the one verified hypothesis and track from it.
-        self._pose, self._cov = best.pose.copy(), best.covariance.copy()
+        # 4. A leader left alone because its rivals died was only compared with the places the
+        #    first search found: search this scan again before trusting it (with a narrow
+        #    depth camera the true place can rank below max_hypotheses on the first scan).
+        if self._contested:
+            self._contested = False
+            fresh, _ = self._search(pts, best.pose, cfg.relocalization_ambiguity_ratio)
+            last = best.scores[-1]
+            new = [h for h in fresh if not any(_covers(o.pose, h.pose, cfg) for o in hyps)]
+            strong = [h for h in new if h.mean_score >= cfg.relocalization_ambiguity_ratio * last]
+            if strong:
+                # Not accepted on this scan; the next one decides (the streak stands).
+                self._hypotheses = _merge([*hyps, *new], cfg)
+                return self._result(stamp, odom, f"relocalising: a new search finds "
+                                    f"{len(strong)} other place(s) fitting this scan within "
+                                    f"{cfg.relocalization_ambiguity_ratio} of the leader "
+                                    f"({last:.2f})", 0.0)  # fmt: skip
+        # 5. Accept the one verified hypothesis and track from it.
+        return self._accept(stamp, odom, pts, best, f"relocalised: unique on {best.unique} "
+                            f"scans, mean score {best.mean_score:.2f}")  # fmt: skip
+
+    def _remember(self, odom: np.ndarray, pts: np.ndarray) -> np.ndarray | None:
+        """Add this scan to the relocalisation history and return the history's points in
+        this scan's frame (odometry-stacked, voxel-filtered); None for a single scan. The
+        history keeps the scans within ``relocalization_history_m`` of this one (straight-line
+        odometry distance), at most ``MAX_HISTORY_SCANS``."""
+        cfg = self.config
+        self._history.append((odom.copy(), pts))
+        while len(self._history) > MAX_HISTORY_SCANS or (
+            len(self._history) > 1
+            and math.hypot(*(self._history[0][0][:2] - odom[:2])) > cfg.relocalization_history_m
+        ):
+            self._history.pop(0)
+        if len(self._history) < 2 or cfg.relocalization_history_m <= 0.0:
+            return None
+        clouds = [transform_points(ominus(odom, o), p) for o, p in self._history]
+        return voxel_filter(np.concatenate(clouds), cfg.scan_voxel_size)
+
+    def _add_searched(self, pts: np.ndarray, hyps: list[_Hypothesis]) -> None:
+        """Search this scan and add the places no hypothesis holds yet; keep the best
+        ``2 x global_search_max_hypotheses`` (and the tracked pose, if held)."""
+        cfg = self.config
+        self._since_search = 0
+        fresh, _ = self._search(pts, hyps[0].pose, cfg.relocalization_ambiguity_ratio)
+        new = [h for h in fresh if not any(_covers(o.pose, h.pose, cfg) for o in hyps)]
+        merged = _merge([*hyps, *new], cfg)
+        cap = 2 * cfg.global_search_max_hypotheses
+        self._hypotheses = merged[:cap] + [h for h in merged[cap:] if h.tracked]
+
+    def _accept(self, stamp: int, odom: np.ndarray, pts: np.ndarray, h: _Hypothesis,
+                reason: str) -> LocalizationResult:  # fmt: skip
+        self._pose, self._cov = h.pose.copy(), h.covariance.copy()
         self._status = "tracking"
         self._hypotheses = []
+        self._history = []
         self._match_pose = self._pose.copy()
         self._low_since = None
+        self._low_scans = 0
         self.stats.relocalisations += 1
-        conf = self.model.score(pts, self._pose)
-        return self._result(stamp, odom, f"relocalised: unique on {best.unique} scans, mean "
-                            f"score {best.mean_score:.2f}", conf)  # fmt: skip
+        return self._result(stamp, odom, reason, self.model.score(pts, self._pose))
 
 
 def _merge(hyps: list[_Hypothesis], config: LocalizerConfig) -> list[_Hypothesis]:
     """Best first (by mean score); a hypothesis that converged onto a better one is dropped."""
     out: list[_Hypothesis] = []
     for h in sorted(hyps, key=lambda h: h.mean_score, reverse=True):
-        if not any(_agree(o.pose, h.pose, config) for o in out):
+        same = next((o for o in out if _agree(o.pose, h.pose, config)), None)
+        if same is None:
             out.append(h)
+        else:
+            same.tracked |= h.tracked
     return out
+
+
+def _covers(a: np.ndarray, b: np.ndarray, config: LocalizerConfig) -> bool:
+    """Pose ``b`` is within reach of hypothesis ``a``'s own matching (its correlative window,
+    which it searches on every scan, and as far again): a searched place there is no new
+    place (along a corridor it is the same place, slid)."""
+    d = ominus(a, b)
+    return (math.hypot(d[0], d[1]) <= 2 * config.linear_search_window
+            and abs(d[2]) <= config.angular_search_window)  # fmt: skip
 
 
 def _agree(a: np.ndarray, b: np.ndarray, config: LocalizerConfig) -> bool:

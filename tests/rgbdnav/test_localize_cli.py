@@ -214,3 +214,38 @@ def test_localize_with_an_initial_pose_in_a_wall_reports_lost_and_never_a_wrong_
     for i, r in tracked:
         d = math.hypot(float(r["x_m"]) - truth[i, 0], float(r["y_m"]) - truth[i, 1])
         assert d < 0.1, (i, d)
+
+
+RGBD_FRAMES = 40  # [frames] of the simulated house recording (1.3 s at 30 Hz)
+
+
+def test_localize_an_rgbd_recording_of_the_house_tracks_within_6cm_of_the_ground_truth(
+    tmp_path: Path,
+) -> None:
+    """End to end: `rgbdnav simulate` records the house, a floor-plan map.yaml stands in for a
+    map made by another tool, and `rgbdnav localize` (EKF odometry, depth -> scan) tracks from
+    the route's start pose."""
+    from rgbd_kidnap import SCENES, floor_plan_grid, rgbd_config
+
+    from sensors.sim.world import load_world
+    from slam.map_bundle import save_map_yaml
+
+    world = load_world(SCENES / "house.yaml")
+    save_map_yaml(floor_plan_grid(world, rgbd_config()), tmp_path / "map.yaml")
+    rec = tmp_path / "rec"
+    result = runner.invoke(app, ["simulate", str(SCENES / "house.yaml"), "--out", str(rec),
+                                 "--frames", str(RGBD_FRAMES), "-q"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    out = tmp_path / "run"
+    x, y, yaw = world.start
+    result = runner.invoke(app, ["localize", str(rec), "--map", str(tmp_path / "map.yaml"),
+                                 "--initial-pose", str(x), str(y), str(yaw), "--out", str(out),
+                                 "-q"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frame"] == "base_link"
+    assert summary["counts"]["tracking"] == summary["counts"]["scans"] >= RGBD_FRAMES - 2
+    gt = summary["vs_groundtruth"]
+    assert gt["tracked_but_wrong"] == 0
+    assert gt["position_error_m"]["median"] < 0.06 and gt["position_error_m"]["max"] < 0.1, gt
+    assert gt["heading_error_deg"]["max"] < 2.0, gt
