@@ -82,6 +82,26 @@ class LiveConfig:
     board_kill_switch: int = param(
         1, unit="s", ge=0, le=26, doc="WATCH: board stops the motors without commands (0 = off)"
     )
+    collision_stop_distance: float = param(
+        0.12, unit="m", ge=0.0, doc="collision monitor: no forward motion with a point this far "
+        "ahead of the footprint"
+    )
+    collision_slowdown_distance: float = param(
+        0.4, unit="m", ge=0.0, doc="collision monitor: slow down with a point this far ahead"
+    )
+    collision_slowdown_ratio: float = param(
+        0.4, gt=0.0, le=1.0, doc="collision monitor: forward speed factor in the slowdown box"
+    )
+    collision_lateral_margin: float = param(
+        0.05, unit="m", ge=0.0, doc="collision monitor: boxes this much wider than the footprint"
+    )
+    obstacle_memory: float = param(
+        5.0, unit="s", gt=0.0, doc="collision monitor: scans kept (carried by odometry); the "
+        "Kinect is blind nearer than 0.45 m and beside its 58 deg view"
+    )
+    blocked_timeout: float = param(
+        5.0, unit="s", gt=0.0, doc="--drive route skips a waypoint blocked this long"
+    )
     teleop_key_timeout: float = param(
         0.6, unit="s", gt=0.0, doc="manual mode stops when no key came for this long (key_timeout)"
     )

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from nav.collision_monitor import ObstacleMemory, limit_twist
 from nav.teleop import TeleopState, teleop_key
 from rgbdnav.config import Config, load_config, source_options
 from rgbdnav.map_run import RGBD_PROFILE, build_grid, make_bundle
@@ -151,6 +152,7 @@ class _Shared:
     odom: np.ndarray | None = None  # latest odom -> base_link
     map_to_odom: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracking: bool = True  # the pose in the map is trustworthy (localiser: tracking)
+    obstacles: ObstacleMemory = field(default_factory=lambda: ObstacleMemory(0.0))
 
     def pose_in_map(self) -> np.ndarray | None:
         with self.lock:
@@ -196,7 +198,7 @@ class LiveRun:
             raise ConfigError("--drill needs the simulated robot (--camera sim --board sim)")
         self.counts = Counters()
         self.stop = threading.Event()
-        self.shared = _Shared()
+        self.shared = _Shared(obstacles=ObstacleMemory(self.cfg.live.obstacle_memory))
         self.frame_q: queue.Queue[RgbdFrame | None] = queue.Queue(self.cfg.live.frame_queue_size)
         self.scan_q: queue.Queue[tuple[Any, np.ndarray] | None] = queue.Queue(
             self.cfg.live.scan_queue_size
@@ -354,6 +356,7 @@ class LiveRun:
                 self.stage_ms["wheels_ekf"].append(1e3 * (t_b - t_a + t_d - t_c))
                 with self.shared.lock:
                     self.shared.odom = odom
+                    self.shared.obstacles.add(frame.stamp_ns, odom, scan_points(scan))
                 self.latency_ms.append((time.monotonic_ns() - frame.stamp_ns) / 1e6)
                 self.counts.inc("frames_processed")
                 self.odom_track.append((frame.stamp_ns, float(odom[0]), float(odom[1]),
@@ -440,6 +443,8 @@ class LiveRun:
         teleop = TeleopState(speed=lc.max_linear_speed, turn=lc.max_angular_speed,
                              speed_limit=self.cfg.robot.max_wheel_speed)  # fmt: skip
         manual_twist, last_key = (0.0, 0.0), -math.inf
+        blocked_since: float | None = None
+        guard = ""
         while not self.stop.wait(period):
             # 1. Keys: Tab switches mode; in manual mode they steer, as teleop_twist_keyboard.
             while True:
@@ -475,6 +480,30 @@ class LiveRun:
                         v, w = route_command(pose, self.route[i], lc.max_linear_speed,
                                              lc.max_angular_speed, lc.turn_in_place_angle,
                                              lc.heading_gain)  # fmt: skip
+            # 2. The collision monitor has the last word: stop before what the camera saw.
+            with self.shared.lock:
+                odom = self.shared.odom
+                pts = None if odom is None else self.shared.obstacles.points_in_base(odom)
+            if pts is not None:
+                v, w, action = limit_twist(pts, v, w, self.cfg.robot.radius,
+                                           lc.collision_stop_distance,
+                                           lc.collision_slowdown_distance,
+                                           lc.collision_slowdown_ratio,
+                                           lc.collision_lateral_margin)  # fmt: skip
+                if action == "stop" and guard != "stop":
+                    self.counts.inc("collision_monitor_stops")
+                guard = action
+                now = time.monotonic()
+                if action == "stop" and self.mode == "auto" and i < len(self.route):
+                    blocked_since = now if blocked_since is None else blocked_since
+                    if now - blocked_since > lc.blocked_timeout:
+                        log.warning("waypoint %d blocked for %.0f s: skipped", i,
+                                    lc.blocked_timeout)  # fmt: skip
+                        self.counts.inc("waypoints_skipped_blocked")
+                        i, blocked_since = i + 1, None
+                        self.route_done = i >= len(self.route) and not self.opts.repeat_route
+                else:
+                    blocked_since = None
             try:
                 self.board.set_velocity(v, w)
             except BoardError as err:

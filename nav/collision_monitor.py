@@ -1,0 +1,67 @@
+"""A last line of defence between any controller and the wheels, after Nav2's collision_monitor:
+a *stop* box and a *slowdown* box ahead of the robot, checked against recent obstacle points.
+
+A Kinect sees nothing nearer than ~0.5 m, exactly where a door frame is when the robot is about
+to hit it; so the points are a short memory of recent scans carried along by odometry
+(:class:`ObstacleMemory`), not only the current scan. Boxes (base_link, x forward):
+
+    stop:      -radius <= x <= radius + stop_distance,      |y| <= radius + lateral_margin
+    slowdown:  -radius <= x <= radius + slowdown_distance,  |y| <= radius + lateral_margin
+
+(x from -radius: a door frame beside the robot counts while the robot still turns towards it.)
+
+Forward motion with a point in the stop box is cut to 0 (turning in place stays allowed); in the
+slowdown box it is scaled by ``slowdown_ratio``. Reversing is not limited: the camera looks
+forward only, so there is nothing to check against.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from slam.geometry import ominus, oplus
+
+
+def limit_twist(
+    points_base: np.ndarray, v: float, w: float, radius: float, stop_distance: float,
+    slowdown_distance: float, slowdown_ratio: float, lateral_margin: float = 0.0,
+) -> tuple[float, float, str]:  # fmt: skip
+    """(v, w, action) with action "" (free), "slowdown" or "stop"; ``points_base`` (N, 2) [m]."""
+    if v <= 0.0 or len(points_base) == 0:
+        return v, w, ""
+    x, y = points_base[:, 0], points_base[:, 1]
+    ahead = (x >= -radius) & (np.abs(y) <= radius + lateral_margin)
+    if np.any(ahead & (x <= radius + stop_distance)):
+        return 0.0, w, "stop"
+    if np.any(ahead & (x <= radius + slowdown_distance)):
+        return v * slowdown_ratio, w, "slowdown"
+    return v, w, ""
+
+
+class ObstacleMemory:
+    """Scan end points of the last ``keep_s`` seconds, stored in the odom frame and handed back
+    in base_link at the current odometry pose."""
+
+    def __init__(self, keep_s: float) -> None:
+        self.keep_ns = int(keep_s * 1e9)
+        self._scans: deque[tuple[int, np.ndarray]] = deque()
+
+    def add(self, stamp_ns: int, odom_pose: np.ndarray, points_base: np.ndarray) -> None:
+        pts = oplus(np.asarray(odom_pose, dtype=np.float64),
+                    np.column_stack([points_base, np.zeros(len(points_base))]))[:, :2]  # fmt: skip
+        self._scans.append((stamp_ns, pts))
+        while self._scans and self._scans[0][0] < stamp_ns - self.keep_ns:
+            self._scans.popleft()
+
+    def points_in_base(self, odom_pose: np.ndarray) -> np.ndarray:
+        if not self._scans:
+            return np.zeros((0, 2))
+        pts = np.vstack([p for _, p in self._scans])
+        rel = ominus(np.asarray(odom_pose, dtype=np.float64),
+                     np.column_stack([pts, np.zeros(len(pts))]))  # fmt: skip
+        return rel[:, :2]
+
+
+__all__ = ["ObstacleMemory", "limit_twist"]
