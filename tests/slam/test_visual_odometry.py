@@ -23,13 +23,17 @@ from slam.visual_odometry import (
     VoTuning,
     _bucket,
     _residuals,
+    _whitened,
     base_from_optical,
     camera_matrix,
+    depth_mask,
     estimate_motion,
     extract_features,
     hamming_knn,
     inverse,
+    kabsch,
     knn_candidates,
+    rigid_ransac,
     rotation_angle,
     se3_exp,
 )
@@ -197,24 +201,29 @@ def _tum_poses(path: Path) -> np.ndarray:
 
 
 @pytest.mark.skipif(not CABINET.exists(), reason="shared TUM data absent")
-def test_real_cabinet_keyframes_reach_the_measured_success_rate() -> None:
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_real_cabinet_keyframes_reach_the_measured_success_rate_for_any_ransac_seed(
+    seed: int,
+) -> None:
     from sensors.source import open_source
 
     frames = list(open_source(CABINET).frames())
     gt = _tum_poses(CABINET / "truth_cam_poses.txt")
     cfg = replace(VO6, max_translation=0.5, max_rotation=math.radians(45), pnp_reproj_error=3.0)
+    tuning = VoTuning(ransac_seed=seed)
     k = camera_matrix(frames[0].intrinsics)
     errors = []
     for i in range(len(frames) - 1):
         a, b = frames[i], frames[i + 1]
-        res: VoResult = estimate_motion(a.rgb, a.depth_m, b.rgb, b.depth_m, k, cfg)
+        res: VoResult = estimate_motion(a.rgb, a.depth_m, b.rgb, b.depth_m, k, cfg, tuning)
         truth = inverse(gt[i]) @ gt[i + 1]
         errors.append(np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) if res.success
                       else math.inf)  # fmt: skip
     errors_a = np.array(errors)
-    # Measured 96 % and 1.4 cm (bench/bench_vo.py); pinned two pairs and 0.4 cm below.
-    assert np.mean(errors_a < 0.05) >= 0.89
-    assert np.median(errors_a) < 0.018
+    # Measured over seeds 1-10: 93-100 % (mean 97.1 %), median 1.29 cm (max 1.34) and 96 % /
+    # 1.33 cm for seed 0 (bench/sweep_vo.py); pinned below the worst seed and at the 1.5 cm target.
+    assert np.mean(errors_a < 0.05) >= 0.9
+    assert np.median(errors_a) < 0.015
 
 
 # --------------------------------------------------------------------------------------------
@@ -239,6 +248,92 @@ def test_residual_jacobian_matches_finite_differences_of_a_left_perturbation() -
         r_plus, _ = _residuals(se3_exp(d) @ t, p, obs, has_z, K, bf)
         r_minus, _ = _residuals(se3_exp(-d) @ t, p, obs, has_z, K, bf)
         np.testing.assert_allclose(jac[:, :, i], (r_plus - r_minus) / (2 * eps), atol=1e-4)
+
+
+def test_fast_whitened_residuals_equal_the_reference_kernel_divided_by_sigma() -> None:
+    rng = np.random.default_rng(7)
+    n = 15
+    p = rng.uniform([-1.0, -0.8, 1.0], [1.0, 0.8, 4.0], (n, 3))
+    t = se3_exp(np.array([0.02, -0.05, 0.01, 0.1, -0.03, 0.05]))
+    obs = np.column_stack([rng.uniform(0, 640, n), rng.uniform(0, 480, n), rng.uniform(0, 640, n)])
+    has_z = np.arange(n) % 4 != 0
+    sig = rng.uniform(0.5, 3.0, (n, 3))
+    bf = K[0, 0] * KINECT_BASELINE
+    r_ref, j_ref = _residuals(t, p, obs, has_z, K, bf)
+    iw = (1.0 / sig).T * np.array([1.0, 1.0, 0.0])[:, None]
+    iw[2, has_z] = 1.0 / sig[has_z, 2]
+    r, j = _whitened(t, p, obs.T, iw, K, bf)
+    np.testing.assert_allclose(r, (r_ref / sig).T, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(j, (j_ref / sig[:, :, None]).transpose(1, 0, 2), rtol=1e-12,
+                               atol=1e-9)  # fmt: skip
+
+
+def test_kabsch_recovers_a_known_motion_per_batch_and_ignores_zero_weight_outliers() -> None:
+    rng = np.random.default_rng(8)
+    truth = [se3_exp(rng.normal(0, 0.3, 6)) for _ in range(4)]
+    p = rng.uniform(-2, 2, (4, 10, 3))
+    q = np.stack([pi @ ti[:3, :3].T + ti[:3, 3] for pi, ti in zip(p, truth, strict=True)])
+    q[:, :3] += rng.normal(0, 1.0, (4, 3, 3))  # three gross outliers per batch ...
+    w = np.ones((4, 10))
+    w[:, :3] = 0.0  # ... weighted out
+    r, t = kabsch(p, q, w)
+    for i, ti in enumerate(truth):
+        np.testing.assert_allclose(r[i], ti[:3, :3], atol=1e-9)
+        np.testing.assert_allclose(t[i], ti[:3, 3], atol=1e-9)
+        assert np.linalg.det(r[i]) == pytest.approx(1.0)
+
+
+def _rigid_scene(seed: int, n: int, outliers: float) -> tuple[np.ndarray, ...]:
+    """Matches of a known motion: p (prev 3D), q (curr 3D), uv (curr pixels), scale, truth."""
+    rng = np.random.default_rng(seed)
+    truth = se3_exp(np.array([0.05, -0.1, 0.03, 0.12, 0.02, -0.08]))
+    p = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1, 1, n), rng.uniform(1, 4, n)])
+    q = p @ truth[:3, :3].T + truth[:3, 3]
+    bad = rng.random(n) < outliers
+    q[bad] = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1, 1, n),
+                              rng.uniform(1, 4, n)])[bad]  # fmt: skip
+    q += rng.normal(0, 0.003, q.shape)
+    uv = q[:, :2] / q[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    uv += rng.normal(0, 0.5, uv.shape)
+    return p, q, uv, np.ones(n), truth, bad
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_rigid_ransac_finds_the_motion_among_60_percent_outliers_for_every_seed(
+    seed: int,
+) -> None:
+    p, q, uv, scale, truth, bad = _rigid_scene(11, 80, 0.6)
+    hyps = rigid_ransac(p, q, uv, scale, K, 3.0, VoTuning(ransac_seed=seed))
+    assert hyps
+    t_cp, inl = hyps[0]
+    assert np.linalg.norm(t_cp[:3, 3] - truth[:3, 3]) < 0.01
+    assert math.degrees(rotation_angle(inverse(truth) @ t_cp)) < 0.5
+    assert np.mean(inl[~bad]) > 0.9 and np.mean(inl[bad]) < 0.1
+
+
+def test_rigid_ransac_is_repeatable_for_one_seed_and_empty_for_too_few_matches() -> None:
+    p, q, uv, scale, _, _ = _rigid_scene(12, 50, 0.3)
+    a = rigid_ransac(p, q, uv, scale, K, 3.0, VoTuning(ransac_seed=3))
+    b = rigid_ransac(p, q, uv, scale, K, 3.0, VoTuning(ransac_seed=3))
+    assert len(a) == len(b) and all(np.array_equal(x[0], y[0]) for x, y in zip(a, b, strict=True))
+    assert rigid_ransac(p[:2], q[:2], uv[:2], scale[:2], K, 3.0, VoTuning()) == []
+
+
+def test_level_window_compares_only_nearby_pyramid_levels_and_covers_all_when_wide() -> None:
+    rng = np.random.default_rng(9)
+    prev = _features(rng.integers(0, 256, (30, 32), dtype=np.uint8))
+    curr = _features(rng.integers(0, 256, (40, 32), dtype=np.uint8))
+    prev = replace(prev, octave=np.sort(rng.integers(0, 6, 30)))
+    curr = replace(curr, octave=np.sort(rng.integers(0, 6, 40)))
+    idx, dist = knn_candidates(prev, curr, 3, level_window=1)
+    ref = _hamming_reference(prev.desc, curr.desc).astype(float)
+    ref[np.abs(prev.octave[:, None] - curr.octave[None]) > 1] = np.inf
+    ok = idx >= 0
+    assert np.all(np.abs(prev.octave[:, None] - curr.octave[np.where(ok, idx, 0)])[ok] <= 1)
+    np.testing.assert_array_equal(dist, np.sort(ref, axis=1)[:, :3])
+    full, _ = knn_candidates(prev, curr, 3)
+    wide, _ = knn_candidates(prev, curr, 3, level_window=5)
+    np.testing.assert_array_equal(full, wide)
 
 
 def _hamming_reference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -297,12 +392,28 @@ def test_bucketing_takes_the_best_response_of_every_cell_before_any_second_best(
     assert _bucket(uv, response, (10, 100), 5, tuning).tolist() == [0, 1, 2, 3, 4]
 
 
+def test_depth_mask_grows_into_holes_but_not_into_out_of_range_depth() -> None:
+    cfg, tuning = VoConfig(min_depth=0.5, max_depth=4.0), VoTuning(depth_margin_px=2)
+    depth = np.full((5, 12), 2.0, np.float32)
+    depth[:, 4:] = 0.0  # a hole (no return) right of the in-range block ...
+    depth[:, 8:] = 5.0  # ... then a far wall beyond max_depth
+    depth[2, 10] = 3.9  # with one in-range speck of depth noise
+    depth[0, 0] = np.nan
+    mask = depth_mask(depth, cfg, tuning) > 0
+    assert mask[:, :6].all()  # in range, or a hole within 2 px of it (NaN too)
+    assert not mask[:, 6:8].any()  # holes farther away
+    assert mask.sum(0)[8:].tolist() == [0, 0, 1, 0]  # the speck itself, not grown
+    plain = depth_mask(depth, cfg, replace(tuning, depth_margin_px=0)) > 0
+    assert plain.sum(0).tolist() == [4] + [5] * 3 + [0] * 6 + [1, 0]
+
+
 def test_features_equal_describing_only_the_kept_keypoints_in_a_second_orb_pass() -> None:
     import cv2
 
     r = renderer()
     rgb, depth = frame(r, START)
-    cfg, tuning = replace(VO6, max_features=300), VoTuning()  # few enough that bucketing acts
+    # Few enough features that bucketing acts; the plain in-range depth mask.
+    cfg, tuning = replace(VO6, max_features=300), VoTuning(depth_margin_px=0)
     feats = extract_features(rgb, depth, K, cfg, tuning)
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     orb = cv2.ORB_create(nfeatures=int(cfg.max_features * tuning.detect_factor),
