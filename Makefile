@@ -44,6 +44,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_mapper.py --out docs/benchmarks.md
 	$(PY) bench/bench_localization.py --out docs/benchmarks.md
 	$(PY) bench/bench_nav.py --out docs/benchmarks.md
+	$(PY) bench/bench_live.py --out docs/benchmarks.md
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check sensors slam nav rgbdnav tests bench
