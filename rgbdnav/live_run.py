@@ -52,7 +52,7 @@ from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, SensorError, WheelTicks
 from slam.depth_to_scan import DepthToScan
 from slam.diff_drive import WheelErrorModel
-from slam.ekf import EkfError, PlanarEkf, TwistInput, wheel_twist_inputs
+from slam.ekf import EkfError, PlanarEkf, motion_twist, wheel_twist_inputs
 from slam.geometry import ominus, oplus
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper
@@ -393,8 +393,7 @@ class LiveRun:
             dt = (frame.stamp_ns - prev_frame_ns) / 1e9
             d = res.delta_base
             if res.success and d is not None and dt > 0:
-                ekf.process("vo0", TwistInput(frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
-                                              np.asarray(res.covariance) / dt**2))  # fmt: skip
+                ekf.process("vo0", motion_twist(frame.stamp_ns, d, res.covariance, dt))
             else:
                 self.counts.inc(f"vo_failures_{res.reason}")
         return 1e3 * (time.perf_counter() - t0), frame.stamp_ns

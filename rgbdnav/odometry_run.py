@@ -27,7 +27,7 @@ from slam.diff_drive import (
     propagate_covariance,
     wheel_increments,
 )
-from slam.ekf import TwistInput, fuse, wheel_twist_inputs
+from slam.ekf import TwistInput, fuse, motion_twist, wheel_twist_inputs
 from slam.geometry import compose
 from slam.metrics import drift_report, interpolate_poses
 from slam.visual_odometry import VisualOdometry
@@ -94,8 +94,7 @@ def _visual_odometry(src: Source, cfg: Config, start: Pose2,
             d = res.delta_base
             if res.success and d is not None and dt > 0:
                 # 1. The pair's planar motion as a body twist, its covariance scaled to rates.
-                inputs.append(TwistInput(frame.stamp_ns, d.x / dt, d.y / dt, d.yaw / dt,
-                                         np.asarray(res.covariance) / dt**2))  # fmt: skip
+                inputs.append(motion_twist(frame.stamp_ns, d, res.covariance, dt))
                 # 2. The VO-only path: compose the motion (a failed pair's motion is lost).
                 x, y, yaw = (float(v) for v in compose(x, y, yaw, d.x, d.y, d.yaw))
             else:

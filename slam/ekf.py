@@ -214,6 +214,13 @@ Message = PoseInput | TwistInput | ImuSample | Odometry2D
 DEFAULT_WHEEL_ERROR = WheelErrorModel()
 
 
+def motion_twist(stamp_ns: int, delta: Pose2, covariance: np.ndarray, dt_s: float) -> TwistInput:
+    """A planar motion (dx, dy, dyaw) measured over ``dt_s`` (e.g. one VO frame pair) as a
+    body twist: v = delta / dt, its covariance scaled by 1 / dt^2."""
+    return TwistInput(stamp_ns, delta.x / dt_s, delta.y / dt_s, delta.yaw / dt_s,
+                      np.asarray(covariance, dtype=np.float64) / dt_s**2)  # fmt: skip
+
+
 def wheel_twist_inputs(
     stamps_ns: np.ndarray,
     left: np.ndarray,

@@ -435,3 +435,13 @@ def test_gyro_bias_is_estimated_from_wheel_yaw_rates() -> None:
     out = fuse({"odom0": twists, "imu0": gyro}, EkfConfig(), output_stamps_ns=t,
                gyro_z_variance=1e-5)  # fmt: skip
     assert abs(wrap_angle(out.yaw[-1] - yaw[-1])) < 0.05  # [rad] (unestimated: 0.2 rad)
+
+
+def test_motion_twist_divides_the_motion_by_dt_and_its_covariance_by_dt_squared() -> None:
+    from slam.ekf import motion_twist
+
+    cov = np.diag([1e-4, 4e-4, 9e-4])
+    tw = motion_twist(7, Pose2(0.03, -0.01, 0.02), cov, 0.1)
+    assert tw.stamp_ns == 7 and tw.valid
+    assert (tw.vx, tw.vy, tw.vyaw) == pytest.approx((0.3, -0.1, 0.2))
+    np.testing.assert_allclose(tw.covariance, cov * 100.0)
