@@ -47,13 +47,13 @@ from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, occupied_cells_xy
 from sensors.eddie import BoardError, EddieBoard, OdometryPoller
-from sensors.source import open_source
+from sensors.source import Source, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, SensorError, WheelTicks
 from slam.depth_to_scan import DepthToScan
 from slam.diff_drive import WheelErrorModel
 from slam.ekf import EkfError, PlanarEkf, motion_twist, wheel_twist_inputs
-from slam.geometry import ominus, oplus
+from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper
 from slam.metrics import drift_report
@@ -148,11 +148,11 @@ class Counters:
 class _Shared:
     """State handed between threads (each field written by one thread, read under the lock)."""
 
+    obstacles: ObstacleMemory  # recent scans for the collision monitor
     lock: threading.Lock = field(default_factory=threading.Lock)
     odom: np.ndarray | None = None  # latest odom -> base_link
     map_to_odom: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tracking: bool = True  # the pose in the map is trustworthy (localiser: tracking)
-    obstacles: ObstacleMemory = field(default_factory=lambda: ObstacleMemory(0.0))
 
     def pose_in_map(self) -> np.ndarray | None:
         with self.lock:
@@ -198,7 +198,7 @@ class LiveRun:
             raise ConfigError("--drill needs the simulated robot (--camera sim --board sim)")
         self.counts = Counters()
         self.stop = threading.Event()
-        self.shared = _Shared(obstacles=ObstacleMemory(self.cfg.live.obstacle_memory))
+        self.shared = _Shared(ObstacleMemory(self.cfg.live.obstacle_memory))
         self.frame_q: queue.Queue[RgbdFrame | None] = queue.Queue(self.cfg.live.frame_queue_size)
         self.scan_q: queue.Queue[tuple[Any, np.ndarray] | None] = queue.Queue(
             self.cfg.live.scan_queue_size
@@ -214,6 +214,7 @@ class LiveRun:
         self.errors: list[str] = []
         self.run = RunDir(opts.out)
         self.sim: Any = None
+        self.camera_src: Source | None = None  # a camera other than the simulated robot
         self.board: EddieBoard | None = None
         self.poller: OdometryPoller | None = None
         self.vis: Any = NullVisualizer()
@@ -259,8 +260,8 @@ class LiveRun:
                                          read_speed_heading=False)  # fmt: skip
         if opts.camera == "sim":
             return self._sim_frames()
-        src = open_source(opts.camera, source_options(cfg))
-        return iter(src.frames())
+        self.camera_src = open_source(opts.camera, source_options(cfg))
+        return iter(self.camera_src.frames())
 
     def _sim_frames(self) -> Iterator[RgbdFrame]:
         assert self.sim is not None and self.sim.intrinsics is not None
@@ -575,6 +576,19 @@ class LiveRun:
             self.mapper = Mapper(cfg.mapper)
         vis = make_visualizer("live", opts.rrd, opts.viewer)
         self.vis = AsyncVisualizer(vis, cfg.live.visualize_queue_size)
+        try:
+            sim_stats, wall = self._run_threads(t0, progress)
+            if self.mapper is not None and self.checkpoint(final=True) is not None:
+                outputs["map bundle"] = self.run.file("map")
+        finally:
+            self.vis.close()  # also when the devices failed to start: the .rrd is flushed
+        outputs.update(self._write_outputs(wall, cpu0, sim_stats))
+        return outputs
+
+    def _run_threads(self, t0: float, progress: Callable[[float, float], None] | None
+                     ) -> tuple[Any, float]:  # fmt: skip
+        """Start the devices and threads, wait for the end, stop everything; (the simulated
+        robot's stats or None, wall seconds)."""
         restore = self._install_signal_handlers()
         # The board poller and watchdog are I/O threads beside CPU-bound ones: hand the GIL
         # over more often so they are not kept waiting for up to the default 5 ms.
@@ -621,14 +635,11 @@ class LiveRun:
                     sim_stats = self.sim.stop()
                 except SensorError as err:  # the map and the run's files still get written
                     self.errors.append(f"simulated robot: {err}")
+            if self.camera_src is not None:
+                self.camera_src.close()
             restore()
             sys.setswitchinterval(switch)
-        wall = time.monotonic() - t0
-        if self.mapper is not None and self.checkpoint(final=True) is not None:
-            outputs["map bundle"] = self.run.file("map")
-        self.vis.close()
-        outputs.update(self._write_outputs(wall, cpu0, sim_stats))
-        return outputs
+        return sim_stats, time.monotonic() - t0
 
     def _guard(self, name: str, fn: Callable[..., None], *args: Any) -> None:
         """A thread that dies takes the run down cleanly (motors stopped, map saved)."""
@@ -747,9 +758,7 @@ class LiveRun:
                 "stalled_frames": sim_stats.stalled_frames,
                 "collisions": sim_stats.collisions,
                 "board_disconnects": sim_stats.board_disconnects,
-                "true_path_length_m": round(float(np.sum(np.hypot(*np.diff(truth[:, 1:3], axis=0)
-                                                                  .T))), 3) if len(truth) > 1
-                else 0.0,
+                "true_path_length_m": round(path_length(truth[:, 1:3]), 3),
             }  # fmt: skip
             summary["route_finished"] = self.route_done
         if len(truth) > 1:

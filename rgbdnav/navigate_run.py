@@ -88,7 +88,7 @@ from sensors.atomic import atomic_write_text
 from sensors.sim.world import FloorPlan, floor_plan, load_world
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, LaserScan, MapError, Pose2
-from slam.geometry import ominus, oplus, wrap_angle
+from slam.geometry import ominus, oplus, path_length, wrap_angle
 from slam.localization import Localizer, MapModel
 from slam.map_bundle import load_map_yaml
 from slam.occupancy_grid import OccupancyGrid
@@ -172,10 +172,6 @@ def path_ahead(path_xy: np.ndarray, xy: np.ndarray, skip_m: float) -> np.ndarray
     k = int(np.argmin(d))
     rest = path_xy[k:]
     return rest[d[k:] > skip_m]
-
-
-def polyline_length(xy: np.ndarray) -> float:
-    return float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0
 
 
 # 2. Goal vetting ----------------------------------------------------------------------------
@@ -577,7 +573,7 @@ class _Sim:
         est = self.estimate
         outcome.update(
             status=status, reason=reason, time_s=round((self.t_ns - t0) / NS_PER_S, 2),
-            driven_m=round(polyline_length(driven), 3),
+            driven_m=round(path_length(driven), 3),
             final_error_m=round(float(np.hypot(*(self.pose[:2] - np.asarray(goal)))), 3),
             estimated_error_m=round(float(np.hypot(*(est[:2] - np.asarray(goal)))), 3),
         )  # fmt: skip
@@ -814,7 +810,7 @@ def run_navigate(
                                                if math.isfinite(sim.min_keepout_distance)
                                                else None)},
         "recoveries": sum(len(o["recoveries"]) for o in outcomes),
-        "path_length_m": round(polyline_length(poses[:, :2]), 3),
+        "path_length_m": round(path_length(poses[:, :2]), 3),
         "sim_time_s": round(sim_s, 2),
         "scans": sim.scans,
         "gospd_lines": sim.drive.gospd_lines,

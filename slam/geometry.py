@@ -53,3 +53,9 @@ def ominus(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
     return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])],
                     axis=-1)  # fmt: skip
+
+
+def path_length(xy: ArrayLike) -> float:
+    """Length [m] of the polyline through the points (N, 2); 0 for fewer than two."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    return float(np.hypot(*np.diff(xy, axis=0).T).sum()) if len(xy) > 1 else 0.0

@@ -122,11 +122,35 @@ def test_sigterm_stops_the_motors_and_saves_the_map(tmp_path: Path) -> None:
 
 
 def test_a_board_port_that_does_not_open_fails_in_one_line(tmp_path: Path) -> None:
+    rrd = tmp_path / "x" / "run.rrd"
     res = runner.invoke(app, ["live", "--out", str(tmp_path / "x"), "--sim-world", str(WORLD),
                               "--board", str(tmp_path / "no-such-tty"), "--duration", "5",
-                              "-q"])  # fmt: skip
+                              "--rrd", str(rrd), "-q"])  # fmt: skip
     assert res.exit_code == 1
     assert "cannot open Eddie board" in res.output and "Traceback" not in res.output
+    assert rrd.stat().st_size > 0  # the recording is closed on the way out, not left open
+
+
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [(["--drive", "fly"], "--drive 'fly': expected route, teleop or idle"),
+     (["--goal", "4.5;1"], "--goal '4.5;1': expected X,Y in metres"),
+     (["--drill", "unplug_board@x"], "expected ACTION@SECONDS"),
+     (["--sim-world", "no/such/world.yaml"], "no/such/world.yaml"),
+     (["--map", "no/such/map"], "no/such/map"),
+     (["--camera", "openni://", "--drill", "stall_camera@1:1"],
+      "--drill needs the simulated robot"),
+     (["--camera", "openni://", "--board", "none"], "OpenNI2")],  # no library or no device
+)  # fmt: skip
+def test_bad_live_options_fail_in_one_line_before_anything_starts(
+    tmp_path: Path, args: list[str], match: str
+) -> None:
+    cmd = ["live", "--out", str(tmp_path / "x"), "--duration", "3", "-q"]
+    if "--sim-world" not in args:
+        cmd += ["--sim-world", str(WORLD)]
+    res = runner.invoke(app, cmd + args)
+    assert res.exit_code == 1, res.output
+    assert match in res.output and "Traceback" not in res.output
 
 
 def test_teleop_keys_drive_the_robot_and_tab_hands_over_to_the_route(tmp_path: Path) -> None:

@@ -49,3 +49,11 @@ def test_oplus_and_ominus_of_arrays_invert_each_other_and_agree_with_compose() -
     np.testing.assert_allclose(ab[:2], [cx, cy], atol=1e-12)
     assert abs(wrap_angle(ab[2] - cyaw)) < 1e-12 and -np.pi <= ab[2] < np.pi
     np.testing.assert_allclose(ominus(a, ab), [b[0], b[1], wrap_angle(b[2])], atol=1e-12)
+
+
+def test_path_length_sums_the_segments_and_is_zero_for_a_point() -> None:
+    from slam.geometry import path_length
+
+    assert path_length([[0.0, 0.0], [3.0, 4.0], [3.0, 5.0]]) == pytest.approx(6.0)
+    assert path_length([[1.0, 2.0]]) == 0.0
+    assert path_length(np.zeros((0, 2))) == 0.0
