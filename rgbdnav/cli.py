@@ -36,6 +36,12 @@ SetOpt = Annotated[
 ]
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
+OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")]
+SourceArg = Annotated[
+    Path, typer.Argument(help="CARMEN log (.clf/.log[.gz]), recording folder, or world YAML.")
+]
+MapOpt = Annotated[Path, typer.Option("--map", "-m", help="Map bundle folder, or a Nav2 map.yaml.")]
+WorldSeedOpt = Annotated[int, typer.Option(help="Seed when SOURCE is a world.")]
 RrdOpt = Annotated[Path | None, typer.Option(help="Save a rerun recording (.rrd) of the run here.")]
 ViewerOpt = Annotated[bool, typer.Option(help="Spawn the rerun viewer and stream the run to it.")]
 
@@ -235,8 +241,8 @@ def simulate(
 @_known_errors
 def odometry(
     source: Annotated[Path, typer.Argument(help="Recording folder, or a world YAML to render.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
-    seed: Annotated[int, typer.Option(help="Seed when SOURCE is a world.")] = 0,
+    out: OutOpt,
+    seed: WorldSeedOpt = 0,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     vo: Annotated[bool, typer.Option(help="Run visual odometry on the RGB-D frames.")] = True,
@@ -259,15 +265,13 @@ def odometry(
 @app.command("map")
 @_known_errors
 def map_(
-    source: Annotated[
-        Path, typer.Argument(help="CARMEN log (.clf/.log[.gz]), recording folder, or world YAML.")
-    ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    source: SourceArg,
+    out: OutOpt,
     continue_: Annotated[
         Path | None,
         typer.Option("--continue", help="Map bundle to extend: relocalise in it, then map on."),
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed when SOURCE is a world.")] = 0,
+    seed: WorldSeedOpt = 0,
     rrd: RrdOpt = None,
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
@@ -292,13 +296,9 @@ def map_(
 @app.command()
 @_known_errors
 def localize(
-    source: Annotated[
-        Path, typer.Argument(help="CARMEN log (.clf/.log[.gz]), recording folder, or world YAML.")
-    ],
-    map_: Annotated[
-        Path, typer.Option("--map", "-m", help="Map bundle folder, or a Nav2 map.yaml.")
-    ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    source: SourceArg,
+    map_: MapOpt,
+    out: OutOpt,
     initial_pose: Annotated[
         tuple[float, float, float] | None,
         typer.Option(
@@ -307,7 +307,7 @@ def localize(
             help="Start tracking here (map frame, m m rad); without it, relocalise globally.",
         ),
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed when SOURCE is a world.")] = 0,
+    seed: WorldSeedOpt = 0,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     quiet: QuietOpt = False,
@@ -335,11 +335,9 @@ def localize(
 @_known_errors
 def navigate(
     ctx: typer.Context,
-    map_: Annotated[
-        Path, typer.Option("--map", "-m", help="Map bundle folder, or a Nav2 map.yaml.")
-    ],
+    map_: MapOpt,
     sim: Annotated[Path, typer.Option("--sim", help="Simulator world YAML the robot drives in.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    out: OutOpt,
     start: Annotated[
         tuple[float, float, float] | None,
         typer.Option("--start", metavar="X Y YAW", help="True start pose (default: the world's)."),
@@ -398,7 +396,7 @@ def navigate(
 @app.command()
 @_known_errors
 def live(
-    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    out: OutOpt,
     camera: Annotated[
         str, typer.Option(help="sim, or an OpenNI2 device: openni:// (first) / openni://URI.")
     ] = "sim",
