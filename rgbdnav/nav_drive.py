@@ -18,39 +18,17 @@ the counts back (as DIST would report them) and integrates them with the *nomina
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from sensors.config import RobotConfig, SimConfig
 from sensors.eddie import encode_command, wheel_speeds
 from sensors.eddie_emulator import EddieEmulator
+from sensors.sim.motion import diff_drive_step, gauss_markov_step
 from sensors.types import NS_PER_S, Pose2, SensorError, WheelTicks
 from slam.diff_drive import integrate_increments, wheel_increments
 from slam.geometry import wrap_angle
 
 ACK = b"\r"  # the board's reply to a command that sets something
-
-
-def diff_drive_step(
-    pose: np.ndarray, d_left: float, d_right: float, track_width: float
-) -> np.ndarray:
-    """Midpoint integration of the wheels' ground travel (d_left, d_right [m]) on a track [m]:
-    ds = (dR + dL) / 2, dtheta = (dR - dL) / track, x += ds cos(theta + dtheta / 2)."""
-    ds = 0.5 * (d_left + d_right)
-    dth = (d_right - d_left) / track_width
-    mid = pose[2] + 0.5 * dth
-    return np.array([pose[0] + ds * math.cos(mid), pose[1] + ds * math.sin(mid),
-                     float(wrap_angle(pose[2] + dth))])  # fmt: skip
-
-
-def gauss_markov_step(
-    x: np.ndarray, sigma: float, tau_s: float, dt_s: float, noise: np.ndarray
-) -> np.ndarray:
-    """One AR(1) step with stationary std ``sigma`` and correlation time ``tau_s`` [s]:
-    x' = a x + sqrt(1 - a^2) sigma n, a = exp(-dt / tau); ``noise`` is standard normal."""
-    a = math.exp(-dt_s / tau_s)
-    return a * x + math.sqrt(1.0 - a * a) * sigma * noise
 
 
 class EmulatedDrive:
@@ -138,4 +116,4 @@ class WheelOdometry:
         return self.pose
 
 
-__all__ = ["EmulatedDrive", "WheelOdometry", "diff_drive_step", "gauss_markov_step"]
+__all__ = ["EmulatedDrive", "WheelOdometry"]

@@ -19,7 +19,6 @@ one behind the same link.
 from __future__ import annotations
 
 import logging
-import math
 import multiprocessing as mp
 import os
 import queue
@@ -60,10 +59,6 @@ class SimRobotStats:
     truth: list[tuple[int, float, float, float]] = field(default_factory=list)
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 def _child(*args: Any) -> None:
     """The child's entry: any failure is reported to the host, not lost with the process."""
     replies = args[-1]
@@ -81,6 +76,7 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
     from scipy.ndimage import distance_transform_edt
 
     from sensors.eddie_emulator import EddieEmulator
+    from sensors.sim.motion import diff_drive_step, gauss_markov_step
     from sensors.sim.render import KinectRenderer
     from sensors.sim.world import floor_plan, load_world
 
@@ -130,21 +126,17 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
                 stall_until_ns = time.monotonic_ns() + int(order[1] * 1e9)
         # 2. Move the robot by what the wheels did since the last frame.
         now = np.array(emu.positions())
-        dt = period_ns / 1e9
-        slip = slip * math.exp(-dt / sim.slip_correlation_time) + sim.wheel_slip * math.sqrt(
-            1 - math.exp(-2 * dt / sim.slip_correlation_time)) * rng.standard_normal(2)  # fmt: skip
+        slip = gauss_markov_step(slip, sim.wheel_slip, sim.slip_correlation_time,
+                                 period_ns / 1e9, rng.standard_normal(2))  # fmt: skip
         travel = (now - prev) * metres * (1.0 + slip)  # [m] left, right
         prev = now
-        ds, dth = travel.mean(), (travel[1] - travel[0]) / track
-        nx = x + ds * math.cos(yaw + dth / 2)
-        ny = y + ds * math.sin(yaw + dth / 2)
+        nx, ny, yaw = diff_drive_step(np.array([x, y, yaw]), travel[0], travel[1], track)
         r, c = plan.cell_of(np.array([[nx, ny]]))[0]
         inside = 0 <= r < clearance.shape[0] and 0 <= c < clearance.shape[1]
         if inside and clearance[r, c] >= robot.radius:
             x, y = nx, ny
-        elif ds != 0.0:
+        elif travel.any():
             stats.collisions += 1
-        yaw = _wrap(yaw + dth)
         # 3. Image the world at the capture time, unless the camera is stalled.
         stamp = time.monotonic_ns()
         stats.truth.append((stamp, x, y, yaw))

@@ -191,6 +191,27 @@ def correlated_noise(
     return lfilter([1.0], [1.0, -a], white)
 
 
+def diff_drive_step(
+    pose: np.ndarray, d_left: float, d_right: float, track_width: float
+) -> np.ndarray:
+    """Midpoint integration of the wheels' ground travel (d_left, d_right [m]) on a track [m]:
+    ds = (dR + dL) / 2, dtheta = (dR - dL) / track, x += ds cos(theta + dtheta / 2)."""
+    ds = 0.5 * (d_left + d_right)
+    dth = (d_right - d_left) / track_width
+    mid = pose[2] + 0.5 * dth
+    return np.array([pose[0] + ds * math.cos(mid), pose[1] + ds * math.sin(mid),
+                     float(_wrap(pose[2] + dth))])  # fmt: skip
+
+
+def gauss_markov_step(
+    x: np.ndarray, sigma: float, tau_s: float, dt_s: float, noise: np.ndarray
+) -> np.ndarray:
+    """One AR(1) step with stationary std ``sigma`` and correlation time ``tau_s`` [s]:
+    x' = a x + sqrt(1 - a^2) sigma n, a = exp(-dt / tau); ``noise`` is standard normal."""
+    a = math.exp(-dt_s / tau_s)
+    return a * x + math.sqrt(1.0 - a * a) * sigma * noise
+
+
 def encoder_counts(
     traj: Trajectory, robot: RobotConfig, sim: SimConfig, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:

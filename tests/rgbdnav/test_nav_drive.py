@@ -4,12 +4,10 @@ the encoder counts back."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
-from rgbdnav.nav_drive import EmulatedDrive, WheelOdometry, diff_drive_step, gauss_markov_step
+from rgbdnav.nav_drive import EmulatedDrive, WheelOdometry
 from sensors.config import RobotConfig, SimConfig
 
 ROBOT = RobotConfig()  # Eddie: 0.1524 m wheels, 36 positions/rev, 0.3 m track
@@ -70,20 +68,3 @@ def test_slip_makes_the_odometry_drift_reproducibly_per_seed() -> None:
     np.testing.assert_array_equal(a.pose, b.pose)
     assert not np.allclose(a.pose, c.pose)
     assert np.hypot(*(a.pose[:2] - odo_a.pose[:2])) > ROBOT.metres_per_tick
-
-
-def test_gauss_markov_steps_keep_the_stationary_sigma() -> None:
-    rng = np.random.default_rng(0)
-    x = np.zeros(20000)
-    for _ in range(200):  # 40 correlation times of 0.5 s at 0.1 s steps
-        x = gauss_markov_step(x, 0.02, 0.5, 0.1, rng.standard_normal(x.shape))
-    assert float(x.std()) == pytest.approx(0.02, rel=0.05)
-
-
-def test_diff_drive_step_drives_an_arc_of_the_wheel_radius() -> None:
-    pose = np.zeros(3)
-    track = 0.3
-    # wheels 0.85 / 1.15 of 1 m: radius track / 2 * (R + L) / (R - L) = 0.15 * 2 / 0.3 = 1 m
-    for _ in range(1000):
-        pose = diff_drive_step(pose, 0.85 * math.pi / 2 / 1000, 1.15 * math.pi / 2 / 1000, track)
-    np.testing.assert_allclose(pose, [1.0, 1.0, math.pi / 2], atol=1e-6)

@@ -13,8 +13,10 @@ from sensors.config import RobotConfig, SimConfig
 from sensors.sim.motion import (
     Trajectory,
     _backlash,
+    diff_drive_step,
     drive_route,
     encoder_counts,
+    gauss_markov_step,
     replay_tum,
     wheel_travel,
 )
@@ -157,3 +159,20 @@ def test_replaying_a_single_pose_is_refused(tmp_path: Path) -> None:
     one.write_text("1.0 0 0 0.5 0 0 0 1\n")
     with pytest.raises(WorldError, match="one.txt: a trajectory to replay needs at least 2 poses"):
         replay_tum(one, ROBOT, SimConfig())
+
+
+def test_gauss_markov_steps_keep_the_stationary_sigma() -> None:
+    rng = np.random.default_rng(0)
+    x = np.zeros(20000)
+    for _ in range(200):  # 40 correlation times of 0.5 s at 0.1 s steps
+        x = gauss_markov_step(x, 0.02, 0.5, 0.1, rng.standard_normal(x.shape))
+    assert float(x.std()) == pytest.approx(0.02, rel=0.05)
+
+
+def test_diff_drive_step_drives_an_arc_of_the_wheel_radius() -> None:
+    pose = np.zeros(3)
+    track = 0.3
+    # wheels 0.85 / 1.15 of 1 m: radius track / 2 * (R + L) / (R - L) = 0.15 * 2 / 0.3 = 1 m
+    for _ in range(1000):
+        pose = diff_drive_step(pose, 0.85 * math.pi / 2 / 1000, 1.15 * math.pi / 2 / 1000, track)
+    np.testing.assert_allclose(pose, [1.0, 1.0, math.pi / 2], atol=1e-6)
