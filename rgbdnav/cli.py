@@ -308,6 +308,8 @@ def localize(
         ),
     ] = None,
     seed: WorldSeedOpt = 0,
+    rrd: RrdOpt = None,
+    viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     quiet: QuietOpt = False,
@@ -324,7 +326,7 @@ def localize(
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("localising", quiet) as progress:
         outputs, summary = run_localize(recording, map_, out, config or [], set_ or [],
-                                        initial_pose, progress)  # fmt: skip
+                                        initial_pose, progress, rrd, viewer)  # fmt: skip
     _echo_source(source, recording)
     typer.echo(f"result      {describe(summary)}")
     _echo_outputs(outputs)

@@ -40,6 +40,13 @@ from rgbdnav.config import load_config, source_options
 from rgbdnav.map_run import scan_stream, source_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
+from rgbdnav.visualize import (
+    NullVisualizer,
+    Visualizer,
+    log_run,
+    make_visualizer,
+    occupied_cells_xy,
+)
 from sensors.atomic import atomic_write_text
 from sensors.source import PoseStream, open_source
 from sensors.tum import write_tum_trajectory
@@ -49,6 +56,7 @@ from slam.localization import LocalizationResult, Localizer, MapModel
 from slam.map_bundle import load_bundle, load_map_yaml
 from slam.metrics import interpolate_poses
 from slam.occupancy_grid import OccupancyGrid
+from slam.scan_matching import scan_points, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -191,8 +199,11 @@ def run_localize(
     overrides: Sequence[str],
     initial_pose: Sequence[float] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    rrd: Path | None = None,
+    viewer: bool = False,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
-    """Localise every scan of ``source_path`` in the map; (files written, summary)."""
+    """Localise every scan of ``source_path`` in the map; (files written, summary). ``rrd`` /
+    ``viewer`` log the run to rerun (:mod:`rgbdnav.visualize`)."""
     t0 = time.perf_counter()
     # 1. The map first: a bad map fails before the source is read or anything is written.
     loaded = load_map(map_path)
@@ -203,7 +214,12 @@ def run_localize(
             raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got "
                               f"{list(initial_pose)}")  # fmt: skip
     cfg = load_config(config_files, overrides)
-    src = open_source(source_path, source_options(cfg))
+    vis = make_visualizer("localize", rrd, viewer)  # fails before the run, not after it
+    try:
+        src = open_source(source_path, source_options(cfg))
+    except BaseException:
+        vis.close()
+        raise
     try:
         # depth->scan with the RGB-D profile, as the map was made
         _, config_files, cfg = source_config(src, config_files, overrides)
@@ -231,11 +247,15 @@ def run_localize(
         # 2. Localise every scan.
         loc = Localizer(model, cfg.localizer, init)
         results: list[LocalizationResult] = []
+        scans_map: list[np.ndarray] = []  # tracked scans in the map frame, for the visualiser
+        drawing = not isinstance(vis, NullVisualizer)
         update_s = 0.0
         for k, (scan, odom) in enumerate(stream):
             t = time.perf_counter()
             results.append(loc.update(scan, odom))
             update_s += time.perf_counter() - t
+            if drawing and has_pose(results[-1]):
+                scans_map.append(transform_points(results[-1].pose, scan_points(scan)))
             if progress is not None:
                 progress(k + 1, total)
         if not results:
@@ -295,10 +315,28 @@ def run_localize(
                           occupied=model.occupied, origin=(g.origin_x, g.origin_y),
                           resolution=g.resolution)  # fmt: skip
         outputs["picture"] = run.file("map.png")
+        _visualize(vis, stamps, poses, scans_map, model.occupied, loaded.grid,
+                   gt if gt is not None and gt.frame == frame == "base_link" else None)
+        if rrd is not None:
+            outputs["rerun recording"] = rrd
         outputs["summary"] = run.write_summary(summary)
         return outputs, summary
     finally:
+        vis.close()
         src.close()
+
+
+def _visualize(vis: Visualizer, stamps: np.ndarray, poses: np.ndarray,
+               scans_map: list[np.ndarray], occupied: np.ndarray, grid: OccupancyGrid,
+               gt: PoseStream | None) -> None:  # fmt: skip
+    """The tracked poses and their scans on rerun's time line, the map's occupied cells (and
+    the ground truth when the source has it)."""
+    if isinstance(vis, NullVisualizer) or not len(stamps):
+        return
+    g = grid.geometry
+    log_run(vis, stamps, poses, scans_map,
+            occupied_cells_xy(occupied, (g.origin_x, g.origin_y), g.resolution),
+            None if gt is None else np.column_stack([gt.x, gt.y]))  # fmt: skip
 
 
 def describe(summary: dict[str, Any]) -> str:

@@ -132,6 +132,24 @@ def test_localize_with_initial_pose_tracks_from_the_first_scan(
     assert np.median(d) < 0.03 and d.max() < 0.1, (np.median(d), d.max())
 
 
+def test_localize_with_rrd_saves_a_rerun_recording_of_poses_scans_and_map(
+    mapped: Path, second_session: tuple[Path, np.ndarray], tmp_path: Path
+) -> None:
+    log, truth = second_session
+    out = tmp_path / "run"
+    rrd = out / "run.rrd"
+    x, y, yaw = truth[0]
+    result = runner.invoke(app, ["localize", str(log), "--map", str(mapped), "--out", str(out),
+                                 "--initial-pose", f"{x}", f"{y}", f"{yaw}", "--rrd", str(rrd),
+                                 "-q"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "rerun recording" in result.output
+    data = rrd.read_bytes()
+    # The documented entity paths are in the recording (rrd keeps them as plain strings).
+    for path in (b"world/map", b"world/robot/scan", b"world/robot/trajectory", b"world/robot/pose"):
+        assert path in data, path
+
+
 def test_localize_in_a_plain_map_yaml_from_another_tool(
     mapped: Path, second_session: tuple[Path, np.ndarray], tmp_path: Path
 ) -> None:
