@@ -58,6 +58,12 @@ TWIST_IDX = np.array([VX, VY, VYAW])
 MIN_MEASUREMENT_VARIANCE = 1e-9  # [unit^2] floor on R's diagonal, as robot_localization does
 NONHOLONOMIC_VY_VARIANCE = 1e-4  # [(m/s)^2] sigma 1 cm/s on the vy = 0 pseudo-measurement
 QUANTISATION_FACTOR = 1.0 / 6.0  # var of the difference of two readings rounded to 1 tick [tick^2]
+# Wheel twist variance from the mean travel over this long (wheel_twist_inputs): long enough that
+# a measurement's weight no longer follows its own tick count (an Eddie tick is 13 mm, so at
+# 0.3 m/s most 20 ms intervals count 0 or 1), short against a stop-and-go cycle. Distance lost
+# by a wheel-only filter at 0.3 m/s: 10.5 % with the interval's own count, 1.5 % at 0.1 s,
+# 0.6 % at 0.5 s (tests/slam/test_ekf.py); house route fused: 3 % -> 0.1 %.
+WHEEL_VARIANCE_WINDOW_S = 0.5  # [s]
 
 Residual = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -228,15 +234,23 @@ def wheel_twist_inputs(
     robot: RobotConfig,
     model: WheelErrorModel = DEFAULT_WHEEL_ERROR,
     vy_variance: float = NONHOLONOMIC_VY_VARIANCE,
+    variance_window_s: float = WHEEL_VARIANCE_WINDOW_S,
 ) -> list[TwistInput]:
     """Encoder counts -> one :class:`TwistInput` per interval, stamped at its end.
 
     Per interval of dt with wheel travels dR, dL [m], tick length q [m] and track b::
 
         v = (dR + dL) / (2 dt),  w = (dR - dL) / (b dt),  vy = 0 (non-holonomic)
-        var(dR) = k_r |dR| + q^2/6,  var(dL) = k_l |dL| + q^2/6   (error model + quantisation)
+        var(dR) = k_r <|dR|> + q^2/6,  var(dL) = k_l <|dL|> + q^2/6  (error model + quantisation)
         var(v) = (var dR + var dL) / (4 dt^2),  var(w) = (var dR + var dL) / (b^2 dt^2)
         cov(v, w) = (var dR - var dL) / (2 b dt^2)
+
+    ``<|d|>`` is the mean travel per interval over the intervals ending within the last
+    ``variance_window_s`` (causal). The interval's own travel would make each measurement's
+    weight depend on its own noise: an interval that happened to count fewer ticks (or none,
+    crawling) is trusted more than one that counted more, and the filter's speed comes out low
+    (measured on the house route: fused distance 3 % short, 0.1 % with the window).
+    Pass a few earlier readings for the window to act on (e.g. live, one new reading at a time).
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     ds, dth = wheel_increments(left, right, robot)
@@ -244,8 +258,19 @@ def wheel_twist_inputs(
     b = robot.track_width
     d_right, d_left = ds + b * dth / 2, ds - b * dth / 2
     quant = QUANTISATION_FACTOR * robot.metres_per_tick**2
-    var_r = model.k_right * np.abs(d_right) + quant
-    var_l = model.k_left * np.abs(d_left) + quant
+    # Causal window mean of |travel| per interval (cumulative sums: no loop over intervals).
+    ends = stamps[1:]
+    idx = np.arange(len(ends))
+    first = np.minimum(np.searchsorted(ends, ends - int(variance_window_s * NS_PER_S),
+                                       side="right"), idx)  # always the interval itself
+    count = idx + 1 - first
+
+    def window_mean(d: np.ndarray) -> np.ndarray:
+        c = np.concatenate([[0.0], np.cumsum(np.abs(d))])
+        return (c[1:] - c[first]) / count
+
+    var_r = model.k_right * window_mean(d_right) + quant
+    var_l = model.k_left * window_mean(d_left) + quant
     cov = np.zeros((len(dt), 3, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         cov[:, 0, 0] = (var_r + var_l) / (4 * dt**2)
