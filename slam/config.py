@@ -283,6 +283,15 @@ class MapperConfig:
     loop_match_minimum_response_fine: float = param(
         0.45, ge=0.0, le=1.0, doc="min fine-match response to accept a loop"
     )
+    loop_match_maximum_ambiguity: float = param(
+        0.9,
+        gt=0.0,
+        doc="reject a loop match when a pose > loop_match_ambiguity_distance away scores this "
+        "fraction of it (aliased corridors); > 1 disables",
+    )
+    loop_match_ambiguity_distance: float = param(
+        1.0, unit="m", gt=0.0, doc="a rival pose must be this far from the match to count"
+    )
     # Correlative scan matching.
     correlation_search_space_dimension: float = param(
         0.5, unit="m", gt=0.0, doc="side of the sequential matching search window"

@@ -46,6 +46,7 @@ from slam.scan_matching import (
     correlative_match,
     icp_refine,
     release_degenerate_axis,
+    rival_score,
     scan_points,
     transform_points,
     voxel_filter,
@@ -518,6 +519,17 @@ class Mapper:
         if not match.ok:
             self.loops.rejected[match.reason] += 1
             return
+        ambiguity_test = cfg.loop_match_maximum_ambiguity <= 1.0
+        if local is not None and lin > cfg.loop_match_ambiguity_distance and ambiguity_test:
+            # A wide window can hold an aliased twin of the place (a corridor's next door):
+            # a match that is not clearly better than its best rival is no evidence.
+            best = _response(local.field, kf.match_points, match.pose)
+            rival = rival_score(local.field, kf.match_points, match.pose, lin,
+                                cfg.loop_match_ambiguity_distance)  # fmt: skip
+            if rival > cfg.loop_match_maximum_ambiguity * best:
+                self.loops.rejected["ambiguous (a rival pose scores as well)"] += 1
+                log.debug("loop %d-%d ambiguous: rival %.3f vs %.3f", j, k, rival, best)
+                return
         loop_cov = match.covariance + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
                                                LOOP_MIN_SIGMA[1] ** 2])  # fmt: skip
         edge = self.graph.add_edge(j, k, ominus(poses[j], match.pose), loop_cov, kind="loop",

@@ -41,6 +41,12 @@ PLANARITY_MAX = 0.2  # smaller/larger eigenvalue ratio above which a neighbourho
 DEGENERATE_EIGENVALUE = 1e-9  # information floor relative to the strongest direction
 GRID_GRADIENT_SIGMA_CELLS = 1.0  # [cells] occupancy blur before the gradient (grid normals)
 GRID_TENSOR_SIGMA_CELLS = 1.5  # [cells] structure tensor window (grid normals)
+# Uniqueness of a match (rival_score): the window sampled every 4 cells at the match's yaw and
+# +-2 deg (aliased corridor stretches are parallel), the best 5 far samples refined per cell.
+AMBIGUITY_STRIDE_CELLS = 4
+AMBIGUITY_ANGLES = np.radians([-2.0, 0.0, 2.0])  # [rad] yaw offsets from the match
+AMBIGUITY_REFINED = 5
+AMBIGUITY_CHUNK = 2048  # far samples scored per gather (x scan points x 2 x 8 bytes)
 
 
 # 1. Scan points ---------------------------------------------------------------------------------
@@ -273,6 +279,65 @@ def correlative_match(
     return CorrelativeResult(pose=pose, score=raw, penalised_score=pen, evaluated=evaluated)
 
 
+def rival_score(
+    field: LikelihoodField,
+    points: np.ndarray,
+    pose: np.ndarray,
+    linear_window_m: float,
+    exclude_m: float,
+    angles_rad: np.ndarray = AMBIGUITY_ANGLES,
+    stride_cells: int = AMBIGUITY_STRIDE_CELLS,
+) -> float:
+    """Best mean likelihood of scan ``points`` at a pose within +-``linear_window_m`` of
+    ``pose`` but more than ``exclude_m`` away from it (0 when the window has no such pose).
+
+    Compared with the score at ``pose`` it says whether a match is unique: along a corridor
+    with a repeating pattern of doors the scan fits about as well one period further on, and
+    a correlative matcher with a wide window picks either. The window is sampled every
+    ``stride_cells`` cells at the yaw offsets ``angles_rad``, then the best few far samples are
+    refined on the full-resolution lattice around them."""
+    res = field.resolution
+    n = int(math.ceil(linear_window_m / res))
+    offs = np.arange(-n, n + 1, stride_cells, dtype=np.float64) * res
+    dx, dy = (v.ravel() for v in np.meshgrid(offs, offs))
+    far = np.hypot(dx, dy) > exclude_m
+    if len(points) == 0 or not far.any():
+        return 0.0
+    dx, dy = dx[far], dy[far]
+    # Coarse: every stride-th cell, a few yaw offsets, all at once per yaw (bounded chunks).
+    yaws = pose[2] + np.asarray(angles_rad, dtype=np.float64)
+    best: list[tuple[float, float, float, float]] = []  # (score, dx, dy, yaw)
+    for yaw in yaws:
+        c, s = math.cos(yaw), math.sin(yaw)
+        wx = c * points[:, 0] - s * points[:, 1] + pose[0]
+        wy = s * points[:, 0] + c * points[:, 1] + pose[1]
+        for lo in range(0, len(dx), AMBIGUITY_CHUNK):
+            sx, sy = dx[lo : lo + AMBIGUITY_CHUNK], dy[lo : lo + AMBIGUITY_CHUNK]
+            xy = np.stack([(wx[None, :] + sx[:, None]).ravel(),
+                           (wy[None, :] + sy[:, None]).ravel()], axis=1)  # fmt: skip
+            sc = field.lookup(xy).reshape(len(sx), len(wx)).mean(axis=1)
+            top = np.argsort(sc)[-AMBIGUITY_REFINED:]
+            best.extend((float(sc[t]), float(sx[t]), float(sy[t]), float(yaw)) for t in top)
+    best.sort(reverse=True)
+    # Fine: the full-resolution lattice around the best few far samples.
+    h = stride_cells // 2
+    fine = np.arange(-h, h + 1, dtype=np.float64) * res
+    fx, fy = (v.ravel() for v in np.meshgrid(fine, fine))
+    rival = 0.0
+    for score, bx, by, yaw in best[:AMBIGUITY_REFINED]:
+        rival = max(rival, score)
+        ox, oy = bx + fx, by + fy
+        keep = np.hypot(ox, oy) > exclude_m
+        c, s = math.cos(yaw), math.sin(yaw)
+        wx = c * points[:, 0] - s * points[:, 1] + pose[0]
+        wy = s * points[:, 0] + c * points[:, 1] + pose[1]
+        xy = np.stack([(wx[None, :] + ox[keep][:, None]).ravel(),
+                       (wy[None, :] + oy[keep][:, None]).ravel()], axis=1)  # fmt: skip
+        if len(xy):
+            rival = max(rival, float(field.lookup(xy).reshape(-1, len(wx)).mean(axis=1).max()))
+    return rival
+
+
 # 4. Point-to-line ICP ---------------------------------------------------------------------------
 
 
@@ -446,6 +511,7 @@ __all__ = [
     "build_reference",
     "correlative_match",
     "icp_refine",
+    "rival_score",
     "release_degenerate_axis",
     "scan_points",
     "transform_points",

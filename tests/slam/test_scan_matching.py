@@ -19,6 +19,7 @@ from slam.scan_matching import (
     build_reference,
     correlative_match,
     icp_refine,
+    rival_score,
     scan_points,
     transform_points,
     voxel_filter,
@@ -454,3 +455,51 @@ def test_grid_reference_of_a_grid_without_walls_is_an_error() -> None:
 
     with pytest.raises(ValueError, match="no occupied cell"):
         build_grid_reference(np.zeros((10, 10), bool), (0.0, 0.0), 0.05)
+
+
+# 5. Uniqueness of a match (rival_score) -----------------------------------------------------------
+
+
+def _periodic_corridor(period: float = 4.0, door: float = 1.0) -> np.ndarray:
+    """A 2 m wide corridor along x whose lower wall has a 1 m door gap every ``period`` m:
+    one stretch looks exactly like the next (aliasing)."""
+    segs = [[-30.0, 2.0, 30.0, 2.0]]
+    for x0 in np.arange(-30.0, 30.0, period):
+        segs.append([x0, 0.0, x0 + period - door, 0.0])
+        segs.append([x0 + period - door, 0.0, x0 + period - door, -1.0])  # door jamb
+    return np.array(segs)
+
+
+def _segment_points(segments: np.ndarray, step: float = 0.02) -> np.ndarray:
+    """Points every ``step`` m along each segment: a map as many scans would have built it."""
+    out = []
+    for x0, y0, x1, y1 in segments:
+        t = np.linspace(0.0, 1.0, max(int(math.hypot(x1 - x0, y1 - y0) / step), 2))
+        out.append(np.column_stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0)]))
+    return np.vstack(out)
+
+
+def test_rival_score_finds_the_aliased_twin_one_period_along_a_periodic_corridor() -> None:
+    corridor = _periodic_corridor()
+    ref_pose = np.array([0.0, 1.0, 0.0])
+    field = build_likelihood_field(_segment_points(corridor), RES, SMEAR, 6.0, N_LEVELS)
+    pts = body_points(corridor, ref_pose, range_max=6.0)
+    best = float(field.lookup(transform_points(ref_pose, pts)).mean())
+    rival = rival_score(field, pts, ref_pose, 5.0, 1.0)
+    assert best > 0.5
+    assert rival > 0.9 * best, (rival, best)  # one period on, the scan fits about as well
+
+
+def test_rival_score_of_a_distinctive_room_is_well_below_the_match() -> None:
+    field = build_likelihood_field(world_points(ROOM, REF_POSE), RES, SMEAR, 3.0, N_LEVELS)
+    pts = body_points(ROOM, REF_POSE)
+    best = float(field.lookup(transform_points(REF_POSE, pts)).mean())
+    rival = rival_score(field, pts, REF_POSE, 2.5, 1.0)
+    assert 0.0 <= rival < 0.6 * best, (rival, best)
+
+
+def test_rival_score_is_zero_when_the_window_holds_no_far_pose() -> None:
+    field = room_field()
+    pts = body_points(ROOM, REF_POSE)
+    assert rival_score(field, pts, REF_POSE, 0.5, 1.0) == 0.0
+    assert rival_score(field, np.zeros((0, 2)), REF_POSE, 2.0, 1.0) == 0.0
