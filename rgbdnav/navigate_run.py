@@ -9,11 +9,13 @@ Each simulation step, in simulated time (never wall time):
    ``localization="localizer"`` (the default) it goes to the localiser
    (:class:`slam.localization.Localizer`, tracking against the map from the start pose it is
    given) with the wheel-odometry pose, which gives ``T_map_odom``; the navigator's pose is
-   ``T_map_odom (+) odometry``. An answer that moves ``T_map_odom`` by more than two search
-   windows is believed only when ``JUMP_CONFIRM_SCANS`` consecutive answers agree on it; when
-   the localiser loses track the navigator puts it back on the odometry pose
-   (``set_initial_pose``, as an operator would) instead of letting it search the whole map,
-   since turning wheels mean the robot was not kidnapped -- or, with
+   ``T_map_odom (+) odometry``. Whether a match far from the odometry prediction is believed
+   is the localiser's call (``localizer.match_gate``: a jump hypothesis, confirmed by
+   ``localizer.jump_confirm_scans`` agreeing matches and the recent scans stacked by odometry;
+   ``localizer.dead_reckoning_max_sigma``: failing matches dead-reckon on odometry before
+   "lost"). When the localiser does lose track the navigator puts it back on the odometry pose
+   with its last covariance (``set_initial_pose``, as an operator would) instead of letting
+   it search the whole map, since turning wheels mean the robot was not kidnapped -- or, with
    ``navigate.global_relocalization``, turns in place until the global search settles. A goal
    fails after ``relocalize_timeout`` without a believable answer. With ``"groundtruth"`` the
    navigator is handed the true pose.
@@ -88,7 +90,7 @@ from sensors.atomic import atomic_write_text
 from sensors.sim.world import FloorPlan, floor_plan, load_world
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, LaserScan, MapError, Pose2
-from slam.geometry import ominus, oplus, path_length, wrap_angle
+from slam.geometry import oplus, path_length, wrap_angle
 from slam.localization import Localizer, MapModel
 from slam.map_bundle import load_map_yaml
 from slam.occupancy_grid import OccupancyGrid
@@ -97,14 +99,12 @@ log = logging.getLogger(__name__)
 
 LOCALIZATION_MODES: tuple[str, ...] = ("groundtruth", "localizer")
 NS_PER_S = 1_000_000_000
+NAVIGATE_PROFILE = RGBD_PROFILE.with_name("navigate.yaml")  # localising on the robot's wheels
 SCAN_COLUMNS_PER_BEAM = 2  # [px] image columns per simulated scan beam (640 px -> 320 beams)
 RAY_STEP_CELLS = 0.5  # [cells] ray-marching step in the floor plan
 STOP_EPS = 1e-3  # [m/s, rad/s] smoothed speeds below this count as at rest
 MAX_STOP_S = 10.0  # [s] longest braking we simulate before giving up on "at rest"
 STUCK_BEHAVIORS = (RECOVERY_SEQUENCE[0], RECOVERY_SEQUENCE[3])  # clear the costmap, back up
-JUMP_WINDOWS = 2.0  # an answer moving map->odom by more search windows is a jump ...
-JUMP_CONFIRM_SCANS = 3  # ... believed once this many consecutive answers agree on it
-CONFIRM_WINDOWS = 0.5  # [search windows] agreement between those answers
 CSV_HEADER = ("t_s", "goal", "status", "cmd_v_mps", "cmd_w_radps", "smoothed_v_mps",
               "smoothed_w_radps", "gospd_left", "gospd_right")  # fmt: skip
 
@@ -260,10 +260,7 @@ class _Sim:
             localizer.set_initial_pose(oplus(start, self.T_base_laser))
         self.localized = True  # the localiser tracks (always, with ground truth)
         self.last_fix_ns = 0  # [ns] of the last believed localiser answer
-        self.pending_jump: np.ndarray | None = None  # an unconfirmed far map -> odom answer
-        self.pending_count = 0  # consecutive answers agreeing with it
-        self.rejected_jumps = 0
-        self.confirmed_jumps = 0
+        self.loc_covariance: np.ndarray | None = None  # of the last tracking answer
         self.reseeds = 0
         self.keepout_dist: np.ndarray | None = None
         self.keepout_geometry = None if keepout is None else keepout.geometry
@@ -334,45 +331,29 @@ class _Sim:
         return True
 
     def localize(self, scan: LaserScan) -> None:
-        """One scan into the localiser; T_map_odom from its answer when the answer is
-        believable (see :class:`nav.config.NavigateConfig` ``global_relocalization``)."""
+        """One scan into the localiser; T_map_odom from its answer while it tracks (see
+        :class:`nav.config.NavigateConfig` ``global_relocalization`` for when it does not).
+        Whether a match far from the odometry prediction is believed is the localiser's call
+        (``localizer.match_gate``, ``localizer.jump_confirm_scans``)."""
         assert self.localizer is not None
         result = self.localizer.update(scan, oplus(self.odometry.pose, self.T_base_laser))
         self.log.loc_status.append(result.status)
         self.log.loc_confidence.append(result.confidence)
-        good = result.status == "tracking"
-        if good and not (self.nav.global_relocalization
-                         and result.reason.startswith("relocalised")):  # fmt: skip
-            # A tracking match lies inside the search window of the prediction: an answer
-            # moving map -> odom further is a glitch unless the next answers confirm it.
-            if self._outside(self.T_map_odom, result.map_to_odom, JUMP_WINDOWS):
-                same = self.pending_jump is not None and not self._outside(
-                    self.pending_jump, result.map_to_odom, CONFIRM_WINDOWS)
-                self.pending_count = self.pending_count + 1 if same else 1
-                self.pending_jump = result.map_to_odom
-                if self.pending_count < JUMP_CONFIRM_SCANS:
-                    self.rejected_jumps += 1
-                    return
-                self.confirmed_jumps += 1
-            self.pending_jump, self.pending_count = None, 0
-        if good:
+        if result.status == "tracking":
             self.T_map_odom = result.map_to_odom
             self.last_fix_ns = self.t_ns
             self.localized = True
+            self.loc_covariance = result.covariance
         elif self.nav.global_relocalization:
             self.localized = False  # drive_to turns in place until it tracks again
         else:
             # The wheels report continuous motion, so the robot was not kidnapped: put the
-            # localiser back on the odometry-propagated pose instead of a global search.
-            self.localizer.set_initial_pose(oplus(self.estimate, self.T_base_laser))
+            # localiser back on the odometry-propagated pose, with the covariance it last had
+            # (a fresh, search-window-wide one would let the next match, maybe of moved
+            # furniture, pull the estimate anywhere inside the window).
+            self.localizer.set_initial_pose(oplus(self.estimate, self.T_base_laser),
+                                            self.loc_covariance)  # fmt: skip
             self.reseeds += 1
-
-    def _outside(self, a: np.ndarray, b: np.ndarray, windows: float) -> bool:
-        """Whether map -> odom ``b`` differs from ``a`` by more than ``windows`` search windows."""
-        d = ominus(a, b)
-        cfg = self.cfg.localizer
-        return bool(math.hypot(d[0], d[1]) > windows * cfg.linear_search_window
-                    or abs(d[2]) > windows * cfg.angular_search_window)  # fmt: skip
 
     # 3b. Acting: one smoother period of motion.
     def command(self, v: float, w: float) -> None:
@@ -688,8 +669,9 @@ def run_navigate(
     # 1. Inputs first: a bad map, world, goal or start fails before anything is written.
     loaded = load_map(map_path)
     goal_list = _check_goals(goals)
-    # The navigator's scans are depth-camera scans: the RGB-D profile first, yours still win.
-    files = [RGBD_PROFILE, *config_files] if RGBD_PROFILE.is_file() else list(config_files)
+    # The navigator's scans are depth-camera scans and it localises on its own wheels: the
+    # RGB-D and navigate profiles first, yours still win.
+    files = [p for p in (RGBD_PROFILE, NAVIGATE_PROFILE) if p.is_file()] + list(config_files)
     cfg = load_config(files, overrides)
     nav = navigate_settings(cfg, localization, goal_timeout_s, max_replans, waypoint_pause_s)
     world = load_world(world_path)
@@ -780,9 +762,10 @@ def run_navigate(
         "localization": {
             "mode": nav.localization,
             "description": ("the localiser (scan-to-map tracking from the given start pose) "
-                            "fused with wheel odometry from the board's encoder counts; an answer "
-                            "jumping more than two search windows is believed only once "
-                            f"{JUMP_CONFIRM_SCANS} consecutive answers agree on it"
+                            "fused with wheel odometry from the board's encoder counts (match "
+                            f"gate {cfg.localizer.match_gate} sigma, jump confirmation "
+                            f"{cfg.localizer.jump_confirm_scans} scans, dead reckoning up to "
+                            f"{cfg.localizer.dead_reckoning_max_sigma} m sigma)"
                             + ("" if nav.global_relocalization else
                                ", and a localiser that loses track is put back on the "
                                "odometry pose (no global relocalisation while driving)")
@@ -794,8 +777,9 @@ def run_navigate(
             "confidence_mean": (round(float(np.mean(sim.log.loc_confidence)), 3)
                                 if sim.log.loc_confidence else None),
             "odometry_distance_m": round(sim.odometry.distance_m, 3),
-            "tracking_jumps_rejected": sim.rejected_jumps,
-            "tracking_jumps_confirmed": sim.confirmed_jumps,
+            "matches_gated": 0 if localizer is None else localizer.stats.gated,
+            "tracking_jumps_rejected": 0 if localizer is None else localizer.stats.gated,
+            "tracking_jumps_confirmed": 0 if localizer is None else localizer.stats.jumps,
             "reseeded_from_odometry": sim.reseeds,
         },
         "goals": outcomes,

@@ -451,6 +451,26 @@ class LocalizerConfig:
     update_min_a: float = param(
         0.0, unit="rad", ge=0.0, doc="match after this much turning (AMCL 0.2; 0 = every scan)"
     )
+    match_gate: float = param(
+        0.0,
+        unit="sigma",
+        ge=0.0,
+        doc="a match farther than this Mahalanobis distance from the odometry prediction is a "
+        "jump hypothesis, not fused (0 = fuse every match)",
+    )
+    jump_confirm_scans: int = param(
+        3,
+        ge=0,
+        doc="consecutive gated matches that must agree (and the earlier scans support) before "
+        "the estimate jumps to them (0 = never: a gated match waits until the prediction's "
+        "growing covariance admits it)",
+    )
+    match_sigma_floor: float = param(
+        0.005, unit="m", ge=0.0, doc="added in quadrature to a match's position sigmas"
+    )
+    match_sigma_floor_yaw: float = param(
+        0.002, unit="rad", ge=0.0, doc="added in quadrature to a match's yaw sigma"
+    )
     # Lost detection.
     lost_score: float = param(
         0.3, ge=0.0, le=1.0, doc="confidence below this counts towards being lost"
@@ -458,6 +478,14 @@ class LocalizerConfig:
     lost_time: float = param(2.0, unit="s", ge=0.0, doc="declare lost after this long below")
     lost_min_scans: int = param(
         3, ge=1, doc="...and after at least this many scans below (sparse logs: 2-3 s per scan)"
+    )
+    dead_reckoning_max_sigma: float = param(
+        0.0,
+        unit="m",
+        ge=0.0,
+        doc="when tracking fails for lost_time, keep dead-reckoning on odometry (status "
+        "tracking, covariance growing) until the position sigma reaches this, then declare lost "
+        "(0 = lost at once)",
     )
     kidnap_check_ratio: float = param(
         0.7,

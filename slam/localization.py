@@ -12,9 +12,22 @@ below. Per scan (:meth:`Localizer.update`):
    the prediction, refined by ICP.
 3. **Fuse** prediction and match in a Kalman update (Joseph form, wrapped yaw residual): along a
    featureless corridor ICP's covariance is large in one direction and odometry carries it.
+   The match covariance gets ``match_sigma_floor`` / ``match_sigma_floor_yaw`` in quadrature.
+   **Gate** (``match_gate`` > 0, for a robot whose odometry is better than the scans are
+   reliable: a narrow depth camera facing one moved piece of furniture matches it confidently
+   0.3 m / 15 deg off, scan after scan): a match whose Mahalanobis distance from the prediction
+   (``P + R``) exceeds the gate is not fused but held as a jump hypothesis, propagated by
+   odometry. The estimate jumps to it only after ``jump_confirm_scans`` consecutive gated
+   matches agree with it *and* the recent scans from before them, stacked by odometry, fit it
+   clearly better (``relocalization_ambiguity_ratio``) than the prediction; with
+   ``jump_confirm_scans`` 0 never -- either way the prediction's covariance grows while matches
+   are gated, until the gate admits them as ordinary fixes (the filter, not a rule, decides).
 4. **Confidence** is the mean likelihood ``exp(-d^2 / 2 sigma_hit^2)`` of the scan points at the
-   fused pose (``d`` to the nearest occupied cell), in [0, 1]. Below ``lost_score`` for
-   ``lost_time`` the status becomes ``"lost"`` and the following scans relocalise globally.
+   fused pose (``d`` to the nearest occupied cell), in [0, 1]. Below ``lost_score`` (or with
+   matches rejected or gated) for ``lost_time`` the status becomes ``"lost"`` and the following
+   scans relocalise globally -- unless ``dead_reckoning_max_sigma`` > 0: then the localiser
+   keeps predicting from odometry ("tracking", covariance growing) until the position sigma
+   reaches it, as AMCL does with healthy odometry.
    **Kidnap check**: a confidence that falls below ``kidnap_check_ratio`` x the median of the
    last ``kidnap_check_scans`` runs the global search on that scan (once per drop); a place
    that fits clearly better declares ``"lost"`` at once, and relocalisation starts from those
@@ -128,6 +141,19 @@ def predict(x: np.ndarray, p: np.ndarray, u: np.ndarray, q_u: np.ndarray
     g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     p_new = f @ p @ f.T + g @ q_u @ g.T
     return oplus(x, u), 0.5 * (p_new + p_new.T)
+
+
+def mahalanobis2(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> float:
+    """Squared Mahalanobis distance of a pose measurement ``z`` (covariance ``r``) from the
+    estimate ``x`` (covariance ``p``): nu^T (P + R)^-1 nu, the yaw residual wrapped."""
+    nu = np.asarray(z, dtype=np.float64) - x
+    nu[2] = wrap_angle(nu[2])
+    return float(nu @ np.linalg.solve(p + r, nu))
+
+
+def position_sigma(p: np.ndarray) -> float:
+    """[m] standard deviation of a pose covariance's position along its worst axis."""
+    return math.sqrt(max(float(np.linalg.eigvalsh(p[:2, :2])[-1]), 0.0))
 
 
 # 2. The map model ------------------------------------------------------------------------------
@@ -543,6 +569,8 @@ class LocalizerStats:
     relocalisations: int = 0
     lost: int = 0
     kidnap_checks: int = 0  # global searches run on a sudden confidence drop while tracking
+    gated: int = 0  # tracking matches beyond match_gate of the prediction (not fused)
+    jumps: int = 0  # jump hypotheses confirmed: the estimate jumped to them
     matches: dict[str, int] = field(default_factory=dict)
 
 
@@ -574,6 +602,7 @@ class Localizer:
         self._match_pose: np.ndarray | None = None  # pose of the last match (update_min_d/a)
         self._recent: deque[float] = deque(maxlen=config.kidnap_check_scans)  # confidences
         self._drop_checked = False  # the current confidence drop was searched already
+        self._jump: _Hypothesis | None = None  # gated matches waiting for confirmation
         if initial_pose is not None:
             self.set_initial_pose(initial_pose)
 
@@ -589,6 +618,7 @@ class Localizer:
                      if covariance is None else np.asarray(covariance, float))  # fmt: skip
         self._status = "tracking"
         self._initial_check = True
+        self._jump = None
         self._hypotheses = []
         self._low_since = None
         self._low_scans = 0
@@ -628,7 +658,7 @@ class Localizer:
         # 1. Predict every pose we hold with the odometry increment.
         if self._pose is not None:
             self._pose, self._cov = predict(self._pose, self._cov, u, motion_noise(u, self.config))
-        for h in self._hypotheses:
+        for h in [*self._hypotheses, *([self._jump] if self._jump is not None else [])]:
             h.pose, h.covariance = predict(h.pose, h.covariance, u, motion_noise(u, self.config))
         if self._status == "lost":
             self._status = "relocalising"  # with the hypotheses a kidnap check left, if any
@@ -663,17 +693,30 @@ class Localizer:
             return self._result(stamp, odom, f"too few scan points ({len(pts)}): {what}", 0.0)
         match = match_scan(self.model, pts, self._pose, cfg)
         self.stats.matches[match.method] = self.stats.matches.get(match.method, 0) + 1
+        if cfg.match_gate > 0.0:
+            self._remember(odom, pts, stack=False)  # what a jump hypothesis must explain too
         if not match.ok and checking:
             return self._declare_lost(stamp, odom, f"initial pose rejected: {match.reason}; "
                                       f"relocalising globally", match.score)  # fmt: skip
+        gated = False
         if match.ok:
-            # 3. Fuse the prediction and the match.
-            r_cov, _ = release_degenerate_axis(_floored(match.covariance),
-                                               cfg.scan_match_degeneracy_ratio,
-                                               UNKNOWN_VARIANCE)  # fmt: skip
-            self._pose, self._cov = kalman_update(self._pose, self._cov, match.pose, r_cov)
-            self._match_pose = self._pose.copy()
-            reason = f"matched ({match.method})"
+            # 3. Fuse the prediction and the match -- unless the match lies beyond the gate: a
+            #    narrow scan of moved furniture fits confidently somewhere else, and one such
+            #    answer must not move the estimate. It becomes a jump hypothesis, propagated by
+            #    odometry (see _jump_hypothesis); meanwhile the covariance grows with odometry.
+            r_cov, _ = release_degenerate_axis(
+                match.covariance + np.diag([cfg.match_sigma_floor**2] * 2
+                                           + [cfg.match_sigma_floor_yaw**2]),
+                cfg.scan_match_degeneracy_ratio, UNKNOWN_VARIANCE)  # fmt: skip
+            d2 = mahalanobis2(self._pose, self._cov, match.pose, r_cov)
+            if cfg.match_gate > 0.0 and d2 > cfg.match_gate**2:
+                reason = self._jump_hypothesis(match, r_cov, d2, odom)
+                gated = self._jump is not None  # still waiting: no fix on this scan
+            else:
+                self._jump = None
+                self._pose, self._cov = kalman_update(self._pose, self._cov, match.pose, r_cov)
+                self._match_pose = self._pose.copy()
+                reason = f"matched ({match.method})"
         else:
             reason = f"match rejected: {match.reason}; dead reckoning"
         conf = self.model.score(pts, self._pose)
@@ -686,18 +729,73 @@ class Localizer:
         # 5. Lost when the confidence stays below lost_score, or matches keep being rejected,
         #    for lost_time (a scan fitting 30-50 % of a wrong place must not keep it "tracking").
         #    A sparse log (a scan every 2-3 s) also needs lost_min_scans such scans in a row.
-        if conf < cfg.lost_score or not match.ok:
+        if conf < cfg.lost_score or not match.ok or gated:
             self._low_since = stamp if self._low_since is None else self._low_since
             self._low_scans += 1
             if ((stamp - self._low_since) * 1e-9 >= cfg.lost_time
                     and self._low_scans >= cfg.lost_min_scans):
                 why = (f"confidence {conf:.2f} below lost_score {cfg.lost_score} or matches "
                        f"rejected for {cfg.lost_time} s ({self._low_scans} scans)")  # fmt: skip
-                return self._declare_lost(stamp, odom, why, conf)
+                sigma = position_sigma(self._cov)
+                if sigma >= cfg.dead_reckoning_max_sigma:
+                    return self._declare_lost(stamp, odom, why, conf)
+                # Odometry still vouches for the pose: keep predicting from it (AMCL never
+                # stops); the covariance grows until dead_reckoning_max_sigma says lost.
+                reason = (f"{reason}; {why}: dead reckoning, position sigma {sigma:.2f} m < "
+                          f"dead_reckoning_max_sigma {cfg.dead_reckoning_max_sigma}")  # fmt: skip
         else:
             self._low_since = None
             self._low_scans = 0
         return self._result(stamp, odom, reason, conf)
+
+    def _jump_hypothesis(self, match: MatchOutcome, r_cov: np.ndarray, d2: float,
+                         odom: np.ndarray) -> str:  # fmt: skip
+        """A gated match: start or extend the jump hypothesis; jump to it when it is confirmed
+        by ``jump_confirm_scans`` consecutive gated matches that agree with each other (each
+        within the gate of the previous one propagated by odometry) and by independent
+        evidence: the scans of the recent history from before this run of gated matches,
+        stacked by odometry, must fit it clearly better (``relocalization_ambiguity_ratio``)
+        than the prediction. Consecutive narrow scans of one moved piece of furniture agree
+        with each other, but the walls seen on the way there do not agree with them. The
+        reason."""
+        cfg = self.config
+        self.stats.gated += 1
+        jump = self._jump
+        if jump is not None and mahalanobis2(jump.pose, jump.covariance, match.pose,
+                                             r_cov) <= cfg.match_gate**2:  # fmt: skip
+            jump.unique += 1
+        else:
+            jump = _Hypothesis(match.pose, r_cov, unique=1)
+        jump.pose, jump.covariance = match.pose.copy(), r_cov.copy()
+        jump.scores.append(match.score)
+        self._jump = jump
+        d = ominus(self._pose, match.pose) if self._pose is not None else np.zeros(3)
+        what = (f"match ({match.method}) {math.hypot(d[0], d[1]):.2f} m / "
+                f"{math.degrees(abs(d[2])):.0f} deg from the prediction, Mahalanobis "
+                f"{math.sqrt(d2):.1f} > match_gate {cfg.match_gate}")  # fmt: skip
+        if cfg.jump_confirm_scans == 0:
+            return f"{what}: not fused (jumps off: waiting for the covariance to admit it)"
+        if jump.unique < cfg.jump_confirm_scans:
+            return f"{what}: jump hypothesis {jump.unique}/{cfg.jump_confirm_scans}"
+        assert self._pose is not None
+        before = self._stacked(odom, max(len(self._history) - jump.unique, 0))
+        if len(before) < MIN_SCAN_POINTS:
+            return f"{what}: jump hypothesis held back, no earlier scans to check it against"
+        s_jump, s_pred = self.model.score(before, jump.pose), self.model.score(before, self._pose)
+        if s_jump * cfg.relocalization_ambiguity_ratio < s_pred:
+            return (f"{what}: jump hypothesis held back, the earlier scans fit it {s_jump:.2f} "
+                    f"against {s_pred:.2f} at the prediction")  # fmt: skip
+        # Jump: the prediction's covariance grown by the innovation (so the jump lies within
+        # one sigma of it), then fused as usual; an axis the match cannot see (released as
+        # degenerate) keeps the prediction.
+        nu = jump.pose - self._pose
+        nu[2] = wrap_angle(nu[2])
+        self._pose, self._cov = kalman_update(self._pose, self._cov + np.outer(nu, nu),
+                                              jump.pose, jump.covariance)  # fmt: skip
+        self._match_pose = self._pose.copy()
+        self._jump = None
+        self.stats.jumps += 1
+        return f"{what}: jumped, {cfg.jump_confirm_scans} matches agree"
 
     def _kidnap_check(self, stamp: int, pts: np.ndarray, conf: float
                       ) -> tuple[list[_Hypothesis], str] | None:  # fmt: skip
@@ -745,6 +843,7 @@ class Localizer:
         self.stats.lost += 1
         self._status = "lost"
         self._hypotheses = hypotheses or []
+        self._jump = None
         self._contested = False
         self._since_search = 0
         self._history = []
@@ -897,11 +996,12 @@ class Localizer:
         return self._accept(stamp, odom, pts, best, f"relocalised: unique on {best.unique} "
                             f"scans, mean score {best.mean_score:.2f}")  # fmt: skip
 
-    def _remember(self, odom: np.ndarray, pts: np.ndarray) -> np.ndarray | None:
-        """Add this scan to the relocalisation history and return the history's points in
-        this scan's frame (odometry-stacked, voxel-filtered); None for a single scan. The
-        history keeps the scans within ``relocalization_history_m`` of this one (straight-line
-        odometry distance), at most ``MAX_HISTORY_SCANS``."""
+    def _remember(self, odom: np.ndarray, pts: np.ndarray, stack: bool = True
+                  ) -> np.ndarray | None:  # fmt: skip
+        """Add this scan to the history and (``stack``) return the history's points in this
+        scan's frame (odometry-stacked, voxel-filtered); None for a single scan. The history
+        keeps the scans within ``relocalization_history_m`` of this one (straight-line odometry
+        distance), at most ``MAX_HISTORY_SCANS``."""
         cfg = self.config
         self._history.append((odom.copy(), pts))
         while len(self._history) > MAX_HISTORY_SCANS or (
@@ -909,10 +1009,17 @@ class Localizer:
             and math.hypot(*(self._history[0][0][:2] - odom[:2])) > cfg.relocalization_history_m
         ):
             self._history.pop(0)
-        if len(self._history) < 2 or cfg.relocalization_history_m <= 0.0:
+        if not stack or len(self._history) < 2 or cfg.relocalization_history_m <= 0.0:
             return None
-        clouds = [transform_points(ominus(odom, o), p) for o, p in self._history]
-        return voxel_filter(np.concatenate(clouds), cfg.scan_voxel_size)
+        return self._stacked(odom, len(self._history))
+
+    def _stacked(self, odom: np.ndarray, n: int) -> np.ndarray:
+        """The first ``n`` scans of the history in the frame of odometry pose ``odom``,
+        voxel-filtered ((0, 2) when there are none)."""
+        clouds = [transform_points(ominus(odom, o), p) for o, p in self._history[:n]]
+        if not clouds:
+            return np.zeros((0, 2))
+        return voxel_filter(np.concatenate(clouds), self.config.scan_voxel_size)
 
     def _add_searched(self, pts: np.ndarray, hyps: list[_Hypothesis]) -> None:
         """Search this scan and add the places no hypothesis holds yet; keep the best
@@ -931,6 +1038,7 @@ class Localizer:
         self._status = "tracking"
         self._hypotheses = []
         self._history = []
+        self._jump = None
         self._match_pose = self._pose.copy()
         self._low_since = None
         self._low_scans = 0
@@ -975,7 +1083,9 @@ __all__ = [
     "build_global_field",
     "global_search",
     "kalman_update",
+    "mahalanobis2",
     "match_scan",
     "motion_noise",
+    "position_sigma",
     "predict",
 ]

@@ -130,6 +130,9 @@ def test_the_localiser_in_the_loop_drives_on_wheel_odometry_and_scan_matching(
         assert g["final_error_m"] <= 0.25 + loc["position_error_m"]["max"] + 1e-3
     assert summary["collisions"]["events"] == 0
     assert summary["gospd_lines"] > 10
+    # The navigate profile's localiser settings were in force (config/profiles/navigate.yaml).
+    resolved = yaml.safe_load((tmp_path / "config.yaml").read_text())["localizer"]
+    assert resolved["match_gate"] == 3.0 and resolved["kidnap_check_ratio"] == 0.0
     _, true_xyz, _ = load_tum_trajectory(tmp_path / "trajectory.tum")
     _, est_xyz, _ = load_tum_trajectory(tmp_path / "estimated.tum")
     err = np.hypot(*(true_xyz[:, :2] - est_xyz[:, :2]).T)
@@ -298,23 +301,11 @@ def _jumpy_localizer(jump_from: int, jump_to: int) -> type:
     return Jumpy
 
 
-def test_a_one_scan_localiser_jump_is_not_believed(
+def test_the_navigator_believes_what_the_localiser_tracks(
     scene: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import rgbdnav.navigate_run as navigate_run
-
-    monkeypatch.setattr(navigate_run, "Localizer", _jumpy_localizer(8, 9))
-    code, output, summary = _navigate(scene, tmp_path, "--goal", "3.0", "1.0")
-    assert code == 0, output
-    loc = summary["localization"]
-    assert loc["tracking_jumps_rejected"] == 2 and loc["tracking_jumps_confirmed"] == 0
-    assert loc["position_error_m"]["max"] < 0.3  # the 3 m never reached the navigator
-    assert summary["goals"][0]["status"] == "reached"
-
-
-def test_a_localiser_jump_confirmed_by_three_answers_is_believed(
-    scene: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+    # Whether a far answer is a jump to take is the localiser's call (localizer.match_gate,
+    # tested in tests/slam): the navigator does not second-guess a "tracking" answer.
     import rgbdnav.navigate_run as navigate_run
 
     monkeypatch.setattr(navigate_run, "Localizer", _jumpy_localizer(8, 10_000))
@@ -322,6 +313,45 @@ def test_a_localiser_jump_confirmed_by_three_answers_is_believed(
                                       "--goal", "3.0", "1.0")  # fmt: skip
     assert code == 0, output
     loc = summary["localization"]
-    assert loc["tracking_jumps_rejected"] == 2  # answers 8 and 9; 10 confirms
-    assert loc["tracking_jumps_confirmed"] == 1
-    assert loc["position_error_m"]["max"] > 2.5  # the navigator now believes the (wrong) 3 m
+    assert loc["position_error_m"]["max"] > 2.5  # the navigator believes the (wrong) 3 m
+    assert loc["tracking_jumps_confirmed"] == 0  # the real localiser never jumped
+
+
+def test_a_lost_localiser_is_put_back_on_odometry_with_its_last_covariance(
+    scene: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import dataclasses
+
+    import rgbdnav.navigate_run as navigate_run
+    from slam.localization import Localizer
+
+    seeds: list[np.ndarray | None] = []
+    tracked: list[np.ndarray] = []  # covariance of each tracking answer
+
+    class Dropping(Localizer):
+        calls = 0
+
+        def update(self, scan, odom_pose):  # type: ignore[no-untyped-def]
+            r = super().update(scan, odom_pose)
+            Dropping.calls += 1
+            if Dropping.calls in (8, 9):
+                return dataclasses.replace(r, status="lost", reason="lost (test)")
+            tracked.append(r.covariance)
+            return r
+
+        def set_initial_pose(self, pose, covariance=None):  # type: ignore[no-untyped-def]
+            seeds.append(None if covariance is None else np.array(covariance))
+            super().set_initial_pose(pose, covariance)
+
+    monkeypatch.setattr(navigate_run, "Localizer", Dropping)
+    code, output, summary = _navigate(scene, tmp_path, "--goal", "3.0", "1.0")
+    assert code == 0, output
+    loc = summary["localization"]
+    assert loc["reseeded_from_odometry"] == 2
+    # The start pose comes with the default covariance; both reseeds with the last tracked one,
+    # not a search-window-wide one that would let the next match pull it anywhere.
+    assert seeds[0] is None and len(seeds) == 3
+    for cov in seeds[1:]:
+        np.testing.assert_array_equal(cov, tracked[6])  # answer 7, the last before the drop
+    assert loc["position_error_m"]["max"] < 0.3
+    assert summary["goals"][0]["status"] == "reached"

@@ -26,6 +26,7 @@ from slam.localization import (
     kalman_update,
     ominus,
     oplus,
+    position_sigma,
 )
 from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
 
@@ -516,3 +517,82 @@ def test_tracking_match_never_leaves_the_linear_search_window(room_model: MapMod
     m = match_scan(room_model, pts, prior, CFG)
     step = ominus(prior, m.pose)
     assert not m.ok or max(abs(step[0]), abs(step[1])) <= CFG.linear_search_window + 0.05
+
+
+# 7. A robot with odometry: gated matches, confirmed jumps, dead reckoning ------------------------
+
+# Good wheel odometry (the corrupted odometry above is 3 % and 1 deg/m off): a prediction that
+# is a few cm and a degree or two sure after each 0.2 m step.
+ODOM_CFG = LocalizerConfig(alpha1=0.02, alpha2=0.02, alpha3=0.02, alpha4=0.02)
+GATED = dataclasses.replace(ODOM_CFG, match_gate=3.0)
+
+
+def displaced_scan(truth: np.ndarray, k: int, offset: np.ndarray) -> LaserScan:
+    """Scan k of ``scans_along(WORLD, truth)`` taken from ``truth[k] (+) offset`` instead: it
+    fits the map confidently, ``offset`` away from where the robot is (a view of moved
+    furniture does that)."""
+    scan = scans_along(WORLD, np.array([oplus(truth[k], offset)]), seed=k)[0]
+    return dataclasses.replace(scan, stamp_ns=(k + 1) * SCAN_PERIOD_NS)
+
+
+def test_a_match_beyond_the_gate_is_not_fused_and_one_such_scan_never_moves_the_estimate(
+    room_model: MapModel,
+) -> None:
+    truth = ellipse_route()[:14]
+    odom = corrupt_odometry(truth, seed=7)
+    scans = scans_along(WORLD, truth)
+    scans[8] = displaced_scan(truth, 8, np.array([0.22, 0.0, 0.2]))
+    ungated = run(Localizer(room_model, ODOM_CFG, initial_pose=truth[0]), scans, odom)
+    loc = Localizer(room_model, GATED, initial_pose=truth[0])
+    gated = run(loc, scans, odom)
+    # Without the gate the odometry-weighted fusion still follows the far match ...
+    assert pose_error(truth[8], ungated[8].pose)[0] > 0.1
+    # ... with it the match is a jump hypothesis that the next scan does not confirm.
+    assert "jump hypothesis 1/3" in gated[8].reason and gated[9].reason == "matched (icp)"
+    assert loc.stats.gated == 1 and loc.stats.jumps == 0
+    assert all(r.status == "tracking" for r in gated)
+    assert max(pose_error(t, r.pose)[0] for t, r in zip(truth, gated, strict=True)) < 0.05
+
+
+def test_a_slip_the_odometry_missed_is_held_back_until_the_growing_covariance_admits_it(
+    room_model: MapModel,
+) -> None:
+    # The wheels slip 0.25 m sideways between scans 8 and 9 and the encoders never see it (too
+    # small a drop for the kidnap check to search the map: the gate alone deals with it).
+    cfg = dataclasses.replace(GATED, kidnap_check_ratio=0.0, dead_reckoning_max_sigma=0.5)
+    truth = ellipse_route()[:30]
+    odom = corrupt_odometry(truth, seed=8)
+    slip = np.array([0.0, 0.25, 0.0])
+    truth[9:] = np.array([oplus(oplus(truth[8], slip), ominus(truth[8], t)) for t in truth[9:]])
+    loc = Localizer(room_model, cfg, initial_pose=truth[0])
+    results = run(loc, scans_along(WORLD, truth), odom)
+    fused = next(i for i, r in enumerate(results) if i > 8 and r.reason.startswith("matched"))
+    # Three agreeing matches are no jump while the scans from before the slip, stacked by
+    # odometry, fit the prediction (nor once only the agreeing ones are left): the estimate
+    # dead-reckons, its covariance grows, and the gate admits the match as an ordinary fix.
+    assert fused > 9 + cfg.jump_confirm_scans
+    assert all("held back" in r.reason for r in results[9 + cfg.jump_confirm_scans - 1 : fused])
+    assert loc.stats.jumps == 0 and loc.stats.gated >= cfg.jump_confirm_scans
+    assert all(r.status == "tracking" for r in results)
+    assert max(pose_error(t, r.pose)[0] for t, r in zip(truth[fused:], results[fused:],
+                                                        strict=True)) < 0.05  # fmt: skip
+
+
+def test_with_dead_reckoning_failing_matches_keep_tracking_until_the_covariance_is_too_large(
+    room_model: MapModel,
+) -> None:
+    truth = ellipse_route()[:30]
+    odom = corrupt_odometry(truth, seed=4)
+    scans = scans_along(WORLD, truth[:4]) + scans_along(circle_room(4.5, 4.2, 3.0), truth[4:])
+    scans = [dataclasses.replace(s, stamp_ns=(i + 1) * SCAN_PERIOD_NS)
+             for i, s in enumerate(scans)]  # fmt: skip
+    cfg = dataclasses.replace(CFG, dead_reckoning_max_sigma=0.5)
+    results = run(Localizer(room_model, cfg, initial_pose=truth[0]), scans, odom)
+    statuses = [r.status for r in results]
+    first_lost = statuses.index("lost")
+    n_low = round(cfg.lost_time * 1e9 / SCAN_PERIOD_NS)  # lost here without dead reckoning
+    assert first_lost > 4 + n_low
+    assert all("dead reckoning, position sigma" in r.reason for r in results[4 + n_low:first_lost])
+    sigmas = [position_sigma(r.covariance) for r in results[4 + n_low : first_lost]]
+    assert sigmas == sorted(sigmas) and sigmas[-1] < 0.5
+    assert "below lost_score" in results[first_lost].reason
