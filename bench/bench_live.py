@@ -59,20 +59,39 @@ def recorded_run(out: Path) -> dict[str, Any]:
             if out.is_relative_to(REPO) else out}  # fmt: skip
 
 
+def _loadavg() -> str:
+    try:
+        return Path("/proc/loadavg").read_text().split()[0]
+    except OSError:
+        return "?"
+
+
 def _yes(ok: bool) -> str:
     return "met" if ok else "**not met**"
 
 
-def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float) -> str:
+def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float,
+                load: str = "?") -> str:
     c, lat, st = s["counts"], s["latency_ms"] or {}, s.get("stage_ms_median", {})
     sim = s.get("sim_robot", {})
     ate = s.get("slam_vs_groundtruth", {}).get("ate_rmse_m")
     rec_ate = rec.get("slam_vs_groundtruth", {}).get("ate_rmse_m")
     ratio = ate / rec_ate if ate is not None and rec_ate else None
     dropped = c.get("frames_dropped_front_end", 0)
+    nav = s.get("navigation") or {}
+    driver = "nav stack" if nav else "direct"
+    skipped = sum(v for k, v in c.items() if k.startswith("waypoints_skipped"))
+    recoveries = sum(v for k, v in nav.items() if k.startswith("nav_behavior_"))
+    nav_row = (f"{nav.get('nav_plans', 0)} ({nav.get('nav_plan_failures', 0)}) / "
+               f"{nav.get('nav_plan_ms_median')} / {nav.get('nav_map_builds', 0)} / "
+               f"{nav.get('nav_map_build_ms_median')} / {recoveries}") if nav else "-"
+    tl = s.get("rss_mb_timeline") or []
+    at60 = next((m for t, m in tl if t >= 60), None)
+    rss_row = f"{at60} / {tl[-1][1] if tl else None}"
     rows = [
         ("run", f"{s['wall_s']:.0f} s of `rgbdnav live --camera sim --board sim` (house, route "
-                f"driven on the estimate; route finished: {s.get('route_finished')})"),
+                f"driven on the estimate by the {driver}; the run ends with the route; load "
+                f"before/after: {load})"),
         ("camera frames rendered / sent", f"{sim.get('frames_rendered')} / "
                                           f"{c.get('frames_received', 0)} "
                                           f"({sim.get('frames_dropped_camera')} not taken in time)"),
@@ -95,11 +114,23 @@ def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float) -> st
         ("board polls per second", f"{s.get('board_polls_per_s')} (board.poll_rate 50 Hz)"),
         ("visualisation drawn / dropped", f"{s['visualization']['drawn']} / "
                                           f"{s['visualization']['dropped']}"),
-        ("SLAM ATE vs truth (live)", f"{ate} m over {sim.get('true_path_length_m')} m"),
-        ("route driving: waypoints reached / collision steps in the simulator / monitor stops",
-         f"{c.get('waypoints_reached', 0)} / {sim.get('collisions')} / "
-         f"{c.get('collision_monitor_stops', 0)}"),
-        (f"SLAM ATE vs truth (recorded run of the route, `{rec.get('_dir')}`)", f"{rec_ate} m"),
+        ("SLAM ATE vs truth (live; the final optimised trajectory, as the recorded run "
+         "reports it)", f"{ate} m over {sim.get('true_path_length_m')} m"),
+        ("SLAM ATE vs truth (live, poses as tracked online)",
+         f"{s.get('slam_online_vs_groundtruth', {}).get('ate_rmse_m')} m"),
+        ("odometry (EKF) ATE vs truth (live)",
+         f"{s.get('odometry_vs_groundtruth', {}).get('ate_rmse_m')} m"),
+        (f"route driving ({driver}): waypoints reached / skipped; route finished",
+         f"{c.get('waypoints_reached', 0)} / {skipped}; {s.get('route_finished')}"),
+        ("blocked physics steps in the simulator (of which slid along a wall) / wheel travel "
+         "stalled / collision monitor stops",
+         f"{sim.get('collisions')} ({sim.get('wall_slides')}) / "
+         f"{sim.get('stalled_wheel_travel_m')} m / {c.get('collision_monitor_stops', 0)}"),
+        ("navigation: plans (failed) / median plan ms / costmap builds / median build ms / "
+         "recoveries", nav_row),
+        ("host RSS at 60 s / at the end (MB)", rss_row),
+        (f"SLAM ATE vs truth (recorded run of the route without the gyro, `{rec.get('_dir')}`: "
+         "`rgbdnav map scenes/house.yaml --set ekf.imu0_config=[false x 15]`)", f"{rec_ate} m"),
         ("live / recorded ATE (target <= 1.2)",
          "-" if ratio is None else f"{ratio:.2f}: {_yes(ratio <= ATE_RATIO_TARGET)}"),
         ("errors", "; ".join(s["errors"]) or "none"),
@@ -119,13 +150,22 @@ def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float) -> st
     return "\n".join(lines)
 
 
-def report_soak(s: dict[str, Any], minutes: float, warmup: float) -> str:
+def report_soak(s: dict[str, Any], minutes: float, warmup: float, load: str = "?") -> str:
     tl = s.get("rss_mb_timeline") or []
     after = [(t, m) for t, m in tl if t >= warmup * s["wall_s"]]
     base = after[0][1] if after else float("nan")
     peak = max((m for _, m in after), default=float("nan"))
     growth = (peak - base) / base if after else float("nan")
     c = s["counts"]
+    mp = s.get("mapper") or {}
+    end = tl[-1][1] if tl else float("nan")
+    # Linear growth after warm-up, per 10 min, by least squares over the RSS samples.
+    rate = float("nan")
+    if len(after) >= 2:
+        import numpy as np
+
+        t, m = np.array(after).T
+        rate = float(np.polyfit(t, m, 1)[0]) * 600.0
     lines = [
         f"## Live soak ({minutes:.0f} min)",
         "",
@@ -135,10 +175,14 @@ def report_soak(s: dict[str, Any], minutes: float, warmup: float) -> str:
         "",
         "| measure | result |",
         "| --- | --- |",
-        f"| route laps / scans mapped / keyframes in the bundle | {c.get('route_laps', 0)} / "
-        f"{c.get('scans_mapped', 0)} / see summary |",
-        f"| RSS after warm-up ({warmup:.0%} of the run) | {base:.0f} MB |",
+        f"| route laps / waypoints reached / skipped | {c.get('route_laps', 0)} / "
+        f"{c.get('waypoints_reached', 0)} / "
+        f"{sum(v for k, v in c.items() if k.startswith('waypoints_skipped'))} |",
+        f"| scans the mapper holds / keyframes | {mp.get('scans_used')} / {mp.get('keyframes')} |",
+        f"| load average (1 min) before / after | {load} |",
+        f"| RSS after warm-up ({warmup:.0%} of the run) / at the end | {base:.0f} / {end:.0f} MB |",
         f"| peak RSS after warm-up | {peak:.0f} MB |",
+        f"| linear growth after warm-up | {rate:.1f} MB per 10 min |",
         f"| growth (target < {SOAK_GROWTH_TARGET:.0%}) | {growth:.1%}: "
         f"{_yes(growth < SOAK_GROWTH_TARGET)} |",
         f"| frames dropped in the front end | {c.get('frames_dropped_front_end', 0)} of "
@@ -159,12 +203,16 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     if args.soak_minutes:
+        load0 = _loadavg()
         s = live_run(REPO / "runs" / "bench_live_soak", args.soak_minutes * 60,
                      ["--repeat-route"])  # fmt: skip
-        publish(report_soak(s, args.soak_minutes, args.warmup), args.out, "live-soak")
+        publish(report_soak(s, args.soak_minutes, args.warmup, f"{load0} / {_loadavg()}"),
+                args.out, "live-soak")
         return
+    load0 = _loadavg()
     s = live_run(REPO / "runs" / "bench_live", args.duration, [])
-    publish(report_live(s, recorded_run(args.recorded), args.duration), args.out, "live")
+    load = f"{load0} / {_loadavg()} (1-min load average)"
+    publish(report_live(s, recorded_run(args.recorded), args.duration, load), args.out, "live")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 
@@ -100,10 +100,47 @@ class LiveConfig:
         "Kinect is blind nearer than 0.45 m and beside its 58 deg view"
     )
     blocked_timeout: float = param(
-        5.0, unit="s", gt=0.0, doc="--drive route skips a waypoint blocked this long"
+        5.0, unit="s", gt=0.0, doc="direct driver: a waypoint blocked this long is skipped"
     )
     teleop_key_timeout: float = param(
         0.6, unit="s", gt=0.0, doc="manual mode stops when no key came for this long (key_timeout)"
+    )
+    route_driver: Literal["nav", "direct"] = param(
+        "nav", doc="auto mode: nav = waypoints as goals for costmap, planner, RPP, behaviours and "
+        "smoother; direct = steer straight at each waypoint (no planner)"
+    )
+    waypoint_timeout: float = param(
+        60.0, unit="s", gt=0.0, doc="nav driver: a waypoint not reached in this long is skipped"
+    )
+    replan_period: float = param(
+        1.0, unit="s", gt=0.0, doc="nav driver: plan again from the estimate this often"
+    )
+    nav_map_period: float = param(
+        1.0, unit="s", gt=0.0, doc="nav driver: the costmap's static layer is rebuilt from the "
+        "mapper's keyframes this often (in a background thread)"
+    )
+    nav_map_margin: float = param(
+        2.0, unit="m", ge=0.0, doc="nav driver: costmap = start, route and robot grown by this"
+    )
+    mapper_rate: float = param(
+        10.0, unit="Hz", ge=0.0, doc="scans handed to the mapper or localiser at most this often "
+        "(0 = every frame): a third of the mapper's CPU at 30 Hz, and each scan the mapper "
+        "tracks stays in its memory (~350 B)"
+    )
+    malloc_arena_max: int = param(
+        2, ge=0, doc="glibc malloc arenas at most (0 = glibc default, 8 per core): per-thread "
+        "arenas keep freed memory and RSS creeps in long runs"
+    )
+    malloc_mmap_threshold: int = param(
+        1048576, unit="B", ge=0, doc="glibc: blocks this large are mmap'ed and returned on free "
+        "(0 = glibc's dynamic threshold, which grows to 32 MB and lets RSS creep)"
+    )
+    stats_reservoir: int = param(
+        20000, ge=100, doc="latency samples kept for the percentiles (uniform reservoir sample)"
+    )
+    track_decimation: float = param(
+        0.05, unit="m", ge=0.0, doc="trajectory kept in memory for drawing: a point per this "
+        "much travel (the full trajectories are streamed to the run directory)"
     )
 
 

@@ -13,8 +13,17 @@ Threads, each with its own bounded queue, so a slow consumer can only lose its o
 4. **mapper** (or localiser): ``map -> odom``; the map bundle is checkpointed every
    ``live.checkpoint_period`` and on exit, atomically.
 5. **controller** at ``live.control_rate``: drives the route/goals (``--drive route``) on the
-   estimated pose, or holds still (``--drive idle``); GOSPD through the driver.
+   estimated pose, or holds still (``--drive idle``); GOSPD through the driver. With
+   ``live.route_driver: nav`` (the default) the waypoints are goals for the navigation stack
+   (:mod:`rgbdnav.live_nav`: costmap from the live map and depth scans, planner, regulated pure
+   pursuit, behaviours, velocity smoother); ``direct`` steers straight at them. The collision
+   monitor has the last word either way.
 6. **visualiser**: rerun on its own thread; dropped first when the machine falls behind.
+
+Nothing grows with the run's length except the map itself: latency samples are a bounded
+reservoir, the odometry, SLAM and ground-truth trajectories are streamed to the run directory
+(``odom.tum``, ``trajectory.tum``, ``groundtruth.tum``) with thinned copies in memory for
+drawing (``live.stats_reservoir``, ``live.track_decimation``).
 
 SIGINT and SIGTERM end the run cleanly (motors stopped, final checkpoint, summary). After a
 ``kill -9`` the last checkpoint in ``OUT/map`` is a complete bundle that ``map --continue`` and
@@ -31,7 +40,7 @@ import signal
 import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -42,6 +51,8 @@ import numpy as np
 from nav.collision_monitor import ObstacleMemory, limit_twist
 from nav.teleop import TeleopState, teleop_key
 from rgbdnav.config import Config, load_config, source_options
+from rgbdnav.live_nav import LiveNavigator, MapSnapshot
+from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
 from rgbdnav.map_run import RGBD_PROFILE, build_grid, make_bundle
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
@@ -67,6 +78,7 @@ JOIN_TIMEOUT_S = 30.0  # [s] a thread that does not finish its queue by then is 
 MIN_LATENCIES = 1  # percentiles need at least one processed frame
 MODE_SWITCH_KEY = "\t"  # Tab: manual (teleop keys) <-> auto (route)
 GIL_SWITCH_INTERVAL_S = 0.001  # [s] (Python's default 0.005)
+WHEEL_READINGS_KEPT = 64  # encoder readings kept for the twist variance window (0.5 s at 126 Hz)
 MEMORY_SAMPLE_S = 5.0  # [s] resident memory is sampled this often for the summary
 
 
@@ -119,7 +131,7 @@ class LiveOptions:
     overrides: Sequence[str] = ()
     map_bundle: Path | None = None  # localisation-only against this map
     duration_s: float | None = None  # None: until SIGINT/SIGTERM
-    drive: str = "route"  # "route" | "idle"
+    drive: str = "route"  # "route" (auto: live.route_driver) | "teleop" | "idle"
     goals: Sequence[tuple[float, float]] = ()  # route for --drive route (default: the world's)
     rrd: Path | None = None
     viewer: bool = False
@@ -204,15 +216,20 @@ class LiveRun:
             self.cfg.live.scan_queue_size
         )
         self.ticks_q: queue.Queue[WheelTicks] = queue.Queue()
-        self.latency_ms: list[float] = []  # frame stamp -> its pose out of the front end
-        self.arrival_ms: list[float] = []  # frame stamp -> frame in this process (the adapter)
-        self.rss_timeline: list[tuple[float, float]] = []  # (seconds into the run, MB)
-        self.stage_ms: dict[str, list[float]] = {"wheels_ekf": [], "vo": [], "depth_to_scan": [],
-                                                 "mapper": []}  # fmt: skip
-        self.odom_track: list[tuple[int, float, float, float]] = []
-        self.map_track: list[tuple[int, float, float, float]] = []
+        lc = self.cfg.live
+        # Bounded, whatever the run's length (a soak runs for hours).
+        self.latency_ms = Reservoir(lc.stats_reservoir, 1)  # frame stamp -> pose out
+        self.arrival_ms = Reservoir(lc.stats_reservoir, 2)  # frame stamp -> frame in this process
+        self.rss_timeline = Timeline()  # (seconds into the run, MB)
+        self.stage_ms = {k: Reservoir(lc.stats_reservoir, 3 + i) for i, k in
+                         enumerate(("wheels_ekf", "vo", "depth_to_scan", "mapper"))}  # fmt: skip
         self.errors: list[str] = []
         self.run = RunDir(opts.out)
+        self.odom_track = TrackWriter(self.run.file("odom.tum"), lc.track_decimation)
+        self.map_track = TrackWriter(self.run.file("trajectory.tum"), lc.track_decimation)
+        self.navigator: LiveNavigator | None = None
+        self._loaded_map: Any = None  # --map: the loaded map (the navigator's static layer)
+        self._last_snapshot = -math.inf  # [s] monotonic time of the last map handed to it
         self.sim: Any = None
         self.camera_src: Source | None = None  # a camera other than the simulated robot
         self.board: EddieBoard | None = None
@@ -242,10 +259,18 @@ class LiveRun:
             self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2) if opts.goals \
                 else world.route  # fmt: skip
             self.sim = SimRobot(opts.world, cfg.robot, cfg.camera, cfg.sim,  # type: ignore[arg-type]
-                                self.run.file("board.pty"), seed=opts.seed)  # fmt: skip
+                                self.run.file("board.pty"), seed=opts.seed,
+                                truth_path=self.run.file("groundtruth.tum"))  # fmt: skip
             sim_port = self.sim.start()
         else:
             self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2)
+        if opts.drive != "idle" and cfg.live.route_driver == "nav" and len(self.route):
+            loaded = self._loaded_map
+            static = None if loaded is None else (loaded.grid, loaded.occupied_thresh,
+                                                  loaded.free_thresh)  # fmt: skip
+            self.navigator = LiveNavigator(cfg, self.route, self.start_pose, opts.repeat_route,
+                                           static)  # fmt: skip
+            self.navigator.start()
         port = sim_port if opts.board == "sim" else opts.board
         if opts.board != "none":
             self.board = EddieBoard(port, cfg.board, cfg.robot)
@@ -282,7 +307,7 @@ class LiveRun:
                 if frame is None:
                     continue
                 self.counts.inc("frames_received")
-                self.arrival_ms.append((time.monotonic_ns() - frame.stamp_ns) / 1e6)
+                self.arrival_ms.add((time.monotonic_ns() - frame.stamp_ns) / 1e6)
                 try:
                     self.frame_q.put_nowait(frame)
                 except queue.Full:
@@ -300,8 +325,11 @@ class LiveRun:
         ekf = PlanarEkf(cfg.ekf, cfg.ekf.imu0_angular_velocity_variance,
                         x0=None)  # fmt: skip
         model = WheelErrorModel.from_robot(cfg.robot)
-        prev_ticks: WheelTicks | None = None
+        # Recent readings: a wheel twist's variance comes from the travel over the last
+        # WHEEL_VARIANCE_WINDOW_S, not from its own tick count (slam.ekf.wheel_twist_inputs).
+        recent: deque[WheelTicks] = deque(maxlen=WHEEL_READINGS_KEPT)
         prev_frame_ns: int | None = None
+        last_mapped_ns = -(2**62)  # [ns] stamp of the last scan handed to the mapper
         stalled = False
         vis_every = cfg.live.visualize_every
         n = 0
@@ -327,13 +355,15 @@ class LiveRun:
                     t = self.ticks_q.get_nowait()
                 except queue.Empty:
                     break
-                if prev_ticks is not None and t.stamp_ns > prev_ticks.stamp_ns:
-                    (tw,) = wheel_twist_inputs(
-                        np.array([prev_ticks.stamp_ns, t.stamp_ns]),
-                        np.array([prev_ticks.left, t.left]), np.array([prev_ticks.right, t.right]),
-                        cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance)  # fmt: skip
+                if recent and t.stamp_ns <= recent[-1].stamp_ns:
+                    continue  # a repeated or older reading says nothing new
+                recent.append(t)
+                if len(recent) >= 2:
+                    tw = wheel_twist_inputs(
+                        np.array([r.stamp_ns for r in recent]),
+                        np.array([r.left for r in recent]), np.array([r.right for r in recent]),
+                        cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance)[-1]  # fmt: skip
                     ekf.process("odom0", tw)
-                prev_ticks = t
             t_b = time.perf_counter()
             if vo is None:
                 vo = VisualOdometry(frame.intrinsics, cfg.vo, cfg.robot)
@@ -353,24 +383,31 @@ class LiveRun:
                 assert d2s is not None
                 t_d = time.perf_counter()
                 scan = d2s.from_frame(frame).scan
-                self.stage_ms["depth_to_scan"].append(1e3 * (time.perf_counter() - t_d))
-                self.stage_ms["wheels_ekf"].append(1e3 * (t_b - t_a + t_d - t_c))
+                self.stage_ms["depth_to_scan"].add(1e3 * (time.perf_counter() - t_d))
+                self.stage_ms["wheels_ekf"].add(1e3 * (t_b - t_a + t_d - t_c))
                 with self.shared.lock:
                     self.shared.odom = odom
                     self.shared.obstacles.add(frame.stamp_ns, odom, scan_points(scan))
-                self.latency_ms.append((time.monotonic_ns() - frame.stamp_ns) / 1e6)
+                    m2o = self.shared.map_to_odom
+                self.latency_ms.add((time.monotonic_ns() - frame.stamp_ns) / 1e6)
                 self.counts.inc("frames_processed")
-                self.odom_track.append((frame.stamp_ns, float(odom[0]), float(odom[1]),
-                                        float(odom[2])))  # fmt: skip
-                try:
-                    self.scan_q.put_nowait((scan, odom))
-                except queue.Full:
-                    self.counts.inc("scans_dropped_mapper_behind")
+                self.odom_track.add(frame.stamp_ns, float(odom[0]), float(odom[1]), float(odom[2]))
+                if self.navigator is not None:  # the scan is in base_link: laser = base pose
+                    self.navigator.add_scan(scan, oplus(m2o, odom))
+                rate = cfg.live.mapper_rate
+                if rate and frame.stamp_ns - last_mapped_ns < 1e9 / rate:
+                    self.counts.inc("scans_thinned_mapper_rate")
+                else:
+                    last_mapped_ns = frame.stamp_ns
+                    try:
+                        self.scan_q.put_nowait((scan, odom))
+                    except queue.Full:
+                        self.counts.inc("scans_dropped_mapper_behind")
             # c. VO after the pose is out: it corrects the filter for the frames that follow.
             if cfg.live.pose_before_vo:
                 vo_ms, prev_frame_ns = self._visual_odometry(vo, ekf, frame, prev_frame_ns)
             if vo_ms is not None:
-                self.stage_ms["vo"].append(vo_ms)
+                self.stage_ms["vo"].add(vo_ms)
             if od is None:
                 continue
             n += 1
@@ -412,25 +449,37 @@ class LiveRun:
                 assert self.mapper is not None
                 t0 = time.perf_counter()
                 out = self.mapper.add_scan(scan, odom)
-                self.stage_ms["mapper"].append(1e3 * (time.perf_counter() - t0))
+                self.stage_ms["mapper"].add(1e3 * (time.perf_counter() - t0))
                 if out is None:
                     self.counts.inc("scans_skipped_by_mapper")
                     continue
                 pose, tracking = np.asarray(out), True
                 m2o = oplus(pose, ominus(odom, np.zeros(3)))
+                self._hand_map_to_navigator()
             with self.shared.lock:
                 self.shared.map_to_odom = np.asarray(m2o, dtype=np.float64)
                 self.shared.tracking = tracking
-            self.map_track.append((scan.stamp_ns, float(pose[0]), float(pose[1]), float(pose[2])))
+            self.map_track.add(scan.stamp_ns, float(pose[0]), float(pose[1]), float(pose[2]))
             self.counts.inc("scans_mapped")
-            if len(self.map_track) % max(cfg.live.visualize_every, 1) == 0:
+            if self.map_track.count % max(cfg.live.visualize_every, 1) == 0:
                 pts = transform_points(np.asarray(pose), scan_points(scan))
                 self.vis.scan(scan.stamp_ns, pts)
-                track = np.array([p[1:3] for p in self.map_track])
-                self.vis.pose(scan.stamp_ns, np.asarray(pose), track)
+                self.vis.pose(scan.stamp_ns, np.asarray(pose), self.map_track.thinned())
             if (self.mapper is not None
                     and time.monotonic() - self._last_checkpoint >= cfg.live.checkpoint_period):
                 self.checkpoint(final=False)  # fmt: skip
+
+    def _hand_map_to_navigator(self) -> None:
+        """Every ``live.nav_map_period``: the mapper's keyframes (poses and scans, no copy of
+        the scans) to the navigator, whose own thread turns them into a costmap."""
+        if self.navigator is None or self.mapper is None or not self.mapper.keyframes:
+            return
+        now = time.monotonic()
+        if now - self._last_snapshot < self.cfg.live.nav_map_period:
+            return
+        self._last_snapshot = now
+        self.navigator.set_map(MapSnapshot(self.mapper.graph.poses(),
+                                           tuple(k.scan for k in self.mapper.keyframes)))
 
     def _controller_loop(self) -> None:
         """Velocity commands at live.control_rate: the teleop keys in manual mode, the route in
@@ -445,7 +494,12 @@ class LiveRun:
         manual_twist, last_key = (0.0, 0.0), -math.inf
         blocked_since: float | None = None
         guard = ""
+        last_tick = time.monotonic()
         while not self.stop.wait(period):
+            now_tick = time.monotonic()
+            if now_tick - last_tick > 2.0 * period:  # the machine kept this thread waiting
+                self.counts.inc("controller_late_ticks")
+            last_tick = now_tick
             # 1. Keys: Tab switches mode; in manual mode they steer, as teleop_twist_keyboard.
             while True:
                 try:
@@ -455,6 +509,8 @@ class LiveRun:
                 if key == MODE_SWITCH_KEY:
                     self.mode = "auto" if self.mode == "manual" else "manual"
                     manual_twist, teleop = (0.0, 0.0), replace(teleop, x=0, th=0)
+                    if self.navigator is not None:
+                        self.navigator.reset_motion()  # the smoother starts from rest again
                     self.counts.inc("mode_switches")
                     log.info("drive mode: %s", self.mode)
                 elif self.mode == "manual":
@@ -466,6 +522,11 @@ class LiveRun:
             if self.mode == "manual":
                 if time.monotonic() - last_key <= lc.teleop_key_timeout:
                     v, w = manual_twist
+            elif self.navigator is not None:
+                pose = self.shared.pose_in_map()
+                v, w = self.navigator.tick(time.monotonic_ns(),
+                                           pose if self.shared.tracking else None)  # fmt: skip
+                self.route_done = self.navigator.done
             elif self.opts.drive == "route":
                 pose = self.shared.pose_in_map()
                 if self.opts.repeat_route and i >= len(self.route):
@@ -494,7 +555,8 @@ class LiveRun:
                     self.counts.inc("collision_monitor_stops")
                 guard = action
                 now = time.monotonic()
-                if action == "stop" and self.mode == "auto" and i < len(self.route):
+                if action == "stop" and self.mode == "auto" and self.navigator is None \
+                        and i < len(self.route):  # fmt: skip
                     blocked_since = now if blocked_since is None else blocked_since
                     if now - blocked_since > lc.blocked_timeout:
                         log.warning("waypoint %d blocked for %.0f s: skipped", i,
@@ -563,12 +625,15 @@ class LiveRun:
     def execute(self, progress: Callable[[float, float], None] | None = None) -> dict[str, Path]:
         opts, cfg = self.opts, self.cfg
         t0, cpu0 = time.monotonic(), resource.getrusage(resource.RUSAGE_SELF)
+        # Before any thread allocates: freed memory goes back instead of creeping up for hours.
+        tame_malloc(cfg.live.malloc_arena_max, cfg.live.malloc_mmap_threshold)
         outputs = {"config": self.run.write_config(cfg)}
         if opts.map_bundle is not None:
             from rgbdnav.localize_run import load_map
             from slam.localization import Localizer, MapModel
 
             loaded = load_map(opts.map_bundle)
+            self._loaded_map = loaded
             model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
                                        loaded.free_thresh)  # fmt: skip
             self.localizer = Localizer(model, cfg.localizer)
@@ -637,6 +702,10 @@ class LiveRun:
                     self.errors.append(f"simulated robot: {err}")
             if self.camera_src is not None:
                 self.camera_src.close()
+            if self.navigator is not None:
+                self.navigator.close()
+            self.odom_track.close()
+            self.map_track.close()
             restore()
             sys.setswitchinterval(switch)
         return sim_stats, time.monotonic() - t0
@@ -659,7 +728,7 @@ class LiveRun:
         while not self.stop.is_set():
             elapsed = time.monotonic() - t0
             if elapsed >= next_sample:
-                self.rss_timeline.append((round(elapsed, 1), round(rss_mb(), 1)))
+                self.rss_timeline.add(round(elapsed, 1), round(rss_mb(), 1))
                 next_sample += MEMORY_SAMPLE_S
             while drills and drills[0].at_s <= elapsed:
                 d = drills.pop(0)
@@ -695,24 +764,32 @@ class LiveRun:
     def _write_outputs(self, wall: float, cpu0: Any, sim_stats: Any) -> dict[str, Path]:
         outputs: dict[str, Path] = {}
         run = self.run
-        if self.map_track:
-            m = np.array(self.map_track)
-            write_tum_trajectory(run.file("trajectory.tum"), m[:, 0].astype(np.int64), m[:, 1],
-                                 m[:, 2], m[:, 3])  # fmt: skip
-            outputs["trajectory"] = run.file("trajectory.tum")
-        if self.odom_track:
-            o = np.array(self.odom_track)
-            write_tum_trajectory(run.file("odom.tum"), o[:, 0].astype(np.int64), o[:, 1], o[:, 2],
-                                 o[:, 3])  # fmt: skip
-            outputs["odometry"] = run.file("odom.tum")
-        truth = np.array(sim_stats.truth if sim_stats is not None else []).reshape(-1, 4)
-        if len(truth):
-            write_tum_trajectory(run.file("groundtruth.tum"), truth[:, 0].astype(np.int64),
-                                 truth[:, 1], truth[:, 2], truth[:, 3])  # fmt: skip
+        # The trajectories were streamed as they were made; read them back once for the report.
+        tracks = {"slam_online": self.map_track.load(), "odometry": self.odom_track.load()}
+        mapper_counts: dict[str, Any] | None = None
+        if self.map_track.count:
+            outputs["trajectory"] = self.map_track.path
+        result = getattr(self, "last_result", None)
+        if result is not None and len(result.scan_stamps_ns):
+            # The map's own trajectory: every scan placed by the final, optimised graph (what a
+            # recorded run reports); trajectory.tum holds the poses as tracked online.
+            p = result.scan_poses
+            write_tum_trajectory(run.file("trajectory_optimised.tum"), result.scan_stamps_ns,
+                                 p[:, 0], p[:, 1], p[:, 2])  # fmt: skip
+            outputs["optimised trajectory"] = run.file("trajectory_optimised.tum")
+            tracks["slam"] = np.column_stack([result.scan_stamps_ns.astype(np.float64), p])
+            mapper_counts = {k: result.counts[k] for k in ("scans", "scans_used", "keyframes")}
+        elif self.localizer is not None:
+            tracks["slam"] = tracks["slam_online"]
+        if self.odom_track.count:
+            outputs["odometry"] = self.odom_track.path
+        truth = np.zeros((0, 4))
+        if sim_stats is not None and sim_stats.truth_poses:
+            truth = load_track(run.file("groundtruth.tum"))
             outputs["ground truth"] = run.file("groundtruth.tum")
         cpu1 = resource.getrusage(resource.RUSAGE_SELF)
         kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-        lat = np.array(self.latency_ms)
+        lat = self.latency_ms
         summary: dict[str, Any] = {
             "command": "live",
             "camera": self.opts.camera,
@@ -723,14 +800,15 @@ class LiveRun:
             "config_files": [str(p) for p in self.config_files],
             "wall_s": round(wall, 3),
             "counts": self.counts.as_dict(),
-            "latency_ms": ({"p50": round(float(np.percentile(lat, 50)), 2),
-                            "p99": round(float(np.percentile(lat, 99)), 2),
-                            "max": round(float(lat.max()), 2)}
+            "latency_ms": ({"p50": round(lat.percentile(50), 2),
+                            "p99": round(lat.percentile(99), 2),
+                            "max": round(lat.max, 2),
+                            "samples": lat.count, "kept": min(lat.count, lat.capacity)}
                            if len(lat) >= MIN_LATENCIES else None),  # fmt: skip
-            "camera_to_host_ms_p50": round(float(np.median(self.arrival_ms)), 2)
-            if self.arrival_ms else None,
-            "stage_ms_median": {k: round(float(np.median(v)), 2) for k, v in self.stage_ms.items()
-                                if v},  # fmt: skip
+            "camera_to_host_ms_p50": round(self.arrival_ms.percentile(50), 2)
+            if self.arrival_ms.count else None,
+            "stage_ms_median": {k: round(v.percentile(50), 2) for k, v in self.stage_ms.items()
+                                if v.count},  # fmt: skip
             "cpu": {
                 "host_cpu_s": round(cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime,
                                     2),
@@ -740,7 +818,8 @@ class LiveRun:
             },  # fmt: skip
             "peak_rss_mb": {"host": round(cpu1.ru_maxrss / 1024, 1),
                             "sim_robot": round(kids.ru_maxrss / 1024, 1)},  # fmt: skip
-            "rss_mb_timeline": self.rss_timeline,
+            "rss_mb_timeline": self.rss_timeline.points,
+            "mapper": mapper_counts,  # what the mapper holds: it grows with scans and keyframes
             "board_polls_per_s": round(self.poller.stats().polls / max(wall, 1e-9), 1)
             if self.poller is not None else None,
             "visualization": {"drawn": self.vis.drawn, "dropped": self.vis.dropped},
@@ -757,14 +836,20 @@ class LiveRun:
                 "frames_dropped_camera": sim_stats.frames_dropped,
                 "stalled_frames": sim_stats.stalled_frames,
                 "collisions": sim_stats.collisions,
+                "wall_slides": sim_stats.wall_slides,
+                "stalled_wheel_travel_m": round(sim_stats.stalled_travel_m, 3),
                 "board_disconnects": sim_stats.board_disconnects,
                 "true_path_length_m": round(path_length(truth[:, 1:3]), 3),
             }  # fmt: skip
             summary["route_finished"] = self.route_done
+        if self.navigator is not None:
+            summary["navigation"] = nav = self.navigator.stats()
+            for k, v in nav.items():  # the route's progress, as the direct driver counts it
+                if k.startswith(("waypoints_", "route_laps")):
+                    summary["counts"][k] = v
         if len(truth) > 1:
-            for name, track in (("slam", self.map_track), ("odometry", self.odom_track)):
-                if len(track) >= 2:
-                    a = np.array(track)
+            for name, a in tracks.items():
+                if len(a) >= 2:
                     rep = drift_report(a[:, 0].astype(np.int64), (a[:, 1], a[:, 2], a[:, 3]),
                                        truth[:, 0].astype(np.int64),
                                        (truth[:, 1], truth[:, 2], truth[:, 3]))  # fmt: skip
@@ -772,11 +857,9 @@ class LiveRun:
         paths = []
         if len(truth):
             paths.append(("ground truth", truth[:, 1], truth[:, 2]))
-        if self.odom_track:
-            o = np.array(self.odom_track)
+        if len(o := tracks["odometry"]):
             paths.append(("odometry (EKF)", o[:, 1], o[:, 2]))
-        if self.map_track:
-            m = np.array(self.map_track)
+        if len(m := tracks.get("slam", tracks["slam_online"])):
             paths.append(("SLAM" if self.mapper is not None else "localised", m[:, 1], m[:, 2]))
         grid = getattr(self, "last_grid", None)
         if paths:

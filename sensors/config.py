@@ -275,6 +275,10 @@ class SimConfig:
     wheel_slip: float = param(0.01, ge=0.0, le=0.5, doc="sigma of relative wheel slip")
     slip_correlation_time: float = param(0.5, unit="s", gt=0.0, doc="slip is an AR(1) process")
     backlash: float = param(0.02, unit="rad", ge=0.0, doc="gear backlash per wheel")
+    blocked_wheel_slip: float = param(
+        0.2, ge=0.0, le=1.0, doc="live robot blocked by an obstacle: fraction of the refused wheel "
+        "travel the encoders still count (0 = motors stall, 1 = wheels spin freely)"
+    )
     gyro_enabled: bool = param(True)
     gyro_bias: float = param(0.002, unit="rad/s")
     gyro_noise: float = param(0.005, unit="rad/s", ge=0.0)

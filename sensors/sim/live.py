@@ -8,8 +8,14 @@ the code paths it uses on the robot (:class:`sensors.eddie.EddieBoard`, a frame 
 Truth in the child: the robot moves by the emulator's *continuous* wheel travel (the board
 reports its floor as encoder counts), through wheels that are not quite the nominal ones
 (``sim.wheel_diameter_error``, ``sim.track_width_error``) and slip (AR(1), ``sim.wheel_slip``).
-A pose closer to a wall or furniture than ``robot.radius`` is a collision: the robot stays where
-it was (a bumper) and the collision is counted.
+A pose closer to a wall or furniture than ``robot.radius`` is a collision, counted: the round
+robot slides along the wall when the x or y part of its motion is free, and otherwise only turns
+(:func:`sensors.sim.motion.blocked_step`). Its wheels then mostly stall against the obstacle:
+the encoders count only ``sim.blocked_wheel_slip`` of the travel the body refused, so the
+board reports what a real Eddie's encoders would, not freely spinning wheels.
+
+Ground truth is streamed to a TUM file as it is made (``truth_path``), so a long run holds no
+growing list in memory.
 
 The serial port is a symlink (``port_link``) to the emulator's pty, as a udev rule gives a USB
 adapter a stable name; a drilled "board unplugged" closes the pty, and "replugged" serves a new
@@ -19,17 +25,19 @@ one behind the same link.
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing as mp
 import os
 import queue
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig
+from sensors.eddie_emulator import EddieEmulator
 from sensors.types import CameraIntrinsics, SensorError
 
 log = logging.getLogger(__name__)
@@ -53,10 +61,12 @@ class SimFrameMsg:
 class SimRobotStats:
     frames_rendered: int = 0
     frames_dropped: int = 0  # the host did not take them in time (camera-side overflow)
-    collisions: int = 0  # physics steps refused because the robot would hit something
+    collisions: int = 0  # physics steps whose full motion would hit something
+    wall_slides: int = 0  # ... of which the robot slid along the obstacle (x or y part free)
+    stalled_travel_m: float = 0.0  # [m] travel the stalled wheels did not turn (both wheels)
     stalled_frames: int = 0  # frames not sent during a drilled camera stall
     board_disconnects: int = 0
-    truth: list[tuple[int, float, float, float]] = field(default_factory=list)
+    truth_poses: int = 0  # poses written to the ground-truth file
 
 
 def _child(*args: Any) -> None:
@@ -71,14 +81,26 @@ def _child(*args: Any) -> None:
         raise
 
 
+class _StallingEmulator(EddieEmulator):
+    """The board emulator whose wheels can be held back by the world: a blocked robot's motors
+    stall against the obstacle, so the encoders advance less than the speed loop commanded."""
+
+    def hold_back(self, left: float, right: float) -> None:
+        """Take ``left``/``right`` [encoder positions] off the wheels' integrated travel."""
+        with self._lock:
+            self._left.pos -= left
+            self._right.pos -= right
+
+
 def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: SimConfig,
-           seed: int, port_link: str, frames: Any, control: Any, replies: Any) -> None:  # fmt: skip
+              seed: int, port_link: str, truth_path: str, frames: Any, control: Any,
+              replies: Any) -> None:  # fmt: skip
     from scipy.ndimage import distance_transform_edt
 
-    from sensors.eddie_emulator import EddieEmulator
-    from sensors.sim.motion import diff_drive_step, gauss_markov_step
+    from sensors.sim.motion import blocked_step, gauss_markov_step
     from sensors.sim.render import KinectRenderer
     from sensors.sim.world import floor_plan, load_world
+    from sensors.tum import TRAJECTORY_COLUMNS, format_stamp
 
     rng = np.random.default_rng(seed)
     world = load_world(world_path)
@@ -88,7 +110,13 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
     # The true wheels: nominal geometry times a seeded error, as the recorded simulator does.
     metres = robot.metres_per_tick * (1.0 + np.asarray(sim.wheel_diameter_error))  # [m/pos] L, R
     track = robot.track_width * (1.0 + sim.track_width_error)
-    emu = EddieEmulator(robot)
+    emu = _StallingEmulator(robot)
+
+    def is_free(px: float, py: float) -> bool:
+        r, c = plan.cell_of(np.array([[px, py]]))[0]
+        inside = 0 <= r < clearance.shape[0] and 0 <= c < clearance.shape[1]
+        return bool(inside and clearance[r, c] >= robot.radius)
+
     link = Path(port_link)
 
     def serve(path: str) -> None:
@@ -99,6 +127,9 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
 
     serve(emu.serve_pty())
     stats = SimRobotStats()
+    truth_file = open(truth_path, "w", buffering=1 << 16)  # closed when the loop ends
+    truth_file.write(f"# planar trajectory (z = 0, rotation about z)\n"
+                     f"# {' '.join(TRAJECTORY_COLUMNS)}\n")  # fmt: skip
     x, y, yaw = world.start
     slip = np.zeros(2)
     prev = np.array(emu.positions())
@@ -128,18 +159,25 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
         now = np.array(emu.positions())
         slip = gauss_markov_step(slip, sim.wheel_slip, sim.slip_correlation_time,
                                  period_ns / 1e9, rng.standard_normal(2))  # fmt: skip
-        travel = (now - prev) * metres * (1.0 + slip)  # [m] left, right
-        prev = now
-        nx, ny, yaw = diff_drive_step(np.array([x, y, yaw]), travel[0], travel[1], track)
-        r, c = plan.cell_of(np.array([[nx, ny]]))[0]
-        inside = 0 <= r < clearance.shape[0] and 0 <= c < clearance.shape[1]
-        if inside and clearance[r, c] >= robot.radius:
-            x, y = nx, ny
-        elif travel.any():
+        per_pos = metres * (1.0 + slip)  # [m per encoder position] left, right
+        travel = (now - prev) * per_pos  # [m] left, right
+        pose, enc_l, enc_r, outcome = blocked_step(
+            np.array([x, y, yaw]), travel[0], travel[1], track, is_free, sim.blocked_wheel_slip)
+        x, y, yaw = (float(v) for v in pose)
+        if outcome != "free":
+            # The encoders count only what the stalled wheels turned: hold the rest back.
+            held = (travel - np.array([enc_l, enc_r])) / per_pos  # [positions]
+            emu.hold_back(float(held[0]), float(held[1]))
+            now = now - held
             stats.collisions += 1
+            stats.wall_slides += outcome == "slid"
+            stats.stalled_travel_m += float(np.abs(held * per_pos).sum())
+        prev = now
         # 3. Image the world at the capture time, unless the camera is stalled.
         stamp = time.monotonic_ns()
-        stats.truth.append((stamp, x, y, yaw))
+        truth_file.write(f"{format_stamp(stamp)} {x!r} {y!r} 0.0 0.0 0.0 "
+                         f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n")  # fmt: skip
+        stats.truth_poses += 1
         if stamp < stall_until_ns:
             stats.stalled_frames += 1
         else:
@@ -156,27 +194,32 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
             next_ns += (late // period_ns + 1) * period_ns
         time.sleep(max(0.0, (next_ns - time.monotonic_ns()) / 1e9))
     emu.close()
+    truth_file.close()
     frames.cancel_join_thread()  # frames the host no longer reads must not block our exit
     replies.put(("stats", stats))
 
 
 class SimRobot:
     """The child process: ``start()`` returns the serial port to open; ``frames()`` iterates
-    camera frames as they arrive; ``stop()`` returns the child's counters and ground truth."""
+    camera frames as they arrive; ``stop()`` returns the child's counters; the ground truth
+    is in the TUM file ``truth_path`` (default: beside the port link, ``groundtruth.tum``)."""
 
     def __init__(self, world_path: str | Path, robot: RobotConfig, camera: CameraConfig,
-                 sim: SimConfig, port_link: str | Path, seed: int = 0) -> None:  # fmt: skip
+                 sim: SimConfig, port_link: str | Path, seed: int = 0,
+                 truth_path: str | Path | None = None) -> None:  # fmt: skip
         self.world_path = str(world_path)
         self.robot, self.camera, self.sim, self.seed = robot, camera, sim, seed
         self.port_link = str(port_link)
+        self.truth_path = Path(truth_path) if truth_path is not None else \
+            Path(port_link).with_name("groundtruth.tum")  # fmt: skip
         ctx = mp.get_context("spawn")  # the host has threads: never fork it
         self._frames: Any = ctx.Queue(maxsize=FRAME_QUEUE_SIZE)
         self._control: Any = ctx.Queue()
         self._replies: Any = ctx.Queue()
         self._proc = ctx.Process(
             target=_child, name="rgbdnav-sim-robot", daemon=True,
-            args=(self.world_path, robot, camera, sim, seed, self.port_link, self._frames,
-                  self._control, self._replies),
+            args=(self.world_path, robot, camera, sim, seed, self.port_link,
+                  str(self.truth_path), self._frames, self._control, self._replies),
         )  # fmt: skip
         self.intrinsics: CameraIntrinsics | None = None
         self._stats: SimRobotStats | None = None

@@ -10,6 +10,7 @@ and report whole positions (36 per revolution on Eddie); odometry later integrat
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -234,3 +235,50 @@ def sample_times(duration_ns: int, rate_hz: float) -> np.ndarray:
     period = NS_PER_S / rate_hz
     n = int(duration_ns // period) + 1
     return np.round(np.arange(n) * period).astype(np.int64)
+
+
+def blocked_step(
+    pose: np.ndarray,
+    d_left: float,
+    d_right: float,
+    track_width: float,
+    is_free: Callable[[float, float], bool],
+    wheel_slip: float,
+) -> tuple[np.ndarray, float, float, str]:
+    """One physics step of a round robot that may run into something.
+
+    The wheels want to travel (``d_left``, ``d_right``) [m] (:func:`diff_drive_step`); the body
+    stays where ``is_free(x, y)`` (the footprint's centre keeps its clearance). Returns (new pose,
+    left and right encoder travel [m], outcome):
+
+    - ``"free"``: the whole motion; the encoders see the commanded travel.
+    - ``"slid"``: the full motion is blocked but its x or y part alone is not (the larger one
+      wins): the robot slides along the wall, turning as commanded. The wheels roll by the
+      achieved forward motion ``ds_a = d_a . (cos th_mid, sin th_mid)``; the sideways part is
+      skid the encoders never see.
+    - ``"blocked"``: neither part is free; the robot only turns (always possible for a round
+      robot in a free cell).
+
+    When blocked, a real wheel mostly stalls against the obstacle (the motor's current limit) and
+    slips a little: the encoders advance by the achieved travel plus ``wheel_slip`` (0..1) of
+    the travel that was refused, ``d_enc = d_a + wheel_slip (d - d_a)``.
+    """
+    full = diff_drive_step(pose, d_left, d_right, track_width)
+    if is_free(float(full[0]), float(full[1])):
+        return full, d_left, d_right, "free"
+    x, y = float(pose[0]), float(pose[1])
+    dth = (d_right - d_left) / track_width
+    mid = float(pose[2]) + 0.5 * dth
+    candidates = [(abs(full[0] - x), full[0], y), (abs(full[1] - y), x, full[1])]
+    candidates.sort(key=lambda c: -c[0])
+    new, outcome = np.array([x, y, full[2]]), "blocked"
+    for size, cx, cy in candidates:
+        if size > 0.0 and is_free(float(cx), float(cy)):
+            new, outcome = np.array([cx, cy, full[2]]), "slid"
+            break
+    ds_a = (new[0] - x) * math.cos(mid) + (new[1] - y) * math.sin(mid)  # [m] achieved forward
+    half_turn = 0.5 * dth * track_width
+    a_left, a_right = ds_a - half_turn, ds_a + half_turn  # [m] what the body let them roll
+    enc_left = a_left + wheel_slip * (d_left - a_left)
+    enc_right = a_right + wheel_slip * (d_right - a_right)
+    return new, enc_left, enc_right, outcome

@@ -56,6 +56,8 @@ def test_live_sim_maps_while_driving_the_route_and_checkpoints_the_bundle(tmp_pa
     assert c["checkpoints"] >= 2  # periodic ones and the final one
     assert s["sim_robot"]["true_path_length_m"] > 0.5  # it drove the route on its own estimate
     assert s["sim_robot"]["collisions"] == 0
+    nav = s["navigation"]  # auto mode drives through the nav stack (live.route_driver: nav)
+    assert nav["nav_plans"] >= 1 and nav["nav_map_builds"] >= 1
     # A short run stays close to the simulator's truth (a loose bound: CI machines are busy).
     assert s["slam_vs_groundtruth"]["ate_rmse_m"] < 0.3
     assert s["latency_ms"]["p50"] > 0

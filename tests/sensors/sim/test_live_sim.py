@@ -23,7 +23,7 @@ def robot(tmp_path: Path):
     sim.stop()
 
 
-def test_gospd_through_the_driver_moves_the_camera_forward(robot: SimRobot) -> None:
+def test_gospd_through_the_driver_moves_the_camera_forward(robot: SimRobot, tmp_path: Path) -> None:
     first = robot.next_frame(FRAME_TIMEOUT_S)
     assert first is not None and first.rgb.shape == (480, 640, 3)
     with EddieBoard(robot.port_link, BoardConfig(), RobotConfig()) as board:
@@ -46,7 +46,8 @@ def test_gospd_through_the_driver_moves_the_camera_forward(robot: SimRobot) -> N
     assert abs(last.true_pose[1] - first.true_pose[1]) < 0.05
     assert left > 0 and right > 0 and abs(left - right) <= 2
     assert stats.frames_rendered >= 10 and stats.collisions == 0
-    assert len(stats.truth) >= stats.frames_rendered
+    assert stats.truth_poses >= stats.frames_rendered
+    assert (tmp_path / "groundtruth.tum").read_text().count("\n") == stats.truth_poses + 2
 
 
 def test_an_unplugged_board_fails_commands_until_it_is_replugged(tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ from sensors.config import RobotConfig, SimConfig
 from sensors.sim.motion import (
     Trajectory,
     _backlash,
+    blocked_step,
     diff_drive_step,
     drive_route,
     encoder_counts,
@@ -176,3 +177,45 @@ def test_diff_drive_step_drives_an_arc_of_the_wheel_radius() -> None:
     for _ in range(1000):
         pose = diff_drive_step(pose, 0.85 * math.pi / 2 / 1000, 1.15 * math.pi / 2 / 1000, track)
     np.testing.assert_allclose(pose, [1.0, 1.0, math.pi / 2], atol=1e-6)
+
+
+def _wall_at_x(x_wall: float):
+    """Free where the robot's centre keeps 0.2 m from a wall along x = ``x_wall``."""
+    return lambda x, y: x <= x_wall - 0.2
+
+
+def test_a_free_step_is_the_diff_drive_step_and_counts_all_travel() -> None:
+    pose, left, right, outcome = blocked_step(np.zeros(3), 0.1, 0.12, 0.4, _wall_at_x(5.0), 0.2)
+    assert outcome == "free" and (left, right) == (0.1, 0.12)
+    np.testing.assert_allclose(pose, diff_drive_step(np.zeros(3), 0.1, 0.12, 0.4))
+
+
+def test_head_on_into_a_wall_stalls_the_wheels_but_a_fraction_slips() -> None:
+    start = np.array([4.8, 0.0, 0.0])  # touching the wall, facing it
+    pose, left, right, outcome = blocked_step(start, 0.05, 0.05, 0.4, _wall_at_x(5.0), 0.2)
+    assert outcome == "blocked"
+    np.testing.assert_allclose(pose, start)
+    assert left == pytest.approx(0.01) and right == pytest.approx(0.01)  # 20 % of 5 cm
+
+
+def test_at_an_angle_the_robot_slides_along_the_wall_and_the_wheels_roll_its_forward_part() -> None:
+    yaw = math.radians(45.0)
+    start = np.array([4.8, 0.0, yaw])
+    d = 0.1  # [m] straight ahead, both wheels
+    pose, left, right, outcome = blocked_step(start, d, d, 0.4, _wall_at_x(5.0), 0.0)
+    assert outcome == "slid"
+    assert pose[0] == pytest.approx(4.8) and pose[1] == pytest.approx(d * math.sin(yaw))
+    # Rolled d sin^2(45 deg) = d / 2 along the heading; with no slip the rest is not counted.
+    assert left == pytest.approx(d / 2) and right == pytest.approx(d / 2)
+    _, left_s, _, _ = blocked_step(start, d, d, 0.4, _wall_at_x(5.0), 1.0)
+    assert left_s == pytest.approx(d)  # full slip: the old freely spinning wheels
+
+
+def test_a_blocked_robot_still_turns_in_place() -> None:
+    start = np.array([4.8, 0.0, 0.0])
+    pose, left, right, outcome = blocked_step(start, 0.0, 0.04, 0.4, _wall_at_x(4.8), 0.2)
+    assert outcome == "blocked"
+    assert pose[:2] == pytest.approx(start[:2]) and pose[2] == pytest.approx(0.1)
+    # The turn happened, so its wheel travel counts in full: ds_a = 0, right = +0.02, left = -0.02
+    # achieved, plus 20 % of the refused forward 0.02 m.
+    assert right == pytest.approx(0.02 + 0.2 * 0.02) and left == pytest.approx(-0.02 + 0.2 * 0.02)

@@ -1,0 +1,162 @@
+"""Bounded bookkeeping for long live runs: nothing here grows with the run's length.
+
+- :class:`Reservoir`: a uniform random sample (Vitter's algorithm R) of at most ``capacity``
+  values, with the exact count, mean and maximum, for percentiles of latency-like streams.
+- :class:`TrackWriter`: a trajectory streamed to a TUM file as it is made, with a thinned copy
+  in memory (a point per ``spacing`` metres of travel, halved whenever it reaches ``capacity``)
+  for drawing.
+- :class:`Timeline`: (t, value) samples, halved whenever they reach ``capacity``.
+- :func:`tame_malloc`: glibc's allocator, told not to keep what a long run frees.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import logging
+import math
+import threading
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from sensors.tum import TRAJECTORY_COLUMNS, format_stamp, load_tum_trajectory
+
+log = logging.getLogger(__name__)
+
+M_MMAP_THRESHOLD = -3  # glibc mallopt parameters (malloc.h)
+M_ARENA_MAX = -8
+DEFAULT_TRACK_POINTS = 20000  # thinned trajectory points kept in memory at most
+DEFAULT_TIMELINE_POINTS = 720  # e.g. an hour of 5 s samples before the first halving
+
+
+class Reservoir:
+    """At most ``capacity`` values, a uniform sample of all added (seeded: reproducible)."""
+
+    def __init__(self, capacity: int, seed: int = 0) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self.capacity = capacity
+        self._values = np.empty(capacity, dtype=np.float64)
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()
+        self.count = 0
+        self.total = 0.0
+        self.max = -math.inf
+
+    def add(self, value: float) -> None:
+        with self._lock:
+            if self.count < self.capacity:
+                self._values[self.count] = value
+            else:
+                j = int(self._rng.integers(0, self.count + 1))
+                if j < self.capacity:
+                    self._values[j] = value
+            self.count += 1
+            self.total += value
+            self.max = max(self.max, value)
+
+    def values(self) -> np.ndarray:
+        with self._lock:
+            return self._values[: min(self.count, self.capacity)].copy()
+
+    def percentile(self, q: float) -> float:
+        v = self.values()
+        return float(np.percentile(v, q)) if len(v) else math.nan
+
+    def __len__(self) -> int:
+        return self.count
+
+
+class TrackWriter:
+    """Planar poses streamed to ``path`` (TUM, as :func:`sensors.tum.write_tum_trajectory`
+    writes them) and a thinned in-memory track for pictures."""
+
+    def __init__(self, path: Path, spacing_m: float,
+                 capacity: int = DEFAULT_TRACK_POINTS) -> None:  # fmt: skip
+        self.path = path
+        self.spacing_m = spacing_m
+        self.capacity = capacity
+        self._file: IO[str] | None = None
+        self._thin: list[tuple[float, float]] = []
+        self._last: tuple[float, float] | None = None
+        self.count = 0
+
+    def add(self, stamp_ns: int, x: float, y: float, yaw: float) -> None:
+        if self._file is None:
+            self._file = open(self.path, "w", buffering=1 << 16)  # closed by close()
+            self._file.write(f"# planar trajectory (z = 0, rotation about z)\n"
+                             f"# {' '.join(TRAJECTORY_COLUMNS)}\n")  # fmt: skip
+        self._file.write(f"{format_stamp(int(stamp_ns))} {float(x)!r} {float(y)!r} 0.0 0.0 0.0 "
+                         f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n")  # fmt: skip
+        self.count += 1
+        if self._last is None or math.hypot(x - self._last[0], y - self._last[1]) >= self.spacing_m:
+            self._last = (float(x), float(y))
+            self._thin.append(self._last)
+            if len(self._thin) >= self.capacity:
+                self._thin = self._thin[::2]
+
+    def thinned(self) -> np.ndarray:
+        """(N, 2) [m] the kept points (N <= capacity)."""
+        return np.array(self._thin, dtype=np.float64).reshape(-1, 2)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def load(self) -> np.ndarray:
+        """(N, 4) stamp [ns], x, y, yaw of everything written (after :meth:`close`)."""
+        if self.count == 0:
+            return np.zeros((0, 4))
+        return load_track(self.path)
+
+
+def load_track(path: Path) -> np.ndarray:
+    """(N, 4) stamp [ns], x, y, yaw of a planar TUM trajectory."""
+    t_ns, xyz, quat = load_tum_trajectory(path)
+    return np.column_stack([t_ns.astype(np.float64), xyz[:, 0], xyz[:, 1],
+                            2.0 * np.arctan2(quat[:, 2], quat[:, 3])])  # fmt: skip
+
+
+class Timeline:
+    """(t, value) samples; every other one is dropped when ``capacity`` is reached."""
+
+    def __init__(self, capacity: int = DEFAULT_TIMELINE_POINTS) -> None:
+        self.capacity = capacity
+        self.points: list[tuple[float, float]] = []
+
+    def add(self, t: float, value: float) -> None:
+        self.points.append((t, value))
+        if len(self.points) >= self.capacity:
+            self.points = self.points[::2]
+
+
+def tame_malloc(arena_max: int, mmap_threshold: int) -> bool:
+    """Bound glibc's malloc for a long multi-threaded run; True when it was applied.
+
+    By default glibc gives busy threads arenas of their own (up to 8 per core) and, after a
+    large block is freed, raises its mmap threshold (up to 32 MB), so later large transient
+    arrays (checkpoint grids, planner graphs, images) come from the arenas and what they free
+    stays resident: RSS creeps up for as long as the run lasts. A fixed threshold (large blocks
+    are mmap'ed and handed back on free) and a few arenas stop that. ``0`` leaves a setting at
+    glibc's default. Must run before the threads start; a no-op (False) without glibc."""
+    name = ctypes.util.find_library("c")
+    if name is None or (arena_max <= 0 and mmap_threshold <= 0):
+        return False
+    try:
+        mallopt = ctypes.CDLL(name).mallopt
+    except (OSError, AttributeError):
+        return False
+    ok = True
+    if arena_max > 0:
+        ok &= bool(mallopt(M_ARENA_MAX, int(arena_max)))
+    if mmap_threshold > 0:
+        ok &= bool(mallopt(M_MMAP_THRESHOLD, int(mmap_threshold)))
+    if not ok:
+        log.debug("mallopt refused arena_max=%d mmap_threshold=%d", arena_max, mmap_threshold)
+    return ok
+
+
+__all__ = ["Reservoir", "Timeline", "TrackWriter", "load_track", "tame_malloc"]

@@ -1,0 +1,172 @@
+"""The live run's nav-driven auto mode (rgbdnav.live_nav) and its bounded bookkeeping
+(rgbdnav.live_stats), on hand-built maps and a perfect unicycle: no simulator process."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rgbdnav.config import Config
+from rgbdnav.live_nav import LiveNavigator, MapSnapshot, near_edge
+from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, tame_malloc
+from sensors.types import LaserScan
+from slam.occupancy_grid import GridGeometry, OccupancyGrid
+
+RES = 0.05  # [m/cell]
+DT_NS = 100_000_000  # [ns] the live controller's 10 Hz
+
+
+def two_rooms() -> OccupancyGrid:
+    """6 m x 4 m, outer walls, and a wall at x = 3 m with a 1 m door at y = 2.5 .. 3.5 m."""
+    g = GridGeometry(RES, 0.0, 0.0, 120, 80)
+    v = np.zeros(g.shape, dtype=np.int8)
+    v[:2, :] = v[-2:, :] = v[:, :2] = v[:, -2:] = 100
+    v[:, 59:61] = 100
+    v[50:70, 59:61] = 0  # the door
+    return OccupancyGrid.from_occupancy_values(g, v)
+
+
+def drive(nav: LiveNavigator, pose: np.ndarray, seconds: float,
+          walls: np.ndarray) -> tuple[np.ndarray, float]:  # fmt: skip
+    """A perfect unicycle under the navigator's commands; (final pose, least wall clearance)."""
+    wall_xy = np.argwhere(walls)[:, ::-1] * RES + RES / 2  # cell centres (x, y)
+    least = math.inf
+    t = 0
+    for _ in range(int(seconds * 1e9 / DT_NS)):
+        v, w = nav.tick(t, pose)
+        dt = DT_NS / 1e9
+        pose = pose + np.array([v * dt * math.cos(pose[2] + w * dt / 2),
+                                v * dt * math.sin(pose[2] + w * dt / 2), w * dt])  # fmt: skip
+        least = min(least, float(np.hypot(*(wall_xy - pose[:2]).T).min()))
+        t += DT_NS
+        if nav.done:
+            break
+    return pose, least
+
+
+def test_the_navigator_plans_through_the_door_and_reaches_every_waypoint() -> None:
+    grid = two_rooms()
+    route = np.array([[4.5, 1.0], [4.5, 3.2], [1.0, 3.0]])
+    nav = LiveNavigator(Config(), route, np.array([1.0, 1.0, 0.0]),
+                        static_map=(grid, 0.65, 0.25), plan_in_thread=False)  # fmt: skip
+    pose, least = drive(nav, np.array([1.0, 1.0, 0.0]), 150.0, grid.occupied_mask())
+    assert nav.done and nav.counts["waypoints_reached"] == 3
+    assert not any(k.startswith("waypoints_skipped") for k in nav.counts)
+    assert math.hypot(*(pose[:2] - route[-1])) <= Config().follower.xy_goal_tolerance
+    # The footprint (0.23 m) never touched a wall; the door leaves 0.27 m each side of centre.
+    assert least > Config().costmap.robot_radius
+    # Speeds stayed within the live limits (the smoother clamps to live.max_*).
+    assert nav.cfg.smoother.max_velocity[0] == pytest.approx(Config().live.max_linear_speed)
+
+
+def test_an_unreachable_waypoint_is_skipped_and_the_route_goes_on() -> None:
+    grid = two_rooms()
+    route = np.array([[3.0, 1.0], [1.0, 3.0]])  # the first is inside the wall
+    cfg = replace(Config(), live=replace(Config().live, waypoint_timeout=20.0))
+    nav = LiveNavigator(cfg, route, np.array([1.0, 1.0, 0.0]), static_map=(grid, 0.65, 0.25),
+                        plan_in_thread=False)  # fmt: skip
+    drive(nav, np.array([1.0, 1.0, 0.0]), 120.0, grid.occupied_mask())
+    assert nav.done and nav.counts["waypoints_reached"] == 1
+    skipped = nav.counts["waypoints_skipped_no_plan"] + nav.counts["waypoints_skipped_timeout"]
+    assert skipped == 1
+
+
+def test_while_mapping_unknown_space_is_traversable_and_snapshots_become_costmaps() -> None:
+    nav = LiveNavigator(Config(), np.array([[3.0, 0.0]]), np.zeros(3), plan_in_thread=False)
+    nav.start()
+    try:
+        # Nothing mapped yet: the plan goes straight through unknown space.
+        v, w = nav.tick(0, np.zeros(3))
+        assert nav.path is not None and nav.counts["nav_plans"] == 1
+        # Keyframes seeing a wall 2 m ahead: the builder thread turns them into a static layer.
+        angles = np.linspace(-0.5, 0.5, 101)
+        ranges = (2.0 / np.cos(angles)).astype(np.float32)
+        scan = LaserScan(1, float(angles[0]), float(angles[1] - angles[0]), ranges, 0.45, 4.0)
+        nav.set_map(MapSnapshot(np.zeros((5, 3)), (scan,) * 5))
+        deadline = time.monotonic() + 10.0
+        while nav.counts["nav_map_builds"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        nav.tick(DT_NS, np.zeros(3))  # installs it
+        assert int(nav.costmap.cost_at(2.0, 0.0)) == 254  # the wall is lethal
+        assert int(nav.costmap.cost_at(1.0, 0.0)) == 0  # seen free
+        assert int(nav.costmap.cost_at(-1.0, 0.0)) == 255  # behind: still unknown
+        # A new keyframe only: integrated into the last grid; a moved one (a loop closure): all.
+        for poses, incremental in ((np.zeros((6, 3)), 1), (np.full((7, 3), 0.2), 1)):
+            builds = nav.counts["nav_map_builds"]
+            nav.set_map(MapSnapshot(poses, (scan,) * len(poses)))
+            deadline = time.monotonic() + 10.0
+            while nav.counts["nav_map_builds"] == builds and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert nav.counts["nav_map_builds_incremental"] == incremental
+    finally:
+        nav.close()
+
+
+def test_the_costmap_grows_when_the_robot_nears_its_edge() -> None:
+    nav = LiveNavigator(Config(), np.array([[1.0, 0.0]]), np.zeros(3), plan_in_thread=False)
+    far = np.array([30.0, 0.0, 0.0])
+    assert near_edge(nav.geometry, far[None, :2], 1.0)
+    nav.tick(0, far)
+    assert not near_edge(nav.geometry, far[None, :2], 1.0)
+    assert nav.counts["nav_costmap_regrown"] == 1
+
+
+def test_a_reservoir_keeps_a_bounded_uniform_sample_with_exact_count_and_max() -> None:
+    r = Reservoir(1000, seed=0)
+    values = np.arange(100_000, dtype=float)
+    for v in values:
+        r.add(v)
+    assert len(r.values()) == 1000 and r.count == 100_000 and r.max == 99_999
+    assert r.percentile(50) == pytest.approx(50_000, rel=0.05)
+    assert r.percentile(99) == pytest.approx(99_000, rel=0.01)
+
+
+def test_a_track_is_streamed_in_full_and_thinned_in_memory(tmp_path: Path) -> None:
+    tw = TrackWriter(tmp_path / "t.tum", spacing_m=0.05, capacity=100)
+    n = 5000
+    for k in range(n):  # 0.01 m steps: 50 m
+        tw.add(10**9 + k * 10**7, 0.01 * k, 0.0, 0.1)
+    tw.close()
+    back = tw.load()
+    assert len(back) == n and back[-1, 1] == pytest.approx(0.01 * (n - 1))
+    assert back[0, 3] == pytest.approx(0.1) and int(back[1, 0]) == 10**9 + 10**7
+    assert len(tw.thinned()) < 100
+
+
+def test_a_timeline_halves_instead_of_growing() -> None:
+    tl = Timeline(capacity=64)
+    for k in range(10_000):
+        tl.add(float(k), 1.0)
+    assert len(tl.points) < 64 and tl.points[0][0] == 0.0
+
+
+def test_with_the_planner_on_its_own_thread_the_tick_never_waits_for_a_plan() -> None:
+    grid = two_rooms()
+    nav = LiveNavigator(Config(), np.array([[4.5, 1.0]]), np.array([1.0, 1.0, 0.0]),
+                        static_map=(grid, 0.65, 0.25))  # fmt: skip
+    nav.start()
+    try:
+        pose = np.array([1.0, 1.0, 0.0])
+        assert nav.tick(0, pose) == (0.0, 0.0) and nav.path is None  # asked, not waited for
+        deadline = time.monotonic() + 10.0
+        t = 0
+        while nav.path is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+            t += DT_NS
+            nav.tick(t, pose)
+        assert nav.path is not None and nav.counts["nav_plans"] == 1
+    finally:
+        nav.close()
+
+
+def test_malloc_is_tamed_on_glibc_and_left_alone_when_asked() -> None:
+    import platform
+
+    assert tame_malloc(0, 0) is False  # nothing asked: nothing done
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert tame_malloc(8, 32 << 20) is True  # glibc's own limits: harmless to the suite
