@@ -34,19 +34,23 @@ def variants() -> list[tuple[str, VoConfig, VoTuning]]:
 
     return [
         ("default", base, VoTuning()),
+        ("before the speed-up: 8 levels, 1 ORB call, 1.5x, level window 1, 3 candidates", base,
+         VoTuning(orb_levels=8, orb_split_level=0, detect_factor=1.5, level_window=1, knn=3)),
+        ("level window 1", base, VoTuning(level_window=1)),
+        ("8 pyramid levels", base, VoTuning(orb_levels=8)),
+        ("3 guided-search candidates", base, VoTuning(knn=3)),
+        ("detect 1.5x max_features", base, VoTuning(detect_factor=1.5)),
+        ("detect 1.0x max_features (no bucketing)", base, VoTuning(detect_factor=1.0)),
+        ("one ORB call (no split over two threads)", base, VoTuning(orb_split_level=0)),
+        ("FAST threshold 7", base, VoTuning(fast_threshold=7)),
         ("max_features 800", cfg(max_features=800), VoTuning()),
-        ("max_features 700", cfg(max_features=700), VoTuning()),
-        ("1500 rigid samples", base, VoTuning(rigid_samples=1500)),
-        ("50 rigid hypotheses", base, VoTuning(rigid_max_hypotheses=50)),
         ("one hypothesis verified", base, VoTuning(verify_hypotheses=1)),
         ("no second guided search", base, VoTuning(second_radius_px=0)),
-        ("all pyramid levels matched", base, VoTuning(level_window=-1)),
         ("depth margin 0 px", base, VoTuning(depth_margin_px=0)),
         ("depth margin 8 px (into holes)", base, VoTuning(depth_margin_px=8)),
         ("no depth mask", base, VoTuning(depth_as_mask=False)),
-        ("5 pyramid levels, scale 1.3", base, VoTuning(orb_levels=5, orb_scale=1.3)),
         ("AP3P RANSAC (OpenCV)", base, VoTuning(pnp_method="ap3p")),
-    ]
+    ]  # fmt: skip
 
 
 def main() -> None:
