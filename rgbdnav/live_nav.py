@@ -49,6 +49,7 @@ from nav.planner import GridPlanner, PlanResult, replan_needed
 from nav.velocity_smoother import VelocitySmoother
 from rgbdnav.config import Config
 from sensors.types import LaserScan, Pose2
+from slam.geometry import wrap_angle
 from slam.occupancy_grid import UNKNOWN, GridGeometry, OccupancyGrid, integrate_scans
 
 log = logging.getLogger(__name__)
@@ -235,8 +236,9 @@ class LiveNavigator:
             t0 = time.perf_counter()
             try:
                 grid = self._integrate(snap)
-            except Exception:  # a bad snapshot must not end the builder: counted and logged
-                log.exception("live navigation: map snapshot not integrated")
+            except Exception as err:  # a bad snapshot must not end the builder: counted, logged
+                log.warning("live navigation: map snapshot not integrated (%s: %s)",
+                            type(err).__name__, err)  # fmt: skip
                 with self._lock:
                     self.counts["nav_map_build_errors"] += 1
                 continue
@@ -258,7 +260,7 @@ class LiveNavigator:
             d = poses[: len(old)] - old
             tol = 0.5 * geom.resolution  # [m]
             yaw_tol = tol / max(self.cfg.costmap.raytrace_max_range, 1.0)  # [rad] ~ tol at range
-            turned = np.abs(np.arctan2(np.sin(d[:, 2]), np.cos(d[:, 2])))
+            turned = np.abs(wrap_angle(d[:, 2]))
             if np.all(np.hypot(d[:, 0], d[:, 1]) <= tol) and np.all(turned <= yaw_tol):
                 if len(old) == len(poses):
                     return last[0]

@@ -21,7 +21,7 @@ from typing import IO
 
 import numpy as np
 
-from sensors.tum import TRAJECTORY_COLUMNS, format_stamp, load_tum_trajectory
+from sensors.tum import PLANAR_TUM_HEADER, load_tum_trajectory, planar_tum_row, yaw_from_quaternion
 
 log = logging.getLogger(__name__)
 
@@ -86,10 +86,8 @@ class TrackWriter:
     def add(self, stamp_ns: int, x: float, y: float, yaw: float) -> None:
         if self._file is None:
             self._file = open(self.path, "w", buffering=1 << 16)  # closed by close()
-            self._file.write(f"# planar trajectory (z = 0, rotation about z)\n"
-                             f"# {' '.join(TRAJECTORY_COLUMNS)}\n")  # fmt: skip
-        self._file.write(f"{format_stamp(int(stamp_ns))} {float(x)!r} {float(y)!r} 0.0 0.0 0.0 "
-                         f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n")  # fmt: skip
+            self._file.write(PLANAR_TUM_HEADER)
+        self._file.write(planar_tum_row(stamp_ns, x, y, yaw))
         self.count += 1
         if self._last is None or math.hypot(x - self._last[0], y - self._last[1]) >= self.spacing_m:
             self._last = (float(x), float(y))
@@ -117,7 +115,7 @@ def load_track(path: Path) -> np.ndarray:
     """(N, 4) stamp [ns], x, y, yaw of a planar TUM trajectory."""
     t_ns, xyz, quat = load_tum_trajectory(path)
     return np.column_stack([t_ns.astype(np.float64), xyz[:, 0], xyz[:, 1],
-                            2.0 * np.arctan2(quat[:, 2], quat[:, 3])])  # fmt: skip
+                            yaw_from_quaternion(quat)])  # fmt: skip
 
 
 class Timeline:

@@ -7,6 +7,7 @@ float round-off; every error names the file and line.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +18,9 @@ from sensors.atomic import atomic_write_text
 from sensors.types import SensorError, format_stamp, parse_stamp
 
 TRAJECTORY_COLUMNS = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+PLANAR_TUM_HEADER = (
+    f"# planar trajectory (z = 0, rotation about z)\n# {' '.join(TRAJECTORY_COLUMNS)}\n"
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,5 +148,11 @@ def write_tum_trajectory(
         format_stamp(int(t)) + " " + " ".join(repr(float(v)) for v in pose)
         for t, pose in zip(stamps_ns, poses, strict=True)
     ]
-    header = f"# planar trajectory (z = 0, rotation about z)\n# {' '.join(TRAJECTORY_COLUMNS)}\n"
-    atomic_write_text(path, header + "".join(r + "\n" for r in rows))
+    atomic_write_text(path, PLANAR_TUM_HEADER + "".join(r + "\n" for r in rows))
+
+
+def planar_tum_row(stamp_ns: int, x: float, y: float, yaw: float) -> str:
+    """One line of :func:`write_tum_trajectory`'s format, for a trajectory written as it
+    grows (e.g. the live run's streamed tracks)."""
+    return (f"{format_stamp(int(stamp_ns))} {float(x)!r} {float(y)!r} 0.0 0.0 0.0 "
+            f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n")  # fmt: skip

@@ -107,6 +107,27 @@ def test_while_mapping_unknown_space_is_traversable_and_snapshots_become_costmap
         nav.close()
 
 
+def test_a_snapshot_that_cannot_be_integrated_is_counted_and_the_builder_goes_on() -> None:
+    nav = LiveNavigator(Config(), np.array([[3.0, 0.0]]), np.zeros(3), plan_in_thread=False)
+    nav.start()
+    try:
+        angles = np.linspace(-0.5, 0.5, 101)
+        scan = LaserScan(1, float(angles[0]), float(angles[1] - angles[0]),
+                         (2.0 / np.cos(angles)).astype(np.float32), 0.45, 4.0)  # fmt: skip
+        nav.set_map(MapSnapshot(np.zeros((3, 3)), (scan,) * 5))  # 3 poses for 5 scans
+        deadline = time.monotonic() + 10.0
+        while nav.counts["nav_map_build_errors"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert nav.counts["nav_map_build_errors"] == 1 and nav.counts["nav_map_builds"] == 0
+        nav.set_map(MapSnapshot(np.zeros((5, 3)), (scan,) * 5))  # a good one still builds
+        deadline = time.monotonic() + 10.0
+        while nav.counts["nav_map_builds"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert nav.counts["nav_map_builds"] == 1
+    finally:
+        nav.close()
+
+
 def test_the_costmap_grows_when_the_robot_nears_its_edge() -> None:
     nav = LiveNavigator(Config(), np.array([[1.0, 0.0]]), np.zeros(3), plan_in_thread=False)
     far = np.array([30.0, 0.0, 0.0])
