@@ -51,10 +51,10 @@ def live_run(out: Path, duration_s: float, extra: list[str]) -> dict[str, Any]:
     return json.loads((out / "summary.json").read_text())
 
 
-def recorded_run(out: Path) -> dict[str, Any]:
+def recorded_run(out: Path, extra: list[str]) -> dict[str, Any]:
     summary = out / "summary.json"
     if not summary.exists():
-        _run([str(RGBDNAV), "map", str(WORLD), "--out", str(out), "-q", "--set", NO_GYRO])
+        _run([str(RGBDNAV), "map", str(WORLD), "--out", str(out), "-q", "--set", NO_GYRO, *extra])
     return {**json.loads(summary.read_text()), "_dir": out.relative_to(REPO)
             if out.is_relative_to(REPO) else out}  # fmt: skip
 
@@ -71,7 +71,7 @@ def _yes(ok: bool) -> str:
 
 
 def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float,
-                load: str = "?") -> str:
+                load: str = "?", sets: str = "") -> str:
     c, lat, st = s["counts"], s["latency_ms"] or {}, s.get("stage_ms_median", {})
     sim = s.get("sim_robot", {})
     ate = s.get("slam_vs_groundtruth", {}).get("ate_rmse_m")
@@ -139,7 +139,7 @@ def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float,
         f"## Live run on the simulated robot ({duration_s:.0f} s)",
         "",
         f"Date {dt.date.today().isoformat()}; machine: {machine('numpy', 'cv2')}.",
-        f"Command: `.venv/bin/python bench/bench_live.py --duration {duration_s:.0f}`. The "
+        f"Command: `.venv/bin/python bench/bench_live.py --duration {duration_s:.0f}{sets}`. The "
         "simulated robot (renderer + board emulator) runs in its own process on the same 2 "
         "cores, so the host gets what the renderer leaves.",
         "",
@@ -201,18 +201,24 @@ def main() -> None:
                     help="run directory of the recorded run without the gyro (made if "
                          "missing)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--set", dest="overrides", action="append", default=[],
+                    help="config override for the live run and a recorded run made here "
+                         "(section.key=value; repeatable)")  # fmt: skip
     args = ap.parse_args()
+    extra = [a for o in args.overrides for a in ("--set", o)]
     if args.soak_minutes:
         load0 = _loadavg()
         s = live_run(REPO / "runs" / "bench_live_soak", args.soak_minutes * 60,
-                     ["--repeat-route"])  # fmt: skip
+                     ["--repeat-route", *extra])  # fmt: skip
         publish(report_soak(s, args.soak_minutes, args.warmup, f"{load0} / {_loadavg()}"),
                 args.out, "live-soak")
         return
     load0 = _loadavg()
-    s = live_run(REPO / "runs" / "bench_live", args.duration, [])
+    s = live_run(REPO / "runs" / "bench_live", args.duration, extra)
     load = f"{load0} / {_loadavg()} (1-min load average)"
-    publish(report_live(s, recorded_run(args.recorded), args.duration, load), args.out, "live")
+    publish(report_live(s, recorded_run(args.recorded, extra), args.duration, load,
+                        "".join(f" --set {o}" for o in args.overrides)), args.out,
+            "live")
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import publish  # noqa: E402  (bench/ is on sys.path)
+from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
 import slam.visual_odometry as vo_module  # noqa: E402
 from sensors.config import CameraConfig, RobotConfig, SimConfig  # noqa: E402
@@ -306,7 +306,8 @@ def bench_open3d_sequence(cfg: VoConfig, tuning: VoTuning) -> dict[str, float]:
 
 
 def bench_sim(
-    frames: int, world: Path, start_s: float = 0.0, seed: int = 0, tuning: VoTuning | None = None
+    frames: int, world: Path, start_s: float = 0.0, seed: int = 0, tuning: VoTuning | None = None,
+    cfg: VoConfig | None = None,
 ) -> dict[str, float]:
     """VO-only planar drift on a rendered house segment (frame-to-frame, chained in base_link)."""
     from sensors.sim.motion import drive_route
@@ -320,7 +321,7 @@ def bench_sim(
     x, y, yaw = traj.interpolate(t_cam)
     renderer = KinectRenderer(w, CameraConfig(), robot, sim, noise_seed=seed)
     rng = np.random.default_rng(seed)
-    vo = VisualOdometry(renderer.intrinsics, VoConfig(), robot, tuning)
+    vo = VisualOdometry(renderer.intrinsics, cfg or VoConfig(), robot, tuning)
     from sensors.types import RgbdFrame
 
     pose = np.array([x[0], y[0], yaw[0]])
@@ -349,7 +350,61 @@ def bench_sim(
     return {"length_m": length, "end_err_m": end_err, "drift_per_10m": 10 * end_err / length,
             "yaw_err_deg": yaw_err, "fails": fails, "frames": frames,
             "ms_med": float(np.median(ms)), "cpu_ms_med": float(np.median(cpu)),
+            "ms_p90": float(np.percentile(ms, 90)),
             "prior": prior, "reasons": reasons}  # fmt: skip
+
+
+def bench_cor_types(sim_frames: int, world: Path, out: Path | None) -> None:
+    """``vo.cor_type`` features vs optical_flow through ``VisualOdometry.process``: the TUM
+    cabinet keyframes (0.15 m apart: flow must give way to ORB matching, never accept a wrong
+    pose) and a 30 Hz simulated house segment (speed and VO-only drift)."""
+    rows = ["| vo.cor_type | house: ms/frame wall median (p90) | house: CPU ms/frame median | "
+            "house: drift per 10 m | house: yaw error [deg] | house: flow-tracked frames | "
+            "cabinet: success | cabinet: median t err [cm] | cabinet: wrong but accepted | "
+            "cabinet: flow-tracked pairs |", "| --- | --- | --- | --- | --- | --- | --- | --- | "
+            "--- | --- |"]  # fmt: skip
+    load_start = os.getloadavg()
+    cab = load_cabinet() if CABINET.exists() else None
+    for cor in ("features", "optical_flow"):
+        cfg = replace(VoConfig(), cor_type=cor)
+        s = bench_sim(sim_frames, world, cfg=cfg)
+        c = "- | - | - | -"
+        if cab is not None:
+            frames, gt = cab
+            vo = VisualOdometry(frames[0].intrinsics, replace(cfg, force_3dof=False),
+                                keyframes=False)  # fmt: skip
+            err, ok, tracked = [], [], 0
+            for i, f in enumerate(frames):
+                res = vo.process(f)
+                if i == 0:
+                    continue
+                truth = inverse(gt[i - 1]) @ gt[i]
+                err.append(pair_error(res.T_prev_curr, truth)[0] if res.success else math.inf)
+                ok.append(res.success)
+                tracked += res.prior
+            e, a = np.array(err), np.array(ok)
+            c = (f"{100 * np.mean(e < SUCCESS_M):.0f} % | {100 * np.median(e):.2f} | "
+                 f"{int(np.sum(a & (e >= SUCCESS_M)))} | {tracked} of {len(e)}")  # fmt: skip
+        rows.append(f"| {cor} | {s['ms_med']:.1f} ({s['ms_p90']:.1f}) | {s['cpu_ms_med']:.1f} | "
+                    f"{100 * s['drift_per_10m']:.1f} cm | {s['yaw_err_deg']:.2f} | "
+                    f"{s['prior']} of {s['frames'] - 1} | {c} |")  # fmt: skip
+        print(rows[-1], flush=True)
+    load = f"{load_start[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
+    body = f"""## Visual odometry: ORB matching on every frame vs optical flow between keyframes
+
+Measured {dt.date.today().isoformat()} on {machine("cv2", "numpy")} (1-minute load average
+{load}). Command: `python bench/bench_vo.py --cor-types`. House: the first {sim_frames}
+frames of `{world.relative_to(REPO) if world.is_relative_to(REPO) else world}`'s route at
+30 Hz, planar frame-to-keyframe VO only (VoConfig defaults but `cor_type`), drift = end error
+per 10 m travelled. Cabinet: the 29 real TUM fr3/cabinet keyframes through the same stateful
+odometry (`keyframes=False`, so every pair is matched as it comes), 5 cm success threshold.
+The whole route (3970 frames, with the EKF and the mapper): `rgbdnav map scenes/house.yaml
+--out runs/flow --set vo.cor_type=optical_flow` against `make demo`, in `summary.json` and
+`odometry/summary.json`.
+
+{chr(10).join(rows)}
+"""
+    publish(body, out, "vo-cor-type")
 
 
 def main() -> None:
@@ -361,7 +416,12 @@ def main() -> None:
     ap.add_argument("--world", type=Path, default=REPO / "scenes" / "house.yaml")
     ap.add_argument("--only", default="", help="comma-separated variant indices to run")
     ap.add_argument("--per-pair", action="store_true", help="print per-pair errors")
+    ap.add_argument("--cor-types", action="store_true",
+                    help="only compare vo.cor_type features / optical_flow (own section)")
     args = ap.parse_args()
+    if args.cor_types:
+        bench_cor_types(args.sim_frames, args.world, args.out)
+        return
 
     lines = ["| method | draws: success mean (range) | draws: median t err mean (max) [cm] | "
              "draws: wrong but accepted (mean) | seed 0: success | seed 0: median t / r err "

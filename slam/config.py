@@ -187,6 +187,25 @@ class VoConfig:
         0.78, unit="rad", gt=0.0, doc="reject a frame-to-frame turn larger than this"
     )
 
+    cor_type: Literal["features", "optical_flow"] = param(
+        "features",
+        doc="Vis/CorType: 'features' matches ORB descriptors on every frame; 'optical_flow' "
+        "tracks the keyframe's points with pyramidal Lucas-Kanade between keyframes (ORB only "
+        "on keyframes and when tracking fails)",
+    )
+    cor_flow_win_size: int = param(
+        16, unit="px", ge=3, doc="Lucas-Kanade window side (Vis/CorFlowWinSize)"
+    )
+    cor_flow_iterations: int = param(
+        30, ge=1, doc="Lucas-Kanade iterations per level (Vis/CorFlowIterations)"
+    )
+    cor_flow_eps: float = param(
+        0.01, unit="px", gt=0.0, doc="Lucas-Kanade convergence step (Vis/CorFlowEps)"
+    )
+    cor_flow_max_level: int = param(
+        3, ge=0, doc="Lucas-Kanade pyramid levels above the image (Vis/CorFlowMaxLevel)"
+    )
+
     def validate(self) -> str | None:
         if self.min_depth >= self.max_depth:
             return f"min_depth ({self.min_depth}) must be below max_depth ({self.max_depth})"

@@ -246,6 +246,56 @@ def test_motion_from_prior_declines_a_prior_that_misses_the_windows() -> None:
     assert motion_from_prior(a, b, np.eye(4), K, VO6, tuning) is None  # 3 deg + 6 cm off
 
 
+FLOW = replace(VO6, cor_type="optical_flow")
+
+
+def test_optical_flow_tracks_a_slow_drive_with_orb_only_on_the_keyframe(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import slam.visual_odometry as vo_mod
+
+    calls = []
+    real = vo_mod.extract_features
+
+    def counting(*args: object, **kw: object) -> Features:
+        calls.append(1)
+        return real(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(vo_mod, "extract_features", counting)
+    r = renderer()
+    vo = VisualOdometry(r.intrinsics, FLOW)
+    poses = [(0.015 * i, 0.0, math.radians(0.4 * i)) for i in range(6)]  # 7.5 cm: one keyframe
+    results = [vo.process(RgbdFrame(i, *frame(r, p), r.intrinsics)) for i, p in enumerate(poses)]
+    assert len(calls) == 1  # the first frame, the keyframe: the others are tracked by flow
+    assert all(res.success and res.prior for res in results[1:])
+    for a, b, res in zip(poses[:-1], poses[1:], results[1:], strict=True):
+        truth = true_motion(a, b)  # ORB matching: 2.6-4.6 mm, flow 2.2-5.0 mm on these frames
+        assert np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) < 0.006
+        assert math.degrees(rotation_angle(inverse(truth) @ res.T_prev_curr)) < 0.3
+        assert res.inlier_ratio > FLOW.keyframe_thr
+
+
+def test_optical_flow_that_loses_its_points_falls_back_to_global_matching() -> None:
+    r = renderer()
+    # Lucas-Kanade on the full-resolution image alone follows a few pixels of motion: the jump
+    # (~60 px) loses the tracks, and the frame is matched by ORB against the keyframe instead.
+    vo = VisualOdometry(r.intrinsics, replace(FLOW, cor_flow_max_level=0))
+    poses = [START, (0.005, 0.0, 0.0), (0.12, 0.03, math.radians(6.0)), (0.125, 0.03,
+             math.radians(6.0))]  # fmt: skip
+    results = [
+        vo.process(RgbdFrame(i, *frame(r, p), r.intrinsics)) for i, p in enumerate(poses[:3])
+    ]
+    assert results[1].success and results[1].prior
+    jump = results[2]
+    assert jump.success and not jump.prior
+    truth = true_motion(poses[1], poses[2])
+    assert np.linalg.norm(jump.T_prev_curr[:3, 3] - truth[:3, 3]) < 0.01
+    assert math.degrees(rotation_angle(inverse(truth) @ jump.T_prev_curr)) < 0.5
+    assert vo._kf is not None and np.allclose(vo._kf.T_kf_last, np.eye(4))  # a new keyframe
+    after = vo.process(RgbdFrame(3, *frame(r, poses[3]), r.intrinsics))
+    assert after.success and after.prior  # ... whose points are tracked again
+
+
 def _tum_poses(path: Path) -> np.ndarray:
     d = np.loadtxt(path)
     out = np.tile(np.eye(4), (len(d), 1, 1))
