@@ -171,7 +171,8 @@ def bench_scenario(args: argparse.Namespace) -> None:
                 f"{sc['min_keepout_distance_m']:.2f} | {sc['path_length_m']:.1f} | "
                 f"{sc['sim_time_s']:.0f} | {sc['wall_s']:.0f} | {sc['ms_per_control_step']:.1f} | "
                 f"{err['mean']:.3f} / {err['max']:.2f} | {sc['recoveries']} | "
-                f"{summary['localization']['matches_gated']} |"
+                f"{summary['localization']['matches_gated']} | "
+                f"{summary['localization'].get('settles', 0)} |"
             )
             for f in sc["failures"]:
                 notes.append(f"- {label}, {mode}: goal ({f['goal'][0]:.2f}, {f['goal'][1]:.2f}) "
@@ -189,18 +190,22 @@ directories `runs/nav_scenario_<map>_<mode>/`; the moved world, keepout mask and
 (seeded, up to 0.3 m and 0.3 rad) relative to the map, seeded random goals in free space
 reachable in both, two keepout zones; the robot drives the Eddie board emulator through GOSPD
 with wheel slip and diameter/track errors. Maps: `runs/demo/map` is what `make demo` (the SLAM
-mapper) built; "floor plan" is the unmoved world rasterised with one-cell walls (exact geometry,
-the best map a mapper could make). Target: >= 95 % of the goals reached with the TRUE position
+mapper) built; "floor plan" is the unmoved world rasterised with its walls and furniture at
+their true size (exact geometry, the best map a mapper could make). Target: >= 95 % of the goals reached with the TRUE position
 within 0.25 m, 0 collisions, 0 keepout entries. The goal checker aims at 0.1 m
 (`follower.xy_goal_tolerance`, set by the scenario) as judged by the estimate; "reached
 (estimate)" counts its own verdicts. "ms/step" is wall time per controller cycle including the
 scans (localiser, costmap update, path check) that fall due in it. The localiser runs with the
 scenario's `localizer.*` settings (the robot's configuration: wheel-odometry noise, a
 Mahalanobis gate on matches against the odometry prediction, no jumps, dead reckoning instead
-of "lost", no kidnap check); "gated" counts the matches it did not fuse.
+of "lost", no kidnap check); "gated" counts the matches it did not fuse. With the localiser the
+navigator settles (`navigate.goal_settle_spin`, `navigate.settle_on_gated_scans`): at each goal
+the estimate reaches, and after a run of gated matches while driving, it turns in place and
+fuses one match of the turn's scans stacked by odometry, then re-checks the goal; "settles"
+counts them.
 
-| map | localisation | reached within 0.25 m | reached (estimate) | collisions | keepout entries | min clearance [m] | min keepout distance [m] | path [m] | simulated [s] | wall [s] | ms/step | position error mean / max [m] | recoveries | gated |
-| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |
+| map | localisation | reached within 0.25 m | reached (estimate) | collisions | keepout entries | min clearance [m] | min keepout distance [m] | path [m] | simulated [s] | wall [s] | ms/step | position error mean / max [m] | recoveries | gated | settles |
+| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |
 {table}
 
 Goals not reached within 0.25 m:

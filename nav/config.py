@@ -256,3 +256,25 @@ class NavigateConfig:
     relocalize_timeout: float = param(
         30.0, unit="s", gt=0.0, doc="a goal fails after this long without a believable fix"
     )
+    goal_settle_spin: float = param(
+        0.0,
+        unit="rad",
+        ge=0.0,
+        doc="at a goal the estimate says is reached, turn in place this far and correct the pose "
+        "with the turn's scans stacked by odometry (a wide view, in which a moved piece of "
+        "furniture weighs little), then drive on if the corrected estimate is outside "
+        "follower.xy_goal_tolerance (0 = off: Nav2's goal checker; localizer mode only)",
+    )
+    goal_settle_spin_speed: float = param(
+        1.0, unit="rad/s", gt=0.0, doc="turn-in-place speed of the goal settle (Nav2 Spin's)"
+    )
+    goal_settle_attempts: int = param(
+        1, ge=1, doc="settles per goal (each a turn; the goal is reached after the last)"
+    )
+    settle_on_gated_scans: int = param(
+        0,
+        ge=0,
+        doc="while driving, stop and settle (a goal_settle_spin turn and its wide match) after "
+        "this many consecutive scans whose matches the localiser gated (its estimate and the "
+        "scans disagree), then replan (0 = never)",
+    )

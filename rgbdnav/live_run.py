@@ -54,6 +54,7 @@ from rgbdnav.config import Config, load_config, source_options
 from rgbdnav.live_nav import LiveNavigator, MapSnapshot
 from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
 from rgbdnav.map_run import RGBD_PROFILE, build_grid, make_bundle
+from rgbdnav.navigate_run import NAVIGATE_PROFILE
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, occupied_cells_xy
@@ -192,9 +193,10 @@ def route_command(pose: np.ndarray, target: np.ndarray, max_v: float, max_w: flo
 class LiveRun:
     def __init__(self, opts: LiveOptions) -> None:
         self.opts = opts
-        files = list(opts.config_files)
-        if RGBD_PROFILE.is_file():
-            files = [RGBD_PROFILE, *files]  # depth scans: the RGB-D mapping profile, yours win
+        # Depth scans: the RGB-D mapping profile; localising (--map) on the robot's own wheels:
+        # the navigate profile too, as `rgbdnav navigate` loads them; yours win.
+        profiles = [RGBD_PROFILE] + ([NAVIGATE_PROFILE] if opts.map_bundle is not None else [])
+        files = [p for p in profiles if p.is_file()] + list(opts.config_files)
         cfg = load_config(files, opts.overrides)
         # Frames reach the EKF later than wheel ticks (render, queue, VO): it must re-filter
         # lagged data (robot_localization's smooth_lagged_data) instead of dropping it.

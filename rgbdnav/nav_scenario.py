@@ -222,16 +222,13 @@ def draw_goals(
     return goals
 
 
-MAP_WALL_THICKNESS = 0.01  # [m] walls of a floor-plan map: one cell, as a scan-built map's
-
-
 def floor_plan_map(scenario: Scenario, path: Path, resolution: float = 0.05) -> Path:
-    """A Nav2 map.yaml of the scenario's (unmoved) world from its floor plan: every wall one
-    cell thick on its centre line and furniture solid -- exact geometry, the best map a mapper
-    could make. Returns ``path``."""
-    world = dict(scenario.world, wall_thickness=MAP_WALL_THICKNESS)
-    for w in world.get("walls") or []:
-        w.pop("thickness", None)
+    """A Nav2 map.yaml of the scenario's (unmoved) world from its floor plan: every wall and
+    piece of furniture solid at its true size -- exact geometry, the best map a mapper could
+    make. (Walls drawn one cell thick on their centre line put every wall face a scan sees
+    half a wall thickness, 6 cm in the house, in front of the map's wall: a bias of the map,
+    not of the localiser.) Returns ``path``."""
+    world = dict(scenario.world)
     plan = floor_plan(world_from_dict(world, "floor-plan map"), resolution)
     h, w = plan.occupied.shape
     grid = OccupancyGrid.from_occupancy_values(
@@ -341,6 +338,6 @@ def run_scenario(
     return outputs, summary
 
 
-__all__ = ["MAP_WALL_THICKNESS", "Scenario", "draw_goals", "floor_plan_map", "goal_candidates",
+__all__ = ["Scenario", "draw_goals", "floor_plan_map", "goal_candidates",
            "keepout_grid", "load_scenario", "move_furniture", "prepare", "run_scenario",
            "scenario_figures"]  # fmt: skip

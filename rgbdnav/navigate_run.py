@@ -27,6 +27,14 @@ Each simulation step, in simulated time (never wall time):
    goal); a blocked arc (the controller failing) first runs the next behaviour of Nav2's
    recovery round-robin (clear the costmap, spin, wait, back up), a replan that fails runs the
    round until one succeeds, and being stuck clears the costmap and backs up.
+   **Settle** (``navigate.goal_settle_spin`` > 0, localizer mode): when the goal checker says
+   "reached" (on the estimate), the robot stops, turns in place and the localiser fuses one
+   match of the turn's scans stacked by odometry (:meth:`Localizer.match_recent`); the next
+   control cycle checks the goal again and drives on to the corrected goal if needed (at most
+   ``goal_settle_attempts`` settles per goal). A narrow depth scan fits moved furniture
+   confidently off and the localiser's gate then holds the estimate there; the walls all round
+   outweigh one piece of furniture. ``navigate.settle_on_gated_scans`` settles (and replans)
+   while driving too, after that many gated matches in a row.
 3. At ``smoother.smoothing_frequency`` the velocity smoother limits the command, which goes to
    the wheels as a ``GOSPD`` line through the Eddie board emulator; the true pose follows the
    wheels with diameter/track errors and slip, and wheel odometry integrates the encoder counts
@@ -105,6 +113,8 @@ RAY_STEP_CELLS = 0.5  # [cells] ray-marching step in the floor plan
 STOP_EPS = 1e-3  # [m/s, rad/s] smoothed speeds below this count as at rest
 MAX_STOP_S = 10.0  # [s] longest braking we simulate before giving up on "at rest"
 STUCK_BEHAVIORS = (RECOVERY_SEQUENCE[0], RECOVERY_SEQUENCE[3])  # clear the costmap, back up
+SETTLE_SEGMENT_RAD = 3.0  # [rad] longest spin of a goal settle (a Spin turns less than pi)
+SETTLE_TIME_FACTOR = 2.0  # [-] a settle spin's time allowance: this x its nominal duration, +1 s
 CSV_HEADER = ("t_s", "goal", "status", "cmd_v_mps", "cmd_w_radps", "smoothed_v_mps",
               "smoothed_w_radps", "gospd_left", "gospd_right")  # fmt: skip
 
@@ -428,6 +438,34 @@ class _Sim:
         self.stop(k)
         return behavior.name
 
+    def settle_due(self) -> bool:
+        """The localiser has gated ``navigate.settle_on_gated_scans`` matches in a row (and
+        settling is on)."""
+        n = self.nav.settle_on_gated_scans
+        return (self.localizer is not None and n > 0 and self.nav.goal_settle_spin > 0.0
+                and self.localizer.gated_streak >= n)  # fmt: skip
+
+    def settle(self, k: int) -> str:
+        """Goal settle (``navigate.goal_settle_spin``): stop, turn in place, and correct the
+        pose with the turn's scans stacked by odometry (:meth:`Localizer.match_recent`); the
+        localiser's reason."""
+        assert self.localizer is not None
+        self.stop(k)
+        scans0 = self.scans
+        angle, speed = self.nav.goal_settle_spin, self.nav.goal_settle_spin_speed
+        n_seg = math.ceil(angle / SETTLE_SEGMENT_RAD)
+        for _ in range(n_seg):
+            seg = angle / n_seg
+            spin = Behavior("spin", target=seg, speed=speed,
+                            time_allowance=SETTLE_TIME_FACTOR * seg / speed + 1.0)  # fmt: skip
+            self.run_behavior(k, spin)
+        result = self.localizer.match_recent(self.scans - scans0)
+        if result.status == "tracking":
+            self.T_map_odom = result.map_to_odom
+            self.last_fix_ns = self.t_ns
+            self.loc_covariance = result.covariance
+        return result.reason
+
     def costmap_has_obstacles(self) -> bool:
         return bool(self.costmap.obstacle_count() > 0)
 
@@ -470,6 +508,9 @@ class _Sim:
         status, reason = "failed", ""
         anchor, anchor_ns = self.estimate, self.t_ns  # progress checker
         controller_failures = 0  # recovery round-robin position
+        settles = 0  # goal settles so far (navigate.goal_settle_spin)
+        can_settle = self.localizer is not None and self.nav.goal_settle_spin > 0.0
+        settle_max = self.nav.goal_settle_attempts if can_settle else 0
         while True:
             if (self.t_ns - t0) / NS_PER_S > timeout_s:
                 reason = f"timeout after {timeout_s:g} s"
@@ -477,6 +518,17 @@ class _Sim:
             replan_why = ""
             w0 = time.perf_counter()
             if self.sense():
+                if self.settle_due():
+                    # The localiser's estimate and its scans disagree: a wide look decides
+                    # before the robot drives on, on a pose that may be drifting.
+                    self.control_s += time.perf_counter() - w0  # the scan, not the settle
+                    outcome.setdefault("settles", []).append(self.settle(k))
+                    plan = self.make_plan(goal)
+                    if plan.success:
+                        path = plan.poses
+                    anchor, anchor_ns = self.estimate, self.t_ns
+                    self.next_ctrl_ns = self.t_ns
+                    continue
                 ahead = path_ahead(path[:, :2], self.estimate[:2], self.inscribed)
                 if replan_needed(ahead, self.costmap.master(), self.costmap.geometry,
                                  cfg.planner):  # fmt: skip
@@ -512,6 +564,15 @@ class _Sim:
                     inscribed_radius_m=self.inscribed,
                 )  # fmt: skip
                 self.control_steps += 1
+                if cmd.status == "goal_reached" and settles < settle_max:
+                    # Reached as far as the estimate says: settle (a wide look corrects it),
+                    # then the next control cycle checks the goal again.
+                    self.control_s += time.perf_counter() - w0  # the settle is no control cycle
+                    settles += 1
+                    outcome.setdefault("settles", []).append(self.settle(k))
+                    anchor, anchor_ns = self.estimate, self.t_ns
+                    self.next_ctrl_ns = self.t_ns
+                    continue
                 if cmd.status == "goal_reached":
                     status, reason = "reached", ""
                     self.control_s += time.perf_counter() - w0
@@ -769,6 +830,12 @@ def run_navigate(
                             + ("" if nav.global_relocalization else
                                ", and a localiser that loses track is put back on the "
                                "odometry pose (no global relocalisation while driving)")
+                            + ("" if nav.goal_settle_spin == 0.0 else
+                               f"; settles (a {nav.goal_settle_spin:g} rad turn in place and a "
+                               "match of its scans stacked) at each goal"
+                               + ("" if nav.settle_on_gated_scans == 0 else
+                                  f" and after {nav.settle_on_gated_scans} gated matches in a "
+                                  "row"))
                             if localizer is not None else
                             "ground truth: the navigator is given the true simulated pose"),
             "position_error_m": _stats(err_m), "heading_error_deg": _stats(np.degrees(err_yaw),
@@ -781,6 +848,7 @@ def run_navigate(
             "tracking_jumps_rejected": 0 if localizer is None else localizer.stats.gated,
             "tracking_jumps_confirmed": 0 if localizer is None else localizer.stats.jumps,
             "reseeded_from_odometry": sim.reseeds,
+            "settles": sum(len(o.get("settles", [])) for o in outcomes),
         },
         "goals": outcomes,
         "counts": {st: sum(o["status"] == st for o in outcomes)

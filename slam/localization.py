@@ -35,6 +35,11 @@ below. Per scan (:meth:`Localizer.update`):
    along a corridor-like route used to keep "tracking" 1.3 m off at confidence 0.5.
 5. ``map_to_odom = pose (+) odom^-1`` so the odom frame stays continuous and the map frame jumps.
 
+**Wide match** (:meth:`Localizer.match_recent`, the navigator's goal settle): the last scans,
+stacked by odometry (e.g. those of a turn in place), matched once from the estimate and fused
+past the gate -- a view all round, where one moved piece of furniture weighs little.
+:attr:`Localizer.gated_streak` says how many matches in a row the gate has held back.
+
 **Global relocalisation** (no initial pose, or lost): :func:`global_search` is an exact
 multi-resolution branch-and-bound over every free cell of a coarse field (``global_search_
 resolution``, smear ``global_search_sigma``) and a full turn at ``global_search_angular_
@@ -603,12 +608,19 @@ class Localizer:
         self._recent: deque[float] = deque(maxlen=config.kidnap_check_scans)  # confidences
         self._drop_checked = False  # the current confidence drop was searched already
         self._jump: _Hypothesis | None = None  # gated matches waiting for confirmation
+        self._gated_streak = 0  # consecutive gated matches (a fused match ends the run)
         if initial_pose is not None:
             self.set_initial_pose(initial_pose)
 
     @property
     def status(self) -> Status:
         return self._status
+
+    @property
+    def gated_streak(self) -> int:
+        """Consecutive tracking matches beyond ``match_gate`` (not fused) up to the last scan:
+        the estimate and the scans disagree, and the prediction alone carries the pose."""
+        return self._gated_streak
 
     def set_initial_pose(self, pose: np.ndarray, covariance: np.ndarray | None = None) -> None:
         """Start tracking from ``pose`` (like RViz's /initialpose); checked on the next scan."""
@@ -619,6 +631,7 @@ class Localizer:
         self._status = "tracking"
         self._initial_check = True
         self._jump = None
+        self._gated_streak = 0
         self._hypotheses = []
         self._low_since = None
         self._low_scans = 0
@@ -693,8 +706,8 @@ class Localizer:
             return self._result(stamp, odom, f"too few scan points ({len(pts)}): {what}", 0.0)
         match = match_scan(self.model, pts, self._pose, cfg)
         self.stats.matches[match.method] = self.stats.matches.get(match.method, 0) + 1
-        if cfg.match_gate > 0.0:
-            self._remember(odom, pts, stack=False)  # what a jump hypothesis must explain too
+        # What a jump hypothesis must explain too, and what match_recent stacks.
+        self._remember(odom, pts, stack=False)
         if not match.ok and checking:
             return self._declare_lost(stamp, odom, f"initial pose rejected: {match.reason}; "
                                       f"relocalising globally", match.score)  # fmt: skip
@@ -719,6 +732,8 @@ class Localizer:
                 reason = f"matched ({match.method})"
         else:
             reason = f"match rejected: {match.reason}; dead reckoning"
+        self._gated_streak = self._gated_streak + 1 if gated else (0 if match.ok else
+                                                                   self._gated_streak)  # fmt: skip
         conf = self.model.score(pts, self._pose)
         # 4. Kidnapped? A sudden drop in confidence searches the whole map on this scan; a pose
         #    elsewhere that fits clearly better means the robot is not where we track it.
@@ -797,6 +812,51 @@ class Localizer:
         self.stats.jumps += 1
         return f"{what}: jumped, {cfg.jump_confirm_scans} matches agree"
 
+    def match_recent(self, n_scans: int) -> LocalizationResult:
+        """Match the last ``n_scans`` tracked scans, stacked by odometry in the frame of the last
+        scan, against the map from the estimate and fuse the match without ``match_gate``.
+
+        For a robot standing still and turning in place (a goal "settle"): a narrow scan of a
+        moved piece of furniture fits it confidently off, and the gate then holds the estimate
+        where those matches left it; the scans of a full turn see the walls all around, in which
+        one piece of furniture weighs little. Like a confirmed jump, the prediction's covariance
+        is grown by the innovation before the update, so the wide match is adopted along every
+        axis it constrains. Not tracking, too few points or a failed match leave the estimate as
+        it is (the reason says why)."""
+        stamp = self._last_stamp if self._last_stamp is not None else 0
+        odom = self._odom if self._odom is not None else np.zeros(3)
+        if self._status != "tracking" or self._pose is None:
+            return self._result(stamp, odom, f"no wide match while {self._status}", 0.0)
+        self._gated_streak = 0  # the disagreement has been looked at
+        n = min(max(n_scans, 0), len(self._history))
+        if n == 0:
+            return self._result(stamp, odom, "no tracked scans to match", 0.0)
+        recent = self._history[len(self._history) - n :]
+        cloud = voxel_filter(
+            np.concatenate([transform_points(ominus(odom, o), p) for o, p in recent]),
+            self.config.scan_voxel_size,
+        )
+        match = match_scan(self.model, cloud, self._pose, self.config)
+        if not match.ok:
+            conf = self.model.score(cloud, self._pose)
+            return self._result(stamp, odom, f"wide match of {n} scans rejected: {match.reason}",
+                                conf)  # fmt: skip
+        cfg = self.config
+        r_cov, _ = release_degenerate_axis(
+            match.covariance + np.diag([cfg.match_sigma_floor**2] * 2
+                                       + [cfg.match_sigma_floor_yaw**2]),
+            cfg.scan_match_degeneracy_ratio, UNKNOWN_VARIANCE)  # fmt: skip
+        nu = match.pose - self._pose
+        nu[2] = wrap_angle(nu[2])
+        self._pose, self._cov = kalman_update(self._pose, self._cov + np.outer(nu, nu),
+                                              match.pose, r_cov)  # fmt: skip
+        self._match_pose = self._pose.copy()
+        self._jump = None
+        d = math.hypot(nu[0], nu[1])
+        return self._result(stamp, odom, f"wide match of {n} scans ({match.method}): moved "
+                            f"{d:.2f} m / {math.degrees(abs(nu[2])):.1f} deg",
+                            self.model.score(cloud, self._pose))  # fmt: skip
+
     def _kidnap_check(self, stamp: int, pts: np.ndarray, conf: float
                       ) -> tuple[list[_Hypothesis], str] | None:  # fmt: skip
         """The relocalisation hypotheses and a reason when this scan's confidence fell below
@@ -844,6 +904,7 @@ class Localizer:
         self._status = "lost"
         self._hypotheses = hypotheses or []
         self._jump = None
+        self._gated_streak = 0
         self._contested = False
         self._since_search = 0
         self._history = []
@@ -1039,6 +1100,7 @@ class Localizer:
         self._hypotheses = []
         self._history = []
         self._jump = None
+        self._gated_streak = 0
         self._match_pose = self._pose.copy()
         self._low_since = None
         self._low_scans = 0

@@ -176,3 +176,20 @@ def test_teleop_keys_drive_the_robot_and_tab_hands_over_to_the_route(tmp_path: P
     assert s["errors"] == [] and s["counts"]["mode_switches"] == 1
     truth = np.loadtxt(tmp_path / "teleop" / "groundtruth.tum")
     assert truth[:, 1].max() - truth[0, 1] > 0.3  # driven forward (+x) by the keys
+
+
+def test_live_localisation_loads_the_navigate_profile_as_navigate_does(tmp_path: Path) -> None:
+    # Localising (--map) on the robot's own wheels: the navigate profile's localiser settings
+    # (match gate, no kidnap check), yours on top; mapping keeps the RGB-D profile alone.
+    from rgbdnav.navigate_run import NAVIGATE_PROFILE
+
+    bundle = tmp_path / "map"  # only loaded once the run starts
+    loc = LiveRun(LiveOptions(out=tmp_path / "loc", world=WORLD, map_bundle=bundle))
+    assert NAVIGATE_PROFILE in loc.config_files
+    assert loc.cfg.localizer.match_gate == 3.0 and loc.cfg.localizer.kidnap_check_ratio == 0.0
+    mine = LiveRun(LiveOptions(out=tmp_path / "mine", world=WORLD, map_bundle=bundle,
+                               overrides=["localizer.match_gate=2.0"]))  # fmt: skip
+    assert mine.cfg.localizer.match_gate == 2.0
+    mapping = LiveRun(LiveOptions(out=tmp_path / "map", world=WORLD))
+    assert NAVIGATE_PROFILE not in mapping.config_files
+    assert mapping.cfg.localizer.match_gate == 0.0  # the shipped default

@@ -355,3 +355,93 @@ def test_a_lost_localiser_is_put_back_on_odometry_with_its_last_covariance(
         np.testing.assert_array_equal(cov, tracked[6])  # answer 7, the last before the drop
     assert loc["position_error_m"]["max"] < 0.3
     assert summary["goals"][0]["status"] == "reached"
+
+
+def _biased_localizer(bias_m: float) -> type:
+    """A Localizer whose tracking answers put the robot ``bias_m`` further along the map's x
+    than its own estimate (as narrow matches of moved furniture can, scan after scan) until a
+    settle's wide match (``match_recent``) has answered."""
+    import dataclasses
+
+    from slam.localization import Localizer
+
+    class Biased(Localizer):
+        settled = False
+
+        def update(self, scan, odom_pose):  # type: ignore[no-untyped-def]
+            r = super().update(scan, odom_pose)
+            if Biased.settled or r.status != "tracking":
+                return r
+            shift = np.array([bias_m, 0.0, 0.0])
+            return dataclasses.replace(r, pose=r.pose + shift, map_to_odom=r.map_to_odom + shift)
+
+        def match_recent(self, n_scans):  # type: ignore[no-untyped-def]
+            Biased.settled = True
+            return super().match_recent(n_scans)
+
+    return Biased
+
+
+@pytest.mark.parametrize("settle", [True, False])
+def test_a_goal_settle_turns_in_place_and_drives_on_to_the_corrected_goal(
+    scene: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, settle: bool
+) -> None:
+    # The estimate is 0.3 m ahead of the truth when the goal checker (0.1 m) says "reached".
+    # With the navigate profile's settle the robot turns in place, the wide match puts the
+    # estimate back on the truth, and the next control cycle drives the last 0.3 m.
+    import rgbdnav.navigate_run as navigate_run
+
+    monkeypatch.setattr(navigate_run, "Localizer", _biased_localizer(0.3))
+    spin = "6.0" if settle else "0.0"
+    code, output, summary = _navigate(scene, tmp_path, "--set", "follower.xy_goal_tolerance=0.1",
+                                      "--set", f"navigate.goal_settle_spin={spin}",
+                                      "--goal", "3.0", "1.0")  # fmt: skip
+    assert code == 0, output
+    goal = summary["goals"][0]
+    assert goal["status"] == "reached" and goal["estimated_error_m"] <= 0.1 + 1e-6
+    with open(tmp_path / "commands.csv") as f:
+        statuses = {r["status"] for r in csv.DictReader(f)}
+    if settle:
+        assert len(goal["settles"]) == 1 and goal["settles"][0].startswith("wide match of")
+        assert summary["localization"]["settles"] == 1
+        assert "behavior:spin" in statuses
+        assert goal["final_error_m"] < 0.2
+    else:
+        assert "settles" not in goal and "behavior:spin" not in statuses
+        assert goal["final_error_m"] > 0.2  # the bias stays in the truth
+    assert summary["collisions"]["events"] == 0
+
+
+def test_a_run_of_gated_matches_while_driving_settles_then_replans(
+    scene: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # navigate.settle_on_gated_scans (15 in the navigate profile): a localiser whose matches the
+    # gate has held back that long disagrees with its scans; the robot settles on the way.
+    import rgbdnav.navigate_run as navigate_run
+    from slam.localization import Localizer
+
+    class Contested(Localizer):
+        calls = 0
+
+        def update(self, scan, odom_pose):  # type: ignore[no-untyped-def]
+            Contested.calls += 1
+            return super().update(scan, odom_pose)
+
+        @property
+        def gated_streak(self) -> int:
+            return 15 if Contested.calls == 6 else 0  # the 6th scan, while driving
+
+    monkeypatch.setattr(navigate_run, "Localizer", Contested)
+    code, output, summary = _navigate(scene, tmp_path, "--goal", "5.0", "2.0")
+    assert code == 0, output
+    goal = summary["goals"][0]
+    assert goal["status"] == "reached"
+    assert len(goal["settles"]) == 2  # on the way, then at the goal
+    assert all(r.startswith("wide match of") for r in goal["settles"])
+    assert summary["collisions"]["events"] == 0
+    Contested.calls = 0  # the same disagreement, with settling while driving off
+    code, output, summary = _navigate(scene, tmp_path / "off", "--set",
+                                      "navigate.settle_on_gated_scans=0",
+                                      "--goal", "5.0", "2.0")  # fmt: skip
+    assert code == 0, output
+    assert len(summary["goals"][0]["settles"]) == 1  # at the goal only

@@ -596,3 +596,112 @@ def test_with_dead_reckoning_failing_matches_keep_tracking_until_the_covariance_
     sigmas = [position_sigma(r.covariance) for r in results[4 + n_low : first_lost]]
     assert sigmas == sorted(sigmas) and sigmas[-1] < 0.5
     assert "below lost_score" in results[first_lost].reason
+
+
+def test_agreeing_gated_matches_the_earlier_scans_support_are_adopted_as_a_jump(
+    room_model: MapModel,
+) -> None:
+    # The estimate starts 0.2 m off with a tight covariance (a confidently wrong fix) and the
+    # odometry is trusted to its noise floor, so the covariance stays tight. The first scan fits
+    # the true pose, beyond the gate; two scans mostly hidden by a close arc (their matches
+    # rejected below min_score) follow, then clean scans again. The gated matches agree with
+    # each other, and the earlier scans, stacked by odometry, fit them far better than the
+    # prediction: the estimate jumps at the jump_confirm_scans-th agreeing match.
+    cfg = dataclasses.replace(GATED, kidnap_check_ratio=0.0, dead_reckoning_max_sigma=0.5,
+                              alpha1=0.0, alpha2=0.0, alpha3=0.0, alpha4=0.0)  # fmt: skip
+    truth = ellipse_route()[:8]
+    odom = corrupt_odometry(truth, seed=3)
+    scans = scans_along(WORLD, truth)
+    arc = circle_room(0.0, 0.0, 0.6)[:42]  # 315 deg of a ring round the robot, open front-right
+    for k in (1, 2):
+        c, s = math.cos(truth[k, 2]), math.sin(truth[k, 2])
+        rot = np.array([[c, -s], [s, c]])
+        ring = np.hstack([arc[:, :2] @ rot.T + truth[k, :2], arc[:, 2:] @ rot.T + truth[k, :2]])
+        scans[k] = dataclasses.replace(
+            scans_along(np.vstack([WORLD, ring]), truth[k : k + 1], seed=k)[0],
+            stamp_ns=(k + 1) * SCAN_PERIOD_NS)  # fmt: skip
+    wrong = oplus(truth[0], np.array([0.0, 0.2, 0.0]))
+    tight = np.diag([0.02**2, 0.02**2, (0.5 * DEG) ** 2])
+
+    def drive(config: LocalizerConfig) -> tuple[Localizer, list[LocalizationResult]]:
+        loc = Localizer(room_model, config)
+        loc.set_initial_pose(wrong, tight)
+        return loc, run(loc, scans, odom)
+
+    loc, results = drive(cfg)
+    assert "jump hypothesis 1/3" in results[0].reason
+    assert all("match rejected" in r.reason for r in results[1:3])
+    assert "jump hypothesis 2/3" in results[3].reason
+    assert "jumped, 3 matches agree" in results[4].reason
+    assert loc.stats.jumps == 1 and loc.stats.gated == cfg.jump_confirm_scans
+    assert pose_error(truth[3], results[3].pose)[0] > 0.15  # held until then
+    assert all(pose_error(t, r.pose)[0] < 0.03 for t, r in zip(truth[4:], results[4:],
+                                                                strict=True))  # fmt: skip
+    # Without jumps (jump_confirm_scans 0) the tight covariance holds the estimate off.
+    never, held = drive(dataclasses.replace(cfg, jump_confirm_scans=0))
+    assert never.stats.jumps == 0
+    assert pose_error(truth[4], held[4].pose)[0] > 0.15
+
+
+def test_gated_streak_counts_consecutive_gated_matches_and_a_fused_one_ends_it(
+    room_model: MapModel,
+) -> None:
+    truth = ellipse_route()[:12]
+    odom = corrupt_odometry(truth, seed=5)
+    scans = scans_along(WORLD, truth)
+    for k in (5, 6, 7):
+        scans[k] = displaced_scan(truth, k, np.array([0.25, 0.0, 0.15]))
+    loc = Localizer(room_model, dataclasses.replace(GATED, jump_confirm_scans=0),
+                    initial_pose=truth[0])  # fmt: skip
+    streaks = []
+    for s, o in zip(scans, odom, strict=True):
+        loc.update(s, o)
+        streaks.append(loc.gated_streak)
+    assert streaks == [0] * 5 + [1, 2, 3] + [0] * 4
+
+
+def turn_in_place(centre: np.ndarray, n: int, turn: float) -> np.ndarray:
+    """(n, 3) poses turning ``turn`` [rad] in place at ``centre`` (x, y, yaw)."""
+    return np.array([[centre[0], centre[1], centre[2] + turn * i / (n - 1)] for i in range(n)])
+
+
+NARROW_FOV = 57.0 * DEG  # [rad] a Kinect's depth scan
+
+
+def test_match_recent_corrects_a_gated_estimate_with_the_scans_of_a_turn_stacked(
+    room_model: MapModel,
+) -> None:
+    # A depth camera's narrow scans, turning a full circle in place, with the estimate 0.15 m
+    # and 3 deg off and sure of itself: the gate holds every single-scan match back, while the
+    # turn's scans stacked by odometry are matched, fused past the gate, and correct it.
+    truth = turn_in_place(np.array([4.0 + SHIFT, 3.0 + SHIFT, 0.3]), 24, 2 * math.pi - 0.3)
+    odom = corrupt_odometry(truth, seed=2, scale=1.0, yaw_bias_per_m=0.0)
+    scans = [raycast(WORLD, p, n_beams=160, fov=NARROW_FOV, range_max=4.5, noise_m=RANGE_NOISE,
+                     seed=i, stamp_ns=(i + 1) * SCAN_PERIOD_NS)
+             for i, p in enumerate(truth)]  # fmt: skip
+    # Odometry trusted to its noise floor: the prediction's covariance stays tight.
+    cfg = dataclasses.replace(GATED, jump_confirm_scans=0, kidnap_check_ratio=0.0,
+                              dead_reckoning_max_sigma=0.5, alpha1=0.0, alpha2=0.0, alpha3=0.0,
+                              alpha4=0.0)  # fmt: skip
+    loc = Localizer(room_model, cfg)
+    loc.set_initial_pose(oplus(truth[0], np.array([0.1, -0.11, 3.0 * DEG])),
+                         np.diag([0.01**2, 0.01**2, (0.3 * DEG) ** 2]))  # fmt: skip
+    results = run(loc, scans, odom)
+    before = pose_error(truth[-1], results[-1].pose)
+    assert before[0] > 0.1  # the gate held the single scans back
+    out = loc.match_recent(len(scans))
+    after = pose_error(truth[-1], out.pose)
+    assert out.status == "tracking" and out.reason.startswith(f"wide match of {len(scans)} scans")
+    assert after[0] < 0.03 and after[1] < 1.5 * DEG  # odometry noise: 0.2 deg per scan
+    assert loc.gated_streak == 0
+    # map_to_odom follows, so the next scan predicts from the corrected pose.
+    assert np.allclose(oplus(out.map_to_odom, odom[-1]), out.pose, atol=1e-9)
+
+
+def test_match_recent_leaves_the_estimate_alone_without_tracked_scans(
+    room_model: MapModel,
+) -> None:
+    loc = Localizer(room_model, GATED, initial_pose=np.array([4.0, 3.0, 0.0]))
+    out = loc.match_recent(10)
+    assert out.reason == "no tracked scans to match"
+    assert np.allclose(out.pose, [4.0, 3.0, 0.0])
