@@ -105,6 +105,31 @@ class Keyframe:
     match_points: np.ndarray  # (M, 2) voxel-filtered points used for matching
 
 
+class _Rows:
+    """Rows appended one at a time into a numpy buffer that doubles when full: a scan's stamp,
+    keyframe, offset and tracked pose cost 64 bytes (at most twice that before the buffer fills)
+    instead of ~350 in Python lists of ints and small arrays -- the mapper keeps one entry per
+    scan for as long as it runs (issue #9's soak)."""
+
+    def __init__(self, width: int, dtype: Any = np.float64) -> None:
+        self._buf = np.empty((64, width) if width else 64, dtype=dtype)
+        self._n = 0
+
+    def append(self, row: Any) -> None:
+        if self._n == len(self._buf):
+            self._buf = np.concatenate([self._buf, np.empty_like(self._buf)])
+        self._buf[self._n] = row
+        self._n += 1
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def array(self) -> np.ndarray:
+        """The rows so far (a view: copy it to keep it past the next append)."""
+        return self._buf[: self._n]
+
+
 @dataclass
 class LoopStats:
     proposed: int = 0
@@ -164,10 +189,10 @@ class Mapper:
         self.matches: Counter[str] = Counter()
         self.timings: dict[str, float] = defaultdict(float)
         # Per accepted scan: stamp, keyframe it hangs off, its odometry offset from that keyframe.
-        self._scan_stamps: list[int] = []
-        self._scan_kf: list[int] = []
-        self._scan_offset: list[np.ndarray] = []
-        self._scan_track: list[np.ndarray] = []  # map pose when tracked
+        self._scan_stamps = _Rows(0, np.int64)
+        self._scan_kf = _Rows(0, np.int64)
+        self._scan_offset = _Rows(3)
+        self._scan_track = _Rows(3)  # map pose when tracked
         self._kf_track: list[np.ndarray] = []  # each keyframe's tracked pose when it was made
         self._kf_matched: list[bool] = []  # whether that pose came from a scan match
         self._last_stamp: int | None = None
@@ -553,17 +578,17 @@ class Mapper:
         was tracked in the frame both were matched in, so it is placed from each of them and the
         two are blended by time: a correction the graph made between k and k+1 is spread over
         the scans in between instead of landing as a step at k+1."""
-        if not self._scan_stamps:
+        if not len(self._scan_stamps):
             return np.zeros((0, 3))
-        kf = np.asarray(self._scan_kf)
-        from_prev = oplus(poses[kf], np.asarray(self._scan_offset))
+        kf = self._scan_kf.array
+        from_prev = oplus(poses[kf], self._scan_offset.array)
         nxt = np.minimum(kf + 1, len(poses) - 1)
         # Only a next keyframe that was itself scan-matched shares the scans' tracking frame.
         has_next = (kf + 1 < len(poses)) & np.asarray(self._kf_matched)[nxt]
-        track = np.asarray(self._scan_track)
+        track = self._scan_track.array
         kf_track = np.asarray(self._kf_track)
         from_next = oplus(poses[nxt], ominus(kf_track[nxt], track))
-        stamps = np.asarray(self._scan_stamps, dtype=np.int64)
+        stamps = self._scan_stamps.array
         kf_stamps = np.array([k.stamp_ns for k in self.keyframes], dtype=np.int64)
         span = np.maximum(kf_stamps[nxt] - kf_stamps[kf], 1)
         w = np.where(has_next, np.clip((stamps - kf_stamps[kf]) / span, 0.0, 1.0), 0.0)
@@ -598,7 +623,7 @@ class Mapper:
             keyframes=list(self.keyframes),
             poses=poses,
             edges=[edge_dict(e) for e in self.graph.edges],
-            scan_stamps_ns=np.asarray(self._scan_stamps, dtype=np.int64),
+            scan_stamps_ns=self._scan_stamps.array.copy(),
             scan_poses=scan_poses,
             counts=counts,
             timings_s={k: round(v, 3) for k, v in self.timings.items()},

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -229,6 +229,35 @@ def test_every_accepted_scan_gets_a_pose(corrupted_loop: LoopRun) -> None:
     index = {s: i for i, s in enumerate(result.scan_stamps_ns.tolist())}
     kf_rows = [index[kf.stamp_ns] for kf in result.keyframes]
     np.testing.assert_allclose(result.scan_poses[kf_rows], result.poses, atol=1e-9)
+
+
+def test_a_scan_between_keyframes_costs_the_mapper_under_150_bytes() -> None:
+    """A robot standing still for hours (issue #9's soak): every scan is kept as an offset from
+    its keyframe, so the per-scan state must be small (it was ~350 B in lists of small arrays)."""
+    import tracemalloc
+
+    pose = np.array([5.0, 1.0, 0.0])
+    scan = raycast(LOOP_WORLD, pose, noise_m=0.0, seed=0, range_max=20.0, stamp_ns=1)
+    mapper = Mapper(CFG)
+    stamp = 0
+
+    def feed(n: int) -> None:
+        nonlocal stamp
+        for _ in range(n):
+            stamp += SCAN_PERIOD_NS
+            mapper.add_scan(replace(scan, stamp_ns=stamp), pose)
+
+    feed(50)  # the first keyframe, its local map, and the buffers' first growth
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    feed(2000)
+    grown = tracemalloc.get_traced_memory()[0] - before
+    tracemalloc.stop()
+    assert len(mapper.keyframes) == 1
+    assert grown / 2000 < 150, f"{grown / 2000:.0f} B per scan"
+    result = mapper.finish()
+    assert result.scan_poses.shape == (2050, 3)
+    np.testing.assert_allclose(result.scan_poses, np.tile(pose, (2050, 1)), atol=1e-6)
 
 
 # 4. Bad input is counted, not raised -------------------------------------------------------------
