@@ -43,6 +43,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import solve_banded
 from scipy.sparse import csr_array
 from scipy.sparse.csgraph import dijkstra
 
@@ -293,25 +294,49 @@ def smooth_path(
     origin = np.array([geometry.origin_x, geometry.origin_y])
     hi = np.array([geometry.width + 1, geometry.height + 1])
     m = len(xy) - 2
+    wd, ws = config.smoothing_w_data, config.smoothing_w_smooth
+
+    def passable(cand: np.ndarray, prev: np.ndarray, nxt: np.ndarray) -> np.ndarray:
+        """(m,) bool: interior points ``cand`` and the midpoints of their segments are free."""
+        probes = np.concatenate([cand, 0.5 * (cand + prev), 0.5 * (cand + nxt)])
+        cell = np.floor((probes - origin) / geometry.resolution).astype(np.int64) + 1
+        np.clip(cell, 0, hi, out=cell)
+        return np.asarray(padded[cell[:, 1], cell[:, 0]].reshape(3, m).all(axis=0))
+
     out = xy.copy()
     passes = 2 if config.smoothing_do_refinement else 1
     for _ in range(passes):
         data = out.copy()
+        # The iteration below converges (contraction 1 - w_data at worst) to the solution of
+        # the tridiagonal system w_data (data - x) + w_smooth (x[i-1] + x[i+1] - 2 x) = 0 with
+        # the endpoints fixed. Solved directly (0.1 ms instead of ~100 Python-level sweeps), it
+        # is the answer whenever nothing on it is impassable; otherwise iterate as Nav2 does.
+        fixed = _smoothing_fixed_point(data, wd, ws) if wd > 0.0 else None
+        if fixed is not None and passable(fixed[1:-1], fixed[:-2], fixed[2:]).all():
+            out = fixed
+            continue
         for _ in range(config.smoothing_max_its):
             inner = out[1:-1]
-            step = config.smoothing_w_data * (data[1:-1] - inner) + config.smoothing_w_smooth * (
-                out[:-2] + out[2:] - 2.0 * inner
-            )
+            step = wd * (data[1:-1] - inner) + ws * (out[:-2] + out[2:] - 2.0 * inner)
             cand = inner + step
-            # The point and the midpoints of its segments must stay in passable cells.
-            probes = np.concatenate([cand, 0.5 * (cand + out[:-2]), 0.5 * (cand + out[2:])])
-            cell = np.floor((probes - origin) / geometry.resolution).astype(np.int64) + 1
-            np.clip(cell, 0, hi, out=cell)
-            ok = padded[cell[:, 1], cell[:, 0]].reshape(3, m).all(axis=0)
-            step[~ok] = 0.0
+            step[~passable(cand, out[:-2], out[2:])] = 0.0
             out[1:-1] = inner + step
             if float(np.abs(step).sum()) < config.smoothing_tolerance:
                 break
+    return out
+
+
+def _smoothing_fixed_point(data: np.ndarray, wd: float, ws: float) -> np.ndarray:
+    """The limit of the SimpleSmoother iteration on (N, 2) ``data`` with fixed endpoints: the
+    tridiagonal system (wd + 2 ws) x[i] - ws (x[i-1] + x[i+1]) = wd data[i] (banded solve)."""
+    m = len(data) - 2
+    ab = np.empty((3, m))
+    ab[0], ab[1], ab[2] = -ws, wd + 2.0 * ws, -ws
+    rhs = wd * data[1:-1].copy()
+    rhs[0] += ws * data[0]
+    rhs[-1] += ws * data[-1]
+    out = data.copy()
+    out[1:-1] = solve_banded((1, 1), ab, rhs)
     return out
 
 

@@ -11,10 +11,12 @@ import pytest
 from nav.config import LETHAL_OBSTACLE, NO_INFORMATION, PlannerConfig
 from nav.planner import (
     GridPlanner,
+    _smoothing_fixed_point,
     plan_straight_line,
     points_passable,
     replan_needed,
     resample_path,
+    smooth_path,
 )
 from slam.occupancy_grid import GridGeometry
 
@@ -211,6 +213,52 @@ def test_smoothing_keeps_path_collision_free_and_shortens_it() -> None:
     assert steps.max() <= RES + 1e-9
     np.testing.assert_allclose(smooth.poses[0, :2], start, atol=1e-12)
     np.testing.assert_allclose(smooth.poses[-1, :2], goal, atol=1e-12)
+
+
+def _iterated_smoothing(xy: np.ndarray, cost: np.ndarray, geo: GridGeometry,
+                       cfg: PlannerConfig) -> np.ndarray:  # fmt: skip
+    """SimpleSmoother by its iteration alone, point by point (the reference for smooth_path)."""
+    out = xy.copy()
+    for _ in range(2 if cfg.smoothing_do_refinement else 1):
+        data = out.copy()
+        for _ in range(cfg.smoothing_max_its):
+            new = out.copy()
+            change = 0.0
+            for i in range(1, len(out) - 1):
+                step = cfg.smoothing_w_data * (data[i] - out[i]) + cfg.smoothing_w_smooth * (
+                    out[i - 1] + out[i + 1] - 2.0 * out[i])  # fmt: skip
+                cand = out[i] + step
+                probes = np.array([cand, 0.5 * (cand + out[i - 1]), 0.5 * (cand + out[i + 1])])
+                if points_passable(probes, cost, geo, cfg).all():
+                    new[i] = cand
+                    change += float(np.abs(step).sum())
+            out = new
+            if change < cfg.smoothing_tolerance:
+                break
+    return out
+
+
+@pytest.mark.parametrize("corridor", [0, 1, 3])
+def test_smoothing_equals_the_simple_smoother_iteration(corridor: int) -> None:
+    """Open space (0): the direct solve is the answer. An L-shaped corridor 1 or 3 cells wide:
+    the unconstrained limit cuts the inside corner through the wall, so the iteration runs."""
+    geo = geometry(40, 40)
+    cfg = PlannerConfig()
+    if corridor:
+        cost = np.full((40, 40), LETHAL_OBSTACLE, dtype=np.uint8)
+        cost[5 : 5 + corridor, 2:31] = 0
+        cost[5:36, 31 - corridor : 31] = 0
+        start, goal = centre(5, 3), centre(35, 31 - corridor)
+    else:
+        cost = np.zeros((40, 40), dtype=np.uint8)
+        start, goal = centre(5, 3), centre(35, 30)
+    raw = GridPlanner(PlannerConfig(smooth_path=False, tolerance=0.0))
+    xy = raw.plan(cost, geo, start, goal).poses[:, :2]
+    limit = _smoothing_fixed_point(xy, cfg.smoothing_w_data, cfg.smoothing_w_smooth)
+    assert points_passable(limit, cost, geo, cfg).all() == (corridor == 0)
+    got = smooth_path(xy, cost, geo, cfg)
+    np.testing.assert_allclose(got, _iterated_smoothing(xy, cost, geo, cfg), atol=1e-6)
+    assert points_passable(got, cost, geo, cfg).all()
 
 
 def test_poses_face_along_the_path_and_end_at_goal_yaw() -> None:
