@@ -416,8 +416,10 @@ def live(
         float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")
     ] = None,
     drive: Annotated[
-        str, typer.Option(help="route: drive the route/goals on the estimated pose (auto); "
-                               "teleop: keyboard (manual; Tab switches to auto); idle: stay.")
+        str, typer.Option(help="route: drive the route/goals on the estimated pose (auto; "
+                               "through the nav stack, or straight at each waypoint with --set "
+                               "live.route_driver=direct); teleop: keyboard (manual; Tab "
+                               "switches to auto); idle: stay.")
     ] = "route",
     goal: Annotated[
         list[str] | None,
