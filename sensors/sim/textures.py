@@ -111,18 +111,19 @@ def texture_image(name: str) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class TextureAtlas:
-    """All textures at all mip levels in one flat array of packed RGBA texels."""
+    """All textures at all mip levels in one flat array of packed RGBA texels.
+
+    Each texture owns two TEXTURE_SIZE x TEXTURE_SIZE grids: the finest level, and every coarser
+    level L >= 1 interleaved in a second grid on the rows whose lowest set bit is L - 1, each
+    texel repeated 2^L times along its row. The texel a pixel with finest-level texel (tx, ty)
+    reads on level L is then at ``level_origin[texture, L] + ((ty >> L) << (TEXTURE_BITS + L)) +
+    tx``: the row term is ``(ty << TEXTURE_BITS)`` under a per-level bit mask, so a frame's lookup
+    needs no per-pixel shift by the level (twice the finest level's memory, 1.5x a mip chain).
+    """
 
     names: tuple[str, ...]
     texels: np.ndarray  # (N,) uint32: RGBA packed, so a lookup is one 1-D gather
-    level_offset: np.ndarray  # (MIP_LEVELS,) int64: start of each level in ``texels``
-    level_size: np.ndarray  # (MIP_LEVELS,) int32: side [px] of each level
-
-    @functools.cached_property
-    def level_offset32(self) -> np.ndarray:
-        if self.texels.size >= 2**31:  # pragma: no cover - thousands of textures
-            raise WorldError("texture atlas too large for 32-bit indices")
-        return self.level_offset.astype(np.int32)
+    level_origin: np.ndarray  # (textures, MIP_LEVELS) int32: address of each level's texel (0, 0)
 
     def index(self, name: str) -> int:
         return self.names.index(name)
@@ -131,7 +132,8 @@ class TextureAtlas:
         self, tex_id: np.ndarray, u: np.ndarray, v: np.ndarray, level: np.ndarray
     ) -> np.ndarray:
         """Nearest texel of texture ``tex_id`` at tile coordinates (u, v) (1.0 = one tile) on mip
-        ``level``; returns (N, 4) uint8 RGBA (alpha unused).
+        ``level``; returns (N, 4) uint8 RGBA (alpha unused). The readable reference of the
+        renderer's fused lookup (``KinectRenderer._shade``).
 
         Level L has side TEXTURE_SIZE >> L, so its texel is the finest level's texel shifted
         right by L and wrapping is a bit mask: integer shifts only, no per-pixel size lookup.
@@ -139,28 +141,29 @@ class TextureAtlas:
         mask = np.int32(TEXTURE_SIZE - 1)
         tx = (u * TEXTURE_SIZE).astype(np.int32) & mask
         ty = (v * TEXTURE_SIZE).astype(np.int32) & mask
-        bits = np.int32(TEXTURE_BITS) - level  # log2 of the level's side
-        flat = ((tex_id << bits) + (ty >> level)) << bits
-        flat += tx >> level
-        flat += self.level_offset32[level]
+        flat = ((ty >> level) << (TEXTURE_BITS + level)) + tx + self.level_origin[tex_id, level]
         return np.take(self.texels, flat).view(np.uint8).reshape(-1, 4)
+
+
+def _with_alpha(img: np.ndarray) -> np.ndarray:
+    return np.concatenate([img, np.zeros(img.shape[:-1] + (1,), np.uint8)], axis=-1)
 
 
 @functools.lru_cache(maxsize=4)
 def build_atlas(names: tuple[str, ...]) -> TextureAtlas:
-    images = [texture_image(n) for n in names]
-    levels, offsets, sizes, pos = [], [], [], 0
-    for _ in range(MIP_LEVELS):
-        stack = np.stack(images)
-        rgba = np.concatenate([stack, np.zeros(stack.shape[:-1] + (1,), np.uint8)], axis=-1)
-        levels.append(np.ascontiguousarray(rgba).reshape(-1, 4).view(np.uint32).ravel())
-        offsets.append(pos)
-        sizes.append(stack.shape[1])
-        pos += levels[-1].shape[0]
-        images = [cv2.pyrDown(im) for im in images]
-    return TextureAtlas(
-        names,
-        np.ascontiguousarray(np.concatenate(levels)),
-        np.array(offsets, np.int64),
-        np.array(sizes, np.int32),
-    )
+    grid = TEXTURE_SIZE * TEXTURE_SIZE
+    if 2 * grid * len(names) >= 2**31:  # pragma: no cover - thousands of textures
+        raise WorldError("texture atlas too large for 32-bit indices")
+    texels = np.zeros((len(names), 2, TEXTURE_SIZE, TEXTURE_SIZE, 4), np.uint8)
+    origin = np.zeros((len(names), MIP_LEVELS), np.int64)
+    for t, name in enumerate(names):
+        img = texture_image(name)
+        texels[t, 0] = _with_alpha(img)
+        origin[t, 0] = 2 * t * grid
+        for level in range(1, MIP_LEVELS):
+            img = cv2.pyrDown(img)
+            first_row = 1 << (level - 1)
+            texels[t, 1, first_row :: 1 << level] = np.repeat(_with_alpha(img), 1 << level, axis=1)
+            origin[t, level] = (2 * t + 1) * grid + first_row * TEXTURE_SIZE
+    return TextureAtlas(names, texels.reshape(-1, 4).view(np.uint32).ravel(),
+                        origin.astype(np.int32))  # fmt: skip
