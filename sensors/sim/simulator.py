@@ -74,6 +74,8 @@ def plan_trajectory(
 ) -> Trajectory:
     traj = replay_tum(trajectory, robot, sim) if trajectory else drive_route(world, sim)
     if frames is not None:
+        if frames < 1:
+            raise WorldError(f"frames must be >= 1, got {frames}")
         # Room for the dropped frames; camera_stamps() then keeps exactly ``frames``.
         margin = frames * 2 * sim.frame_drop_probability + 5
         duration_s = min(duration_s or math.inf, (frames + margin) / sim.camera_rate)

@@ -12,7 +12,7 @@ from sensors.config import CameraConfig, RobotConfig, SimConfig
 from sensors.recording import Recording
 from sensors.sim.simulator import camera_stamps, simulate
 from sensors.tum import load_tum_trajectory
-from sensors.types import NS_PER_S
+from sensors.types import NS_PER_S, WorldError
 
 REPO = Path(__file__).resolve().parents[3]
 HOUSE = REPO / "scenes" / "house.yaml"
@@ -81,6 +81,12 @@ def test_exactly_the_requested_frames_despite_drops(tmp_path: Path) -> None:
     sim = SimConfig(frame_drop_probability=0.3)
     simulate(HOUSE, tmp_path / "r", RobotConfig(), CameraConfig(), sim, seed=4, frames=5)
     assert len(Recording.open(tmp_path / "r")) == 5
+
+
+def test_zero_frames_is_refused_with_a_reason(tmp_path: Path) -> None:
+    with pytest.raises(WorldError, match="frames must be >= 1, got 0"):
+        simulate(HOUSE, tmp_path / "r", RobotConfig(), CameraConfig(), SimConfig(), frames=0)
+    assert not (tmp_path / "r").exists()
 
 
 @pytest.mark.skipif(not PIONEER_DIR.is_dir(), reason="../shared/data (TUM pioneer) not present")
