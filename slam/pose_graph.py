@@ -224,6 +224,7 @@ class PoseGraph:
         self._pending_removals: list[int] = []  # iSAM2 factor slots to drop at the next update
         self._next_edge_id = 0
         self._estimate_cache: gtsam.Values | None = gtsam.Values()  # None: ask iSAM2
+        self._poses_cache: np.ndarray | None = None  # poses() until a node or update changes it
 
     @property
     def _estimate(self) -> gtsam.Values:
@@ -260,6 +261,7 @@ class PoseGraph:
             cov = PRIOR_COVARIANCE
         self._initial.append(pose)
         self._in_solver.append(False)
+        self._poses_cache = None
         if cov is not None:
             noise = gtsam.noiseModel.Gaussian.Covariance(cov)
             prior = gtsam.PriorFactorPose2(node, gtsam.Pose2(*pose), noise)
@@ -428,6 +430,7 @@ class PoseGraph:
         for _ in range(extra_iterations if self._isam.size() else 0):
             self._run_isam(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], force_relinearize=True)
         self._estimate_cache = None
+        self._poses_cache = None
 
     def _run_isam(
         self,
@@ -492,6 +495,7 @@ class PoseGraph:
         for k in new_nodes:
             self._in_solver[k] = True
         self._estimate_cache = None
+        self._poses_cache = None
         log.info(
             "batch LM: error %.6g -> %.6g in %d iterations (%.3f s)",
             stats.initial_error,
@@ -506,12 +510,17 @@ class PoseGraph:
     # ---------------------------------------------------------------------------------------------
 
     def poses(self) -> np.ndarray:
-        """(N, 3) float64 (x [m], y [m], yaw [rad]): solver estimate, initial guess if queued."""
-        out = np.array(self._initial, dtype=np.float64).reshape(-1, 3)
-        if self._estimate.size():
-            keys = np.array(sorted(self._estimate.keys()), dtype=np.int64)
-            out[keys] = gtsam.utilities.extractPose2(self._estimate)
-        return out
+        """(N, 3) float64 (x [m], y [m], yaw [rad]): solver estimate, initial guess if queued.
+
+        A fresh copy each call; the array it is copied from is kept until the next ``add_node``,
+        ``update`` or ``optimize_batch`` (the mapper asks several times per keyframe)."""
+        if self._poses_cache is None:
+            out = np.array(self._initial, dtype=np.float64).reshape(-1, 3)
+            if self._estimate.size():
+                keys = np.array(sorted(self._estimate.keys()), dtype=np.int64)
+                out[keys] = gtsam.utilities.extractPose2(self._estimate)
+            self._poses_cache = out
+        return self._poses_cache.copy()
 
     def pose(self, i: int) -> np.ndarray:
         """(3,) pose of node i (see ``poses``)."""

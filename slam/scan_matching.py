@@ -26,9 +26,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
+from scipy.linalg.lapack import dgesv as gesv
 from scipy.spatial import cKDTree
 
 from sensors.types import LaserScan
@@ -36,7 +38,7 @@ from slam.geometry import wrap_angle
 
 NORMAL_NEIGHBOURS = 5  # points used to fit each reference point's line (incl. itself)
 MIN_POINTS = 10  # fewer matched points than this is not a match
-SCORE_CHUNK = 8192  # candidates scored per gather (x scan points x 8 bytes of indices)
+SCORE_CHUNK_ELEMENTS = 2**17  # candidate x scan point indices per gather (1 MiB: in cache)
 PLANARITY_MAX = 0.2  # smaller/larger eigenvalue ratio above which a neighbourhood is no line
 DEGENERATE_EIGENVALUE = 1e-9  # information floor relative to the strongest direction
 GRID_GRADIENT_SIGMA_CELLS = 1.0  # [cells] occupancy blur before the gradient (grid normals)
@@ -47,6 +49,8 @@ AMBIGUITY_STRIDE_CELLS = 4
 AMBIGUITY_ANGLES = np.radians([-2.0, 0.0, 2.0])  # [rad] yaw offsets from the match
 AMBIGUITY_REFINED = 5
 AMBIGUITY_CHUNK = 2048  # far samples scored per gather (x scan points x 2 x 8 bytes)
+EYE3 = np.eye(3)
+EYE3.setflags(write=False)
 
 
 # 1. Scan points ---------------------------------------------------------------------------------
@@ -71,8 +75,15 @@ def voxel_filter(points: np.ndarray, voxel_m: float) -> np.ndarray:
     keys = np.floor(points / voxel_m).astype(np.int64)
     keys -= keys.min(axis=0)
     flat = keys[:, 0] * (int(keys[:, 1].max()) + 1) + keys[:, 1]
-    _, first = np.unique(flat, return_index=True)
-    return points[np.sort(first)]
+    # Sort (cell, index) packed into one integer: distinct keys, so the fast unstable sort
+    # orders each cell's points by index and the first of a run is the cell's first point.
+    n = len(points)
+    packed = np.sort(flat * n + np.arange(n))
+    cell = packed // n
+    starts = np.empty(n, bool)
+    starts[0] = True
+    np.not_equal(cell[1:], cell[:-1], out=starts[1:])
+    return points[np.sort(packed[starts] % n)]
 
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -101,10 +112,19 @@ class LikelihoodField:
 
     def lookup(self, points: np.ndarray) -> np.ndarray:
         """Field value at world points (N, 2), 0 outside the grid (nearest cell)."""
-        rc = np.floor((points - self.origin) / self.resolution).astype(np.int64)
+        return self.lookup_xy(points[:, 0], points[:, 1])
+
+    def lookup_xy(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Field value at world points given as two arrays of one shape (e.g. candidate poses x
+        scan points), 0 outside the grid (nearest cell)."""
         h, w = self.field.shape
-        col, row = np.clip(rc[:, 0], 0, w - 1), np.clip(rc[:, 1], 0, h - 1)
-        return self.field[row, col]
+        col = np.floor((x - self.origin[0]) / self.resolution).astype(np.int64)
+        row = np.floor((y - self.origin[1]) / self.resolution).astype(np.int64)
+        np.minimum(np.maximum(col, 0, out=col), w - 1, out=col)  # np.clip, without its overhead
+        np.minimum(np.maximum(row, 0, out=row), h - 1, out=row)
+        row *= w
+        row += col
+        return np.take(self.flat_levels[0], row)
 
 
 def build_likelihood_field(
@@ -124,25 +144,32 @@ def build_likelihood_field(
     rc = np.floor((points - origin) / resolution).astype(np.int64)
     free = np.full((h, w), 255, np.uint8)
     free[rc[:, 1], rc[:, 0]] = 0
-    # Distance [cells] from each cell centre to the nearest occupied cell centre.
-    dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    sig_cells = smear_sigma / resolution
-    field = np.exp(-0.5 * (dist / sig_cells) ** 2).astype(np.float32)
-    field[[0, -1], :] = 0.0
-    field[:, [0, -1]] = 0.0
-    levels = [field]
-    for k in range(1, n_levels):
-        size_k = 2**k
-        kernel = np.ones((size_k, size_k), np.uint8)
-        pooled = cv2.dilate(
-            field, kernel, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT, borderValue=0
-        )
-        levels.append(pooled)
     # Off-grid points are pointed at the zero tail, where every shift of the window stays.
+    # Each level is the head of its flat array (a view), so the flat form costs no copy.
     max_cells = 2 * int(math.ceil(margin_m / resolution)) + 1
-    tail = np.zeros((max_cells + 1) * (w + 1), np.float32)
-    flat = tuple(np.concatenate([lv.ravel(), tail]) for lv in levels)
-    return LikelihoodField(origin=origin, resolution=resolution, levels=tuple(levels),
+    tail = (max_cells + 1) * (w + 1)
+    flat = tuple(np.zeros(h * w + tail, np.float32) for _ in range(n_levels))
+    levels = tuple(f[: h * w].reshape(h, w) for f in flat)
+    # Distance [cells] from each cell centre to the nearest occupied cell centre, then the field
+    # exp(-d^2 / 2 sigma^2) computed in place.
+    dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    np.divide(dist, smear_sigma / resolution, out=dist)
+    np.square(dist, out=dist)
+    np.multiply(dist, -0.5, out=dist)
+    field = levels[0]
+    np.exp(dist, out=field)
+    field[0, :] = field[-1, :] = 0.0
+    field[:, 0] = field[:, -1] = 0.0
+    cols_max = np.empty_like(field)
+    for k in range(1, n_levels):
+        # The maximum over a 2^k block is that of the 2 x 2 blocks of level k - 1 half a block
+        # apart (columns, then rows); beyond the border the field is 0, below every value.
+        prev, pooled, half = levels[k - 1], levels[k], 2 ** (k - 1)
+        np.maximum(prev[:, :-half], prev[:, half:], out=cols_max[:, :-half])
+        cols_max[:, -half:] = prev[:, -half:]
+        np.maximum(cols_max[:-half], cols_max[half:], out=pooled[:-half])
+        pooled[-half:] = cols_max[-half:]
+    return LikelihoodField(origin=origin, resolution=resolution, levels=levels,
                            flat_levels=flat, max_window_cells=max_cells)  # fmt: skip
 
 
@@ -166,10 +193,18 @@ def _block_scores(
     ``base`` (A, N) holds each point's flat cell index at shift (0, 0), or the start of the zero
     tail for points that some shift of the window would move off the grid (they score 0)."""
     out = np.empty(len(a), np.float64)
-    for lo in range(0, len(a), SCORE_CHUNK):  # bounded memory: SCORE_CHUNK x N indices at once
-        hi = lo + SCORE_CHUNK
-        flat = base[a[lo:hi]] + (di[lo:hi] * w + dj[lo:hi])[:, None]
-        out[lo:hi] = np.take(flat_level, flat).mean(axis=1)
+    # Chunks of candidates small enough for the index and value buffers to stay in cache; the
+    # indices are valid by construction, and mode="clip" lets np.take write to ``out`` unbuffered.
+    chunk = max(1, min(len(a), SCORE_CHUNK_ELEMENTS // max(base.shape[1], 1)))
+    flat = np.empty((chunk, base.shape[1]), np.intp)
+    values = np.empty((chunk, base.shape[1]), flat_level.dtype)
+    for lo in range(0, len(a), chunk):
+        hi = min(lo + chunk, len(a))
+        idx, val = flat[: hi - lo], values[: hi - lo]
+        np.take(base, a[lo:hi], axis=0, out=idx, mode="clip")
+        idx += (di[lo:hi] * w + dj[lo:hi])[:, None]
+        np.take(flat_level, idx, out=val, mode="clip")
+        out[lo:hi] = val.mean(axis=1)
     return out
 
 
@@ -313,9 +348,7 @@ def rival_score(
         wy = s * points[:, 0] + c * points[:, 1] + pose[1]
         for lo in range(0, len(dx), AMBIGUITY_CHUNK):
             sx, sy = dx[lo : lo + AMBIGUITY_CHUNK], dy[lo : lo + AMBIGUITY_CHUNK]
-            xy = np.stack([(wx[None, :] + sx[:, None]).ravel(),
-                           (wy[None, :] + sy[:, None]).ravel()], axis=1)  # fmt: skip
-            sc = field.lookup(xy).reshape(len(sx), len(wx)).mean(axis=1)
+            sc = field.lookup_xy(wx[None, :] + sx[:, None], wy[None, :] + sy[:, None]).mean(axis=1)
             top = np.argsort(sc)[-AMBIGUITY_REFINED:]
             best.extend((float(sc[t]), float(sx[t]), float(sy[t]), float(yaw)) for t in top)
     best.sort(reverse=True)
@@ -331,10 +364,9 @@ def rival_score(
         c, s = math.cos(yaw), math.sin(yaw)
         wx = c * points[:, 0] - s * points[:, 1] + pose[0]
         wy = s * points[:, 0] + c * points[:, 1] + pose[1]
-        xy = np.stack([(wx[None, :] + ox[keep][:, None]).ravel(),
-                       (wy[None, :] + oy[keep][:, None]).ravel()], axis=1)  # fmt: skip
-        if len(xy):
-            rival = max(rival, float(field.lookup(xy).reshape(-1, len(wx)).mean(axis=1).max()))
+        if keep.any():
+            sc = field.lookup_xy(wx[None, :] + ox[keep][:, None], wy[None, :] + oy[keep][:, None])
+            rival = max(rival, float(sc.mean(axis=1).max()))
     return rival
 
 
@@ -352,6 +384,13 @@ class ReferenceCloud:
     normals: np.ndarray  # (M + 1, 2) unit; (0, 0) where the neighbourhood is no line
     tree: cKDTree
 
+    @cached_property
+    def columns(self) -> np.ndarray:
+        """(5, M + 1) float64 rows q_x [m], q_y [m], n_x, n_y, has-a-normal (1.0 or 0.0): all
+        that ICP needs of a neighbour, gathered with one ``np.take`` per iteration."""
+        has_normal = np.any(self.normals != 0, axis=1)
+        return np.vstack([self.points.T, self.normals.T, has_normal])
+
     @property
     def size(self) -> int:
         return len(self.points) - 1
@@ -360,22 +399,23 @@ class ReferenceCloud:
 def build_reference(points: np.ndarray) -> ReferenceCloud:
     """Normals by PCA of each point's ``NORMAL_NEIGHBOURS`` nearest neighbours (vectorised)."""
     tree = cKDTree(points)
-    k = min(NORMAL_NEIGHBOURS, len(points))
+    m, k = len(points), min(NORMAL_NEIGHBOURS, len(points))
     _, idx = tree.query(points, k=k)
-    nb = points[np.asarray(idx).reshape(len(points), k)]
-    d = nb - nb.mean(axis=1, keepdims=True)
-    sxx = np.einsum("mk,mk->m", d[..., 0], d[..., 0]) / k
-    syy = np.einsum("mk,mk->m", d[..., 1], d[..., 1]) / k
-    sxy = np.einsum("mk,mk->m", d[..., 0], d[..., 1]) / k
+    idx = np.asarray(idx).reshape(m, k)
+    # Neighbourhoods as (M, k) planes of x and of y: the sums over k run along contiguous rows.
+    nbx, nby = points[:, 0][idx], points[:, 1][idx]
+    dx = nbx - nbx.mean(axis=1, keepdims=True)
+    dy = nby - nby.mean(axis=1, keepdims=True)
+    sxx, syy, sxy = (dx * dx).sum(axis=1) / k, (dy * dy).sum(axis=1) / k, (dx * dy).sum(axis=1) / k
     # Closed-form 2x2 eigen-decomposition: the line direction is at angle phi, the normal at
     # phi + 90 deg; the eigenvalues are mean -+ radius.
     phi = 0.5 * np.arctan2(2 * sxy, sxx - syy)
-    normals = np.column_stack([-np.sin(phi), np.cos(phi)])
     mean, radius = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
     linear = (mean - radius) <= PLANARITY_MAX * np.maximum(mean + radius, 1e-12)
-    normals = np.where(linear[:, None], normals, 0.0)
-    zero = np.zeros((1, 2))
-    return ReferenceCloud(np.vstack([points, zero]), np.vstack([normals, zero]), tree)
+    padded, normals = np.zeros((m + 1, 2)), np.zeros((m + 1, 2))
+    padded[:m] = points
+    normals[:m][linear] = np.column_stack([-np.sin(phi[linear]), np.cos(phi[linear])])
+    return ReferenceCloud(padded, normals, tree)
 
 
 def build_grid_reference(
@@ -439,34 +479,47 @@ def icp_refine(
     min_sigma_m: float = 0.01,
     tolerance: float = 5e-4,
 ) -> IcpResult:
-    """Point-to-line Gauss-Newton from ``initial`` (see module docstring)."""
+    """Point-to-line Gauss-Newton from ``initial`` (see module docstring).
+
+    Per iteration this is one k-d tree query, one gather of the neighbours' rows and a few
+    vector operations on preallocated buffers (the ICP is a third of the mapper's time); the
+    arithmetic is the one of the straightforward kernel, operation for operation, so the result
+    is bit-identical to it (``tests/slam/test_scan_matching.py`` keeps that kernel as reference)."""
+    if not huber_m > 0:
+        raise ValueError(f"huber_m must be > 0, got {huber_m}")
     pose = np.asarray(initial, dtype=np.float64).copy()
     n = max(len(points), 1)
     failed = IcpResult(pose.copy(), np.diag([1e6, 1e6, 1e6]), math.inf, 0.0, 0, False)
     px, py = points[:, 0], points[:, 1]
+    world = np.empty((len(points), 2))  # scan points in the reference frame (tree query input)
+    wx, wy = world[:, 0], world[:, 1]
+    jac = np.empty((len(points), 3))  # rows [n_x, n_y, n . (dR/dyaw p)]
     it, converged = 0, False
     for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
         c, s = math.cos(pose[2]), math.sin(pose[2])
-        wx, wy = c * px - s * py + pose[0], s * px + c * py + pose[1]
-        _, idx = ref.tree.query(np.column_stack([wx, wy]),
-                                distance_upper_bound=max_correspondence_m)  # fmt: skip
-        nx, ny = ref.normals[idx, 0], ref.normals[idx, 1]  # zero for a missing neighbour
-        r = nx * (wx - ref.points[idx, 0]) + ny * (wy - ref.points[idx, 1])
-        jac = np.column_stack([nx, ny, nx * (-s * px - c * py) + ny * (c * px - s * py)])
-        absr = np.abs(r)
-        wts = np.where(absr <= huber_m, 1.0, huber_m / np.maximum(absr, 1e-12))
-        wts *= (nx != 0) | (ny != 0)
+        rx, ry = c * px - s * py, s * px + c * py  # R p; dR/dyaw p = (-ry, rx)
+        np.add(rx, pose[0], out=wx)
+        np.add(ry, pose[1], out=wy)
+        _, idx = ref.tree.query(world, distance_upper_bound=max_correspondence_m)
+        # A missing neighbour (index M) has zero normal and point: zero residual and Jacobian.
+        qx, qy, nx, ny, has_normal = np.take(ref.columns, idx, axis=1)
+        r = nx * (wx - qx) + ny * (wy - qy)
+        jac[:, 0], jac[:, 1] = nx, ny
+        np.subtract(ny * rx, nx * ry, out=jac[:, 2])
+        # Huber: 1 inside the width, width / |r| beyond (huber_m > 0); 0 without a normal.
+        wts = huber_m / np.maximum(np.abs(r), huber_m)
+        wts *= has_normal
         n_used = int(np.count_nonzero(wts))
         if n_used < MIN_POINTS:
             return failed
         jw = jac * wts[:, None]
         hess = jw.T @ jac
-        try:
-            delta = -np.linalg.solve(hess + 1e-9 * np.trace(hess) * np.eye(3), jw.T @ r)
-        except np.linalg.LinAlgError:
+        # LAPACK's gesv, which np.linalg.solve wraps, without the wrapper's overhead.
+        _, _, step, info = gesv(hess + 1e-9 * np.trace(hess) * EYE3, jw.T @ r)
+        if info != 0:  # exactly singular
             return failed
-        pose += delta
-        if abs(delta[0]) + abs(delta[1]) < tolerance and abs(delta[2]) < tolerance:
+        pose -= step
+        if abs(step[0]) + abs(step[1]) < tolerance and abs(step[2]) < tolerance:
             converged = True
             break
     pose[2] = float(wrap_angle(pose[2]))

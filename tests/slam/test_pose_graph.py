@@ -240,6 +240,23 @@ def test_nodes_wait_until_an_edge_anchors_them():
     np.testing.assert_allclose(graph.pose(1), [1, 0, 0], atol=1e-6)
 
 
+def test_poses_is_a_fresh_copy_that_follows_new_nodes_updates_and_batch_runs():
+    graph = PoseGraph()
+    odometry_chain(graph)
+    first = graph.poses()
+    first[:] = 0.0  # the caller's copy, not the graph's
+    np.testing.assert_array_equal(graph.poses(), [graph.pose(k) for k in range(N)])
+    graph.add_node([9.0, 9.0, 0.5])  # queued: its initial guess
+    np.testing.assert_array_equal(graph.poses()[-1], [9.0, 9.0, 0.5])
+    graph.add_edge(N - 1, N, relative(TRUTH[-1], TRUTH[0]), ODOM_COV)
+    graph.add_edge(N, 0, [0.0, 0.0, 0.0], LOOP_COV)
+    graph.update()
+    np.testing.assert_array_equal(graph.poses(), [graph.pose(k) for k in range(N + 1)])
+    assert np.abs(graph.poses()[-1, :2] - 9.0).max() > 1.0  # the solver moved it
+    graph.optimize_batch()
+    np.testing.assert_array_equal(graph.poses(), [graph.pose(k) for k in range(N + 1)])
+
+
 def test_to_arrays_and_from_arrays_round_trip_keeps_ids_and_solution():
     graph, _, loop = closed_square()
     graph.remove_edge(3)

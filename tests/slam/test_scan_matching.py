@@ -10,11 +10,14 @@ import pytest
 
 # tests/ is no package: pytest's default (prepend) import mode puts tests/slam on sys.path.
 from scan_scenes import ROOM, raycast
+from scipy.spatial import cKDTree
 
 from sensors.types import LaserScan
 from slam.geometry import compose, wrap_angle
 from slam.scan_matching import (
+    IcpResult,
     LikelihoodField,
+    ReferenceCloud,
     build_likelihood_field,
     build_reference,
     correlative_match,
@@ -376,6 +379,12 @@ def test_icp_refine_without_correspondences_fails_without_raising() -> None:
     np.testing.assert_array_equal(res.pose, REF_POSE)
 
 
+def test_icp_refine_rejects_a_huber_width_that_is_not_positive() -> None:
+    ref = build_reference(world_points(ROOM, REF_POSE))
+    with pytest.raises(ValueError, match="huber_m must be > 0"):
+        icp_refine(ref, body_points(ROOM, REF_POSE), REF_POSE, MAX_CORRESPONDENCE, huber_m=0.0)
+
+
 def test_build_reference_normals_are_perpendicular_to_a_straight_wall() -> None:
     direction = np.array([math.cos(0.4), math.sin(0.4)])
     pts = np.array([1.0, -2.0]) + np.linspace(0.0, 3.0, 31)[:, None] * direction
@@ -503,3 +512,137 @@ def test_rival_score_is_zero_when_the_window_holds_no_far_pose() -> None:
     pts = body_points(ROOM, REF_POSE)
     assert rival_score(field, pts, REF_POSE, 0.5, 1.0) == 0.0
     assert rival_score(field, np.zeros((0, 2)), REF_POSE, 2.0, 1.0) == 0.0
+
+
+# 6. Fast kernels against their straightforward references ----------------------------------------
+# The kernels above are tuned for speed (buffers, one gather, LAPACK directly); these are the
+# plain versions they replaced, kept to pin down that the tuning changed no result.
+
+
+def reference_normals(points: np.ndarray) -> np.ndarray:
+    """PCA normals of the ``k`` nearest neighbours, written as (M, k, 2) einsums; (M, 2)."""
+    k = min(5, len(points))
+    _, idx = cKDTree(points).query(points, k=k)
+    nb = points[np.asarray(idx).reshape(len(points), k)]
+    d = nb - nb.mean(axis=1, keepdims=True)
+    sxx = np.einsum("mk,mk->m", d[..., 0], d[..., 0]) / k
+    syy = np.einsum("mk,mk->m", d[..., 1], d[..., 1]) / k
+    sxy = np.einsum("mk,mk->m", d[..., 0], d[..., 1]) / k
+    phi = 0.5 * np.arctan2(2 * sxy, sxx - syy)
+    normals = np.column_stack([-np.sin(phi), np.cos(phi)])
+    mean, radius = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
+    linear = (mean - radius) <= 0.2 * np.maximum(mean + radius, 1e-12)
+    return np.where(linear[:, None], normals, 0.0)
+
+
+def reference_icp(
+    ref: ReferenceCloud, points: np.ndarray, initial: np.ndarray, max_correspondence_m: float,
+    max_iterations: int = 20, huber_m: float = 0.05, min_sigma_m: float = 0.01,
+    tolerance: float = 5e-4,
+) -> IcpResult:  # fmt: skip
+    """Point-to-line Gauss-Newton with a fresh (N, 3) Jacobian and np.linalg.solve per
+    iteration."""
+    pose = np.asarray(initial, dtype=np.float64).copy()
+    failed = IcpResult(pose.copy(), np.diag([1e6, 1e6, 1e6]), math.inf, 0.0, 0, False)
+    px, py = points[:, 0], points[:, 1]
+    it, converged = 0, False
+    for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        wx, wy = c * px - s * py + pose[0], s * px + c * py + pose[1]
+        _, idx = ref.tree.query(np.column_stack([wx, wy]),
+                                distance_upper_bound=max_correspondence_m)  # fmt: skip
+        nx, ny = ref.normals[idx, 0], ref.normals[idx, 1]
+        r = nx * (wx - ref.points[idx, 0]) + ny * (wy - ref.points[idx, 1])
+        jac = np.column_stack([nx, ny, nx * (-s * px - c * py) + ny * (c * px - s * py)])
+        absr = np.abs(r)
+        wts = np.where(absr <= huber_m, 1.0, huber_m / np.maximum(absr, 1e-12))
+        wts *= (nx != 0) | (ny != 0)
+        n_used = int(np.count_nonzero(wts))
+        if n_used < 10:
+            return failed
+        jw = jac * wts[:, None]
+        hess = jw.T @ jac
+        delta = -np.linalg.solve(hess + 1e-9 * np.trace(hess) * np.eye(3), jw.T @ r)
+        pose += delta
+        if abs(delta[0]) + abs(delta[1]) < tolerance and abs(delta[2]) < tolerance:
+            converged = True
+            break
+    pose[2] = float(wrap_angle(pose[2]))
+    rmse = math.sqrt(float(np.sum(wts * r**2)) / max(float(np.sum(wts)), 1e-12))
+    sigma2 = max(float(np.sum(wts * r**2)) / max(n_used - 3, 1), min_sigma_m**2)
+    evals, evecs = np.linalg.eigh(0.5 * (hess + hess.T))
+    evals = np.maximum(evals, 1e-9 * max(float(evals[-1]), 1e-12))
+    cov = sigma2 * (evecs / evals) @ evecs.T
+    inliers = float(np.count_nonzero(idx < ref.size)) / len(points)
+    return IcpResult(pose, 0.5 * (cov + cov.T), rmse, inliers, it, converged)
+
+
+def test_build_reference_normals_equal_the_einsum_reference_on_random_clouds() -> None:
+    rng = np.random.default_rng(11)
+    clouds = [world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.01, seed=3),
+              rng.normal(size=(400, 2)) * 3.0,
+              np.column_stack([np.arange(40) * 0.05, np.zeros(40)]),  # exact ties, axis-aligned
+              rng.normal(size=(3, 2))]  # fmt: skip
+    for pts in clouds:
+        ref = build_reference(pts)
+        np.testing.assert_array_equal(ref.normals[:-1], reference_normals(pts))
+        np.testing.assert_array_equal(ref.points[:-1], pts)
+        np.testing.assert_array_equal(ref.columns[:, -1], 0.0)  # the missing-neighbour row
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_icp_refine_equals_the_reference_kernel_from_random_starts(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    ref = build_reference(world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.01, seed=seed))
+    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270), noise_m=0.01,
+                      seed=50 + seed)  # fmt: skip
+    start = ICP_TRUTH + rng.normal(size=3) * [0.1, 0.1, math.radians(3)]
+    iterations = int(rng.integers(1, 21))
+    fast = icp_refine(ref, pts, start, MAX_CORRESPONDENCE, max_iterations=iterations)
+    plain = reference_icp(ref, pts, start, MAX_CORRESPONDENCE, max_iterations=iterations)
+    # The same operations in the same order, so equal to the last bit with this build's LAPACK;
+    # the tolerance keeps the test about behaviour rather than about one LAPACK build.
+    assert (fast.iterations, fast.converged) == (plain.iterations, plain.converged)
+    assert fast.inlier_fraction == plain.inlier_fraction
+    np.testing.assert_allclose(fast.pose, plain.pose, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(fast.covariance, plain.covariance, rtol=1e-9, atol=0.0)
+    assert fast.rmse == pytest.approx(plain.rmse, rel=1e-9)
+
+
+def test_icp_refine_equals_the_reference_kernel_when_too_few_points_match() -> None:
+    ref = build_reference(world_points(ROOM, REF_POSE))
+    pts = body_points(ROOM, REF_POSE)[:8]
+    fast = icp_refine(ref, pts, REF_POSE, MAX_CORRESPONDENCE)
+    plain = reference_icp(ref, pts, REF_POSE, MAX_CORRESPONDENCE)
+    assert (fast.rmse, fast.converged, fast.iterations) == (plain.rmse, plain.converged, 0)
+    np.testing.assert_array_equal(fast.pose, plain.pose)
+
+
+def test_voxel_filter_equals_np_unique_first_occurrence_on_random_clouds() -> None:
+    rng = np.random.default_rng(4)
+    for n, voxel in ((1, 0.1), (50, 0.5), (2000, 0.05), (2000, 0.3)):
+        pts = rng.uniform(-5.0, 5.0, size=(n, 2))
+        keys = np.floor(pts / voxel).astype(np.int64)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        np.testing.assert_array_equal(voxel_filter(pts, voxel), pts[np.sort(first)])
+
+
+def test_lookup_xy_on_a_batch_equals_lookup_of_the_stacked_points() -> None:
+    field = room_field()
+    rng = np.random.default_rng(8)
+    x, y = rng.uniform(-2.0, 12.0, size=(2, 7, 30))  # some off the grid
+    stacked = field.lookup(np.column_stack([x.ravel(), y.ravel()])).reshape(7, 30)
+    np.testing.assert_array_equal(field.lookup_xy(x, y), stacked)
+    rows = np.clip(np.floor((y - field.origin[1]) / RES).astype(int), 0, field.field.shape[0] - 1)
+    cols = np.clip(np.floor((x - field.origin[0]) / RES).astype(int), 0, field.field.shape[1] - 1)
+    np.testing.assert_array_equal(stacked, field.field[rows, cols])
+
+
+def test_flat_levels_hold_the_levels_followed_by_a_zero_tail() -> None:
+    field = room_field()
+    h, w = field.field.shape
+    for level, flat in zip(field.levels, field.flat_levels, strict=True):
+        np.testing.assert_array_equal(flat[: h * w], level.ravel())
+        assert len(flat) >= h * w + (field.max_window_cells + 1) * (w + 1)
+        assert not flat[h * w :].any()
+    assert field.field.dtype == np.float32 and field.field.max() == 1.0  # exp(0)
