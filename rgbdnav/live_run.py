@@ -190,12 +190,17 @@ def route_command(pose: np.ndarray, target: np.ndarray, max_v: float, max_w: flo
 # --- the run ----------------------------------------------------------------------------------
 
 
+LIVE_PROFILE = RGBD_PROFILE.with_name("live.yaml")  # real-time front-end settings
+
+
 class LiveRun:
     def __init__(self, opts: LiveOptions) -> None:
         self.opts = opts
         # Depth scans: the RGB-D mapping profile; localising (--map) on the robot's own wheels:
-        # the navigate profile too, as `rgbdnav navigate` loads them; yours win.
+        # the navigate profile too, as `rgbdnav navigate` loads them; real time: the live
+        # profile (optical-flow VO); yours win.
         profiles = [RGBD_PROFILE] + ([NAVIGATE_PROFILE] if opts.map_bundle is not None else [])
+        profiles.append(LIVE_PROFILE)
         files = [p for p in profiles if p.is_file()] + list(opts.config_files)
         cfg = load_config(files, opts.overrides)
         # Frames reach the EKF later than wheel ticks (render, queue, VO): it must re-filter

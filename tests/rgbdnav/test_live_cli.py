@@ -193,3 +193,14 @@ def test_live_localisation_loads_the_navigate_profile_as_navigate_does(tmp_path:
     mapping = LiveRun(LiveOptions(out=tmp_path / "map", world=WORLD))
     assert NAVIGATE_PROFILE not in mapping.config_files
     assert mapping.cfg.localizer.match_gate == 0.0  # the shipped default
+
+
+def test_live_runs_optical_flow_vo_unless_told_otherwise(tmp_path: Path) -> None:
+    from rgbdnav.config import load_config
+    from rgbdnav.live_run import LIVE_PROFILE
+
+    assert load_config([], []).vo.cor_type == "features"  # offline default: ORB matching
+    live = LiveRun(LiveOptions(out=tmp_path / "a", world=WORLD))
+    assert LIVE_PROFILE in live.config_files and live.cfg.vo.cor_type == "optical_flow"
+    mine = LiveRun(LiveOptions(out=tmp_path / "b", world=WORLD, overrides=["vo.cor_type=features"]))
+    assert mine.cfg.vo.cor_type == "features"
