@@ -1133,6 +1133,9 @@ def motion_from_flow(
     Returns (result, idx, uv) of the inlier tracks, to be tracked into the next frame."""
     t0 = time.perf_counter() if t0 is None else t0
     n_kf = int(np.isfinite(kf.xyz[:, 2]).sum())
+    none = np.zeros(0, np.intp), np.zeros((0, 2), np.float32)
+    if len(uv_last) < cfg.min_inliers:  # (OpenCV returns None for no points at all)
+        return _fail("too_few_matches", t0, n_kf, len(uv_last)), *none
     win = (cfg.cor_flow_win_size, cfg.cor_flow_win_size)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.cor_flow_iterations,
             cfg.cor_flow_eps)  # fmt: skip
@@ -1145,7 +1148,6 @@ def motion_from_flow(
     ok = (status.ravel() == 1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (
         uv[:, 1] <= h - 1)  # fmt: skip
     idx, uv = idx[ok], uv[ok]
-    none = np.zeros(0, np.intp), np.zeros((0, 2), np.float32)
     if len(idx) < cfg.min_inliers:
         return _fail("too_few_matches", t0, n_kf, len(idx)), *none
     z = _lookup(depth_m, uv).astype(np.float64)

@@ -296,6 +296,21 @@ def test_optical_flow_that_loses_its_points_falls_back_to_global_matching() -> N
     assert after.success and after.prior  # ... whose points are tracked again
 
 
+def test_optical_flow_after_a_keyframe_without_depth_fails_cleanly_and_recovers() -> None:
+    # A keyframe with no point in depth range (facing a wall nearer than min_depth) leaves no
+    # point to track: the next frame must fail with a reason (it crashed the live front end:
+    # OpenCV's Lucas-Kanade returns None for no points), and tracking must come back.
+    r = renderer()
+    vo = VisualOdometry(r.intrinsics, FLOW)
+    rgb, depth = frame(r, START)
+    vo.process(RgbdFrame(0, rgb, np.zeros_like(depth), r.intrinsics))  # no depth at all
+    lost = vo.process(RgbdFrame(1, *frame(r, (0.005, 0.0, 0.0)), r.intrinsics))
+    assert not lost.success and lost.reason in FAILURE_REASONS
+    back = [vo.process(RgbdFrame(2 + i, *frame(r, (0.01 + 0.005 * i, 0.0, 0.0)), r.intrinsics))
+            for i in range(2)]  # fmt: skip
+    assert back[-1].success and back[-1].prior
+
+
 def _tum_poses(path: Path) -> np.ndarray:
     d = np.loadtxt(path)
     out = np.tile(np.eye(4), (len(d), 1, 1))
