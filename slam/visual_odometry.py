@@ -380,11 +380,17 @@ def depth_mask(depth_m: np.ndarray, cfg: VoConfig, tuning: VoTuning) -> np.ndarr
     return cv2.bitwise_or(mask, cv2.bitwise_and(grown, hole))
 
 
+def grey(rgb: np.ndarray) -> np.ndarray:
+    """The 8-bit grey image ORB detects on and Lucas-Kanade tracks on. (OpenCV 5's Python
+    binding takes no prebuilt pyramid, so Lucas-Kanade builds both pyramids on every call.)"""
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
+
+
 def extract_features(
     rgb: np.ndarray, depth_m: np.ndarray, k: np.ndarray, cfg: VoConfig, tuning: VoTuning
 ) -> Features:
     """Grid-bucketed ORB keypoints with descriptors and depth back-projection."""
-    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
+    gray = grey(rgb)
     if tuning.clahe_clip > 0:
         clahe = cv2.createCLAHE(tuning.clahe_clip, (tuning.clahe_tiles, tuning.clahe_tiles))
         gray = clahe.apply(gray)
@@ -1109,12 +1115,6 @@ def prior_error_px(t_pred: np.ndarray, t_est: np.ndarray, fx: float, depth_m: fl
 # --------------------------------------------------------------------------------------------
 
 
-def flow_image(rgb: np.ndarray) -> np.ndarray:
-    """The 8-bit grey image Lucas-Kanade tracks on. (OpenCV 5's Python binding takes no
-    prebuilt pyramid, so both pyramids are built on every call.)"""
-    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
-
-
 def motion_from_flow(
     kf: Features, idx: np.ndarray, uv_last: np.ndarray, gray_last: np.ndarray,
     gray: np.ndarray, depth_m: np.ndarray, t_cp_pred: np.ndarray, k: np.ndarray,
@@ -1227,7 +1227,7 @@ class VisualOdometry:
     def process(self, frame: RgbdFrame) -> VoResult:
         t0 = time.perf_counter()
         flow = self.cfg.cor_type == "optical_flow"
-        gray = flow_image(frame.rgb) if flow else None
+        gray = grey(frame.rgb) if flow else None
         feats = None if flow else self._features(frame)
         if self._kf is None:
             self._new_keyframe(self._features(frame) if feats is None else feats, gray)
