@@ -1116,14 +1116,18 @@ def prior_error_px(t_pred: np.ndarray, t_est: np.ndarray, fx: float, depth_m: fl
 
 
 def motion_from_flow(
-    kf: Features, idx: np.ndarray, uv_last: np.ndarray, gray_last: np.ndarray,
+    kf: Features, idx: np.ndarray, uv_last: np.ndarray, gray_kf: np.ndarray,
     gray: np.ndarray, depth_m: np.ndarray, t_cp_pred: np.ndarray, k: np.ndarray,
     cfg: VoConfig, tuning: VoTuning, t0: float | None = None,
 ) -> tuple[VoResult, np.ndarray, np.ndarray]:  # fmt: skip
     """Keyframe-relative motion from the keyframe's 3D points ``kf.xyz[idx]`` tracked by
-    pyramidal Lucas-Kanade from their positions ``uv_last`` in the last frame into this one,
-    refined from the last frame's pose ``t_cp_pred`` (T_curr_kf) by the joint reprojection +
-    disparity Gauss-Newton of step 5 (Huber weights, chi-square gate: lost or drifted tracks
+    pyramidal Lucas-Kanade from the keyframe's image ``gray_kf`` into this one, each search
+    starting where the point was in the last frame (``uv_last``; RTAB-Map's flow with an
+    initial guess). Anchored to the keyframe, a track does not drift as a frame-to-frame chain
+    of Lucas-Kanade steps does (0.03 px median after 14 frames out and back, 0.3 mm of pose;
+    on the house route: fused odometry 0.127 -> 0.076 m, the mapped grid's IoU 0.60 -> 0.76).
+    The motion is refined from the last frame's pose ``t_cp_pred`` (T_curr_kf) by the joint
+    reprojection + disparity Gauss-Newton of step 5 (Huber weights, chi-square gate: lost or drifted tracks
     are its outliers) and accepted by the tests of step 6. Fewer inliers than
     ``prior_min_inlier_ratio`` of the tracks fail (``too_few_inliers``): a motion too large for
     the flow (TUM cabinet keyframes 0.15 m apart: 20-24 % inliers where it went wrong, 45 % and
@@ -1140,8 +1144,9 @@ def motion_from_flow(
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.cor_flow_iterations,
             cfg.cor_flow_eps)  # fmt: skip
     pts, status, _ = cv2.calcOpticalFlowPyrLK(
-        gray_last, gray, uv_last.reshape(-1, 1, 2), None, winSize=win,
-        maxLevel=cfg.cor_flow_max_level, criteria=crit,
+        gray_kf, gray, kf.uv[idx].astype(np.float32).reshape(-1, 1, 2),
+        uv_last.reshape(-1, 1, 2).copy(), winSize=win, maxLevel=cfg.cor_flow_max_level,
+        criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )  # type: ignore[call-overload]  # fmt: skip
     uv = pts.reshape(-1, 2).astype(np.float64)
     h, w = depth_m.shape[:2]
@@ -1216,7 +1221,7 @@ class VisualOdometry:
         self._prior_holds = False  # try the pose prior on the next frame
         # Optical flow: (keyframe point indices, their pixels in the last frame)
         self._tracks: tuple[np.ndarray, np.ndarray] | None = None
-        self._gray: np.ndarray | None = None  # the last frame's grey image (optical flow)
+        self._gray: np.ndarray | None = None  # the keyframe's grey image (optical flow)
 
     def reset(self) -> None:
         self._kf = None
@@ -1280,7 +1285,6 @@ class VisualOdometry:
         else:
             self._kf = _Keyframe(self._kf.features, t_kf_curr)
             self._tracks = (tracks[0], tracks[1]) if tracks else None
-            self._gray = gray
         return self._finish(res, t_last_curr, t0)
 
     def _features(self, frame: RgbdFrame) -> Features:
