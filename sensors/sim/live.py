@@ -17,6 +17,11 @@ board reports what a real Eddie's encoders would, not freely spinning wheels.
 Ground truth is streamed to a TUM file as it is made (``truth_path``), so a long run holds no
 growing list in memory.
 
+Frames cross the process boundary through a ring of shared-memory slots (:class:`_FrameRing`);
+the queue carries only the stamp, the slot and the true pose. Pickling 2.1 MB per frame through
+a pipe kept the host's camera thread holding the GIL 28 % of the time (py-spy, 30 Hz), time the
+front end waited for.
+
 The serial port is a symlink (``port_link``) to the emulator's pty, as a udev rule gives a USB
 adapter a stable name; a drilled "board unplugged" closes the pty, and "replugged" serves a new
 one behind the same link.
@@ -31,6 +36,7 @@ import os
 import queue
 import time
 from dataclasses import dataclass
+from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +49,9 @@ from sensors.types import CameraIntrinsics, SensorError
 log = logging.getLogger(__name__)
 
 FRAME_QUEUE_SIZE = 2  # frames in flight to the host: a USB camera's small buffer
+# Ring slots: with at most FRAME_QUEUE_SIZE frames announced and not yet taken, and one being
+# copied out by the host, the slot the child writes next is never one the host still reads.
+FRAME_SLOTS = FRAME_QUEUE_SIZE + 2
 STARTUP_TIMEOUT_S = 60.0  # [s] importing and building the renderer in the child
 STOP_TIMEOUT_S = 30.0  # [s] finishing a frame and reporting, on a busy machine
 
@@ -55,6 +64,45 @@ class SimFrameMsg:
     rgb: np.ndarray  # (H, W, 3) uint8
     depth_m: np.ndarray  # (H, W) float32 [m], 0 = invalid
     true_pose: tuple[float, float, float]  # base_link in the world [m, m, rad]
+
+
+class _FrameRing:
+    """``FRAME_SLOTS`` (rgb, depth) frame buffers in one shared-memory block. The host creates
+    (and finally unlinks) it; the child attaches by name and writes the frames."""
+
+    def __init__(self, width: int, height: int, name: str | None = None) -> None:
+        self.shape = (height, width)
+        self.rgb_bytes = height * width * 3
+        self.slot_bytes = self.rgb_bytes + height * width * 4  # + float32 depth
+        size = FRAME_SLOTS * self.slot_bytes
+        self.owner = name is None
+        # The spawned child shares the host's resource tracker: the block is unlinked by the
+        # host's stop(), or by the tracker when both processes are gone (a host killed -9).
+        self.shm = shared_memory.SharedMemory(name=name, create=self.owner, size=size)
+
+    def _views(self, slot: int) -> tuple[np.ndarray, np.ndarray]:
+        base = slot * self.slot_bytes
+        h, w = self.shape
+        rgb = np.ndarray((h, w, 3), np.uint8, self.shm.buf, base)
+        depth = np.ndarray((h, w), np.float32, self.shm.buf, base + self.rgb_bytes)
+        return rgb, depth
+
+    def write(self, slot: int, rgb: np.ndarray, depth_m: np.ndarray) -> None:
+        ring_rgb, ring_depth = self._views(slot)
+        ring_rgb[...] = rgb
+        ring_depth[...] = depth_m
+
+    def read(self, slot: int) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the frame in ``slot`` (the slot is rewritten a few frames later)."""
+        rgb, depth = self._views(slot)
+        return rgb.copy(), depth.copy()
+
+    def close(self) -> None:
+        if self.shm.buf is None:
+            return  # closed already
+        self.shm.close()
+        if self.owner:
+            self.shm.unlink()
 
 
 @dataclass
@@ -93,8 +141,8 @@ class _StallingEmulator(EddieEmulator):
 
 
 def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: SimConfig,
-              seed: int, port_link: str, truth_path: str, frames: Any, control: Any,
-              replies: Any) -> None:  # fmt: skip
+              seed: int, port_link: str, truth_path: str, ring_name: str, frames: Any,
+              control: Any, replies: Any) -> None:  # fmt: skip
     from scipy.ndimage import distance_transform_edt
 
     from sensors.sim.motion import blocked_step, gauss_markov_step
@@ -111,6 +159,8 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
     metres = robot.metres_per_tick * (1.0 + np.asarray(sim.wheel_diameter_error))  # [m/pos] L, R
     track = robot.track_width * (1.0 + sim.track_width_error)
     emu = _StallingEmulator(robot)
+    ring = _FrameRing(camera.width, camera.height, ring_name)
+    slot = 0
 
     def is_free(px: float, py: float) -> bool:
         r, c = plan.cell_of(np.array([[px, py]]))[0]
@@ -183,8 +233,10 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
         else:
             rgb, depth = renderer.render(x, y, yaw, rng)
             stats.frames_rendered += 1
+            ring.write(slot, rgb, depth)
             try:
-                frames.put_nowait(SimFrameMsg(stamp, rgb, depth, (x, y, yaw)))
+                frames.put_nowait((stamp, slot, (x, y, yaw)))
+                slot = (slot + 1) % FRAME_SLOTS  # an unannounced slot is simply rewritten
             except queue.Full:
                 stats.frames_dropped += 1
         # 4. Keep the 30 Hz phase; a frame that could not be rendered in time is skipped.
@@ -195,6 +247,7 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
         time.sleep(max(0.0, (next_ns - time.monotonic_ns()) / 1e9))
     emu.close()
     truth_file.close()
+    ring.close()
     frames.cancel_join_thread()  # frames the host no longer reads must not block our exit
     replies.put(("stats", stats))
 
@@ -213,19 +266,28 @@ class SimRobot:
         self.truth_path = Path(truth_path) if truth_path is not None else \
             Path(port_link).with_name("groundtruth.tum")  # fmt: skip
         ctx = mp.get_context("spawn")  # the host has threads: never fork it
+        self._ring = _FrameRing(camera.width, camera.height)
         self._frames: Any = ctx.Queue(maxsize=FRAME_QUEUE_SIZE)
         self._control: Any = ctx.Queue()
         self._replies: Any = ctx.Queue()
         self._proc = ctx.Process(
             target=_child, name="rgbdnav-sim-robot", daemon=True,
             args=(self.world_path, robot, camera, sim, seed, self.port_link,
-                  str(self.truth_path), self._frames, self._control, self._replies),
+                  str(self.truth_path), self._ring.shm.name, self._frames, self._control,
+                  self._replies),
         )  # fmt: skip
         self.intrinsics: CameraIntrinsics | None = None
         self._stats: SimRobotStats | None = None
         self._error: str | None = None
 
     def start(self) -> str:
+        try:
+            return self._start()
+        except BaseException:
+            self._ring.close()  # no stop() follows a failed start
+            raise
+
+    def _start(self) -> str:
         self._proc.start()
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while True:
@@ -252,10 +314,10 @@ class SimRobot:
     def next_frame(self, timeout_s: float) -> SimFrameMsg | None:
         """The next frame, or None after ``timeout_s`` without one (a stalled camera)."""
         try:
-            msg: SimFrameMsg = self._frames.get(timeout=timeout_s)
+            stamp_ns, slot, pose = self._frames.get(timeout=timeout_s)
         except queue.Empty:
             return None
-        return msg
+        return SimFrameMsg(stamp_ns, *self._ring.read(slot), pose)
 
     def order(self, *order: Any) -> None:
         """A fault drill: ("unplug_board",), ("replug_board",), ("stall_camera", seconds)."""
@@ -286,6 +348,7 @@ class SimRobot:
         self._proc.join(timeout=STOP_TIMEOUT_S)
         if self._proc.is_alive():
             self._proc.kill()
+        self._ring.close()
         if self._stats is None:
             why = self._error.splitlines()[0] if self._error else (
                 f"exit code {self._proc.exitcode}")  # fmt: skip
