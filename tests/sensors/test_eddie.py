@@ -413,3 +413,38 @@ def test_full_queue_drops_the_oldest_ticks(board):
     assert len(kept) == 3
     assert stats.dropped == stats.polls - 3
     assert kept[-1] == stats.last_ticks
+
+
+class _BurstPort:
+    """A port whose reply has fully arrived: counts the read calls the driver makes."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data, self.reads = bytearray(data), 0
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self.data)
+
+    def read(self, n: int) -> bytes:
+        self.reads += 1
+        out = bytes(self.data[:n])
+        del self.data[:n]
+        return out
+
+
+def test_a_reply_line_is_read_in_one_call_and_what_follows_it_is_left() -> None:
+    # pyserial's read_until took one call (a select and a read) per byte.
+    from types import SimpleNamespace
+
+    port = _BurstPort(b"0000012C 0000012D\r" + b"00")
+    line = EddieBoard._read_line(SimpleNamespace(board_cfg=BoardConfig()), port, "DIST")  # type: ignore[arg-type]
+    assert line == b"0000012C 0000012D\r"
+    assert port.reads == 1
+
+
+def test_a_reply_without_terminator_is_an_incomplete_reply() -> None:
+    from types import SimpleNamespace
+
+    port = _BurstPort(b"0000012C")
+    with pytest.raises(BoardError, match="incomplete reply"):
+        EddieBoard._read_line(SimpleNamespace(board_cfg=BoardConfig(timeout=0.05)), port, "DIST")  # type: ignore[arg-type]
