@@ -369,7 +369,8 @@ class LiveRun:
                     tw = wheel_twist_inputs(
                         np.array([r.stamp_ns for r in recent]),
                         np.array([r.left for r in recent]), np.array([r.right for r in recent]),
-                        cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance)[-1]  # fmt: skip
+                        cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance,
+                        last_only=True)[-1]  # fmt: skip
                     ekf.process("odom0", tw)
             t_b = time.perf_counter()
             if vo is None:

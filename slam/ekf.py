@@ -235,8 +235,10 @@ def wheel_twist_inputs(
     model: WheelErrorModel = DEFAULT_WHEEL_ERROR,
     vy_variance: float = NONHOLONOMIC_VY_VARIANCE,
     variance_window_s: float = WHEEL_VARIANCE_WINDOW_S,
+    last_only: bool = False,
 ) -> list[TwistInput]:
-    """Encoder counts -> one :class:`TwistInput` per interval, stamped at its end.
+    """Encoder counts -> one :class:`TwistInput` per interval, stamped at its end (only the
+    last interval's with ``last_only``: live, one new reading at a time).
 
     Per interval of dt with wheel travels dR, dL [m], tick length q [m] and track b::
 
@@ -281,7 +283,7 @@ def wheel_twist_inputs(
     ok = dt > 0
     return [
         TwistInput(int(stamps[i + 1]), float(v[i]), 0.0, float(w[i]), cov[i], valid=bool(ok[i]))
-        for i in range(len(dt))
+        for i in range(len(dt) - 1 if last_only and len(dt) else 0, len(dt))
     ]
 
 

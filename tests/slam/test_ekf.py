@@ -417,6 +417,19 @@ def test_wheel_twist_inputs_from_equal_counts_drive_straight_with_quantisation_n
     assert out.y[0] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_wheel_twist_inputs_last_only_is_the_last_of_the_full_list() -> None:
+    robot = RobotConfig()
+    rng = np.random.default_rng(3)
+    stamps = np.cumsum(rng.integers(15, 25, 64)) * 1_000_000
+    left, right = np.cumsum(rng.integers(0, 4, 64)), np.cumsum(rng.integers(0, 5, 64))
+    full = wheel_twist_inputs(stamps, left, right, robot)
+    last = wheel_twist_inputs(stamps, left, right, robot, last_only=True)
+    assert len(last) == 1 and last[0].stamp_ns == full[-1].stamp_ns
+    assert (last[0].vx, last[0].vyaw) == (full[-1].vx, full[-1].vyaw)
+    assert np.array_equal(last[0].covariance, full[-1].covariance)
+    assert wheel_twist_inputs(stamps[:1], left[:1], right[:1], robot, last_only=True) == []
+
+
 @pytest.mark.parametrize("speed", [0.05, 0.3])
 def test_wheel_only_filter_keeps_the_distance_of_quantised_encoder_counts(speed: float) -> None:
     """A wheel twist's variance grows with travel. Taken from the interval's own count, an
