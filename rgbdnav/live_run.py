@@ -42,7 +42,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -421,6 +421,7 @@ class LiveRun:
             n += 1
             if vis_every and n % vis_every == 0:
                 self.vis.frame(frame.stamp_ns, frame.rgb, frame.depth_m)
+        self.ekf_stats = ekf.stats  # per sensor: received, fused, rejected by the gate, late
         self.scan_q.put(None)
 
     def _visual_odometry(self, vo: VisualOdometry, ekf: PlanarEkf, frame: RgbdFrame,
@@ -850,6 +851,9 @@ class LiveRun:
                 "true_path_length_m": round(path_length(truth[:, 1:3]), 3),
             }  # fmt: skip
             summary["route_finished"] = self.route_done
+        ekf_stats = getattr(self, "ekf_stats", None)
+        if ekf_stats is not None:
+            summary["ekf"] = asdict(ekf_stats)
         if self.navigator is not None:
             summary["navigation"] = nav = self.navigator.stats()
             for k, v in nav.items():  # the route's progress, as the direct driver counts it

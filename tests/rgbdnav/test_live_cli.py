@@ -61,6 +61,8 @@ def test_live_sim_maps_while_driving_the_route_and_checkpoints_the_bundle(tmp_pa
     # A short run stays close to the simulator's truth (a loose bound: CI machines are busy).
     assert s["slam_vs_groundtruth"]["ate_rmse_m"] < 0.3
     assert s["latency_ms"]["p50"] > 0
+    ekf = s["ekf"]["sensors"]  # what the filter did with each input, as `odometry` reports it
+    assert ekf["odom0"]["fused"] > 100 and ekf["vo0"]["received"] > 10
     bundle = load_bundle(out / "map")
     assert len(bundle.keyframe_ids) >= 2
     lines = (out / "trajectory.tum").read_text().splitlines()
