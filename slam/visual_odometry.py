@@ -1127,8 +1127,8 @@ def motion_from_flow(
     of Lucas-Kanade steps does (0.03 px median after 14 frames out and back, 0.3 mm of pose;
     on the house route: fused odometry 0.127 -> 0.076 m, the mapped grid's IoU 0.60 -> 0.76).
     The motion is refined from the last frame's pose ``t_cp_pred`` (T_curr_kf) by the joint
-    reprojection + disparity Gauss-Newton of step 5 (Huber weights, chi-square gate: lost or drifted tracks
-    are its outliers) and accepted by the tests of step 6. Fewer inliers than
+    reprojection + disparity Gauss-Newton of step 5 (Huber weights, chi-square gate: lost or
+    drifted tracks are its outliers) and accepted by the tests of step 6. Fewer inliers than
     ``prior_min_inlier_ratio`` of the tracks fail (``too_few_inliers``): a motion too large for
     the flow (TUM cabinet keyframes 0.15 m apart: 20-24 % inliers where it went wrong, 45 % and
     more where it did not; 97 % at 30 Hz in the simulated house). ``matches`` is the keyframe's
