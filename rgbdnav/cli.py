@@ -436,6 +436,12 @@ def live(
         bool, typer.Option(help="Drive the route again and again (soak tests).")
     ] = False,
     seed: Annotated[int, typer.Option(help="Seed of the simulated robot.")] = 0,
+    record: Annotated[
+        Path | None,
+        typer.Option(help="Also write what the robot saw (camera frames, encoder readings; the "
+                          "simulator's truth) as an rgbdnav recording in this folder, for "
+                          "`rgbdnav map` / `odometry` later."),
+    ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     quiet: QuietOpt = False,
@@ -458,7 +464,7 @@ def live(
                        config_files=config or [], overrides=set_ or [], map_bundle=map_,
                        duration_s=duration, drive=drive, goals=goals, rrd=rrd, viewer=viewer,
                        seed=seed, drills=[Drill.parse(d) for d in drill or []],
-                       repeat_route=repeat_route)  # fmt: skip
+                       repeat_route=repeat_route, record=record)  # fmt: skip
     outputs, summary = run_live(opts)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
     c = summary["counts"]
@@ -469,6 +475,10 @@ def live(
     slam = summary.get("slam_vs_groundtruth")
     if slam:
         typer.echo(f"accuracy    ATE {slam.get('ate_rmse_m')} m against the simulator's truth")
+    rec = summary.get("recording")
+    if rec and "error" not in rec:
+        typer.echo(f"recorded    {rec['frames']} frames ({rec['frames_dropped']} left out: the "
+                   f"writer fell behind), {rec['wheel_readings']} encoder readings")
     _echo_outputs(outputs)
 
 

@@ -47,11 +47,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from nav.collision_monitor import ObstacleMemory, limit_twist
 from nav.teleop import TeleopState, teleop_key
-from rgbdnav.config import Config, load_config, source_options
+from rgbdnav.config import Config, load_config, section_to_dict, source_options
 from rgbdnav.live_nav import LiveNavigator, MapSnapshot
+from rgbdnav.live_record import LiveRecorder
 from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
 from rgbdnav.map_run import RGBD_PROFILE, build_grid, make_bundle
 from rgbdnav.navigate_run import NAVIGATE_PROFILE
@@ -139,6 +141,7 @@ class LiveOptions:
     seed: int = 0
     drills: Sequence[Drill] = ()
     repeat_route: bool = False  # drive the route again and again (soak runs)
+    record: Path | None = None  # write the frames and encoder readings as a recording here
 
 
 class Counters:
@@ -251,6 +254,24 @@ class LiveRun:
         self.route_done = False
         self.keys: queue.Queue[str] = queue.Queue()  # terminal keys (tests put them here)
         self.mode = "manual" if opts.drive == "teleop" else "auto"
+        self.recorder: LiveRecorder | None = None
+        if opts.record is not None:
+            self.recorder = LiveRecorder(opts.record, self._recording_scene())
+
+    def _recording_scene(self) -> dict[str, Any]:
+        """``scene.yaml`` of a ``--record`` recording: what ``map``/``odometry`` need to read
+        it as this robot saw it, and the simulated world to score a map against."""
+        cfg, opts = self.cfg, self.opts
+        scene: dict[str, Any] = {"generator": "rgbdnav live", "camera_source": opts.camera,
+                                 "groundtruth_frame": "base_link",
+                                 "robot": section_to_dict(cfg.robot),
+                                 "camera": section_to_dict(cfg.camera)}  # fmt: skip
+        if opts.camera == "sim" and opts.world is not None:
+            world = Path(opts.world)
+            scene |= {"world": world.stem, "world_file": str(world),
+                      "world_description": yaml.safe_load(world.read_text()), "seed": opts.seed,
+                      "sim": section_to_dict(cfg.sim)}  # fmt: skip
+        return scene
 
     # 1. Start: the simulated robot (if any), the board, the camera adapter.
 
@@ -355,6 +376,8 @@ class LiveRun:
             if stalled:
                 stalled = False
                 log.info("camera frames again: mapping resumed")
+            if self.recorder is not None:
+                self.recorder.frame(frame)
             # a. Wheel ticks that arrived since the last frame.
             t_a = time.perf_counter()
             while True:
@@ -365,6 +388,8 @@ class LiveRun:
                 if recent and t.stamp_ns <= recent[-1].stamp_ns:
                     continue  # a repeated or older reading says nothing new
                 recent.append(t)
+                if self.recorder is not None:
+                    self.recorder.wheels(t)
                 if len(recent) >= 2:
                     tw = wheel_twist_inputs(
                         np.array([r.stamp_ns for r in recent]),
@@ -796,6 +821,13 @@ class LiveRun:
         if sim_stats is not None and sim_stats.truth_poses:
             truth = load_track(run.file("groundtruth.tum"))
             outputs["ground truth"] = run.file("groundtruth.tum")
+        recording = None
+        if self.recorder is not None:
+            recording = self.recorder.close(truth if len(truth) else None)
+            if "error" in recording:
+                self.errors.append(f"--record {recording['path']}: {recording['error']}")
+            else:
+                outputs["recording"] = Path(recording["path"])
         cpu1 = resource.getrusage(resource.RUSAGE_SELF)
         kids = resource.getrusage(resource.RUSAGE_CHILDREN)
         lat = self.latency_ms
@@ -834,6 +866,8 @@ class LiveRun:
             "visualization": {"drawn": self.vis.drawn, "dropped": self.vis.dropped},
             "errors": self.errors,
         }
+        if recording is not None:
+            summary["recording"] = recording
         if self.poller is not None:
             ps = self.poller.stats()
             summary["board_link"] = {"port": str(self.board.url) if self.board else None,

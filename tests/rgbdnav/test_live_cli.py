@@ -206,3 +206,43 @@ def test_live_runs_optical_flow_vo_unless_told_otherwise(tmp_path: Path) -> None
     assert LIVE_PROFILE in live.config_files and live.cfg.vo.cor_type == "optical_flow"
     mine = LiveRun(LiveOptions(out=tmp_path / "b", world=WORLD, overrides=["vo.cor_type=features"]))
     assert mine.cfg.vo.cor_type == "features"
+
+
+def test_record_writes_what_the_robot_saw_as_a_recording_that_maps_offline(
+    tmp_path: Path,
+) -> None:
+    from sensors.recording import Recording
+
+    out, rec_dir = tmp_path / "live", tmp_path / "rec"
+    s = _live(out, "--duration", "8", "--record", str(rec_dir))
+    rec = s["recording"]
+    assert "error" not in rec and rec["frames"] >= 10
+    # Every frame the front end took is in it (or counted as left out), with the encoder
+    # readings it used and the simulator's truth.
+    c = s["counts"]
+    taken = c["frames_received"] - c.get("frames_dropped_front_end", 0)
+    assert rec["frames"] + rec["frames_dropped"] == taken
+    r = Recording.open(rec_dir)
+    assert len(r) == rec["frames"]
+    stamps, left, right = r.wheels()
+    assert len(stamps) == rec["wheel_readings"] > 50 and np.all(np.diff(stamps) > 0)
+    assert r.groundtruth() is not None
+    frame = r.frame(0)
+    assert frame.rgb.shape == (480, 640, 3) and (frame.depth_m > 0).mean() > 0.3
+    # ... and it maps offline like any recording, scored against the world it was made in.
+    res = runner.invoke(app, ["map", str(rec_dir), "--out", str(tmp_path / "map"), "-q",
+                              "--set", "vo.cor_type=optical_flow"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    offline = json.loads((tmp_path / "map" / "summary.json").read_text())
+    assert offline["slam_vs_groundtruth"]["ate_rmse_m"] < 0.3
+    assert "grid_vs_floor_plan" in offline
+
+
+def test_record_into_a_place_that_cannot_hold_it_is_an_error_not_a_lost_run(
+    tmp_path: Path,
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    s = _live(tmp_path / "live", "--duration", "3", "--record", str(blocker / "rec"))
+    assert s["recording"]["error"] and any("--record" in e for e in s["errors"])
+    assert load_bundle(tmp_path / "live" / "map") is not None  # the run itself was saved
