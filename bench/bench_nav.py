@@ -45,6 +45,7 @@ RESOLUTION = 0.05  # [m/cell]
 MIN_PAIR_DISTANCE = 10.0  # [m] start/goal pairs are at least this far apart
 SHORT_PAIR_DISTANCE = (2.0, 4.0)  # [m] range of the short start/goal pairs
 DEFAULT_MARK = " (default config)"
+UNCACHED_MARK = " (default config, judged)"
 
 
 def furniture_room(rng: np.random.Generator, cells: int, boxes: int) -> np.ndarray:
@@ -131,11 +132,20 @@ def bench_planner(
     geo: GridGeometry,
     pairs: list[tuple[tuple[float, float], tuple[float, float]]],
     reps: int,
+    new_costmap: bool = False,
 ) -> dict[str, float]:
+    """Plan each pair ``reps`` times; ``new_costmap``: as if the costmap had changed before each
+    plan (no edge weights cached from the last one, as while driving)."""
     times, lengths, settled, ok = [], [], [], 0
+
+    def plan(start: tuple[float, float], goal: tuple[float, float]) -> object:
+        if new_costmap:
+            planner.clear_cache()
+        return planner.plan(cost, geo, start, goal)
+
     for start, goal in pairs:
         r = planner.plan(cost, geo, start, goal)
-        times += time_it(partial(planner.plan, cost, geo, start, goal), reps)
+        times += time_it(partial(plan, start, goal), reps)
         ok += r.success
         lengths.append(r.length_m)
         settled.append(r.settled_cells)
@@ -258,6 +268,12 @@ def main() -> None:
             GridPlanner(PlannerConfig(use_astar=False)), cost, geo, pairs, args.reps),
         "A* + smoothing" + DEFAULT_MARK * PlannerConfig().use_astar: bench_planner(
             GridPlanner(PlannerConfig(use_astar=True)), cost, geo, pairs, args.reps),
+        "Dijkstra + smoothing, new costmap each plan" + UNCACHED_MARK * (
+            not PlannerConfig().use_astar): bench_planner(
+            GridPlanner(PlannerConfig(use_astar=False)), cost, geo, pairs, args.reps, True),
+        "A* + smoothing, new costmap each plan" + UNCACHED_MARK * PlannerConfig().use_astar:
+            bench_planner(GridPlanner(PlannerConfig(use_astar=True)), cost, geo, pairs,
+                          args.reps, True),
         "Dijkstra, no smoothing, short pairs": bench_planner(
             GridPlanner(PlannerConfig(use_astar=False, smooth_path=False)), cost, geo, short,
             args.reps),
@@ -271,7 +287,8 @@ def main() -> None:
         f"{r['settled']:.0f} | {r['ok']}/{len(pairs)} |"
         for name, r in rows.items()
     )
-    default = next(r["median"] for name, r in rows.items() if name.endswith(DEFAULT_MARK))
+    # Judged on the default config with nothing cached, as while driving (the costmap changes).
+    default = next(r["median"] for name, r in rows.items() if name.endswith(UNCACHED_MARK))
     verdict = "meets" if default <= TARGET_MS else "misses"
     body = f"""## Global planner (20 m x 20 m at 5 cm = {cells}x{cells} cells, {args.boxes} boxes)
 
@@ -279,8 +296,12 @@ Measured {dt.date.today().isoformat()} on {machine("numpy", "scipy")}.
 Command: `python bench/bench_nav.py --pairs {args.pairs} --reps {args.reps} --seed {args.seed}`;
 {args.pairs} start/goal pairs at least {MIN_PAIR_DISTANCE:.0f} m apart ("short": {SHORT_PAIR_DISTANCE[0]:.0f} to
 {SHORT_PAIR_DISTANCE[1]:.0f} m apart), {args.reps} timed plans each. Search: scipy.sparse.csgraph.dijkstra on a cached 8-connected CSR graph (A* as Dijkstra on
-heuristic-reduced weights), early stop emulated by a growing `limit`. The default config
-{verdict} the {TARGET_MS:.0f} ms/plan target (median over the long pairs). Smoothing is the
+heuristic-reduced weights), early stop emulated by a growing `limit`. The planner caches the
+edge weights of the last costmap, so the repeated plans of a pair reuse them (Dijkstra then
+skips all per-plan preparation, A* still reduces the weights for its goal); "new costmap each
+plan" drops that cache before every plan, as while driving with a changing costmap. The default
+config with a new costmap each plan {verdict} the {TARGET_MS:.0f} ms/plan target (median over the
+long pairs). Smoothing is the
 SimpleSmoother-style pass with the default config (2 passes, tolerance 1e-10). "settled" counts cells settled over all
 search passes.
 

@@ -89,7 +89,9 @@ class PlannerConfig:
     tolerance: float = param(
         0.5, unit="m", ge=0.0, doc="plan to the nearest free cell within this of the goal"
     )
-    use_astar: bool = param(False, doc="A* instead of Dijkstra")
+    use_astar: bool = param(
+        False, doc="A* instead of Dijkstra (same path cost, half the cells settled; ties differ)"
+    )
     allow_unknown: bool = param(True, doc="plan through unknown space")
     use_final_approach_orientation: bool = param(
         False, doc="goal yaw = direction of the last path segment"
@@ -235,6 +237,14 @@ class NavigateConfig:
     )
     goal_timeout: float = param(60.0, unit="s", gt=0.0, doc="simulated time allowed per goal")
     max_replans: int = param(5, ge=0, doc="replans per goal before it fails")
+    replan_frequency: float = param(
+        0.0,
+        unit="Hz",
+        ge=0.0,
+        doc="plan again at this rate while driving, on the costmap as it is now (Nav2's default "
+        "behaviour tree: 1 Hz); a failed periodic plan keeps the current path and does not "
+        "count as a replan (0 = plan only at the start, when the path is blocked and when stuck)",
+    )
     waypoint_pause_duration: float = param(
         0.0, unit="s", ge=0.0, doc="WaitAtWaypoint task at each reached goal (0 = none)"
     )

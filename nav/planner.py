@@ -7,22 +7,30 @@ Costmap semantics (nav2_costmap_2d): a ``(H, W)`` uint8 array, row 0 = lowest y,
 Planning (:meth:`GridPlanner.plan`), NavFn / global_planner style:
 
 1. A cell is impassable when its cost is ``>= lethal_cost`` (unknown counts as passable with cost
-   ``lethal_cost - 1`` when ``allow_unknown``, like NavFn's ``COST_OBS - 1``).
+   ``lethal_cost - 1`` when ``allow_unknown``, like NavFn's ``COST_OBS - 1``). A start in an
+   impassable cell that is not a wall (the inscribed band, or unknown space without
+   ``allow_unknown``) is not refused (NavFn's ``clearRobotCell``): the search may leave it through
+   the non-lethal impassable cells around it (:func:`escape_region`, entered at cost
+   ``lethal_cost - 1``) but never re-enter them from passable space. A start on a wall is refused.
 2. Entering cell ``v`` costs ``(neutral_cost + cost_factor * cost[v]) * |step|`` with ``|step|``
    1 or sqrt(2) on the 8-connected grid. A diagonal step is refused when either of the two
    cells it cuts past is impassable, so paths never squeeze between diagonal obstacle cells.
 3. Search: Dijkstra, or A* with the admissible, consistent heuristic
    ``h(v) = neutral_cost * octile(v, goal)`` (every step costs at least ``neutral_cost * |step|``).
-   Both run in C through :func:`scipy.sparse.csgraph.dijkstra` on a CSR graph whose topology is
-   cached per grid shape; only the edge weights are recomputed per plan, with array slices. A* is
-   Dijkstra on the reduced weights ``w(u, v) - h(u) + h(v)`` (>= 0 by consistency), which settles
-   cells in A* order. scipy cannot stop at the goal, so early termination is emulated with its
-   ``limit``: the first pass is bounded by :data:`FIRST_LIMIT_RATIO` times a lower bound of the
-   goal's cost and each pass that misses the goal grows the bound by :data:`LIMIT_GROWTH`, until
-   the goal is settled or no edge leaves the settled region (unreachable); after
-   :data:`MAX_LIMITED_PASSES` misses one unbounded pass settles everything reachable. Chosen by
+   A* settles about half the cells for the same path cost, but among the many equal-cost grid
+   paths it keeps other ones than Dijkstra (the default, as NavFn's). Both run in C through
+   :func:`scipy.sparse.csgraph.dijkstra` on a CSR graph whose topology and weight buffer are
+   cached per grid shape; the edge weights are computed with array slices and cached per costmap
+   content (a plan on an unchanged costmap reuses them). A* is Dijkstra on the reduced weights
+   ``w(u, v) - h(u) + h(v)`` (>= 0 by consistency), which settles cells in A* order; the
+   reduction is the one per-plan pass over the edges. scipy cannot stop at the goal, so early
+   termination is emulated with its ``limit``: the first pass is bounded by
+   :data:`FIRST_LIMIT_RATIO` times a lower bound of the goal's cost and each pass that misses the
+   goal grows the bound by :data:`LIMIT_GROWTH`, until the goal is settled or no edge leaves the
+   settled region (unreachable); after :data:`MAX_LIMITED_PASSES` misses one unbounded pass
+   settles everything reachable. Chosen by
    measurement on the bench map (400x400 cells, start and goal 10+ m apart): the plain heapq
-   Dijkstra of the tests, stopping at the goal, takes 1.4-2.7 s per plan, this about 50 ms.
+   Dijkstra of the tests, stopping at the goal, takes 1.4-2.7 s per plan, this 25-50 ms.
 4. Goal tolerance (NavFn): if the goal cell is unreachable (or impassable but not a wall),
    plan to the reachable cell nearest the goal within ``tolerance``, the cheaper one on ties.
    A goal on a wall (LETHAL_OBSTACLE) or, without ``allow_unknown``, in unknown space is refused.
@@ -43,6 +51,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 from scipy.linalg import solve_banded
 from scipy.sparse import csr_array
 from scipy.sparse.csgraph import dijkstra
@@ -132,7 +141,9 @@ class _PaddedGraph:
 
     With the border every interior node has all 8 neighbours at the constant flat offsets
     ``dr * (W + 2) + dc``, so the edge weights of one step direction are one array slice.
-    Node ``i`` of the padded grid owns edges ``8 i .. 8 i + 7`` in ``_STEPS`` order.
+    Node ``i`` of the padded grid owns edges ``8 i .. 8 i + 7`` in ``_STEPS`` order. The CSR
+    matrix and its (n, 8) weight buffer are built once; a plan only refills the buffer (a fresh
+    10 MB array per plan costs more in page faults than the copy into it).
     """
 
     def __init__(self, shape: tuple[int, int]) -> None:
@@ -150,12 +161,19 @@ class _PaddedGraph:
         self.indptr = np.arange(0, 8 * self.n + 1, 8, dtype=np.int32)
         self.margin = w + 3  # largest |offset|
         self.rows, self.cols = np.divmod(nodes, w + 2)
+        self.weights = np.full((self.n, 8), np.inf)  # node-major edge weights of the CSR
+        self._reduced = np.empty((8, self.n))  # direction-major scratch for A*'s weights
+        self.csr = csr_array((self.weights.reshape(-1), self.indices, self.indptr),
+                             shape=(self.n, self.n))  # fmt: skip
+        self.csr.data = self.weights.reshape(-1)  # a view: refilling the buffer updates it
+        self.loaded: object = None  # token of what the buffer holds
 
     def pad(self, a: np.ndarray, fill: float) -> np.ndarray:
         """Flat padded copy of ``a`` with ``margin`` extra ``fill`` entries on each side."""
-        p = np.full(self.padded, fill, dtype=np.float64)
+        p = np.full(self.padded, fill, dtype=np.result_type(a, type(fill)))
         p[1:-1, 1:-1] = a
-        return np.concatenate([np.full(self.margin, fill), p.ravel(), np.full(self.margin, fill)])
+        edge = np.full(self.margin, fill, dtype=p.dtype)
+        return np.concatenate([edge, p.ravel(), edge])
 
     def shifted(self, flat_ext: np.ndarray, k: int) -> np.ndarray:
         """Value at the step-``k`` neighbour of every node (a slice, no gather)."""
@@ -169,18 +187,23 @@ class _PaddedGraph:
         r, c = np.divmod(node, self.padded[1])
         return r - 1, c - 1
 
-    def weights(self, step_cost: np.ndarray, heuristic: np.ndarray | None) -> np.ndarray:
-        """(n, 8) edge weights: entering cost times step length, +inf where refused.
+    def heuristic(self, goal: tuple[int, int], neutral_cost: float) -> np.ndarray:
+        """(n,) ``neutral_cost * octile(v, goal)``, from one row and one column vector."""
+        dr = np.abs(np.arange(self.padded[0], dtype=np.float64) - (goal[0] + 1))[:, None]
+        dc = np.abs(np.arange(self.padded[1], dtype=np.float64) - (goal[1] + 1))[None, :]
+        h = np.maximum(dr, dc)
+        h += (SQRT2 - 1.0) * np.minimum(dr, dc)
+        h *= neutral_cost
+        return h.reshape(-1)
 
-        A diagonal is refused when it cuts past an impassable cell. With a ``heuristic`` (n,)
-        the weights are reduced, ``w(u, v) - h(u) + h(v)``, which consistency keeps >= 0.
-        """
+    def base_weights(self, step_cost: np.ndarray, escape: np.ndarray | None = None) -> np.ndarray:
+        """(8, n) direction-major edge weights: entering cost times step length, +inf where
+        refused. A diagonal is refused when it cuts past an impassable cell. ``escape`` (H, W)
+        bool marks impassable cells made enterable for leaving the start: they may only be
+        entered from one another (and the start), never re-entered from passable space."""
         ext = self.pad(step_cost, np.inf)
         blocked = np.isinf(ext)
-        h_ext = None
-        if heuristic is not None:
-            h_ext = np.concatenate([np.zeros(self.margin), heuristic, np.zeros(self.margin)])
-        # Direction-major rows are contiguous to fill; one transpose gives node-major CSR order.
+        esc_ext = None if escape is None else self.pad(escape, False)
         data = np.empty((8, self.n))
         for k, (dr, dc) in enumerate(_STEPS):
             row = data[k]
@@ -191,17 +214,30 @@ class _PaddedGraph:
                     blocked, _STEPS.index((0, dc))
                 )
                 np.copyto(row, np.inf, where=cut)
-            if h_ext is not None and heuristic is not None:
-                row += self.shifted(h_ext, k)
-                row -= heuristic
-                np.maximum(row, 0.0, out=row)  # rounding only
-        return data.T
+            if esc_ext is not None:
+                inner = esc_ext[self.margin : self.margin + self.n]
+                np.copyto(row, np.inf, where=self.shifted(esc_ext, k) & ~inner)
+        return data
 
-    def csr(self, weights: np.ndarray) -> csr_array:
-        """The graph with these (n, 8) weights. Refused (+inf) edges stay in: filtering them
-        out costs more time than scipy spends relaxing them."""
-        data = np.ascontiguousarray(weights).ravel()
-        return csr_array((data, self.indices, self.indptr), shape=(self.n, self.n))
+    def load(self, base: np.ndarray, heuristic: np.ndarray | None, token: object) -> None:
+        """Fill the CSR weights from (8, n) ``base``; with a ``heuristic`` (n,) reduced,
+        ``w(u, v) - h(u) + h(v)``, which consistency keeps >= 0. ``token`` names the content
+        so that loading the same unreduced weights again is free."""
+        if heuristic is None:
+            if token is not None and token is self.loaded:
+                return
+            np.copyto(self.weights, base.T)
+            self.loaded = token
+            return
+        h_ext = np.concatenate([np.zeros(self.margin), heuristic, np.zeros(self.margin)])
+        red = self._reduced
+        for k in range(8):  # row by row while it is in cache
+            row = red[k]
+            np.subtract(self.shifted(h_ext, k), heuristic, out=row)
+            row += base[k]
+            np.maximum(row, 0.0, out=row)  # rounding only; inf stays inf
+        np.copyto(self.weights, red.T)
+        self.loaded = None
 
 
 @dataclass(frozen=True)
@@ -213,21 +249,19 @@ class _Search:
 
 def _search(
     graph: _PaddedGraph,
-    step_cost: np.ndarray,
+    cheapest: float,
     start: int,
     goal: int,
     heuristic: np.ndarray | None,
 ) -> _Search:
-    """Settle nodes in order of (reduced) cost until the goal is settled or nothing is left."""
-    weights = graph.weights(step_cost, heuristic)
-    csr = graph.csr(weights)
+    """Settle nodes in order of (reduced) cost on the loaded weights until the goal is settled
+    or nothing is left. ``cheapest`` is the smallest finite entering cost (a lower bound)."""
     # Dijkstra's first limit is FIRST_LIMIT_RATIO times the goal's cost lower bound ``lb``; A*
     # bounds the reduced cost d - h(start), so its first limit is (FIRST_LIMIT_RATIO - 1) * lb.
     # Each pass that misses the goal multiplies the limit by LIMIT_GROWTH; after
     # MAX_LIMITED_PASSES the last pass is unbounded, which caps the cost of unreachable goals.
     rs, cs = int(graph.rows[start]), int(graph.cols[start])
     rg, cg = int(graph.rows[goal]), int(graph.cols[goal])
-    cheapest = float(step_cost[np.isfinite(step_cost)].min())
     lb = max(cheapest * float(octile_distance(np.array(rs), np.array(cs), rg, cg)), 1.0)
     ratio = FIRST_LIMIT_RATIO - 1.0 if heuristic is not None else FIRST_LIMIT_RATIO
     limit = ratio * lb
@@ -235,14 +269,14 @@ def _search(
     settled = passes = 0
     while True:
         dist, pred = dijkstra(
-            csr, directed=True, indices=start, return_predecessors=True, limit=limit
+            graph.csr, directed=True, indices=start, return_predecessors=True, limit=limit
         )
         reached = np.flatnonzero(np.isfinite(dist))
         settled += reached.size
         if np.isfinite(dist[goal]) or math.isinf(limit):
             break
         # Exhausted when no usable edge leaves the settled region: the goal is unreachable.
-        out = np.isfinite(weights[reached]) & ~np.isfinite(dist[targets[reached]])
+        out = np.isfinite(graph.weights[reached]) & ~np.isfinite(dist[targets[reached]])
         if not out.any():
             break
         passes += 1
@@ -258,6 +292,7 @@ def _trace(pred: np.ndarray, start: int, goal: int) -> np.ndarray:
     while nodes[-1] != start:
         nodes.append(int(pred[nodes[-1]]))
     return np.array(nodes[::-1], dtype=np.int64)
+
 
 
 # --- smoothing and poses ----------------------------------------------------------------------
@@ -443,17 +478,61 @@ def _check_shapes(costmap: np.ndarray, geometry: GridGeometry) -> str | None:
     return None
 
 
+def escape_region(
+    costmap: np.ndarray, passable: np.ndarray, start: tuple[int, int]
+) -> np.ndarray | None:
+    """(H, W) bool: where a start in an impassable but non-lethal cell (inscribed band, or
+    unknown without ``allow_unknown``) may move to leave it (NavFn's ``clearRobotCell``, widened
+    to the band): the non-lethal impassable cells 8-connected to the start within ``d0 + 1``
+    cells of it, ``d0`` [cells] being its distance to the nearest passable cell. None when no
+    passable cell is left on the map."""
+    free = np.argwhere(passable)
+    if free.size == 0:
+        return None
+    d0 = float(np.hypot(free[:, 0] - start[0], free[:, 1] - start[1]).min())
+    r = math.ceil(d0 + 1.0)
+    r0, c0 = max(start[0] - r, 0), max(start[1] - r, 0)
+    win = (slice(r0, start[0] + r + 1), slice(c0, start[1] + r + 1))
+    rows, cols = np.ogrid[win]
+    near = np.hypot(rows - start[0], cols - start[1]) <= d0 + 1.0
+    cand = near & ~passable[win] & (costmap[win] != LETHAL_OBSTACLE)
+    labels, _ = ndimage.label(cand, structure=np.ones((3, 3), dtype=bool))
+    out = np.zeros(costmap.shape, dtype=bool)
+    out[win] = labels == labels[start[0] - r0, start[1] - c0]
+    return out
+
+
 class GridPlanner:
-    """NavFn-like cost-aware planner; caches the grid graph topology per costmap shape."""
+    """NavFn-like cost-aware planner; caches the grid graph topology per costmap shape and the
+    edge weights of the last costmap it planned on (plans on an unchanged costmap skip them)."""
 
     def __init__(self, config: PlannerConfig | None = None) -> None:
         self.config = config or PlannerConfig()
         self._graph: _PaddedGraph | None = None
+        self._costmap: np.ndarray | None = None  # copy of the costmap the cache belongs to
+        self._step_cost = np.zeros((0, 0))
+        self._base = np.zeros((8, 0))  # (8, n) unreduced edge weights of that costmap
+        self._cheapest = 0.0
+
+    def clear_cache(self) -> None:
+        """Forget the cached edge weights (the next plan computes them, as on a new costmap)."""
+        self._costmap = None
 
     def _graph_for(self, shape: tuple[int, int]) -> _PaddedGraph:
         if self._graph is None or self._graph.shape != shape:
             self._graph = _PaddedGraph(shape)
+            self._costmap = None
         return self._graph
+
+    def _weights_for(self, costmap: np.ndarray, graph: _PaddedGraph) -> tuple[np.ndarray, float]:
+        """(8, n) unreduced weights of ``costmap`` and its cheapest entering cost, cached."""
+        if self._costmap is None or not np.array_equal(self._costmap, costmap):
+            self._step_cost = cell_traversal_cost(costmap, self.config)
+            finite = self._step_cost[np.isfinite(self._step_cost)]
+            self._cheapest = float(finite.min()) if finite.size else 1.0
+            self._base = graph.base_weights(self._step_cost)
+            self._costmap = costmap.copy()
+        return self._base, self._cheapest
 
     def plan(
         self,
@@ -463,7 +542,11 @@ class GridPlanner:
         goal_xy: tuple[float, float],
         goal_yaw: float | None = None,
     ) -> PlanResult:
-        """Cheapest path from ``start_xy`` to ``goal_xy`` [m, map frame] on ``costmap``."""
+        """Cheapest path from ``start_xy`` to ``goal_xy`` [m, map frame] on ``costmap``.
+
+        A start in an impassable cell that is not a wall (the inscribed band, say, after a
+        localisation jump) is left by the cheapest way to passable space through the
+        :func:`escape_region`; a start on a wall is refused."""
         cfg = self.config
         if (err := _check_shapes(costmap, geometry)) is not None:
             return _fail(err)
@@ -475,29 +558,46 @@ class GridPlanner:
         if isinstance(g, str):
             return _fail(g)
         passable = passable_mask(costmap, cfg)
-        if not passable[s]:
-            return _fail(f"start {s} (row, col) is in an obstacle (cost {costmap[s]})")
+        if costmap[s] == LETHAL_OBSTACLE:
+            return _fail(f"start {s} (row, col) is in an obstacle (lethal cost {costmap[s]}, "
+                         "a wall)")  # fmt: skip
         goal_cost = int(costmap[g])
         if goal_cost == LETHAL_OBSTACLE:
             return _fail(f"goal {g} (row, col) is in a lethal cell (a wall)")
         if goal_cost == NO_INFORMATION and not cfg.allow_unknown:
             return _fail(f"goal {g} (row, col) is in unknown space and allow_unknown is false")
 
-        # 2. Search from the start; A* aims at the goal cell even when it is impassable.
+        # 2. Edge weights: cached per costmap, or with an escape route out of the start's cell.
         graph = self._graph_for(geometry.shape)
-        step_cost = cell_traversal_cost(costmap, cfg)
-        start_n, goal_n = graph.node(*s), graph.node(*g)
-        heuristic = None
-        if cfg.use_astar:
-            heuristic = cfg.neutral_cost * octile_distance(
-                graph.rows, graph.cols, g[0] + 1, g[1] + 1
-            )
-        found = _search(graph, step_cost, start_n, goal_n, heuristic)
+        escape = None
+        if not passable[s]:
+            escape = escape_region(costmap, passable, s)
+            if escape is None:
+                return _fail(f"start {s} (row, col) is in an obstacle (cost {costmap[s]}) and "
+                             "no passable cell is left on the map")  # fmt: skip
+            escape[g] = False  # the goal keeps its own rules (tolerance)
+            log.debug("start %s has cost %d: leaving it through %d cells", s, costmap[s],
+                      int(escape.sum()))  # fmt: skip
+            step_cost = cell_traversal_cost(costmap, cfg)
+            unknown = costmap[escape] == NO_INFORMATION
+            raw = np.where(unknown, cfg.lethal_cost - 1, costmap[escape].astype(np.float64))
+            step_cost[escape] = cfg.neutral_cost + cfg.cost_factor * np.minimum(
+                raw, cfg.lethal_cost - 1)  # fmt: skip
+            base = graph.base_weights(step_cost, escape)
+            cheapest = float(step_cost[np.isfinite(step_cost)].min())
+        else:
+            base, cheapest = self._weights_for(costmap, graph)
 
-        # 3. Goal tolerance: the reachable cell nearest the goal, cheaper first on ties.
+        # 3. Search from the start; A* aims at the goal cell even when it is impassable.
+        start_n, goal_n = graph.node(*s), graph.node(*g)
+        heuristic = graph.heuristic(g, cfg.neutral_cost) if cfg.use_astar else None
+        graph.load(base, heuristic, None if escape is not None else base)
+        found = _search(graph, cheapest, start_n, goal_n, heuristic)
+
+        # 4. Goal tolerance: the reachable cell nearest the goal, cheaper first on ties.
         end_n = goal_n
         if not np.isfinite(found.dist[goal_n]):
-            end = self._nearest_reachable(found.dist, graph, geometry, g)
+            end = self._nearest_reachable(found.dist, graph, geometry, g, passable)
             if end is None:
                 return PlanResult(
                     success=False,
@@ -519,6 +619,10 @@ class GridPlanner:
         if end_n == goal_n:
             xy[-1] = goal_xy
             offset = 0.0
+        # 5. Smooth; the escape route counts as passable so the smoother keeps the path.
+        if escape is not None:
+            costmap = costmap.copy()
+            costmap[escape] = cfg.lethal_cost - 1
         poses = _finish(xy, costmap, geometry, cfg, goal_yaw, smooth=True)
         return PlanResult(
             success=True,
@@ -536,14 +640,16 @@ class GridPlanner:
         graph: _PaddedGraph,
         geometry: GridGeometry,
         goal: tuple[int, int],
+        passable: np.ndarray,
     ) -> int | None:
-        """Node of the reachable cell nearest ``goal`` within tolerance, or None."""
+        """Node of the reachable passable cell nearest ``goal`` within tolerance, or None."""
         radius = self.config.tolerance / geometry.resolution  # [cells]
         if radius <= 0.0:
             return None
         rows, cols = graph.cell(np.arange(graph.n))
         d = np.hypot(rows - goal[0], cols - goal[1])
-        candidates = np.flatnonzero(np.isfinite(dist) & (d <= radius))
+        ok = graph.pad(passable, False)[graph.margin : graph.margin + graph.n]
+        candidates = np.flatnonzero(np.isfinite(dist) & ok & (d <= radius))
         if candidates.size == 0:
             return None
         order = np.lexsort((dist[candidates], d[candidates]))

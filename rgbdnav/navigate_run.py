@@ -21,12 +21,18 @@ Each simulation step, in simulated time (never wall time):
    navigator is handed the true pose.
    The scan then marks and clears the costmap's obstacle layer at the *estimated* pose, so
    obstacles that are in the world but not in the map appear; the path ahead is re-checked.
+   With ``navigate.replan_frequency`` > 0 (Nav2's behaviour tree replans at 1 Hz) the path is
+   also planned again at that rate on the costmap as it now is, so that it keeps the
+   inflation's distance from what the camera has seen since (furniture moved since the map).
 2. At ``follower.controller_frequency`` the regulated pure pursuit follower turns the path and
    the estimated pose into (v, w); ``blocked``, an invalidated path or no progress
    (:class:`nav.behaviors.ProgressChecker`) triggers a replan (at most ``max_replans`` per
    goal); a blocked arc (the controller failing) first runs the next behaviour of Nav2's
    recovery round-robin (clear the costmap, spin, wait, back up), a replan that fails runs the
-   round until one succeeds, and being stuck clears the costmap and backs up.
+   round until one succeeds, and being stuck clears the costmap and backs up. An estimate in the
+   inscribed band is not a refusal: the planner plans out of it (NavFn's ``clearRobotCell``),
+   and while the robot follows that way out the controller's collision check only stops it for
+   walls (lethal cells).
    **Settle** (``navigate.goal_settle_spin`` > 0, localizer mode): when the goal checker says
    "reached" (on the estimate), the robot stops, turns in place and the localiser fuses one
    match of the turn's scans stacked by odometry (:meth:`Localizer.match_recent`); the next
@@ -84,7 +90,7 @@ from nav.behaviors import (
 from nav.config import NavigateConfig
 from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap, inscribed_radius
 from nav.path_follower import compute_velocity
-from nav.planner import GridPlanner, PlanResult, replan_needed
+from nav.planner import GridPlanner, PlanResult, points_passable, replan_needed
 from nav.velocity_smoother import VelocitySmoother
 from rgbdnav.config import Config, load_config
 from rgbdnav.localize_run import LoadedMap, load_map
@@ -184,6 +190,15 @@ def path_ahead(path_xy: np.ndarray, xy: np.ndarray, skip_m: float) -> np.ndarray
     return rest[d[k:] > skip_m]
 
 
+def past_escape(path_xy: np.ndarray, passable: np.ndarray) -> np.ndarray:
+    """``path_xy`` without its leading run of points where ``passable`` (N,) is false: the
+    planner's way out of the inflated band when the robot's estimate stands in it (blocked
+    when planned, so no new obstacle)."""
+    if passable.all():
+        return path_xy
+    return path_xy[int(np.argmax(passable)) if passable.any() else len(path_xy) :]
+
+
 # 2. Goal vetting ----------------------------------------------------------------------------
 
 
@@ -281,6 +296,7 @@ class _Sim:
             self.keepout_dist = np.asarray(distance_transform_edt(~mask)) * \
                 keepout.geometry.resolution  # fmt: skip
         self.next_ctrl_ns = 0
+        self.escape_plan = False  # the path followed starts with a way out of the band
         self.next_scan_ns = 0
         self.cmd = (0.0, 0.0)  # last controller command (v, w)
         self.vel = (0.0, 0.0)  # smoothed command being executed (v, w)
@@ -466,6 +482,32 @@ class _Sim:
             self.loc_covariance = result.covariance
         return result.reason
 
+    def adopt(self, plan: PlanResult) -> np.ndarray:
+        """The poses of a new plan to follow; notes whether it starts with the planner's way out
+        of an inscribed (or otherwise impassable, non-lethal) cell the estimate stands in."""
+        self.escape_plan = not bool(
+            points_passable(plan.poses[:1, :2], self.costmap.master(), self.costmap.geometry,
+                            self.cfg.planner).all()  # fmt: skip
+        )
+        return plan.poses
+
+    def escaping(self) -> bool:
+        """Following a plan's way out of the cell the estimate stood in when it was made, and
+        not out yet. (An estimate that drifts into the band while following an ordinary plan is
+        not escaping: the controller's collision check stops it and the recoveries run.)"""
+        if self.escape_plan:
+            x, y = float(self.estimate[0]), float(self.estimate[1])
+            allow = self.cfg.planner.allow_unknown
+            self.escape_plan = not bool(self.costmap.is_free(x, y, allow_unknown=allow))
+        return self.escape_plan
+
+    def arc_free_fn(self) -> Callable[[float, float], bool]:
+        """The controller's collision test. On the way out of the band the usual test (cost
+        below INSCRIBED) would call every sample a collision, so only walls count."""
+        if self.escaping():
+            return lambda x, y: int(self.costmap.cost_at(x, y)) < LETHAL
+        return lambda x, y: bool(self.costmap.is_free(x, y))
+
     def costmap_has_obstacles(self) -> bool:
         return bool(self.costmap.obstacle_count() > 0)
 
@@ -504,9 +546,12 @@ class _Sim:
             return outcome
         outcome["first_plan"] = plan.poses[:, :2]
         outcome["planned_length_m"] = round(plan.length_m, 3)
-        path = plan.poses
+        path = self.adopt(plan)
         status, reason = "failed", ""
         anchor, anchor_ns = self.estimate, self.t_ns  # progress checker
+        replan_ns = (round(NS_PER_S / self.nav.replan_frequency)
+                     if self.nav.replan_frequency > 0.0 else None)  # fmt: skip
+        planned_ns = self.t_ns
         controller_failures = 0  # recovery round-robin position
         settles = 0  # goal settles so far (navigate.goal_settle_spin)
         can_settle = self.localizer is not None and self.nav.goal_settle_spin > 0.0
@@ -525,11 +570,22 @@ class _Sim:
                     outcome.setdefault("settles", []).append(self.settle(k))
                     plan = self.make_plan(goal)
                     if plan.success:
-                        path = plan.poses
+                        path = self.adopt(plan)
                     anchor, anchor_ns = self.estimate, self.t_ns
-                    self.next_ctrl_ns = self.t_ns
+                    self.next_ctrl_ns = planned_ns = self.t_ns
                     continue
+                if replan_ns is not None and self.t_ns - planned_ns >= replan_ns:
+                    # Nav2's rate-controlled ComputePathToPose: the costmap has changed since
+                    # (obstacles seen, furniture where the map does not have it).
+                    planned_ns = self.t_ns
+                    fresh = self.make_plan(goal)
+                    if fresh.success:
+                        path = self.adopt(fresh)
                 ahead = path_ahead(path[:, :2], self.estimate[:2], self.inscribed)
+                if self.escaping():
+                    ok = points_passable(ahead, self.costmap.master(), self.costmap.geometry,
+                                         cfg.planner)  # fmt: skip
+                    ahead = past_escape(ahead, ok)
                 if replan_needed(ahead, self.costmap.master(), self.costmap.geometry,
                                  cfg.planner):  # fmt: skip
                     replan_why = "path blocked by a new obstacle"
@@ -560,7 +616,7 @@ class _Sim:
                 cmd = compute_velocity(
                     Pose2(*est.tolist()), path, self.vel, cfg.follower,
                     cost_fn=lambda x, y: float(self.costmap.cost_at(x, y)),
-                    is_free=lambda x, y: bool(self.costmap.is_free(x, y)),
+                    is_free=self.arc_free_fn(),
                     inscribed_radius_m=self.inscribed,
                 )  # fmt: skip
                 self.control_steps += 1
@@ -607,8 +663,9 @@ class _Sim:
                 if not plan.success:
                     reason = f"replan failed ({replan_why}) after recoveries: {plan.reason}"
                     break
-                path = plan.poses
+                path = self.adopt(plan)
                 anchor, anchor_ns = self.estimate, self.t_ns
+                planned_ns = self.t_ns
             self.step(k, "driving")
         self.stop(k)
         driven = np.array(self.log.poses[travelled0 - 1 :])[:, :2]

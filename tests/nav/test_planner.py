@@ -136,6 +136,67 @@ def test_start_in_obstacle_is_refused() -> None:
     cost[3, 3] = LETHAL_OBSTACLE
     result = GridPlanner().plan(cost, geometry(10, 10), centre(3, 3), centre(8, 8))
     assert not result.success and "start" in result.reason and "obstacle" in result.reason
+    assert "wall" in result.reason
+
+
+def wall_with_band() -> np.ndarray:
+    """A lethal wall (rows 9..10, cols 5..34) inside a 3-cell inscribed band (cost 253)."""
+    cost = np.zeros((20, 40), dtype=np.uint8)
+    cost[6:14, 2:38] = 253
+    cost[9:11, 5:35] = LETHAL_OBSTACLE
+    return cost
+
+
+@pytest.mark.parametrize("use_astar", [False, True])
+def test_start_in_inscribed_band_plans_out_of_it(use_astar: bool) -> None:
+    """NavFn's clearRobotCell: a start in the band (cost 253, impassable but no wall) is left by
+    the shortest way out, here 2 more band cells toward row 0, instead of refusing every plan."""
+    cost = wall_with_band()
+    geo = geometry(20, 40)
+    cfg = PlannerConfig(use_astar=use_astar, smooth_path=False, tolerance=0.0)
+    result = GridPlanner(cfg).plan(cost, geo, centre(8, 20), centre(2, 20))
+    assert result.success, result.reason
+    np.testing.assert_array_equal(result.cells[:4], [[8, 20], [7, 20], [6, 20], [5, 20]])
+    # Out of the band, the path stays in passable cells.
+    assert (cost[result.cells[3:, 0], result.cells[3:, 1]] < 253).all()
+    # Cost: 2 band cells entered at 50 + 3 * (lethal_cost - 1), as unknown, then 4 free cells.
+    assert result.cost == pytest.approx(2 * (50 + 3 * 252) + 4 * 50)
+
+
+@pytest.mark.parametrize("use_astar", [False, True])
+def test_a_path_that_left_the_band_never_re_enters_it(use_astar: bool) -> None:
+    """Start in the band at the wall's left end, goal beyond its right end on the same side:
+    running along the band would be shorter, but once out the path stays out."""
+    cost = wall_with_band()
+    cost[6:9, 2:38] = 253  # the whole upper side of the band; the wall below it
+    geo = geometry(20, 40)
+    cfg = PlannerConfig(use_astar=use_astar, tolerance=0.0)
+    result = GridPlanner(cfg).plan(cost, geo, centre(7, 4), centre(7, 39))
+    assert result.success, result.reason
+    in_band = cost[result.cells[:, 0], result.cells[:, 1]] >= 253
+    first_out = int(np.argmin(in_band))
+    assert 0 < first_out <= 3 and not in_band[first_out:].any()
+    # The smoothed poses leave the band as the grid path does and stay out.
+    poses_ok = points_passable(result.poses[:, :2], cost, geo, PlannerConfig())
+    assert poses_ok[-1] and poses_ok[int(np.argmax(poses_ok)) :].all()
+
+
+def test_start_in_unknown_is_left_when_unknown_is_not_allowed() -> None:
+    cost = np.zeros((10, 10), dtype=np.uint8)
+    cost[2:5, 2:5] = NO_INFORMATION
+    cfg = PlannerConfig(allow_unknown=False, smooth_path=False)
+    result = GridPlanner(cfg).plan(cost, geometry(10, 10), centre(3, 3), centre(8, 8))
+    assert result.success, result.reason
+    assert (cost[result.cells[2:, 0], result.cells[2:, 1]] == 0).all()
+
+
+def test_start_in_band_walled_in_is_unreachable_not_an_error() -> None:
+    cost = np.full((10, 10), 253, dtype=np.uint8)
+    cost[0, :] = cost[-1, :] = cost[:, 0] = cost[:, -1] = LETHAL_OBSTACLE
+    result = GridPlanner(PlannerConfig(tolerance=0.0)).plan(
+        cost, geometry(10, 10), centre(3, 3), centre(6, 6)
+    )
+    assert not result.success and "start" in result.reason and "no passable cell" in result.reason
 
 
 def test_goal_in_wall_is_refused_even_with_tolerance() -> None:
@@ -333,3 +394,18 @@ def test_goal_in_inscribed_cell_uses_tolerance() -> None:
         cost, geo, centre(1, 1), centre(11, 11)
     )
     assert result.success and result.goal_offset_m == pytest.approx(0.2, abs=1e-9)
+
+
+@pytest.mark.parametrize("use_astar", [False, True])
+def test_a_costmap_changed_in_place_is_not_planned_on_with_stale_weights(use_astar: bool) -> None:
+    cost = np.zeros((20, 20), dtype=np.uint8)
+    geo = geometry(20, 20)
+    planner = GridPlanner(PlannerConfig(use_astar=use_astar, smooth_path=False))
+    first = planner.plan(cost, geo, centre(10, 1), centre(10, 18))
+    assert first.success and (first.cells[:, 0] == 10).all()
+    cost[3:17, 9] = LETHAL_OBSTACLE  # same array, new wall across the straight path
+    second = planner.plan(cost, geo, centre(10, 1), centre(10, 18))
+    assert second.success and not (second.cells[:, 0] == 10).all()
+    assert second.cost > first.cost
+    reference = reference_cost(cost, (10, 1), (10, 18), planner.config)
+    assert second.cost == pytest.approx(reference, rel=1e-9)

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from rgbdnav.cli import app
 from rgbdnav.nav_charts import accelerations
-from rgbdnav.navigate_run import cast_scan, depth_range_sigma, parse_goal_args
+from rgbdnav.navigate_run import cast_scan, depth_range_sigma, parse_goal_args, past_escape
 from sensors.sim.world import FloorPlan, floor_plan, load_world, world_from_dict
 from sensors.tum import load_tum_trajectory
 from sensors.types import ConfigError
@@ -445,3 +445,45 @@ def test_a_run_of_gated_matches_while_driving_settles_then_replans(
                                       "--goal", "5.0", "2.0")  # fmt: skip
     assert code == 0, output
     assert len(summary["goals"][0]["settles"]) == 1  # at the goal only
+
+
+def test_past_escape_drops_only_the_leading_blocked_points() -> None:
+    """The planner's way out of the inflated band is blocked by design: the navigator must not
+    take it for a new obstacle, but a blocked point further on still counts."""
+    xy = np.arange(12.0).reshape(6, 2)
+    ok = np.array([False, False, True, True, False, True])
+    np.testing.assert_array_equal(past_escape(xy, ok), xy[2:])
+    np.testing.assert_array_equal(past_escape(xy, np.ones(6, dtype=bool)), xy)
+    assert len(past_escape(xy, np.zeros(6, dtype=bool))) == 0
+
+
+def test_replan_frequency_plans_again_while_driving(
+    scene: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """navigate.replan_frequency (Nav2's rate-controlled ComputePathToPose): about one plan per
+    simulated second on top of the event-driven ones, none of which counts as a replan."""
+    from nav.planner import GridPlanner
+
+    calls: list[int] = []
+    plan = GridPlanner.plan
+
+    def counting(self: GridPlanner, *args: object, **kwargs: object) -> object:
+        calls.append(1)
+        return plan(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(GridPlanner, "plan", counting)
+    plans = {}
+    for hz in (0.0, 1.0):
+        calls.clear()
+        code, output, summary = _navigate(scene, tmp_path / f"hz{hz:g}", "--localization",
+                                          "groundtruth", "--set",
+                                          f"navigate.replan_frequency={hz}",
+                                          "--goal", "1.0", "3.4")  # fmt: skip
+        assert code == 0, output
+        (goal,) = summary["goals"]
+        assert goal["status"] == "reached" and summary["collisions"]["events"] == 0
+        plans[hz] = (len(calls), goal["replans"], goal["time_s"])
+    n0, replans0, _ = plans[0.0]
+    n1, replans1, t1 = plans[1.0]
+    assert n1 - (1 + replans1) >= math.floor(t1) - 1 > 0
+    assert n0 == 1 + replans0
