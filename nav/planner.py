@@ -219,6 +219,20 @@ class _PaddedGraph:
                 np.copyto(row, np.inf, where=self.shifted(esc_ext, k) & ~inner)
         return data
 
+    def node_weights(self, step_cost: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+        """(8, m) rows of :meth:`base_weights` (without escape) for the padded ``nodes`` only."""
+        ext = self.pad(step_cost, np.inf)
+        blocked = np.isinf(ext)
+        at = nodes + self.margin
+        data = np.empty((8, len(nodes)))
+        for k, (dr, dc) in enumerate(_STEPS):
+            np.multiply(self.lengths[k], ext[at + self.offsets[k]], out=data[k])
+            if dr and dc:
+                cut = blocked[at + self.offsets[_STEPS.index((dr, 0))]] | blocked[
+                    at + self.offsets[_STEPS.index((0, dc))]]  # fmt: skip
+                np.copyto(data[k], np.inf, where=cut)
+        return data
+
     def load(self, base: np.ndarray, heuristic: np.ndarray | None, token: object) -> None:
         """Fill the CSR weights from (8, n) ``base``; with a ``heuristic`` (n,) reduced,
         ``w(u, v) - h(u) + h(v)``, which consistency keeps >= 0. ``token`` names the content
@@ -502,6 +516,9 @@ def escape_region(
     return out
 
 
+INCREMENTAL_MAX_CHANGED = 0.05  # share of changed cells up to which edge weights are patched
+
+
 class GridPlanner:
     """NavFn-like cost-aware planner; caches the grid graph topology per costmap shape and the
     edge weights of the last costmap it planned on (plans on an unchanged costmap skip them)."""
@@ -525,11 +542,29 @@ class GridPlanner:
         return self._graph
 
     def _weights_for(self, costmap: np.ndarray, graph: _PaddedGraph) -> tuple[np.ndarray, float]:
-        """(8, n) unreduced weights of ``costmap`` and its cheapest entering cost, cached."""
-        if self._costmap is None or not np.array_equal(self._costmap, costmap):
-            self._step_cost = cell_traversal_cost(costmap, self.config)
-            finite = self._step_cost[np.isfinite(self._step_cost)]
-            self._cheapest = float(finite.min()) if finite.size else 1.0
+        """(8, n) unreduced weights of ``costmap`` and its cheapest entering cost, cached. A
+        costmap that differs from the cached one in a few cells (a scan marked and cleared,
+        its inflation) updates only the edges leaving cells next to a changed one: an edge's
+        weight depends on the cell it enters and, for a diagonal, the two it cuts past."""
+        cached = self._costmap
+        if cached is not None and np.array_equal(cached, costmap):
+            return self._base, self._cheapest
+        self._step_cost = cell_traversal_cost(costmap, self.config)
+        finite = self._step_cost[np.isfinite(self._step_cost)]
+        self._cheapest = float(finite.min()) if finite.size else 1.0
+        changed = None if cached is None else cached != costmap
+        if changed is not None and changed.sum() <= INCREMENTAL_MAX_CHANGED * changed.size:
+            # In padded node space: the border nodes' edges into the grid change too.
+            padded = np.zeros(graph.padded, dtype=bool)
+            padded[1:-1, 1:-1] = changed
+            near = ndimage.binary_dilation(padded, structure=np.ones((3, 3), dtype=bool))
+            nodes = np.flatnonzero(near)
+            fresh = graph.node_weights(self._step_cost, nodes)
+            self._base[:, nodes] = fresh
+            if graph.loaded is self._base:  # the CSR holds these weights: patch it too
+                graph.weights[nodes] = fresh.T
+            cached[...] = costmap
+        else:
             self._base = graph.base_weights(self._step_cost)
             self._costmap = costmap.copy()
         return self._base, self._cheapest

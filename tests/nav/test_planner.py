@@ -409,3 +409,48 @@ def test_a_costmap_changed_in_place_is_not_planned_on_with_stale_weights(use_ast
     assert second.cost > first.cost
     reference = reference_cost(cost, (10, 1), (10, 18), planner.config)
     assert second.cost == pytest.approx(reference, rel=1e-9)
+
+
+@pytest.mark.parametrize("use_astar", [False, True])
+def test_weights_patched_for_a_few_changed_cells_equal_a_fresh_computation(
+    use_astar: bool,
+) -> None:
+    # A scan marks and clears a few cells between plans: the planner patches the edges around
+    # them instead of recomputing all. Patched and fresh weights must agree exactly, and so
+    # must the plans, over a run of random local changes.
+    rng = np.random.default_rng(7)
+    cost = rng.choice(np.array([0, 0, 0, 40, 120, 253, 254, 255], np.uint8), size=(30, 40))
+    cost[5, 1] = cost[25, 38] = 0
+    geo = geometry(30, 40)
+    cfg = PlannerConfig(use_astar=use_astar, smooth_path=False, allow_unknown=True)
+    incremental = GridPlanner(cfg)
+    incremental.plan(cost, geo, centre(5, 1), centre(25, 38))
+    first_base = incremental._base
+    for step in range(12):
+        r0, c0 = rng.integers(0, 26), rng.integers(0, 36)
+        cost[r0 : r0 + 4, c0 : c0 + 4] = rng.choice(np.array([0, 60, 253, 254], np.uint8),
+                                                    size=(4, 4))  # fmt: skip
+        cost[5, 1] = cost[25, 38] = 0
+        got = incremental.plan(cost, geo, centre(5, 1), centre(25, 38))
+        fresh = GridPlanner(cfg)
+        want = fresh.plan(cost, geo, centre(5, 1), centre(25, 38))
+        assert np.array_equal(incremental._base, fresh._base), step
+        assert got.success == want.success
+        if want.success:
+            assert got.cost == want.cost and np.array_equal(got.cells, want.cells)
+    # Every step patched the cached weights in place (4x4 changes: under the patch limit).
+    assert incremental._base is first_base
+
+
+def test_the_csr_weights_follow_a_patched_costmap() -> None:
+    cost = np.zeros((20, 20), dtype=np.uint8)
+    geo = geometry(20, 20)
+    planner = GridPlanner(PlannerConfig(smooth_path=False))
+    planner.plan(cost, geo, centre(10, 1), centre(10, 18))
+    cost[8:12, 9] = LETHAL_OBSTACLE  # a small change: patched in place
+    again = planner.plan(cost, geo, centre(10, 1), centre(10, 18))
+    graph = planner._graph
+    assert graph is not None
+    assert np.array_equal(graph.weights, planner._base.T)
+    assert again.cost == pytest.approx(
+        reference_cost(cost, (10, 1), (10, 18), planner.config), rel=1e-9)
