@@ -553,7 +553,8 @@ class GridPlanner:
         finite = self._step_cost[np.isfinite(self._step_cost)]
         self._cheapest = float(finite.min()) if finite.size else 1.0
         changed = None if cached is None else cached != costmap
-        if changed is not None and changed.sum() <= INCREMENTAL_MAX_CHANGED * changed.size:
+        if (cached is not None and changed is not None
+                and changed.sum() <= INCREMENTAL_MAX_CHANGED * changed.size):  # fmt: skip
             # In padded node space: the border nodes' edges into the grid change too.
             padded = np.zeros(graph.padded, dtype=bool)
             padded[1:-1, 1:-1] = changed
