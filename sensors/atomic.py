@@ -34,9 +34,20 @@ def make_staging_dir(final: Path) -> Path:
     return Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
 
 
+def interrupted_replacement(final: Path) -> Path | None:
+    """The previous ``final`` that :func:`commit_staging_dir` had moved aside when the process
+    died between its two renames (``final`` is then missing; kill -9 during a checkpoint), or
+    None. The newest such folder when there are several."""
+    if final.exists():
+        return None
+    aside = [p for p in final.parent.glob(f".{final.name}.old-*") if p.is_dir()]
+    return max(aside, key=lambda p: p.stat().st_mtime) if aside else None
+
+
 def commit_staging_dir(staging: Path, final: Path) -> None:
     """Replace ``final`` by ``staging``. An existing ``final`` is moved aside first and removed
-    only after the new folder is in place, so a crash leaves either the old or the new one."""
+    only after the new folder is in place, so a crash leaves either the old or the new one (the
+    old one under its moved-aside name: :func:`interrupted_replacement` finds it)."""
     for root, _dirs, files in os.walk(staging):
         for name in files:
             with open(os.path.join(root, name), "rb") as fh:

@@ -41,6 +41,7 @@ from sensors.atomic import (
     atomic_write_bytes,
     atomic_write_text,
     commit_staging_dir,
+    interrupted_replacement,
     make_staging_dir,
 )
 from sensors.types import LaserScan, MapError
@@ -578,6 +579,10 @@ def _bundle_grid(folder: Path, occupied_thresh: float, free_thresh: float) -> Oc
 def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
     """Read and validate a bundle folder written by :func:`save_bundle` (or by hand)."""
     folder = Path(path)
+    if not folder.is_dir() and (aside := interrupted_replacement(folder)) is not None:
+        log.warning("%s: missing; loading %s, the bundle a save interrupted between its two "
+                    "renames had moved aside", folder, aside.name)  # fmt: skip
+        folder = aside
     if not folder.is_dir():
         raise MapError(f"{folder}: missing map bundle folder")
     graph = _parse_graph(folder / GRAPH_JSON)

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 
 from rgbdnav.cli import app
 from rgbdnav.live_run import Drill, LiveOptions, LiveRun, route_command
-from sensors.types import ConfigError
+from sensors.types import ConfigError, MapError
 from slam.map_bundle import load_bundle
 
 REPO = Path(__file__).resolve().parents[2]
@@ -99,7 +99,10 @@ def test_kill_9_leaves_a_checkpoint_that_loads_and_localises(tmp_path: Path) -> 
         while time.monotonic() < deadline and keyframes < MIN_KEYFRAMES_TO_LOCALISE:
             time.sleep(0.5)
             if (out / "map" / "graph.json").exists():
-                keyframes = len(load_bundle(out / "map").keyframe_ids)  # renamed in atomically
+                try:  # a checkpoint swapped in between the check and the read: next round
+                    keyframes = len(load_bundle(out / "map").keyframe_ids)
+                except MapError:
+                    continue
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)

@@ -152,6 +152,34 @@ def test_failed_save_leaves_the_old_bundle_and_no_temp_folder(tmp_path, monkeypa
     assert len(load_bundle(target).scans) == 2
 
 
+def test_a_save_killed_between_its_two_renames_still_loads_the_old_bundle(tmp_path, monkeypatch):
+    # commit_staging_dir moves the old folder aside, then renames the new one in: kill -9 in
+    # between (a live checkpoint) leaves no folder under the bundle's name.
+    import os
+
+    import sensors.atomic as atomic
+
+    target = tmp_path / "b"
+    save_bundle(make_bundle(2), target)
+    real = os.replace
+    calls = []
+
+    def die_on_second(src, dst):
+        calls.append(dst)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # the process dies here
+        real(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", die_on_second)
+    with pytest.raises(KeyboardInterrupt):
+        save_bundle(make_bundle(4), target)
+    monkeypatch.setattr(atomic.os, "replace", real)
+    assert not target.exists()
+    assert len(load_bundle(target).scans) == 2  # the moved-aside bundle, with a warning
+    save_bundle(make_bundle(3), target)  # and the next save puts one in place again
+    assert len(load_bundle(target).scans) == 3
+
+
 def test_save_replaces_an_existing_bundle(tmp_path):
     save_bundle(make_bundle(2), tmp_path / "b")
     save_bundle(make_bundle(4), tmp_path / "b")
