@@ -66,7 +66,7 @@ from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, SensorError, WheelTicks
 from slam.depth_to_scan import DepthToScan
 from slam.diff_drive import WheelErrorModel
-from slam.ekf import EkfError, PlanarEkf, motion_twist, wheel_twist_inputs
+from slam.ekf import EkfError, PlanarEkf, spanning_motion_twists, wheel_twist_inputs
 from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper
@@ -255,6 +255,7 @@ class LiveRun:
         self.keys: queue.Queue[str] = queue.Queue()  # terminal keys (tests put them here)
         self.mode = "manual" if opts.drive == "teleop" else "auto"
         self.recorder: LiveRecorder | None = None
+        self._vo_skipped: list[int] = []  # frames VO skipped since the last one it ran on
         if opts.record is not None:
             self.recorder = LiveRecorder(opts.record, self._recording_scene())
 
@@ -458,6 +459,7 @@ class LiveRun:
         if self.cfg.live.skip_vo_when_behind and prev_frame_ns is not None \
                 and not self.frame_q.empty():  # fmt: skip
             self.counts.inc("vo_skipped_behind")
+            self._vo_skipped.append(frame.stamp_ns)
             return None, prev_frame_ns
         t0 = time.perf_counter()
         res = vo.process(frame)
@@ -465,9 +467,13 @@ class LiveRun:
             dt = (frame.stamp_ns - prev_frame_ns) / 1e9
             d = res.delta_base
             if res.success and d is not None and dt > 0:
-                ekf.process("vo0", motion_twist(frame.stamp_ns, d, res.covariance, dt))
+                # The pair's mean velocity at every frame it spans (slam.ekf docstring).
+                for tw in spanning_motion_twists(self._vo_skipped, frame.stamp_ns, d,
+                                                 res.covariance, dt):  # fmt: skip
+                    ekf.process("vo0", tw)
             else:
                 self.counts.inc(f"vo_failures_{res.reason}")
+        self._vo_skipped.clear()
         return 1e3 * (time.perf_counter() - t0), frame.stamp_ns
 
     def _mapper_loop(self) -> None:

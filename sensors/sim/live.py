@@ -345,9 +345,10 @@ class SimRobot:
                 if kind == "error":
                     self._error = payload
                     break
-        self._proc.join(timeout=STOP_TIMEOUT_S)
-        if self._proc.is_alive():
-            self._proc.kill()
+        if self._proc.pid is not None:  # not when start() failed to spawn it
+            self._proc.join(timeout=STOP_TIMEOUT_S)
+            if self._proc.is_alive():
+                self._proc.kill()
         self._ring.close()
         if self._stats is None:
             why = self._error.splitlines()[0] if self._error else (
