@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -116,13 +117,18 @@ def passable_mask(costmap: np.ndarray, config: PlannerConfig) -> np.ndarray:
     return ~blocked
 
 
-def cell_traversal_cost(costmap: np.ndarray, config: PlannerConfig) -> np.ndarray:
-    """(H, W) float64 cost of entering each cell per unit step; +inf where impassable."""
+def cell_traversal_cost(costmap: np.ndarray, config: PlannerConfig,
+                        enterable: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """(H, W) float64 cost of entering each cell per unit step; +inf where impassable, except
+    in ``enterable`` (H, W) bool cells (a start's way out), costed as ``lethal_cost - 1``."""
     c = costmap.astype(np.float64)
-    if config.allow_unknown:
-        c[costmap == NO_INFORMATION] = config.lethal_cost - 1
+    c[costmap == NO_INFORMATION] = config.lethal_cost - 1  # (impassable unless allowed)
+    blocked = ~passable_mask(costmap, config)
+    if enterable is not None:
+        np.minimum(c, config.lethal_cost - 1, out=c, where=enterable)
+        blocked &= ~enterable
     cost = config.neutral_cost + config.cost_factor * c
-    cost[~passable_mask(costmap, config)] = np.inf
+    cost[blocked] = np.inf
     return cost
 
 
@@ -189,49 +195,44 @@ class _PaddedGraph:
 
     def heuristic(self, goal: tuple[int, int], neutral_cost: float) -> np.ndarray:
         """(n,) ``neutral_cost * octile(v, goal)``, from one row and one column vector."""
-        dr = np.abs(np.arange(self.padded[0], dtype=np.float64) - (goal[0] + 1))[:, None]
-        dc = np.abs(np.arange(self.padded[1], dtype=np.float64) - (goal[1] + 1))[None, :]
-        h = np.maximum(dr, dc)
-        h += (SQRT2 - 1.0) * np.minimum(dr, dc)
-        h *= neutral_cost
-        return h.reshape(-1)
+        rows = np.arange(self.padded[0])[:, None]
+        cols = np.arange(self.padded[1])[None, :]
+        return (neutral_cost * octile_distance(rows, cols, goal[0] + 1, goal[1] + 1)).reshape(-1)
 
-    def base_weights(self, step_cost: np.ndarray, escape: np.ndarray | None = None) -> np.ndarray:
-        """(8, n) direction-major edge weights: entering cost times step length, +inf where
-        refused. A diagonal is refused when it cuts past an impassable cell. ``escape`` (H, W)
-        bool marks impassable cells made enterable for leaving the start: they may only be
-        entered from one another (and the start), never re-entered from passable space."""
+    def _weights(self, step_cost: np.ndarray, m: int,
+                 take: Callable[[np.ndarray, int], np.ndarray]) -> np.ndarray:  # fmt: skip
+        """(8, m) edge weights of m nodes: entering cost times step length, +inf where refused;
+        ``take(flat_ext, k)`` gives the step-``k`` neighbour's value for each of them. A
+        diagonal is refused when it cuts past an impassable cell."""
         ext = self.pad(step_cost, np.inf)
         blocked = np.isinf(ext)
-        esc_ext = None if escape is None else self.pad(escape, False)
-        data = np.empty((8, self.n))
+        data = np.empty((8, m))
         for k, (dr, dc) in enumerate(_STEPS):
-            row = data[k]
-            np.multiply(self.lengths[k], self.shifted(ext, k), out=row)
+            np.multiply(self.lengths[k], take(ext, k), out=data[k])
             if dr and dc:
                 # The two orthogonal cells the diagonal passes between must be passable.
-                cut = self.shifted(blocked, _STEPS.index((dr, 0))) | self.shifted(
-                    blocked, _STEPS.index((0, dc))
-                )
-                np.copyto(row, np.inf, where=cut)
-            if esc_ext is not None:
-                inner = esc_ext[self.margin : self.margin + self.n]
-                np.copyto(row, np.inf, where=self.shifted(esc_ext, k) & ~inner)
+                cut = take(blocked, _STEPS.index((dr, 0))) | take(blocked, _STEPS.index((0, dc)))
+                np.copyto(data[k], np.inf, where=cut)
+        return data
+
+    def base_weights(self, step_cost: np.ndarray, escape: np.ndarray | None = None) -> np.ndarray:
+        """(8, n) direction-major edge weights of every node (array slices, no gather).
+        ``escape`` (H, W) bool marks impassable cells made enterable for leaving the start:
+        they may only be entered from one another (and the start), never re-entered from
+        passable space."""
+        data = self._weights(step_cost, self.n, self.shifted)
+        if escape is not None:
+            esc_ext = self.pad(escape, False)
+            inner = esc_ext[self.margin : self.margin + self.n]
+            for k in range(8):
+                np.copyto(data[k], np.inf, where=self.shifted(esc_ext, k) & ~inner)
         return data
 
     def node_weights(self, step_cost: np.ndarray, nodes: np.ndarray) -> np.ndarray:
-        """(8, m) rows of :meth:`base_weights` (without escape) for the padded ``nodes`` only."""
-        ext = self.pad(step_cost, np.inf)
-        blocked = np.isinf(ext)
+        """(8, m) columns of :meth:`base_weights` (without escape) for the padded ``nodes``."""
         at = nodes + self.margin
-        data = np.empty((8, len(nodes)))
-        for k, (dr, dc) in enumerate(_STEPS):
-            np.multiply(self.lengths[k], ext[at + self.offsets[k]], out=data[k])
-            if dr and dc:
-                cut = blocked[at + self.offsets[_STEPS.index((dr, 0))]] | blocked[
-                    at + self.offsets[_STEPS.index((0, dc))]]  # fmt: skip
-                np.copyto(data[k], np.inf, where=cut)
-        return data
+        return self._weights(step_cost, len(nodes),
+                             lambda flat_ext, k: flat_ext[at + self.offsets[k]])  # fmt: skip
 
     def load(self, base: np.ndarray, heuristic: np.ndarray | None, token: object) -> None:
         """Fill the CSR weights from (8, n) ``base``; with a ``heuristic`` (n,) reduced,
@@ -614,11 +615,7 @@ class GridPlanner:
             escape[g] = False  # the goal keeps its own rules (tolerance)
             log.debug("start %s has cost %d: leaving it through %d cells", s, costmap[s],
                       int(escape.sum()))  # fmt: skip
-            step_cost = cell_traversal_cost(costmap, cfg)
-            unknown = costmap[escape] == NO_INFORMATION
-            raw = np.where(unknown, cfg.lethal_cost - 1, costmap[escape].astype(np.float64))
-            step_cost[escape] = cfg.neutral_cost + cfg.cost_factor * np.minimum(
-                raw, cfg.lethal_cost - 1)  # fmt: skip
+            step_cost = cell_traversal_cost(costmap, cfg, enterable=escape)
             base = graph.base_weights(step_cost, escape)
             cheapest = float(step_cost[np.isfinite(step_cost)].min())
         else:
