@@ -351,6 +351,8 @@ class SimRobot:
                 self._proc.kill()
         self._ring.close()
         if self._stats is None:
+            if self._proc.pid is None:
+                raise SensorError("the simulated robot was never started, so it has no counts")
             why = self._error.splitlines()[0] if self._error else (
                 f"exit code {self._proc.exitcode}")  # fmt: skip
             raise SensorError(f"the simulated robot failed: {why}")

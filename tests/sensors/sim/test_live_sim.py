@@ -10,6 +10,7 @@ import pytest
 from sensors.config import BoardConfig, CameraConfig, RobotConfig, SimConfig
 from sensors.eddie import BoardError, EddieBoard
 from sensors.sim.live import SimRobot
+from sensors.types import SensorError
 
 WORLD = Path(__file__).resolve().parents[3] / "scenes" / "house.yaml"
 FRAME_TIMEOUT_S = 5.0  # [s] generous: CI machines are shared
@@ -120,6 +121,19 @@ def test_frames_cross_through_shared_memory_and_the_block_is_freed(tmp_path: Pat
         assert (frames[0].depth_m > 0).mean() > 0.3  # the house seen from its start pose (47 %)
         assert not np.array_equal(frames[0].rgb, frames[1].rgb)  # sensor noise differs
     finally:
+        sim.stop()
+    if Path("/dev/shm").is_dir():
+        assert not shm.exists()
+
+
+def test_stop_without_a_started_child_is_a_clear_error_and_frees_the_frame_ring(
+    tmp_path: Path,
+) -> None:
+    # A start that never spawned the child (e.g. a script without a __main__ guard under the
+    # spawn start method) used to end in multiprocessing's "can only join a started process".
+    sim = SimRobot(WORLD, RobotConfig(), CameraConfig(), SimConfig(), tmp_path / "board.pty")
+    shm = Path("/dev/shm") / sim._ring.shm.name
+    with pytest.raises(SensorError, match="never started"):
         sim.stop()
     if Path("/dev/shm").is_dir():
         assert not shm.exists()
