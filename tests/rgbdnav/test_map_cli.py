@@ -166,6 +166,40 @@ def test_occupancy_iou_counts_a_wall_one_cell_off_as_matching_and_two_cells_off_
     assert occupancy_iou(half, truth, 1)["iou"] == pytest.approx(5 / 9, abs=1e-4)
 
 
+def test_aligned_floor_plan_score_separates_map_shape_from_map_placement() -> None:
+    """A right-shaped map turned 3 deg about its start loses IoU at every far wall; scored
+    after the alignment that maps it onto the world it matches again."""
+    from rgbdnav.map_run import _true_surface, occupancy_iou
+    from sensors.sim.world import FloorPlan
+    from slam.occupancy_grid import GridGeometry, OccupancyGrid
+
+    res = 0.05
+    plan_occ = np.zeros((160, 160), bool)  # an 8 m square room, walls 0.25 m thick
+    plan_occ[:5], plan_occ[-5:], plan_occ[:, :5], plan_occ[:, -5:] = True, True, True, True
+    plan = FloorPlan(plan_occ, res, 0.0, 0.0)
+    yaw, t = math.radians(3.0), np.array([0.04, -0.03])
+    rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    geom = GridGeometry(res, -1.0, -1.0, 200, 200)
+    grid = OccupancyGrid.empty(geom)
+    xc, yc = geom.cell_centres()  # the robot saw the room from inside, not its outer faces
+    world = np.stack([xc, yc], axis=-1) @ rot.T + t
+    grid.observed[:] = np.all((world > 0.15) & (world < 7.85), axis=-1)
+    # The map: the room's inner surface as seen in a map frame with world = rot @ map + t.
+    s = np.linspace(0.3, 7.7, 600)
+    walls = np.concatenate([np.column_stack([s, np.full_like(s, 0.26)]),
+                            np.column_stack([s, np.full_like(s, 7.74)]),
+                            np.column_stack([np.full_like(s, 0.26), s]),
+                            np.column_stack([np.full_like(s, 7.74), s])])  # fmt: skip
+    in_map = (walls - t) @ rot
+    r, c = geom.world_to_cell(in_map[:, 0], in_map[:, 1])
+    mapped = np.zeros(geom.shape, bool)
+    mapped[r, c] = True
+    raw = occupancy_iou(mapped, _true_surface(plan, grid), 1)["iou"]
+    aligned = occupancy_iou(mapped, _true_surface(plan, grid, rot, t), 1)["iou"]
+    assert aligned > 0.95
+    assert raw < 0.5
+
+
 def _hexagon(radius: float) -> np.ndarray:
     """Segments of a small hexagonal room around the origin: nothing like ROOM."""
     a = np.radians(np.arange(0, 360, 60))
