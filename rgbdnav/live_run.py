@@ -392,12 +392,13 @@ class LiveRun:
                 if self.recorder is not None:
                     self.recorder.wheels(t)
                 if len(recent) >= 2:
-                    tw = wheel_twist_inputs(
+                    for tw in wheel_twist_inputs(
                         np.array([r.stamp_ns for r in recent]),
                         np.array([r.left for r in recent]), np.array([r.right for r in recent]),
                         cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance,
-                        last_only=True)[-1]  # fmt: skip
-                    ekf.process("odom0", tw)
+                        last_only=True, max_interval_s=1.0 / cfg.ekf.frequency,
+                    ):  # fmt: skip
+                        ekf.process("odom0", tw)
             t_b = time.perf_counter()
             if vo is None:
                 vo = VisualOdometry(frame.intrinsics, cfg.vo, cfg.robot)
@@ -469,7 +470,8 @@ class LiveRun:
             if res.success and d is not None and dt > 0:
                 # The pair's mean velocity at every frame it spans (slam.ekf docstring).
                 for tw in spanning_motion_twists(self._vo_skipped, frame.stamp_ns, d,
-                                                 res.covariance, dt):  # fmt: skip
+                                                 res.covariance, dt,
+                                                 1.0 / self.cfg.ekf.frequency):  # fmt: skip
                     ekf.process("vo0", tw)
             else:
                 self.counts.inc(f"vo_failures_{res.reason}")

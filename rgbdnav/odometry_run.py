@@ -189,8 +189,9 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     streams: dict[str, list] = {}
     if any(cfg.ekf.odom0_config):
         streams["odom0"] = wheel_twist_inputs(
-            stamps, left, right, cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance
-        )
+            stamps, left, right, cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance,
+            max_interval_s=1.0 / cfg.ekf.frequency,
+        )  # fmt: skip
     if vo_track is not None:
         if any(cfg.ekf.vo0_config):
             streams["vo0"] = vo_track.inputs

@@ -38,7 +38,11 @@ def _mask(*names: str) -> tuple[bool, ...]:
 class EkfConfig:
     """Planar EKF with robot_localization semantics (ekf_localization_node parameter names)."""
 
-    frequency: float = param(30.0, unit="Hz", gt=0.0, doc="filter output rate")
+    frequency: float = param(
+        30.0, unit="Hz", gt=0.0,
+        doc="filter rate: a wheel reading or VO motion spanning longer than 1/frequency is "
+        "fused spread over its span at this rate (slam.ekf.interval_twists)",
+    )  # fmt: skip
     sensor_timeout: float = param(
         0.1, unit="s", gt=0.0, doc="predict without correction after this long without data"
     )

@@ -227,20 +227,48 @@ def motion_twist(stamp_ns: int, delta: Pose2, covariance: np.ndarray, dt_s: floa
                       np.asarray(covariance, dtype=np.float64) / dt_s**2)  # fmt: skip
 
 
+def interval_twists(start_ns: int, end_ns: int, mean: TwistInput, marks_ns: Sequence[int] = (),
+                    max_step_s: float | None = None) -> list[TwistInput]:  # fmt: skip
+    """A body twist ``mean`` measured as the mean velocity over ``(start_ns, end_ns]`` (with the
+    covariance of that mean) as one twist per step of the interval: at every stamp of
+    ``marks_ns`` inside it and at ``end_ns``, with any gap longer than ``max_step_s`` between
+    consecutive stamps cut into equal steps. Each of the k twists carries k times the mean's
+    covariance, so together they hold the information of one measurement.
+
+    Why: an EKF fusing a twist at the end of its interval corrects the velocity only from then
+    on; over the interval the pose follows the velocity the filter had before. After a gap
+    (a board reply that came a second late, frames the front end skipped or dropped while the
+    robot spun at 35 deg/s) the heading then misses most of the turn made in the gap: a live
+    soak lost 24 deg in one 5 s spin this way, although the wheels had counted the turn to
+    within 2 deg."""
+    stamps = sorted({int(s) for s in marks_ns if start_ns < s < end_ns} | {int(end_ns)})
+    if max_step_s is not None and max_step_s > 0 and end_ns > start_ns:
+        step_ns = max_step_s * NS_PER_S
+        cut: list[int] = []
+        prev = int(start_ns)
+        for s in stamps:
+            n = max(1, math.ceil((s - prev) / step_ns - 1e-9))
+            cut.extend(prev + (s - prev) * i // n for i in range(1, n + 1))
+            prev = s
+        stamps = cut
+    k = len(stamps)
+    cov = np.asarray(mean.covariance, dtype=np.float64) * k
+    return [replace(mean, stamp_ns=s, covariance=cov) for s in stamps]
+
+
 def spanning_motion_twists(skipped_ns: Sequence[int], stamp_ns: int, delta: Pose2,
-                           covariance: np.ndarray, dt_s: float) -> list[TwistInput]:  # fmt: skip
+                           covariance: np.ndarray, dt_s: float,
+                           max_step_s: float | None = None) -> list[TwistInput]:  # fmt: skip
     """A planar motion measured over ``dt_s`` that spans frames it skipped (``skipped_ns``, the
-    stamps in between; a live front end behind skips VO on frames) as one body twist per
-    frame: the span's mean velocity at each skipped stamp and at ``stamp_ns``, each with
-    ``len(skipped_ns) + 1`` times the single twist's covariance, so the span carries the same
-    information as one measurement. A single twist at the span's end only corrects the velocity
-    from there on: the pose over the gap follows the wheels' (biased) yaw rate instead. On the
-    house recording with VO skipped on 15 % of the frames in bursts of 1-4, the live settings'
-    fused ATE is 0.299 m one way and 0.123 m this way (0.134 m with VO on every frame):
+    stamps in between; a live front end behind skips VO on frames) as the span's mean velocity
+    at each skipped stamp and at ``stamp_ns`` (:func:`interval_twists`; also every
+    ``max_step_s`` where frames were dropped, not skipped). On the house recording with VO
+    skipped on 15 % of the frames in bursts of 1-4, the live settings' fused ATE is 0.299 m with
+    one twist at the span's end and 0.123 m this way (0.134 m with VO on every frame):
     ``bench/bench_vo_gaps.py``."""
-    k = len(skipped_ns) + 1
-    one = motion_twist(stamp_ns, delta, np.asarray(covariance, dtype=np.float64) * k, dt_s)
-    return [replace(one, stamp_ns=int(s)) for s in skipped_ns] + [one]
+    one = motion_twist(stamp_ns, delta, covariance, dt_s)
+    return interval_twists(stamp_ns - round(dt_s * NS_PER_S), stamp_ns, one, skipped_ns,
+                           max_step_s)  # fmt: skip
 
 
 def wheel_twist_inputs(
@@ -252,6 +280,7 @@ def wheel_twist_inputs(
     vy_variance: float = NONHOLONOMIC_VY_VARIANCE,
     variance_window_s: float = WHEEL_VARIANCE_WINDOW_S,
     last_only: bool = False,
+    max_interval_s: float | None = None,
 ) -> list[TwistInput]:
     """Encoder counts -> one :class:`TwistInput` per interval, stamped at its end (only the
     last interval's with ``last_only``: live, one new reading at a time).
@@ -269,6 +298,8 @@ def wheel_twist_inputs(
     crawling) is trusted more than one that counted more, and the filter's speed comes out low
     (measured on the house route: fused distance 3 % short, 0.1 % with the window).
     Pass a few earlier readings for the window to act on (e.g. live, one new reading at a time).
+    An interval longer than ``max_interval_s`` (a reading that came late) is spread over its
+    span (:func:`interval_twists`) instead of one twist at its end.
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     ds, dth = wheel_increments(left, right, robot)
@@ -297,10 +328,15 @@ def wheel_twist_inputs(
         v, w = ds / dt, dth / dt
     cov[:, 1, 1] = vy_variance
     ok = dt > 0
-    return [
-        TwistInput(int(stamps[i + 1]), float(v[i]), 0.0, float(w[i]), cov[i], valid=bool(ok[i]))
-        for i in range(len(dt) - 1 if last_only and len(dt) else 0, len(dt))
-    ]
+    out: list[TwistInput] = []
+    for i in range(len(dt) - 1 if last_only and len(dt) else 0, len(dt)):
+        end = int(stamps[i + 1])
+        tw = TwistInput(end, float(v[i]), 0.0, float(w[i]), cov[i], valid=bool(ok[i]))
+        if ok[i] and max_interval_s is not None and dt[i] > max_interval_s:
+            out.extend(interval_twists(int(stamps[i]), end, tw, (), max_interval_s))
+        else:
+            out.append(tw)
+    return out
 
 
 # --- sensors and measurements ------------------------------------------------------------------
@@ -741,5 +777,5 @@ __all__ = [
     "EkfError", "EkfStats", "FuseResult", "Measurement", "PlanarEkf", "PoseInput", "SensorSpec",
     "TwistInput", "UpdateResult", "angle_residual", "fuse", "innovate", "passes_gate",
     "pose_update", "predict", "se2_between", "sensor_specs", "transition", "update",
-    "wheel_twist_inputs", "wrap_angle",
+    "wheel_twist_inputs", "wrap_angle", "interval_twists",
 ]  # fmt: skip

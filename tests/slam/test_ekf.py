@@ -24,6 +24,7 @@ from slam.ekf import (
     TwistInput,
     angle_residual,
     fuse,
+    interval_twists,
     passes_gate,
     predict,
     se2_between,
@@ -526,3 +527,56 @@ def test_spanning_motion_twists_without_skipped_frames_is_one_motion_twist() -> 
     assert [t.stamp_ns for t in three] == [1, 3, 5]
     assert all(t.vyaw == pytest.approx(0.2) for t in three)
     assert np.allclose(three[0].covariance, 3 * one.covariance)
+
+
+def test_interval_twists_cut_long_gaps_and_keep_the_information_of_one_measurement() -> None:
+    mean = TwistInput(100, 0.2, 0.0, 0.5, np.diag([1e-3, 1e-4, 2e-3]))
+    ms = 1_000_000
+    out = interval_twists(0, 100 * ms, mean, marks_ns=[30 * ms, 150 * ms], max_step_s=0.025)
+    # (0, 30] in 2 steps, (30, 100] in 3; a mark outside the interval is ignored
+    assert [t.stamp_ns for t in out] == [15 * ms, 30 * ms, 53 * ms + ms // 3, 76 * ms + 2 * ms // 3,
+                                         100 * ms]  # fmt: skip
+    assert all((t.vx, t.vyaw) == (0.2, 0.5) for t in out)
+    info = sum(np.linalg.inv(t.covariance) for t in out)
+    assert np.allclose(info, np.linalg.inv(mean.covariance))
+    (same,) = interval_twists(0, 20 * ms, mean, max_step_s=0.025)
+    assert same.stamp_ns == 20 * ms and np.array_equal(same.covariance, mean.covariance)
+
+
+def test_wheel_twist_inputs_spread_a_late_reading_over_its_interval() -> None:
+    robot = RobotConfig()
+    ms = 1_000_000
+    stamps = np.array([0, 20, 40, 1040, 1060]) * ms  # the fourth reading came a second late
+    ticks = np.array([0, 1, 2, 50, 51])
+    tw = wheel_twist_inputs(stamps, ticks, ticks, robot, max_interval_s=1 / 30)
+    assert len(tw) == 2 + 30 + 1
+    gap = tw[2:32]
+    assert gap[-1].stamp_ns == 1040 * ms and gap[0].stamp_ns == 40 * ms + 1000 * ms // 30
+    assert all(t.vx == pytest.approx(48 * robot.metres_per_tick) for t in gap)
+    plain = wheel_twist_inputs(stamps, ticks, ticks, robot)
+    assert np.allclose(gap[0].covariance, 30 * plain[2].covariance)
+    last = wheel_twist_inputs(stamps[:4], ticks[:4], ticks[:4], robot, last_only=True,
+                              max_interval_s=1 / 30)  # fmt: skip
+    assert [t.stamp_ns for t in last] == [t.stamp_ns for t in gap]
+
+
+def test_a_turn_made_while_wheel_readings_were_late_is_in_the_heading() -> None:
+    """A live soak: the board's replies stalled for a second while the robot spun. The one
+    reading after the gap holds the whole turn; fused as one twist at its end the filter had
+    predicted the gap at its old (zero) yaw rate and the turn was lost from the heading."""
+    robot = RobotConfig()
+    cfg = EkfConfig()
+    ms = 1_000_000
+    w = 0.6  # [rad/s] the spin starts when the replies stall
+    t = np.concatenate([np.arange(0, 1000, 20), np.arange(2000, 3001, 20)]) * ms
+    turn = np.clip(t / NS_PER_S - 1.0, 0.0, None) * w  # [rad]
+    half = turn * robot.track_width / 2 / robot.metres_per_tick
+    right, left = np.floor(half), -np.floor(half)
+
+    def heading_error(step: float | None) -> float:
+        tw = wheel_twist_inputs(t, left, right, robot, max_interval_s=step)
+        out = fuse({"odom0": tw}, cfg, output_stamps_ns=t[-1:])
+        return abs(float(out.yaw[0]) - wrap_angle(turn[-1]))
+
+    assert heading_error(None) > 0.3  # measured 0.56 rad: nearly the whole second's turn
+    assert heading_error(1 / cfg.frequency) < 0.1  # measured 0.05 rad
