@@ -448,3 +448,24 @@ def test_a_reply_without_terminator_is_an_incomplete_reply() -> None:
     port = _BurstPort(b"0000012C")
     with pytest.raises(BoardError, match="incomplete reply"):
         EddieBoard._read_line(SimpleNamespace(board_cfg=BoardConfig(timeout=0.05)), port, "DIST")  # type: ignore[arg-type]
+
+
+def test_ticks_are_stamped_when_the_board_read_the_command_not_when_the_reply_was_read(
+    board, monkeypatch
+):
+    """A loaded host may take the reply long after the board sent it (the reading thread
+    waits for the GIL): the encoder counts are as old as the command, and so is the stamp."""
+    read_line = board._read_line
+
+    def late(port, cmd):
+        line = read_line(port, cmd)
+        time.sleep(0.05)  # the thread got the GIL back 50 ms after the reply arrived
+        return line
+
+    monkeypatch.setattr(board, "_read_line", late)
+    before = time.monotonic_ns()
+    t = board.ticks()
+    after = time.monotonic_ns()
+    assert after - before >= 50_000_000
+    on_line = len(b"DIST\r") * 10 * 1_000_000_000 // board.board_cfg.baudrate
+    assert before + on_line <= t.stamp_ns < before + on_line + 20_000_000
