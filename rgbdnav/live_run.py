@@ -66,7 +66,13 @@ from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, SensorError, WheelTicks
 from slam.depth_to_scan import DepthToScan
 from slam.diff_drive import WheelErrorModel
-from slam.ekf import EkfError, PlanarEkf, spanning_motion_twists, wheel_twist_inputs
+from slam.ekf import (
+    EkfError,
+    PlanarEkf,
+    motion_twist,
+    spanning_motion_twists,
+    wheel_twist_inputs,
+)
 from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper
@@ -468,10 +474,15 @@ class LiveRun:
             dt = (frame.stamp_ns - prev_frame_ns) / 1e9
             d = res.delta_base
             if res.success and d is not None and dt > 0:
-                # The pair's mean velocity at every frame it spans (slam.ekf docstring).
-                for tw in spanning_motion_twists(self._vo_skipped, frame.stamp_ns, d,
-                                                 res.covariance, dt,
-                                                 1.0 / self.cfg.ekf.frequency):  # fmt: skip
+                # The pair's mean velocity at every frame it spans (slam.ekf docstring), gated
+                # once as the one measurement it is.
+                twists = spanning_motion_twists(self._vo_skipped, frame.stamp_ns, d,
+                                                res.covariance, dt, 1.0 / self.cfg.ekf.frequency)
+                if len(twists) > 1 and not ekf.twist_gate(
+                        "vo0", motion_twist(frame.stamp_ns, d, res.covariance, dt))[0]:
+                    self.counts.inc("vo_spans_rejected")
+                    twists = []
+                for tw in twists:
                     ekf.process("vo0", tw)
             else:
                 self.counts.inc(f"vo_failures_{res.reason}")

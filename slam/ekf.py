@@ -657,6 +657,28 @@ class PlanarEkf:
             self._prune_history()
         return out
 
+    def twist_gate(self, sensor: str, msg: TwistInput) -> tuple[bool, float]:
+        """(passes, NIS) of ``sensor``'s Mahalanobis gate for ``msg`` against the filter's
+        prediction at its stamp, without fusing it. For a motion fused spread over its span
+        (:func:`interval_twists`): each of k pieces carries k times the covariance, so each
+        alone passes a gate sqrt(k) times wider; the span is gated once, as one measurement.
+        (True, nan) when there is nothing to compare with (no state yet, older than history)."""
+        spec = self.specs[sensor]
+        z = np.array([msg.vx, msg.vy, msg.vyaw])
+        made = self._make(sensor, msg.stamp_ns, "twist", spec.twist_mask, z,
+                          _cov3(msg.covariance), spec.twist_threshold)  # fmt: skip
+        if not made or self.t_ns is None:
+            return True, math.nan
+        m = made[0]
+        try:
+            x, P = self.predicted(m.stamp_ns)
+        except EkfError:
+            return True, math.nan
+        H = np.zeros((len(m.idx), STATE_DIM))
+        H[np.arange(len(m.idx)), m.idx] = 1.0
+        _, _, nis = innovate(x, P, m.z, H, m.R)
+        return passes_gate(nis, m.threshold), nis
+
     def _mark_seen(self, sensor: str, stamp_ns: int) -> None:
         """Per-sensor timeouts: a sensor silent for > sensor_timeout while others talk is stale."""
         last = self._last_seen.get(sensor)

@@ -25,6 +25,7 @@ from slam.ekf import (
     angle_residual,
     fuse,
     interval_twists,
+    motion_twist,
     passes_gate,
     predict,
     se2_between,
@@ -580,3 +581,31 @@ def test_a_turn_made_while_wheel_readings_were_late_is_in_the_heading() -> None:
 
     assert heading_error(None) > 0.3  # measured 0.56 rad: nearly the whole second's turn
     assert heading_error(1 / cfg.frequency) < 0.1  # measured 0.05 rad
+
+
+def test_a_wrong_motion_spread_over_its_span_is_gated_as_one_measurement() -> None:
+    """Spread over k frames, each piece of a wrong VO motion carries k times the covariance and
+    passes a gate sqrt(k) times wider: the span must be gated once, as one measurement."""
+    cfg = EkfConfig()
+    ekf = PlanarEkf(cfg)
+    wheel_cov = np.diag([1e-3, 1e-4, 1e-2])
+    vo_cov = np.diag([1e-6, 1e-6, 1e-6])  # per-pair delta covariance
+    for k in range(1, 91):  # 3 s turning at 0.5 rad/s, wheels and VO agree
+        t = int(k * DT_NS)
+        ekf.process("odom0", TwistInput(t, 0.2, 0.0, 0.5, wheel_cov))
+        ekf.process("vo0", motion_twist(t, Pose2(0.2 / 30, 0.0, 0.5 / 30), vo_cov, 1 / 30))
+    for k in range(91, 101):  # VO skipped 10 frames; the wheels went on
+        ekf.process("odom0", TwistInput(int(k * DT_NS), 0.2, 0.0, 0.5, wheel_cov))
+    # Then a pair over those 10 frames claiming twice the turn.
+    start, end, dt = 90 * DT_NS, 100 * DT_NS, 10 / 30
+    wrong = Pose2(0.2 * dt, 0.0, 1.0 * dt)
+    pieces = spanning_motion_twists([], int(end), wrong, vo_cov, dt, max_step_s=1 / 30)
+    assert len(pieces) == 10 and abs(pieces[0].stamp_ns - (start + DT_NS)) < 1000
+    x0, p0 = ekf.x.copy(), ekf.P.copy()
+    ok, nis = ekf.twist_gate("vo0", motion_twist(int(end), wrong, vo_cov, dt))
+    assert not ok and nis > cfg.vo0_twist_rejection_threshold**2
+    assert np.array_equal(ekf.x, x0) and np.array_equal(ekf.P, p0)  # nothing fused
+    # Each piece alone is gated against a threshold sqrt(10) times wider: the first passes.
+    assert ekf.twist_gate("vo0", pieces[0])[0]
+    right = Pose2(0.2 * dt, 0.0, 0.5 * dt)
+    assert ekf.twist_gate("vo0", motion_twist(int(end), right, vo_cov, dt))[0]
