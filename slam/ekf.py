@@ -227,6 +227,9 @@ def motion_twist(stamp_ns: int, delta: Pose2, covariance: np.ndarray, dt_s: floa
                       np.asarray(covariance, dtype=np.float64) / dt_s**2)  # fmt: skip
 
 
+MAX_SPREAD_STEPS = 8  # a gap is cut into at most this many steps (interval_twists)
+
+
 def interval_twists(start_ns: int, end_ns: int, mean: TwistInput, marks_ns: Sequence[int] = (),
                     max_step_s: float | None = None) -> list[TwistInput]:  # fmt: skip
     """A body twist ``mean`` measured as the mean velocity over ``(start_ns, end_ns]`` (with the
@@ -243,7 +246,9 @@ def interval_twists(start_ns: int, end_ns: int, mean: TwistInput, marks_ns: Sequ
     within 2 deg."""
     stamps = sorted({int(s) for s in marks_ns if start_ns < s < end_ns} | {int(end_ns)})
     if max_step_s is not None and max_step_s > 0 and end_ns > start_ns:
-        step_ns = max_step_s * NS_PER_S
+        # Each piece older than the filter's newest state costs a re-filter of the history
+        # after it: a 2 s gap in 1/30 s steps took 0.2 s here; at most MAX_SPREAD_STEPS cuts.
+        step_ns = max(max_step_s * NS_PER_S, (end_ns - start_ns) / MAX_SPREAD_STEPS)
         cut: list[int] = []
         prev = int(start_ns)
         for s in stamps:
