@@ -66,13 +66,7 @@ from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, SensorError, WheelTicks
 from slam.depth_to_scan import DepthToScan
 from slam.diff_drive import WheelErrorModel
-from slam.ekf import (
-    EkfError,
-    PlanarEkf,
-    motion_twist,
-    spanning_motion_twists,
-    wheel_twist_inputs,
-)
+from slam.ekf import EkfError, PlanarEkf, spanning_motion_twists, wheel_twist_inputs
 from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper
@@ -398,13 +392,13 @@ class LiveRun:
                 if self.recorder is not None:
                     self.recorder.wheels(t)
                 if len(recent) >= 2:
-                    for tw in wheel_twist_inputs(
+                    # The last interval: one twist, or its pieces when the reading came late.
+                    ekf.process_span("odom0", wheel_twist_inputs(
                         np.array([r.stamp_ns for r in recent]),
                         np.array([r.left for r in recent]), np.array([r.right for r in recent]),
                         cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance,
                         last_only=True, max_interval_s=1.0 / cfg.ekf.frequency,
-                    ):  # fmt: skip
-                        ekf.process("odom0", tw)
+                    ))  # fmt: skip
             t_b = time.perf_counter()
             if vo is None:
                 vo = VisualOdometry(frame.intrinsics, cfg.vo, cfg.robot)
@@ -474,16 +468,12 @@ class LiveRun:
             dt = (frame.stamp_ns - prev_frame_ns) / 1e9
             d = res.delta_base
             if res.success and d is not None and dt > 0:
-                # The pair's mean velocity at every frame it spans (slam.ekf docstring), gated
-                # once as the one measurement it is.
-                twists = spanning_motion_twists(self._vo_skipped, frame.stamp_ns, d,
-                                                res.covariance, dt, 1.0 / self.cfg.ekf.frequency)
-                if len(twists) > 1 and not ekf.twist_gate(
-                        "vo0", motion_twist(frame.stamp_ns, d, res.covariance, dt))[0]:
+                # The pair's mean velocity at every frame it spans (slam.ekf docstring).
+                out = ekf.process_span("vo0", spanning_motion_twists(
+                    self._vo_skipped, frame.stamp_ns, d, res.covariance, dt,
+                    1.0 / self.cfg.ekf.frequency))  # fmt: skip
+                if out and out[0].reason == "span_rejected":
                     self.counts.inc("vo_spans_rejected")
-                    twists = []
-                for tw in twists:
-                    ekf.process("vo0", tw)
             else:
                 self.counts.inc(f"vo_failures_{res.reason}")
         self._vo_skipped.clear()

@@ -448,6 +448,15 @@ class _Entry:
     accepted: bool
 
 
+def _observation(m: Measurement) -> np.ndarray:
+    """H of a measurement: ones at its state rows (a gyro's vyaw also sees the gyro bias)."""
+    H = np.zeros((len(m.idx), STATE_DIM))
+    H[np.arange(len(m.idx)), m.idx] = 1.0
+    if m.gyro:
+        H[m.idx == VYAW, GYRO_BIAS] = 1.0
+    return H
+
+
 def _cov3(c: np.ndarray) -> np.ndarray:
     c = np.asarray(c, dtype=np.float64).reshape(3, 3)
     return (c + c.T) / 2
@@ -584,10 +593,7 @@ class PlanarEkf:
                                 "initialised")  # fmt: skip
         dt = (m.stamp_ns - self.t_ns) / NS_PER_S
         x, P = (self.x, self.P) if dt <= 0 else predict(self.x, self.P, dt, self.Q)
-        H = np.zeros((len(m.idx), STATE_DIM))
-        H[np.arange(len(m.idx)), m.idx] = 1.0
-        if m.gyro:
-            H[m.idx == VYAW, GYRO_BIAS] = 1.0
+        H = _observation(m)
         xu, Pu, _, _, nis = update(x, P, m.z, H, m.R, angle_residual(m.idx == YAW))
         accepted = passes_gate(nis, m.threshold)
         if accepted:
@@ -664,10 +670,8 @@ class PlanarEkf:
 
     def twist_gate(self, sensor: str, msg: TwistInput) -> tuple[bool, float]:
         """(passes, NIS) of ``sensor``'s Mahalanobis gate for ``msg`` against the filter's
-        prediction at its stamp, without fusing it. For a motion fused spread over its span
-        (:func:`interval_twists`): each of k pieces carries k times the covariance, so each
-        alone passes a gate sqrt(k) times wider; the span is gated once, as one measurement.
-        (True, nan) when there is nothing to compare with (no state yet, older than history)."""
+        prediction at its stamp, without fusing it. (True, nan) when there is nothing to
+        compare with (no state yet, older than the history): :meth:`process` then decides."""
         spec = self.specs[sensor]
         z = np.array([msg.vx, msg.vy, msg.vyaw])
         made = self._make(sensor, msg.stamp_ns, "twist", spec.twist_mask, z,
@@ -679,10 +683,27 @@ class PlanarEkf:
             x, P = self.predicted(m.stamp_ns)
         except EkfError:
             return True, math.nan
-        H = np.zeros((len(m.idx), STATE_DIM))
-        H[np.arange(len(m.idx)), m.idx] = 1.0
-        _, _, nis = innovate(x, P, m.z, H, m.R)
+        _, _, nis = innovate(x, P, m.z, _observation(m), m.R, angle_residual(m.idx == YAW))
         return passes_gate(nis, m.threshold), nis
+
+    def process_span(self, sensor: str, pieces: Sequence[TwistInput]) -> list[UpdateResult]:
+        """Fuse a twist spread over its span (the pieces :func:`interval_twists` made, oldest
+        first), gated once as the one measurement it is: each of k pieces carries k times the
+        covariance, so alone each would pass a gate sqrt(k) times wider and a wrong motion over
+        a long span would get in piece by piece. A rejected span counts as one rejection and
+        leaves the filter as it was (reason "span_rejected")."""
+        if len(pieces) > 1:
+            last = pieces[-1]
+            mean = TwistInput(last.stamp_ns, last.vx, last.vy, last.vyaw,
+                              np.asarray(last.covariance) / len(pieces), last.valid)  # fmt: skip
+            ok, nis = self.twist_gate(sensor, mean) if mean.valid else (True, math.nan)
+            if not ok:
+                st = self._stats[sensor]
+                st.received += 1
+                st.rejected += 1
+                return [UpdateResult(mean.stamp_ns, sensor, "twist", False, nis, 0,
+                                     "span_rejected")]  # fmt: skip
+        return [r for p in pieces for r in self.process(sensor, p)]
 
     def _mark_seen(self, sensor: str, stamp_ns: int) -> None:
         """Per-sensor timeouts: a sensor silent for > sensor_timeout while others talk is stale."""
@@ -804,5 +825,6 @@ __all__ = [
     "EkfError", "EkfStats", "FuseResult", "Measurement", "PlanarEkf", "PoseInput", "SensorSpec",
     "TwistInput", "UpdateResult", "angle_residual", "fuse", "innovate", "passes_gate",
     "pose_update", "predict", "se2_between", "sensor_specs", "transition", "update",
-    "wheel_twist_inputs", "wrap_angle", "interval_twists",
+    "wheel_twist_inputs", "wrap_angle", "interval_twists", "spanning_motion_twists",
+    "motion_twist",
 ]  # fmt: skip

@@ -586,7 +586,8 @@ def test_a_turn_made_while_wheel_readings_were_late_is_in_the_heading() -> None:
 def test_a_wrong_motion_spread_over_its_span_is_gated_as_one_measurement() -> None:
     """Spread over k frames, each piece of a wrong VO motion carries k times the covariance and
     passes a gate sqrt(k) times wider: the span must be gated once, as one measurement."""
-    cfg = EkfConfig()
+    # Live settings: VO arrives after the wheel readings past its stamp (re-filtered).
+    cfg = dataclasses.replace(EkfConfig(), smooth_lagged_data=True, history_length=1.0)
     ekf = PlanarEkf(cfg)
     wheel_cov = np.diag([1e-3, 1e-4, 1e-2])
     vo_cov = np.diag([1e-6, 1e-6, 1e-6])  # per-pair delta covariance
@@ -607,5 +608,15 @@ def test_a_wrong_motion_spread_over_its_span_is_gated_as_one_measurement() -> No
     assert np.array_equal(ekf.x, x0) and np.array_equal(ekf.P, p0)  # nothing fused
     # Each piece alone is gated against a threshold sqrt(8) times wider: the first passes.
     assert ekf.twist_gate("vo0", pieces[0])[0]
+    # process_span gates the span once: nothing fused, one rejection counted.
+    rejected = ekf.stats.sensors["vo0"]["rejected"]
+    (res,) = ekf.process_span("vo0", pieces)
+    assert (res.accepted, res.reason) == (False, "span_rejected")
+    assert np.array_equal(ekf.x, x0) and np.array_equal(ekf.P, p0)
+    assert ekf.stats.sensors["vo0"]["rejected"] == rejected + 1
+    # The right motion over the same span passes and is fused piece by piece.
     right = Pose2(0.2 * dt, 0.0, 0.5 * dt)
     assert ekf.twist_gate("vo0", motion_twist(int(end), right, vo_cov, dt))[0]
+    good = spanning_motion_twists([], int(end), right, vo_cov, dt, max_step_s=1 / 30)
+    out = ekf.process_span("vo0", good)
+    assert len(out) == len(good) and all(r.accepted for r in out)
