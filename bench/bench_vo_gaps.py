@@ -38,7 +38,7 @@ from slam.ekf import (  # noqa: E402
     fuse,
     motion_twist,
     spanning_motion_twists,
-    wheel_twist_inputs,  # noqa: E402
+    wheel_twist_inputs,
 )
 from slam.geometry import compose  # noqa: E402
 from slam.metrics import drift_report  # noqa: E402
