@@ -365,7 +365,18 @@ class MapperConfig:
     )
     icp_max_iterations: int = param(20, ge=1, doc="point-to-line ICP Gauss-Newton iterations")
     icp_huber_width: float = param(
-        0.05, unit="m", gt=0.0, doc="point-to-line residual beyond which ICP down-weights (Huber)"
+        0.02,
+        unit="m",
+        gt=0.0,
+        doc="point-to-line residual beyond which ICP down-weights (Huber) when tracking: ~2 "
+        "sigma of a laser's range noise",
+    )
+    loop_icp_huber_width: float = param(
+        0.05,
+        unit="m",
+        gt=0.0,
+        doc="the same for loop closure and relocalisation, which start from a coarser pose "
+        "against older, less consistent keyframes",
     )
     icp_min_inlier_fraction: float = param(
         0.5, ge=0.0, le=1.0, doc="scan points that must find a neighbour for a match to count"

@@ -334,7 +334,7 @@ class Mapper:
     def _match(
         self, kf: Keyframe, prior: np.ndarray, local: _LocalMap | None, linear_window: float,
         angular_window: float, angle_step: float, min_response: float, penalise: bool,
-        min_coarse: float = 0.0,
+        huber_m: float, min_coarse: float = 0.0,
     ) -> MatchOutcome:  # fmt: skip
         cfg = self.config
         if len(kf.match_points) < MIN_SCAN_POINTS:
@@ -358,7 +358,7 @@ class Mapper:
         icp = icp_refine(
             local.reference, kf.match_points, coarse.pose, cfg.icp_max_correspondence_distance,
             max_iterations=cfg.icp_max_iterations, min_sigma_m=cfg.scan_match_min_sigma,
-            huber_m=cfg.icp_huber_width,
+            huber_m=huber_m,
         )  # fmt: skip
         if not np.all(np.isfinite(icp.pose)) or icp.rmse == math.inf:
             return MatchOutcome(False, "ICP failed", prior, np.eye(3), coarse.score, 0.0)
@@ -420,7 +420,7 @@ class Mapper:
             angular_window=cfg.coarse_search_angle_offset,
             angle_step=cfg.coarse_angle_resolution,
             min_response=cfg.link_match_minimum_response_fine,
-            penalise=True,
+            penalise=True, huber_m=cfg.icp_huber_width,
         )  # fmt: skip
 
     # 3c. Continuing a saved map ----------------------------------------------------------------
@@ -476,7 +476,7 @@ class Mapper:
                             angular_window=cfg.coarse_search_angle_offset,
                             angle_step=cfg.coarse_angle_resolution,
                             min_response=cfg.loop_match_minimum_response_fine,
-                            penalise=True)  # fmt: skip
+                            penalise=True, huber_m=cfg.loop_icp_huber_width)  # fmt: skip
         pose, cov = (match.pose, match.covariance) if match.ok else (res.pose, res.covariance)
         node = self.graph.add_node(pose)
         loop_cov = cov + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
@@ -539,7 +539,7 @@ class Mapper:
             kf, poses[k], local, linear_window=lin, angular_window=ang,
             angle_step=cfg.coarse_angle_resolution,
             min_response=cfg.loop_match_minimum_response_fine, penalise=False,
-            min_coarse=cfg.loop_match_minimum_response_coarse,
+            huber_m=cfg.loop_icp_huber_width, min_coarse=cfg.loop_match_minimum_response_coarse,
         )  # fmt: skip
         if not match.ok:
             self.loops.rejected[match.reason] += 1
