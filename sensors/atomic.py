@@ -47,7 +47,8 @@ def interrupted_replacement(final: Path) -> Path | None:
 def commit_staging_dir(staging: Path, final: Path) -> None:
     """Replace ``final`` by ``staging``. An existing ``final`` is moved aside first and removed
     only after the new folder is in place, so a crash leaves either the old or the new one (the
-    old one under its moved-aside name: :func:`interrupted_replacement` finds it)."""
+    old one under its moved-aside name: :func:`interrupted_replacement` finds it). Folders an
+    earlier, interrupted commit left aside are removed once the new one is in place."""
     for root, _dirs, files in os.walk(staging):
         for name in files:
             with open(os.path.join(root, name), "rb") as fh:
@@ -61,3 +62,5 @@ def commit_staging_dir(staging: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.replace(staging, final)
+    for stale in final.parent.glob(f".{final.name}.old-*"):
+        shutil.rmtree(stale, ignore_errors=True)

@@ -178,6 +178,7 @@ def test_a_save_killed_between_its_two_renames_still_loads_the_old_bundle(tmp_pa
     assert len(load_bundle(target).scans) == 2  # the moved-aside bundle, with a warning
     save_bundle(make_bundle(3), target)  # and the next save puts one in place again
     assert len(load_bundle(target).scans) == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["b"]  # the moved-aside one is gone
 
 
 def test_save_replaces_an_existing_bundle(tmp_path):
