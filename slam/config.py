@@ -286,6 +286,17 @@ class MapperConfig:
     scan_buffer_maximum_scan_distance: float = param(
         10.0, unit="m", gt=0.0, doc="drop buffered scans farther than this"
     )
+    revisit_distance: float = param(
+        0.0,
+        unit="m",
+        ge=0.0,
+        doc="a keyframe due this close to an older one (0 = off) that the graph already ties "
+        "to the current one re-anchors tracking on it instead of adding a node: the graph "
+        "stops growing where the robot only drives again (the live profile turns it on)",
+    )
+    revisit_heading: float = param(
+        0.35, unit="rad", gt=0.0, doc="...and whose heading is within this of the robot's"
+    )
     link_match_minimum_response_fine: float = param(
         0.1, ge=0.0, le=1.0, doc="min response to link a scan to its neighbours"
     )

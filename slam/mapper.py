@@ -11,6 +11,13 @@ Per scan (:meth:`Mapper.add_scan`), like slam_toolbox's ``addScan``:
    ``scan_buffer_size`` keyframes (correlative search + point-to-line ICP,
    :mod:`slam.scan_matching`); a good match gives a ``scan`` edge, a poor one an ``odometry``
    edge; iSAM2 updates.
+   **Revisits** (``revisit_distance`` > 0, the live profile): a keyframe due within that
+   distance (and ``revisit_heading``) of an older keyframe whose pose the graph already ties to
+   the anchor's (``REVISIT_MAX_PATH_M`` through the chain and one loop closure) is not added:
+   tracking re-anchors on the older keyframe and matches against the keyframes nearest it, and
+   the next new keyframe hangs off it. A robot driving its route again and again stops growing
+   the graph once the first lap has closed (a place reached only around a loop is first tied
+   to the map by a new keyframe's loop closure).
 5. Loop closure: older keyframes (outside the recent chain) within a covariance-gated radius
    are matched in a window as wide as the relative uncertainty; a closure is verified by its
    response, ICP inliers and, after optimising under the robust kernel, its chi-square residual;
@@ -62,6 +69,7 @@ ODOM_MIN_SIGMA = (0.01, 0.005)  # [m, rad] floor of an odometry edge's sigmas
 LOOP_MIN_SIGMA = (0.02, 0.01)  # [m, rad] floor of a loop closure's sigmas
 UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
+REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
 
 
 # 1. Odometry noise --------------------------------------------------------------------------------
@@ -184,6 +192,17 @@ class Mapper:
         self.keyframes: list[Keyframe] = []
         self.chain_length: list[float] = []  # [m] distance travelled up to each keyframe
         self.loop_edges: list[tuple[int, int]] = []  # accepted closures (older, newer)
+        # Tracking hangs off an anchor keyframe: the newest one, or (revisit_distance > 0) an
+        # older one the robot came back to. Motion towards the next keyframe is measured from
+        # the anchor, or from the scan at which tracking re-anchored (_ref_offset: anchor ->
+        # that scan; None when the reference is the anchor itself).
+        self._anchor = 0
+        self._ref_stamp = 0
+        self._ref_odom = np.zeros(3)
+        self._ref_offset: np.ndarray | None = None
+        self._kf_parent: list[int] = []  # the anchor each keyframe's edge came from (-1: none)
+        self._anchor_hops: list[tuple[int, int]] = []  # (old anchor, keyframe made from it)
+        self.revisits = 0  # times tracking re-anchored on an older keyframe
         self.loops = LoopStats()
         self.skipped: Counter[str] = Counter()
         self.matches: Counter[str] = Counter()
@@ -232,11 +251,10 @@ class Mapper:
             return self._record(scan.stamp_ns, odom, odom)
         # 2. Predict from the last tracked pose and the odometry since that scan.
         prior = oplus(self._track_pose, ominus(self._track_odom, odom))
-        last = self.keyframes[-1]
-        delta = ominus(last.odom_pose, odom)
+        delta = ominus(self._ref_odom, odom)
         moved = math.hypot(delta[0], delta[1]) >= self.config.minimum_travel_distance
         turned = abs(delta[2]) >= self.config.minimum_travel_heading
-        waited = (scan.stamp_ns - last.stamp_ns) * 1e-9 >= self.config.minimum_time_interval
+        waited = (scan.stamp_ns - self._ref_stamp) * 1e-9 >= self.config.minimum_time_interval
         is_keyframe = (moved or turned) and waited
         # 3. Track the scan against the local map.
         kf = self._make_keyframe(scan, odom)
@@ -250,13 +268,17 @@ class Mapper:
                                        self.config.scan_match_degeneracy_ratio)  # fmt: skip
         pose = match.pose if match.ok else prior
         if is_keyframe:
-            self._add_keyframe(kf, delta, match, pose)
-            pose = self.graph.pose(kf.id)  # optimised, and moved by any loop closure
+            older = self._revisit(pose) if match.ok and self.config.revisit_distance > 0 else None
+            if older is not None:
+                self._reanchor(older, scan.stamp_ns, odom, pose)
+            else:
+                self._add_keyframe(kf, delta, match, pose)
+                pose = self.graph.pose(kf.id)  # optimised, and moved by any loop closure
         return self._record(scan.stamp_ns, odom, pose)
 
     def _record(self, stamp_ns: int, odom: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Remember the scan as an offset from its keyframe, so it follows the optimised graph."""
-        kf = self.keyframes[-1]
+        kf = self.keyframes[self._anchor]
         self._track_pose, self._track_odom = pose, odom
         self._scan_stamps.append(stamp_ns)
         self._scan_kf.append(kf.id)
@@ -280,6 +302,12 @@ class Mapper:
     def _append_keyframe(
         self, kf: Keyframe, step_m: float, tracked: np.ndarray, matched: bool
     ) -> None:
+        parent = self._anchor if self.keyframes else -1
+        self._kf_parent.append(parent)
+        if parent not in (-1, kf.id - 1):
+            self._anchor_hops.append((parent, kf.id))
+        self._anchor, self._ref_stamp, self._ref_odom = kf.id, kf.stamp_ns, kf.odom_pose
+        self._ref_offset = None
         self.keyframes.append(kf)
         self._kf_track.append(tracked)
         self._kf_matched.append(matched)
@@ -292,7 +320,7 @@ class Mapper:
         """4. A new graph node: a ``scan`` edge from the previous keyframe when the match was
         good, else an ``odometry`` edge; then iSAM2, then loop closure."""
         cfg = self.config
-        prev = self.keyframes[-1]
+        prev = self.keyframes[self._anchor]
         prev_pose = self.graph.pose(prev.id)
         kind: EdgeKind
         if match.ok:
@@ -304,6 +332,8 @@ class Mapper:
             floor = fraction**2 * odometry_covariance(edge_delta, cfg)
             cov = match.covariance + floor
         else:
+            if self._ref_offset is not None:  # re-anchored: anchor -> that scan -> odometry
+                odom_delta = oplus(self._ref_offset, odom_delta)
             edge_delta, cov, kind = odom_delta, odometry_covariance(odom_delta, cfg), "odometry"
         node = self.graph.add_node(pose)
         assert node == kf.id
@@ -402,9 +432,14 @@ class Mapper:
         cfg = self.config
         if self._local is None:
             poses = self.graph.poses()
-            last = poses[len(self.keyframes) - 1]
-            recent = range(max(0, len(self.keyframes) - cfg.scan_buffer_size), len(self.keyframes))
-            ids = [i for i in recent if np.hypot(*(poses[i, :2] - last[:2]))
+            n, anchor = len(self.keyframes), self._anchor
+            if anchor == n - 1:  # the recent chain
+                recent: Any = range(max(0, n - cfg.scan_buffer_size), n)
+            else:  # re-anchored on an older keyframe: the keyframes nearest it
+                recent = np.argsort(np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T),
+                                    kind="stable")[: cfg.scan_buffer_size]  # fmt: skip
+                recent = sorted(int(i) for i in recent)
+            ids = [i for i in recent if np.hypot(*(poses[i, :2] - poses[anchor, :2]))
                    <= cfg.scan_buffer_maximum_scan_distance]  # fmt: skip
             self._local = self._build_local(
                 self._world_points(ids, poses), cfg.correlation_search_space_dimension / 2,
@@ -494,14 +529,55 @@ class Mapper:
 
     # 3d. Loop closure ---------------------------------------------------------------------------
 
+    def _revisit(self, pose: np.ndarray) -> int | None:
+        """The older keyframe to re-anchor on instead of adding one at ``pose``: the nearest
+        within ``revisit_distance`` / ``revisit_heading`` whose pose relative to the anchor the
+        graph already knows (a path of at most ``REVISIT_MAX_PATH_M`` through the chain and one
+        loop closure; a place the robot came back to only after a loop is first tied to it by
+        a loop closure of a new keyframe). None: add a keyframe."""
+        cfg = self.config
+        n = len(self.keyframes)
+        poses = self.graph.poses()[:n]
+        dist = np.hypot(*(poses[:, :2] - pose[:2]).T)
+        near = (dist <= cfg.revisit_distance) & (
+            np.abs(wrap_angle(poses[:, 2] - pose[2])) <= cfg.revisit_heading)  # fmt: skip
+        near[self._anchor] = False
+        cands = np.flatnonzero(near)
+        if len(cands) == 0:
+            return None
+        cands = cands[self._graph_path(self._anchor, cands) <= REVISIT_MAX_PATH_M]
+        return int(cands[np.argmin(dist[cands])]) if len(cands) else None
+
+    def _reanchor(self, j: int, stamp_ns: int, odom: np.ndarray, pose: np.ndarray) -> None:
+        self._anchor, self._ref_stamp, self._ref_odom = j, stamp_ns, odom
+        self._ref_offset = ominus(self.graph.pose(j), pose)
+        self._local = None
+        self.revisits += 1
+
+    def _hops(self) -> list[tuple[int, int]]:
+        return self.loop_edges + self._anchor_hops
+
+    def _graph_path(self, a: int, cands: np.ndarray) -> np.ndarray:
+        """[m] path length between keyframe ``a`` and each candidate along the chain or through
+        one loop closure or re-anchoring, in either direction."""
+        cl = np.asarray(self.chain_length)
+        best = np.abs(cl[a] - cl[cands])
+        if hops := self._hops():
+            x, y = (np.array(v) for v in zip(*hops, strict=True))
+            c = cl[cands][:, None]
+            via = np.minimum(np.abs(cl[a] - cl[y])[None, :] + np.abs(cl[x][None, :] - c),
+                             np.abs(cl[a] - cl[x])[None, :] + np.abs(cl[y][None, :] - c))
+            best = np.minimum(best, via.min(axis=1))
+        return best
+
     def _path_between(self, k: int, cands: np.ndarray) -> np.ndarray:
         """[m] path length from each candidate to keyframe k: along the chain, or through one
         accepted loop closure, whichever is shorter (a one-hop Dijkstra bound). Drift, and so the
         search window, grows with it."""
         cl = np.asarray(self.chain_length)
         best = cl[k] - cl[cands]
-        if self.loop_edges:
-            a, b = (np.array(v) for v in zip(*self.loop_edges, strict=True))
+        if hops := self._hops():
+            a, b = (np.array(v) for v in zip(*hops, strict=True))
             via = (cl[k] - cl[b])[None, :] + np.abs(cl[a][None, :] - cl[cands][:, None])
             best = np.minimum(best, via.min(axis=1))
         return np.maximum(best, 0.0)
@@ -583,13 +659,16 @@ class Mapper:
         kf = self._scan_kf.array
         from_prev = oplus(poses[kf], self._scan_offset.array)
         nxt = np.minimum(kf + 1, len(poses) - 1)
-        # Only a next keyframe that was itself scan-matched shares the scans' tracking frame.
-        has_next = (kf + 1 < len(poses)) & np.asarray(self._kf_matched)[nxt]
+        stamps = self._scan_stamps.array
+        kf_stamps = np.array([k.stamp_ns for k in self.keyframes], dtype=np.int64)
+        # Only a next keyframe that was itself scan-matched, made from this one after the scan,
+        # shares the scans' tracking frame (not one made on an earlier pass, when re-anchored).
+        has_next = ((kf + 1 < len(poses)) & np.asarray(self._kf_matched)[nxt]
+                    & (np.asarray(self._kf_parent)[nxt] == kf)
+                    & (kf_stamps[nxt] >= stamps))  # fmt: skip
         track = self._scan_track.array
         kf_track = np.asarray(self._kf_track)
         from_next = oplus(poses[nxt], ominus(kf_track[nxt], track))
-        stamps = self._scan_stamps.array
-        kf_stamps = np.array([k.stamp_ns for k in self.keyframes], dtype=np.int64)
         span = np.maximum(kf_stamps[nxt] - kf_stamps[kf], 1)
         w = np.where(has_next, np.clip((stamps - kf_stamps[kf]) / span, 0.0, 1.0), 0.0)
         blended = from_prev + w[:, None] * _relative_delta(from_prev, from_next)
@@ -617,6 +696,8 @@ class Mapper:
             "sequential_matches": dict(self.matches),
             "loop_closures": self.loops.as_dict(),
         }
+        if self.config.revisit_distance > 0:
+            counts["revisits"] = self.revisits
         if self.relocalised is not None:
             counts["relocalised_in_saved_map"] = self.relocalised
         return MapperResult(

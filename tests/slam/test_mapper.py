@@ -219,6 +219,37 @@ def test_keyframes_follow_minimum_travel_heading_when_turning_in_place() -> None
     assert np.degrees(yaw.max()) < 0.5
 
 
+def _laps(n: int) -> np.ndarray:
+    legs: list[tuple[float, float]] = []
+    for lap in range(n):
+        h = 2 * math.pi * lap
+        legs += [(8.0, h), (6.0, h + math.pi / 2), (8.0, h + math.pi), (6.0, h + 1.5 * math.pi)]
+    return legs_route((1.0, 1.0, 0.0), [*legs, (2.4, 2 * math.pi * n)])
+
+
+def test_revisiting_reanchors_tracking_instead_of_growing_the_graph() -> None:
+    """Three laps of the loop with bad odometry (a live run that drives its route again and
+    again): with ``revisit_distance`` the graph stops growing once the first lap closed, and
+    the trajectory stays as accurate as with a node every 0.5 m."""
+    truth = _laps(3)
+    odom = corrupt_odometry(truth, scale_error=0.03, yaw_bias_rad_per_m=math.radians(2.0),
+                            sigma_xy_m=0.005, sigma_yaw_rad=0.002, seed=3)  # fmt: skip
+    scans = scans_along(LOOP_WORLD, truth, noise_m=0.01, seed=3)
+    grown = run_mapper(scans, odom)
+    bounded = run_mapper(scans, odom, replace(CFG, revisit_distance=0.3))
+    first_lap = scans[len(truth) // 3].stamp_ns
+    lap1 = sum(kf.stamp_ns <= first_lap for kf in bounded.keyframes)
+    assert len(grown.keyframes) > 2.5 * lap1  # a node every 0.5 m on every lap
+    assert len(bounded.keyframes) <= lap1 + 2 and bounded.counts["revisits"] > 100
+    assert "revisits" not in grown.counts  # off by default
+    assert bounded.scan_poses.shape == (len(scans), 3)
+    pos, yaw = errors(bounded.scan_poses, truth)
+    pos_grown, _ = errors(grown.scan_poses, truth)
+    assert np.median(pos) < 0.01 and pos.max() < max(2 * pos_grown.max(), 0.03)
+    assert np.degrees(yaw.max()) < 0.5
+    assert len(bounded.edges) < len(grown.edges) / 2  # the loop closures stop growing too
+
+
 def test_every_accepted_scan_gets_a_pose(corrupted_loop: LoopRun) -> None:
     result = corrupted_loop.result
     n = len(corrupted_loop.scans)
