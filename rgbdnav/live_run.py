@@ -821,7 +821,9 @@ class LiveRun:
                                  p[:, 0], p[:, 1], p[:, 2])  # fmt: skip
             outputs["optimised trajectory"] = run.file("trajectory_optimised.tum")
             tracks["slam"] = np.column_stack([result.scan_stamps_ns.astype(np.float64), p])
-            mapper_counts = {k: result.counts[k] for k in ("scans", "scans_used", "keyframes")}
+            mapper_counts = {k: result.counts[k] for k in ("scans", "scans_used", "keyframes",
+                                                           "revisits", "loop_closures")
+                             if k in result.counts}  # fmt: skip
         elif self.localizer is not None:
             tracks["slam"] = tracks["slam_online"]
         if self.odom_track.count:

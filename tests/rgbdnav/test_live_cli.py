@@ -65,6 +65,9 @@ def test_live_sim_maps_while_driving_the_route_and_checkpoints_the_bundle(tmp_pa
     assert ekf["odom0"]["fused"] > 100 and ekf["vo0"]["received"] > 10
     bundle = load_bundle(out / "map")
     assert len(bundle.keyframe_ids) >= 2
+    # What the mapper holds, with the live profile's re-anchoring on revisits counted.
+    assert s["mapper"]["keyframes"] == len(bundle.keyframe_ids) and s["mapper"]["revisits"] >= 0
+    assert s["mapper"]["loop_closures"]["proposed"] >= s["mapper"]["loop_closures"]["accepted"]
     lines = (out / "trajectory.tum").read_text().splitlines()
     assert len([ln for ln in lines if not ln.startswith("#")]) == c["scans_mapped"]
     assert (out / "run.rrd").stat().st_size > 10_000
