@@ -434,11 +434,11 @@ class Mapper:
             poses = self.graph.poses()
             n, anchor = len(self.keyframes), self._anchor
             if anchor == n - 1:  # the recent chain
-                recent: Any = range(max(0, n - cfg.scan_buffer_size), n)
+                recent = list(range(max(0, n - cfg.scan_buffer_size), n))
             else:  # re-anchored on an older keyframe: the keyframes nearest it
-                recent = np.argsort(np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T),
-                                    kind="stable")[: cfg.scan_buffer_size]  # fmt: skip
-                recent = sorted(int(i) for i in recent)
+                nearest = np.argsort(np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T),
+                                     kind="stable")[: cfg.scan_buffer_size]  # fmt: skip
+                recent = sorted(int(i) for i in nearest)
             ids = [i for i in recent if np.hypot(*(poses[i, :2] - poses[anchor, :2]))
                    <= cfg.scan_buffer_maximum_scan_distance]  # fmt: skip
             self._local = self._build_local(
@@ -545,7 +545,7 @@ class Mapper:
         cands = np.flatnonzero(near)
         if len(cands) == 0:
             return None
-        cands = cands[self._graph_path(self._anchor, cands) <= REVISIT_MAX_PATH_M]
+        cands = cands[self._path_between(self._anchor, cands) <= REVISIT_MAX_PATH_M]
         return int(cands[np.argmin(dist[cands])]) if len(cands) else None
 
     def _reanchor(self, j: int, stamp_ns: int, odom: np.ndarray, pose: np.ndarray) -> None:
@@ -554,33 +554,19 @@ class Mapper:
         self._local = None
         self.revisits += 1
 
-    def _hops(self) -> list[tuple[int, int]]:
-        return self.loop_edges + self._anchor_hops
-
-    def _graph_path(self, a: int, cands: np.ndarray) -> np.ndarray:
-        """[m] path length between keyframe ``a`` and each candidate along the chain or through
-        one loop closure or re-anchoring, in either direction."""
+    def _path_between(self, a: int, cands: np.ndarray) -> np.ndarray:
+        """[m] path length between keyframe ``a`` and each candidate: along the chain, or
+        through one accepted loop closure or re-anchoring, whichever is shorter (a one-hop
+        Dijkstra bound), in either direction. Drift, and so a search window, grows with it."""
         cl = np.asarray(self.chain_length)
         best = np.abs(cl[a] - cl[cands])
-        if hops := self._hops():
+        if hops := self.loop_edges + self._anchor_hops:
             x, y = (np.array(v) for v in zip(*hops, strict=True))
             c = cl[cands][:, None]
             via = np.minimum(np.abs(cl[a] - cl[y])[None, :] + np.abs(cl[x][None, :] - c),
                              np.abs(cl[a] - cl[x])[None, :] + np.abs(cl[y][None, :] - c))
             best = np.minimum(best, via.min(axis=1))
         return best
-
-    def _path_between(self, k: int, cands: np.ndarray) -> np.ndarray:
-        """[m] path length from each candidate to keyframe k: along the chain, or through one
-        accepted loop closure, whichever is shorter (a one-hop Dijkstra bound). Drift, and so the
-        search window, grows with it."""
-        cl = np.asarray(self.chain_length)
-        best = cl[k] - cl[cands]
-        if hops := self._hops():
-            a, b = (np.array(v) for v in zip(*hops, strict=True))
-            via = (cl[k] - cl[b])[None, :] + np.abs(cl[a][None, :] - cl[cands][:, None])
-            best = np.minimum(best, via.min(axis=1))
-        return np.maximum(best, 0.0)
 
     def _close_loops(self, kf: Keyframe) -> None:
         cfg = self.config
