@@ -69,6 +69,7 @@ def main() -> None:
     robot, tilted = RobotConfig(), RobotConfig(camera_pitch=0.35)
     ahead = RobotConfig(camera_x=0.15)
     cfg = DepthToScanConfig()
+    averaged = DepthToScanConfig(return_averaging_window=0.01)
     depths = render_frames(args.world, args.frames, robot)
     rows = {
         "sorted + reduceat (default)": time_conversion(DepthToScan(k, robot, cfg), depths),
@@ -77,6 +78,10 @@ def main() -> None:
         "sorted, camera pitched 0.35 rad": time_conversion(DepthToScan(k, tilted, cfg), depths),
         "general path, camera 0.15 m ahead of the axle": time_conversion(
             DepthToScan(k, ahead, cfg), depths),
+        "sorted, near-cluster averaging 0.01 /m (the rgbd_mapping and live profiles)":
+            time_conversion(DepthToScan(k, robot, averaged), depths),
+        "np.minimum.at + bincount averaging (reference)": time_conversion(
+            DepthToScan(k, robot, averaged, reduction="minimum_at"), depths),
         "sorted, scan_height 10 (upstream-like band)": time_conversion(
             DepthToScan(k, robot, DepthToScanConfig(scan_height=10)), depths),
     }  # fmt: skip
@@ -93,7 +98,8 @@ Command: `python bench/bench_depth_to_scan.py --frames {args.frames}`; {args.fra
 once up front, conversion timed alone. Default config: {cfg.angle_increment:.4f} rad beams,
 height band [{cfg.min_height}, {cfg.max_height}] m, range [{cfg.range_min}, {cfg.range_max}] m.
 The default path {verdict} the {TARGET_MS:.0f} ms/frame target. Frames rendered with the level
-camera are reused for the other mountings (only the cost matters there).
+camera are reused for the other mountings (only the cost matters there). Variants run one after
+the other; this machine's speed drifts by up to 2x over minutes, so compare rows of one run.
 
 | variant | median [ms/frame] | p95 [ms/frame] | valid pixels | points kept |
 | --- | --- | --- | --- | --- |

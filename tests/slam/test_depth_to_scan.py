@@ -195,6 +195,25 @@ def test_sorted_and_minimum_at_reductions_agree_exactly() -> None:
     assert fast.in_band_points == ref.in_band_points > 0
 
 
+def test_sorted_cluster_averaging_agrees_with_the_reference_kernel() -> None:
+    # Noisy depth, holes, a box in front of a wall and beams with no return at all: the sorted
+    # kernel (branch-free sums over beam groups) gives the reference's means.
+    world = room([wall_ahead(3.05, 20.0)], [box(1.2, 0.3, 0.4), box(2.0, 0.5, 0.05, 0.6)])
+    robot = replace(ROBOT, camera_pitch=0.2, camera_roll=0.05)
+    rng = np.random.default_rng(1)
+    depth = true_depth(world, robot)
+    depth = depth + rng.normal(0.0, 0.0018, depth.shape).astype(np.float32) * depth**2
+    depth[rng.random(depth.shape) < 0.1] = 0.0
+    depth[:, :40] = np.nan  # a band of columns with no return
+    cfg = replace(CFG, return_averaging_window=0.01)
+    fast = DepthToScan(INTRINSICS, robot, cfg)(depth).scan.ranges
+    ref = DepthToScan(INTRINSICS, robot, cfg, reduction="minimum_at")(depth).scan.ranges
+    nearest = DepthToScan(INTRINSICS, robot, CFG)(depth).scan.ranges
+    np.testing.assert_array_equal(np.isfinite(fast), np.isfinite(ref))
+    assert np.count_nonzero(np.isinf(ref)) > 0 and np.count_nonzero(fast > nearest) > 10
+    np.testing.assert_allclose(fast, ref, rtol=1e-6)
+
+
 def test_reference_kernel_keeps_the_nearest_and_leaves_empty_beams_inf() -> None:
     out = nearest_per_beam_reference(np.array([0, 2, 2, 5]), np.array([3.0, 2.0, 1.0, 9.0]), 4)
     np.testing.assert_array_equal(out, [3.0, np.inf, 1.0, np.inf])
