@@ -28,10 +28,39 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+STAGING_SUFFIX = ".partial"
+
+
 def make_staging_dir(final: Path) -> Path:
-    """A fresh hidden folder beside ``final`` (same file system, so the rename is atomic)."""
+    """A fresh hidden folder beside ``final`` (same file system, so the rename is atomic),
+    named after the writing process (``.NAME.pidPID-XXXX.partial``) so that a later commit can
+    tell a folder whose writer died (kill -9 mid-save) from one still being written."""
     final.parent.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
+    return Path(tempfile.mkdtemp(prefix=f".{final.name}.pid{os.getpid()}-",
+                                 suffix=STAGING_SUFFIX, dir=final.parent))  # fmt: skip
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def abandoned_staging_dirs(final: Path) -> list[Path]:
+    """Staging folders of ``final`` whose writing process is gone (a save killed before its
+    rename): never renamed into place, so nothing reads them."""
+    out = []
+    for p in final.parent.glob(f".{final.name}.pid*-*{STAGING_SUFFIX}"):
+        pid = p.name[len(final.name) + 5 :].split("-", 1)[0]  # after ".NAME.pid"
+        if not (p.is_dir() and pid.isdigit()) or int(pid) == os.getpid():
+            continue
+        if not _process_alive(int(pid)):
+            out.append(p)
+    return out
 
 
 def interrupted_replacement(final: Path) -> Path | None:
@@ -48,7 +77,8 @@ def commit_staging_dir(staging: Path, final: Path) -> None:
     """Replace ``final`` by ``staging``. An existing ``final`` is moved aside first and removed
     only after the new folder is in place, so a crash leaves either the old or the new one (the
     old one under its moved-aside name: :func:`interrupted_replacement` finds it). Folders an
-    earlier, interrupted commit left aside are removed once the new one is in place."""
+    earlier, interrupted commit left aside are removed once the new one is in place, and so
+    are staging folders of writers that died before their commit."""
     for root, _dirs, files in os.walk(staging):
         for name in files:
             with open(os.path.join(root, name), "rb") as fh:
@@ -62,5 +92,5 @@ def commit_staging_dir(staging: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.replace(staging, final)
-    for stale in final.parent.glob(f".{final.name}.old-*"):
+    for stale in [*final.parent.glob(f".{final.name}.old-*"), *abandoned_staging_dirs(final)]:
         shutil.rmtree(stale, ignore_errors=True)

@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import cv2
@@ -179,6 +180,26 @@ def test_a_save_killed_between_its_two_renames_still_loads_the_old_bundle(tmp_pa
     save_bundle(make_bundle(3), target)  # and the next save puts one in place again
     assert len(load_bundle(target).scans) == 3
     assert [p.name for p in tmp_path.iterdir()] == ["b"]  # the moved-aside one is gone
+
+
+def test_a_save_removes_staging_folders_of_writers_that_died(tmp_path):
+    # kill -9 during a save leaves its half-written staging folder beside the bundle; the next
+    # save removes it, but not the folder of a writer that is still running.
+    import subprocess
+    import sys
+
+    target = tmp_path / "b"
+    save_bundle(make_bundle(2), target)
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    abandoned = tmp_path / f".b.pid{int(dead.stdout)}-x1y2.partial"
+    running = tmp_path / f".b.pid{os.getppid()}-z3w4.partial"
+    for folder in (abandoned, running):
+        folder.mkdir()
+        (folder / "graph.json").write_text("{")  # half written
+    save_bundle(make_bundle(3), target)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["." + running.name[1:], "b"]
+    assert len(load_bundle(target).scans) == 3
 
 
 def test_save_replaces_an_existing_bundle(tmp_path):
