@@ -560,6 +560,19 @@ class LocalizerConfig:
     relocalization_verification_scans: int = param(
         3, ge=1, doc="consecutive scans (incl. the searched one) a hypothesis must match"
     )
+    relocalization_update_min_d: float = param(
+        0.1,
+        unit="m",
+        ge=0.0,
+        doc="a verification scan counts once odometry moved this far (or turned "
+        "relocalization_update_min_a) since the last counted one, as AMCL's update_min_d",
+    )
+    relocalization_update_min_a: float = param(
+        0.1,
+        unit="rad",
+        ge=0.0,
+        doc="the turn that makes a verification scan count (AMCL update_min_a); both 0: every scan",
+    )
     relocalization_agreement_distance: float = param(
         0.25, unit="m", gt=0.0, doc="verification match within this distance of the prediction"
     )

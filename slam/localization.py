@@ -51,7 +51,11 @@ suppression takes leaves best first, so lower leaves could not change them): the
 2-4x fewer blocks scored on cluttered maps. Each candidate is refined on the fine field
 (correlative + ICP), then propagated by odometry and re-matched on the following scans; a
 hypothesis is accepted after ``relocalization_verification_scans`` consecutive matches that agree
-with its prediction and score at least ``global_localization_min_score``, and only when no other
+with its prediction and score at least ``global_localization_min_score`` (a scan counts only once
+odometry has moved ``relocalization_update_min_d`` or turned ``relocalization_update_min_a`` since
+the last counted one, as AMCL's ``update_min_d`` / ``update_min_a``: a robot standing or turning
+slowly on the spot sees the same view again, which is no new evidence -- a 1.2 m hexagonal room
+was accepted into a corner of another building on three such views), and only when no other
 verified hypothesis scores within ``relocalization_ambiguity_ratio`` of it (a symmetric map stays
 ``"relocalising"`` with a reason instead of guessing). For narrow scans (a 60 deg depth camera
 sees a wall or a corner that fits many places) three more safeguards apply:
@@ -545,6 +549,7 @@ class _Hypothesis:
     tracked: bool = False  # the pose tracked before a kidnap check: it has the prior on its side
     since_ns: int = 0  # [ns] stamp of the kidnap check (``tracked`` only)
     evidence: float | None = None  # confidence of the recent scans stacked by odometry
+    counted_at: np.ndarray | None = None  # odometry pose of the last scan ``unique`` counted
 
     @property
     def mean_score(self) -> float:
@@ -1007,7 +1012,11 @@ class Localizer:
         n_needed = cfg.relocalization_verification_scans
         best = hyps[0]
         rivals = [h for h in hyps[1:] if h.rivals(best, cfg.relocalization_ambiguity_ratio)]
-        best.unique = best.unique + 1 if best.agreed and not rivals else 0
+        if not best.agreed or rivals:
+            best.unique = 0
+        elif best.unique == 0 or self._moved_since(best.counted_at, odom):
+            best.unique += 1
+            best.counted_at = odom.copy()
         for h in hyps[1:]:
             h.unique = 0
         # 3b. After a kidnap check the pose tracked before it wins every tie: it was verified on
@@ -1035,7 +1044,9 @@ class Localizer:
         if (best.unique < n_needed or best.mean_score < cfg.global_localization_min_score
                 or weak):
             return self._result(stamp, odom, f"relocalising: {len(hyps)} hypotheses, best "
-                                f"unique on {best.unique}/{n_needed} scans, mean score "
+                                f"unique on {best.unique}/{n_needed} scans (one counts per "
+                                f"{cfg.relocalization_update_min_d} m or "
+                                f"{cfg.relocalization_update_min_a} rad of motion), mean score "
                                 f"{best.mean_score:.2f}", 0.0)  # fmt: skip
         # 4. A leader left alone because its rivals died was only compared with the places the
         #    first search found: search this scan again before trusting it (with a narrow
@@ -1056,6 +1067,16 @@ class Localizer:
         # 5. Accept the one verified hypothesis and track from it.
         return self._accept(stamp, odom, pts, best, f"relocalised: unique on {best.unique} "
                             f"scans, mean score {best.mean_score:.2f}")  # fmt: skip
+
+    def _moved_since(self, before: np.ndarray | None, odom: np.ndarray) -> bool:
+        """Odometry moved ``relocalization_update_min_d`` or turned ``..._min_a`` since
+        ``before`` (always true without a ``before``)."""
+        if before is None:
+            return True
+        cfg = self.config
+        step = ominus(before, odom)
+        return bool(math.hypot(step[0], step[1]) >= cfg.relocalization_update_min_d
+                    or abs(step[2]) >= cfg.relocalization_update_min_a)  # fmt: skip
 
     def _remember(self, odom: np.ndarray, pts: np.ndarray, stack: bool = True
                   ) -> np.ndarray | None:  # fmt: skip

@@ -214,13 +214,14 @@ def test_map_continue_refuses_a_log_that_cannot_be_placed_in_the_saved_map(
     first = tmp_path / "first"
     log = _write_log(tmp_path / "a.clf", truth, truth)
     assert runner.invoke(app, ["map", str(log), "--out", str(first), "-q"]).exit_code == 0
-    # A second log from a different building: no scan fits the saved map. (A 1.2 m hexagon
-    # does fit: two of its walls lie along the room's top-right corner, mean score 0.73 on
-    # three nearly identical views from a robot turning on the spot, and the localiser accepts
-    # it. 0.8, 1.6, 2.0, 2.5 and 3.0 m are refused.)
+    # A second log from a different building, a robot turning on the spot in a 1.2 m hexagonal
+    # room. Two of its walls lie along the room's top-right corner (mean score 0.73): the
+    # localiser used to accept it on three nearly identical views, 3 deg apart. Verification
+    # scans now count after relocalization_update_min_a of turning, and the fit falls apart.
+    # (0.8, 1.0, 1.4, 1.6 and 2.0 m hexagons are refused as well.)
     still = np.zeros((15, 3))
     still[:, 2] = np.linspace(0.0, 0.7, 15)
-    other = _write_log(tmp_path / "b.clf", still, still, segments=_hexagon(2.0))
+    other = _write_log(tmp_path / "b.clf", still, still, segments=_hexagon(1.2))
     result = runner.invoke(app, ["map", str(other), "--continue", str(first / "map"),
                                  "--out", str(tmp_path / "second"), "-q"])  # fmt: skip
     assert result.exit_code == 1, result.output

@@ -256,6 +256,30 @@ def test_tracking_declares_lost_after_lost_time_below_lost_score(room_model: Map
 # 5. Global relocalisation and initial poses ------------------------------------------------------
 
 
+def test_a_robot_turning_slowly_on_the_spot_verifies_once_per_update_min_a(
+    room_model: MapModel,
+) -> None:
+    # The same view again is no new evidence: a scan counts once the robot has turned
+    # relocalization_update_min_a (or moved ..._min_d) since the last counted one, as AMCL.
+    pose = ellipse_route()[20]
+    turn = np.radians(1.0) * np.arange(40)  # 1 deg per scan on the spot
+    truth = np.array([[pose[0], pose[1], pose[2] + a] for a in turn])
+    scans = scans_along(WORLD, truth)
+    n = CFG.relocalization_verification_scans
+    per = math.ceil(CFG.relocalization_update_min_a / np.radians(1.0))  # scans per counted one
+    results = run(Localizer(room_model, CFG), scans, truth)
+    done = [i for i, r in enumerate(results) if r.status == "tracking"]
+    assert done and done[0] >= (n - 1) * per - 1  # not on 3 near-identical views
+    assert "rad of motion" in results[n - 1].reason
+    d, a = pose_error(truth[done[0]], results[done[0]].pose)
+    assert d < 0.03 and a < 1.0 * DEG
+    # Without the gate (both 0) every scan counts, as before.
+    eager = dataclasses.replace(CFG, relocalization_update_min_d=0.0,
+                                relocalization_update_min_a=0.0)  # fmt: skip
+    results = run(Localizer(room_model, eager), scans, truth)
+    assert [r.status for r in results].index("tracking") == n - 1
+
+
 def test_global_relocalisation_finds_the_pose_from_scratch(room_model: MapModel) -> None:
     truth = ellipse_route()[20:30]
     odom = corrupt_odometry(truth, seed=5)
@@ -463,8 +487,10 @@ def test_kidnapped_robot_is_declared_lost_on_the_first_scan_then_relocalised_wit
     out = kidnap(room_model, k, jump)
     assert out.first_not_tracking == 0
     assert out.wrong == 0
-    # Lost on the first scan, then relocalization_verification_scans of verification.
-    assert out.recovered == CFG.relocalization_verification_scans
+    # Lost on the first scan, then relocalization_verification_scans of verification; a scan
+    # counts after 0.1 m or 0.1 rad of motion, which the route's straights take 1-2 scans for.
+    n = CFG.relocalization_verification_scans
+    assert out.recovered is not None and n <= out.recovered <= 2 * n - 1
     assert max(out.errors_after) < RECOVERED_M
 
 
