@@ -442,6 +442,15 @@ def live(
                           "simulator's truth) as an rgbdnav recording in this folder, for "
                           "`rgbdnav map` / `odometry` later."),
     ] = None,
+    initial_pose: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option(
+            "--initial-pose",
+            metavar="X Y YAW",
+            help="With --map: start tracking here (map frame, m m rad), as RViz's 2D Pose "
+                 "Estimate; without it the robot relocalises globally, which needs it to move.",
+        ),
+    ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     quiet: QuietOpt = False,
@@ -464,7 +473,8 @@ def live(
                        config_files=config or [], overrides=set_ or [], map_bundle=map_,
                        duration_s=duration, drive=drive, goals=goals, rrd=rrd, viewer=viewer,
                        seed=seed, drills=[Drill.parse(d) for d in drill or []],
-                       repeat_route=repeat_route, record=record)  # fmt: skip
+                       repeat_route=repeat_route, record=record,
+                       initial_pose=initial_pose)  # fmt: skip
     outputs, summary = run_live(opts)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
     c = summary["counts"]

@@ -142,6 +142,7 @@ class LiveOptions:
     drills: Sequence[Drill] = ()
     repeat_route: bool = False  # drive the route again and again (soak runs)
     record: Path | None = None  # write the frames and encoder readings as a recording here
+    initial_pose: tuple[float, float, float] | None = None  # --map: start tracking here (map)
 
 
 class Counters:
@@ -218,6 +219,12 @@ class LiveRun:
             raise ConfigError("--camera sim / --board sim need --sim-world WORLD.yaml")
         if opts.drills and opts.camera != "sim":
             raise ConfigError("--drill needs the simulated robot (--camera sim --board sim)")
+        if opts.initial_pose is not None:
+            if opts.map_bundle is None:
+                raise ConfigError("--initial-pose places the robot in a saved map: give --map")
+            if len(opts.initial_pose) != 3 or not np.all(np.isfinite(opts.initial_pose)):
+                raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got "
+                                  f"{list(opts.initial_pose)}")  # fmt: skip
         self.counts = Counters()
         self.stop = threading.Event()
         self.shared = _Shared(ObstacleMemory(self.cfg.live.obstacle_memory))
@@ -705,7 +712,9 @@ class LiveRun:
         threads: list[threading.Thread] = []
         try:
             frames = self._start_devices()
-            if self.localizer is not None and self.sim is not None:
+            if self.localizer is not None and self.opts.initial_pose is not None:
+                self.localizer.set_initial_pose(np.asarray(self.opts.initial_pose, float))
+            elif self.localizer is not None and self.sim is not None:
                 # The simulated robot knows where it starts, as a user gives --initial-pose.
                 self.localizer.set_initial_pose(self.start_pose)
             if self.poller is not None:
@@ -848,6 +857,9 @@ class LiveRun:
             "board": self.opts.board,
             "world": str(self.opts.world) if self.opts.world else None,
             "mode": "localization" if self.localizer is not None else "mapping",
+            "initial_pose": (list(self.opts.initial_pose) if self.opts.initial_pose is not None
+                             else "simulator start" if self.localizer is not None
+                             and self.sim is not None else None),  # fmt: skip
             "drive": self.opts.drive,
             "config_files": [str(p) for p in self.config_files],
             "wall_s": round(wall, 3),

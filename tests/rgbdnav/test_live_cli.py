@@ -113,7 +113,18 @@ def test_kill_9_leaves_a_checkpoint_that_loads_and_localises(tmp_path: Path) -> 
     assert len(load_bundle(out / "map").keyframe_ids) >= MIN_KEYFRAMES_TO_LOCALISE
     s = _live(tmp_path / "again", "--map", str(out / "map"), "--duration", "8", "--drive", "idle")
     assert s["mode"] == "localization" and s["errors"] == []
+    assert s["initial_pose"] == "simulator start"
     assert s["counts"].get("localizer_tracking", 0) > 0  # it tracks in the checkpoint map
+    # Told a start (a user's 2D Pose Estimate), it tracks from there, not from the simulator's.
+    # (Standing at the start the camera sees no wall within range_max: nothing to correct it.)
+    start = load_bundle(out / "map").keyframe_poses[0]
+    told = [float(start[0]) + 0.15, float(start[1]), float(start[2]) + 0.05]
+    s = _live(tmp_path / "told", "--map", str(out / "map"), "--duration", "8", "--drive", "idle",
+              "--initial-pose", *map(str, told))  # fmt: skip
+    assert s["initial_pose"] == told and s["errors"] == []
+    assert s["counts"].get("localizer_tracking", 0) > 0
+    first = np.loadtxt(tmp_path / "told" / "trajectory.tum", comments="#", ndmin=2)[0]
+    assert np.hypot(first[1] - told[0], first[2] - told[1]) < 0.02
 
 
 def test_sigterm_stops_the_motors_and_saves_the_map(tmp_path: Path) -> None:
@@ -150,6 +161,7 @@ def test_a_board_port_that_does_not_open_fails_in_one_line(tmp_path: Path) -> No
      (["--map", "no/such/map"], "no/such/map"),
      (["--camera", "openni://", "--drill", "stall_camera@1:1"],
       "--drill needs the simulated robot"),
+     (["--initial-pose", "1", "2", "0"], "--initial-pose places the robot in a saved map"),
      (["--camera", "openni://", "--board", "none"], "OpenNI2")],  # no library or no device
 )  # fmt: skip
 def test_bad_live_options_fail_in_one_line_before_anything_starts(
