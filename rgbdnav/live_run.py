@@ -55,6 +55,7 @@ from rgbdnav.config import Config, load_config, section_to_dict, source_options
 from rgbdnav.live_nav import LiveNavigator, MapSnapshot
 from rgbdnav.live_record import LiveRecorder
 from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
+from rgbdnav.localize_run import initial_pose_array
 from rgbdnav.map_run import RGBD_PROFILE, build_grid, make_bundle
 from rgbdnav.navigate_run import NAVIGATE_PROFILE
 from rgbdnav.report import plot_trajectories
@@ -219,12 +220,11 @@ class LiveRun:
             raise ConfigError("--camera sim / --board sim need --sim-world WORLD.yaml")
         if opts.drills and opts.camera != "sim":
             raise ConfigError("--drill needs the simulated robot (--camera sim --board sim)")
+        self.initial_pose: np.ndarray | None = None
         if opts.initial_pose is not None:
             if opts.map_bundle is None:
                 raise ConfigError("--initial-pose places the robot in a saved map: give --map")
-            if len(opts.initial_pose) != 3 or not np.all(np.isfinite(opts.initial_pose)):
-                raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got "
-                                  f"{list(opts.initial_pose)}")  # fmt: skip
+            self.initial_pose = initial_pose_array(opts.initial_pose)
         self.counts = Counters()
         self.stop = threading.Event()
         self.shared = _Shared(ObstacleMemory(self.cfg.live.obstacle_memory))
@@ -712,8 +712,8 @@ class LiveRun:
         threads: list[threading.Thread] = []
         try:
             frames = self._start_devices()
-            if self.localizer is not None and self.opts.initial_pose is not None:
-                self.localizer.set_initial_pose(np.asarray(self.opts.initial_pose, float))
+            if self.localizer is not None and self.initial_pose is not None:
+                self.localizer.set_initial_pose(self.initial_pose)
             elif self.localizer is not None and self.sim is not None:
                 # The simulated robot knows where it starts, as a user gives --initial-pose.
                 self.localizer.set_initial_pose(self.start_pose)
@@ -857,7 +857,7 @@ class LiveRun:
             "board": self.opts.board,
             "world": str(self.opts.world) if self.opts.world else None,
             "mode": "localization" if self.localizer is not None else "mapping",
-            "initial_pose": (list(self.opts.initial_pose) if self.opts.initial_pose is not None
+            "initial_pose": (self.initial_pose.tolist() if self.initial_pose is not None
                              else "simulator start" if self.localizer is not None
                              and self.sim is not None else None),  # fmt: skip
             "drive": self.opts.drive,

@@ -106,6 +106,14 @@ def load_map(path: Path) -> LoadedMap:
 # 2. Pure summaries of a run ------------------------------------------------------------------
 
 
+def initial_pose_array(values: Sequence[float]) -> np.ndarray:
+    """``--initial-pose X Y YAW`` as a (3,) array, or a one-line error."""
+    init = np.asarray(values, dtype=np.float64)
+    if init.shape != (3,) or not np.all(np.isfinite(init)):
+        raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got {list(values)}")
+    return init
+
+
 def has_pose(result: LocalizationResult) -> bool:
     """Only a tracking scan has an established pose (lost / relocalising: unknown covariance);
     a rejected scan (bad odometry or stamp) is not part of the trajectory."""
@@ -207,12 +215,7 @@ def run_localize(
     t0 = time.perf_counter()
     # 1. The map first: a bad map fails before the source is read or anything is written.
     loaded = load_map(map_path)
-    init = None
-    if initial_pose is not None:
-        init = np.asarray(initial_pose, dtype=np.float64)
-        if init.shape != (3,) or not np.all(np.isfinite(init)):
-            raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got "
-                              f"{list(initial_pose)}")  # fmt: skip
+    init = None if initial_pose is None else initial_pose_array(initial_pose)
     cfg = load_config(config_files, overrides)
     vis = make_visualizer("localize", rrd, viewer)  # fails before the run, not after it
     try:

@@ -162,6 +162,8 @@ def test_a_board_port_that_does_not_open_fails_in_one_line(tmp_path: Path) -> No
      (["--camera", "openni://", "--drill", "stall_camera@1:1"],
       "--drill needs the simulated robot"),
      (["--initial-pose", "1", "2", "0"], "--initial-pose places the robot in a saved map"),
+     (["--map", str(REPO / "tests"), "--initial-pose", "1", "nan", "0"],
+      "--initial-pose needs three finite numbers"),
      (["--camera", "openni://", "--board", "none"], "OpenNI2")],  # no library or no device
 )  # fmt: skip
 def test_bad_live_options_fail_in_one_line_before_anything_starts(
