@@ -160,6 +160,13 @@ def mahalanobis2(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> 
     return float(nu @ np.linalg.solve(p + r, nu))
 
 
+def moved_enough(before: np.ndarray, now: np.ndarray, min_d: float, min_a: float) -> bool:
+    """AMCL's update_min_d / update_min_a test: moved ``min_d`` or turned ``min_a`` from pose
+    ``before`` to ``now`` (always, with both 0)."""
+    step = ominus(before, now)
+    return math.hypot(step[0], step[1]) >= min_d or abs(float(step[2])) >= min_a
+
+
 def position_sigma(p: np.ndarray) -> float:
     """[m] standard deviation of a pose covariance's position along its worst axis."""
     return math.sqrt(max(float(np.linalg.eigvalsh(p[:2, :2])[-1]), 0.0))
@@ -697,11 +704,11 @@ class Localizer:
                 return self._declare_lost(stamp, odom, f"initial pose rejected: it lies in "
                                           f"{where} space; relocalising globally")  # fmt: skip
         # 2. Skip matching until the robot has moved (AMCL update_min_d / update_min_a).
-        if self._match_pose is not None:
-            d = ominus(self._match_pose, self._pose)
-            if math.hypot(d[0], d[1]) < cfg.update_min_d and abs(d[2]) < cfg.update_min_a:
-                conf = self.model.score(pts, self._pose)
-                return self._result(stamp, odom, "not moved enough to match", conf)
+        still = self._match_pose is not None and not moved_enough(
+            self._match_pose, self._pose, cfg.update_min_d, cfg.update_min_a)  # fmt: skip
+        if still:
+            conf = self.model.score(pts, self._pose)
+            return self._result(stamp, odom, "not moved enough to match", conf)
         if len(pts) < MIN_SCAN_POINTS:
             # A scan with nothing in range (a depth camera facing open space) is no evidence
             # either way: dead-reckon, and neither start nor stop the lost timer (nor check a
@@ -1014,7 +1021,9 @@ class Localizer:
         rivals = [h for h in hyps[1:] if h.rivals(best, cfg.relocalization_ambiguity_ratio)]
         if not best.agreed or rivals:
             best.unique = 0
-        elif best.unique == 0 or self._moved_since(best.counted_at, odom):
+        elif best.unique == 0 or best.counted_at is None or moved_enough(
+                best.counted_at, odom, cfg.relocalization_update_min_d,
+                cfg.relocalization_update_min_a):  # fmt: skip
             best.unique += 1
             best.counted_at = odom.copy()
         for h in hyps[1:]:
@@ -1067,16 +1076,6 @@ class Localizer:
         # 5. Accept the one verified hypothesis and track from it.
         return self._accept(stamp, odom, pts, best, f"relocalised: unique on {best.unique} "
                             f"scans, mean score {best.mean_score:.2f}")  # fmt: skip
-
-    def _moved_since(self, before: np.ndarray | None, odom: np.ndarray) -> bool:
-        """Odometry moved ``relocalization_update_min_d`` or turned ``..._min_a`` since
-        ``before`` (always true without a ``before``)."""
-        if before is None:
-            return True
-        cfg = self.config
-        step = ominus(before, odom)
-        return bool(math.hypot(step[0], step[1]) >= cfg.relocalization_update_min_d
-                    or abs(step[2]) >= cfg.relocalization_update_min_a)  # fmt: skip
 
     def _remember(self, odom: np.ndarray, pts: np.ndarray, stack: bool = True
                   ) -> np.ndarray | None:  # fmt: skip

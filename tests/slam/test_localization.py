@@ -256,6 +256,26 @@ def test_tracking_declares_lost_after_lost_time_below_lost_score(room_model: Map
 # 5. Global relocalisation and initial poses ------------------------------------------------------
 
 
+def test_moved_enough_is_amcls_update_min_d_or_update_min_a() -> None:
+    from slam.localization import moved_enough
+
+    a = np.array([1.0, 2.0, 0.5])
+    assert moved_enough(a, a, 0.0, 0.0)  # both 0: every scan
+    assert not moved_enough(a, a + [0.05, 0.0, 0.05], 0.1, 0.1)
+    assert moved_enough(a, a + [0.08, 0.08, 0.0], 0.1, 0.1)  # 0.113 m
+    assert moved_enough(a, a + [0.0, 0.0, -0.1], 0.1, 0.1)  # turned
+    assert moved_enough(np.array([0.0, 0.0, 3.1]), np.array([0.0, 0.0, -3.1]), 1.0, 0.08)
+
+
+def test_tracking_skips_matching_until_the_robot_moved_update_min_d(room_model: MapModel) -> None:
+    truth = np.repeat(ellipse_route()[20:21], 3, axis=0)  # standing still
+    cfg = dataclasses.replace(CFG, update_min_d=0.25, update_min_a=0.2)
+    results = run(Localizer(room_model, cfg, initial_pose=truth[0]), scans_along(WORLD, truth),
+                  truth)  # fmt: skip
+    assert "not moved enough to match" not in results[0].reason
+    assert all(r.reason == "not moved enough to match" for r in results[1:])
+
+
 def test_a_robot_turning_slowly_on_the_spot_verifies_once_per_update_min_a(
     room_model: MapModel,
 ) -> None:
