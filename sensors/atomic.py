@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import glob
 import os
 import shutil
 import tempfile
@@ -54,8 +55,9 @@ def abandoned_staging_dirs(final: Path) -> list[Path]:
     """Staging folders of ``final`` whose writing process is gone (a save killed before its
     rename): never renamed into place, so nothing reads them."""
     out = []
-    for p in final.parent.glob(f".{final.name}.pid*-*{STAGING_SUFFIX}"):
-        pid = p.name[len(final.name) + 5 :].split("-", 1)[0]  # after ".NAME.pid"
+    prefix = f".{final.name}.pid"
+    for p in final.parent.glob(f"{glob.escape(prefix)}*-*{STAGING_SUFFIX}"):
+        pid = p.name.removeprefix(prefix).split("-", 1)[0]
         if not (p.is_dir() and pid.isdigit()) or int(pid) == os.getpid():
             continue
         if not _process_alive(int(pid)):
