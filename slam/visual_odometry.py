@@ -62,7 +62,6 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.distance import cdist
 
 from sensors.config import RobotConfig
 from sensors.extrinsics import optical_in_base_4x4
@@ -794,12 +793,16 @@ def rigid_ransac(
     # 4a. Seeded samples of three distinct matches with a rigid-consistent, well spread triangle.
     s = (_uniform_samples(tuning.ransac_seed, tuning.rigid_samples) * n).astype(np.intp)
     s = s[(s[:, 0] != s[:, 1]) & (s[:, 1] != s[:, 2]) & (s[:, 0] != s[:, 2])]
-    dp, dq = cdist(p, p), cdist(q, q)  # (n, n) side lengths
+    # The three sides of each sample only (not all n^2 pairs: most are never drawn).
     z2 = p[:, 2] ** 2
-    tol = tuning.rigid_tol_m + tuning.rigid_tol_z2 * (z2[:, None] + z2[None])
-    side_ok = (np.abs(dp - dq) < tol) & (dp > tuning.rigid_min_span_m)
-    s = s[side_ok[s[:, 0], s[:, 1]] & side_ok[s[:, 1], s[:, 2]] & side_ok[s[:, 2], s[:, 0]]]
-    s = s[: tuning.rigid_max_hypotheses]
+    ok = np.ones(len(s), bool)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        i, j = s[:, a], s[:, b]
+        dp = np.sqrt(np.einsum("ij,ij->i", p[i] - p[j], p[i] - p[j]))
+        dq = np.sqrt(np.einsum("ij,ij->i", q[i] - q[j], q[i] - q[j]))
+        tol = tuning.rigid_tol_m + tuning.rigid_tol_z2 * (z2[i] + z2[j])
+        ok &= (np.abs(dp - dq) < tol) & (dp > tuning.rigid_min_span_m)
+    s = s[ok][: tuning.rigid_max_hypotheses]
     if len(s) == 0:
         return []
     # 4b. Kabsch on every sample at once; MSAC score on all matches.
