@@ -6,7 +6,9 @@
    CPU use of the host process and of the simulated robot (a separate process, as a camera and a
    board are separate hardware), peak memory, board polls per second, and the map's accuracy
    against the simulator's truth beside the recorded run of the same route (``rgbdnav map
-   scenes/house.yaml``; its summary is read from ``--recorded`` or made there).
+   scenes/house.yaml``; its summary is read from ``--recorded`` or made there): ATE after SE(2)
+   alignment, as ``rgbdnav eval`` computes it (TUM), which the target is judged on, and from the
+   start pose (where the map's heading, set in the first metres, shows too).
 2. ``--soak-minutes N``: the route driven again and again for N minutes; resident memory growth
    after the warm-up (the first ``--warmup`` fraction of the run).
 
@@ -74,9 +76,11 @@ def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float,
                 load: str = "?", sets: str = "") -> str:
     c, lat, st = s["counts"], s["latency_ms"] or {}, s.get("stage_ms_median", {})
     sim = s.get("sim_robot", {})
-    ate = s.get("slam_vs_groundtruth", {}).get("ate_rmse_m")
-    rec_ate = rec.get("slam_vs_groundtruth", {}).get("ate_rmse_m")
-    ratio = ate / rec_ate if ate is not None and rec_ate else None
+    live_slam, rec_slam = s.get("slam_vs_groundtruth", {}), rec.get("slam_vs_groundtruth", {})
+    ate, rec_ate = live_slam.get("ate_rmse_m"), rec_slam.get("ate_rmse_m")
+    ate_al, rec_al = live_slam.get("ate_rmse_aligned_m"), rec_slam.get("ate_rmse_aligned_m")
+    ratio = ate_al / rec_al if ate_al is not None and rec_al else None
+    ratio_start = ate / rec_ate if ate is not None and rec_ate else None
     dropped = c.get("frames_dropped_front_end", 0)
     nav = s.get("navigation") or {}
     driver = "nav stack" if nav else "direct"
@@ -117,7 +121,8 @@ def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float,
         ("visualisation drawn / dropped", f"{s['visualization']['drawn']} / "
                                           f"{s['visualization']['dropped']}"),
         ("SLAM ATE vs truth (live; the final optimised trajectory, as the recorded run "
-         "reports it)", f"{ate} m over {sim.get('true_path_length_m')} m"),
+         "reports it): SE(2)-aligned (TUM, as `rgbdnav eval`) / from the start pose",
+         f"{ate_al} / {ate} m over {sim.get('true_path_length_m')} m"),
         ("SLAM ATE vs truth (live, poses as tracked online)",
          f"{s.get('slam_online_vs_groundtruth', {}).get('ate_rmse_m')} m"),
         ("odometry (EKF) ATE vs truth (live)",
@@ -132,9 +137,13 @@ def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float,
          "recoveries", nav_row),
         ("host RSS at 60 s / at the end (MB)", rss_row),
         (f"SLAM ATE vs truth (recorded run of the route without the gyro, `{rec.get('_dir')}`: "
-         "`rgbdnav map scenes/house.yaml --set ekf.imu0_config=[false x 15]`)", f"{rec_ate} m"),
-        ("live / recorded ATE (target <= 1.2)",
+         "`rgbdnav map scenes/house.yaml --set ekf.imu0_config=[false x 15]`): aligned / from "
+         "the start pose", f"{rec_al} / {rec_ate} m"),
+        ("live / recorded ATE, aligned (target <= 1.2)",
          "-" if ratio is None else f"{ratio:.2f}: {_yes(ratio <= ATE_RATIO_TARGET)}"),
+        ("live / recorded ATE from the start pose (the map's placement: its heading is set in "
+         "the first metres, before any scan constrains it)",
+         "-" if ratio_start is None else f"{ratio_start:.2f}"),
         ("errors", "; ".join(s["errors"]) or "none"),
     ]  # fmt: skip
     lines = [
