@@ -11,10 +11,17 @@
    start pose (where the map's heading, set in the first metres, shows too).
 2. ``--soak-minutes N``: the route driven again and again for N minutes; resident memory growth
    after the warm-up (the first ``--warmup`` fraction of the run).
+3. ``--drill-minutes N``: the long fault drills (the suite runs one short cycle): the route driven
+   again and again for N minutes while, every minute, the board is unplugged (the emulator
+   closes its pty) and plugged back 15 s later, and the camera stalls for 3 s. Every drill must
+   be counted, every unplug end in a reconnect and every stall pause mapping, and the run must
+   end with no error, a map bundle that loads and a map that held (ATE).
 
-Run: ``.venv/bin/python bench/bench_live.py [--duration 300] [--out docs/benchmarks.md]`` and
-``.venv/bin/python bench/bench_live.py --soak-minutes 30 [--out docs/benchmarks.md]``.
-Results replace the "live" (or "live-soak") section of the output markdown file.
+Run: ``.venv/bin/python bench/bench_live.py [--duration 300] [--out docs/benchmarks.md]``,
+``.venv/bin/python bench/bench_live.py --soak-minutes 30 [--out docs/benchmarks.md]`` and
+``.venv/bin/python bench/bench_live.py --drill-minutes 5 [--out docs/benchmarks.md]``.
+Results replace the "live" ("live-soak", "live-drills") section of the output markdown file; the
+drills exit with status 1 when a check fails.
 """
 
 from __future__ import annotations
@@ -40,6 +47,10 @@ LATENCY_P99_TARGET_MS = 100.0
 SOAK_GROWTH_TARGET = 0.10  # memory growth after warm-up
 # The simulated Eddie has no gyro (nor has the real one): the recorded run is made without it.
 NO_GYRO = "ekf.imu0_config=[" + ",".join(["false"] * 15) + "]"
+
+
+DRILL_CYCLE_S = 60  # [s] one unplug + replug of the board and one camera stall per cycle
+DRILL_STALL_S = 3  # [s] camera stall length (live.camera_stall_timeout is shorter)
 
 
 def _run(args: list[str]) -> None:
@@ -203,6 +214,67 @@ def report_soak(s: dict[str, Any], minutes: float, warmup: float, load: str = "?
     return "\n".join(lines)
 
 
+def drill_schedule(duration_s: float) -> tuple[list[str], int]:
+    """``--drill`` arguments for whole cycles within ``duration_s`` (board unplugged at +10 s,
+    back at +25 s, camera stalled at +40 s of each minute) and the number of cycles."""
+    args: list[str] = []
+    cycles = int(duration_s // DRILL_CYCLE_S)
+    for k in range(cycles):
+        t = k * DRILL_CYCLE_S
+        args += ["--drill", f"unplug_board@{t + 10}", "--drill", f"replug_board@{t + 25}",
+                 "--drill", f"stall_camera@{t + 40}:{DRILL_STALL_S}"]  # fmt: skip
+    return args, cycles
+
+
+def drill_checks(s: dict[str, Any], cycles: int, bundle_ok: bool) -> list[tuple[str, str, bool]]:
+    """(check, what the run did, passed) for a long drill run."""
+    c = s["counts"]
+    slam = s.get("slam_vs_groundtruth") or {}
+    ate = slam.get("ate_rmse_aligned_m")
+    drills = [c.get(f"drill_{a}", 0) for a in ("unplug_board", "replug_board", "stall_camera")]
+    return [
+        ("drills run: unplug / replug / camera stall (scheduled: "
+         f"{cycles} each)", " / ".join(map(str, drills)), drills == [cycles] * 3),
+        ("board: failed commands / reconnects (one per unplug)",
+         f"{c.get('board_command_errors', 0)} / {c.get('board_recovered', 0)}",
+         c.get("board_recovered", 0) == cycles and c.get("board_command_errors", 0) >= cycles),
+        ("camera stalls noticed, mapping paused and resumed (one per stall)",
+         f"{c.get('camera_stalls', 0)}", c.get("camera_stalls", 0) == cycles),
+        ("frames the simulated camera held back", f"{s['sim_robot'].get('stalled_frames')}",
+         (s["sim_robot"].get("stalled_frames") or 0) > 0),
+        ("route driving: laps / waypoints reached",
+         f"{c.get('route_laps', 0)} / {c.get('waypoints_reached', 0)}",
+         c.get("waypoints_reached", 0) > 0),
+        ("SLAM ATE vs truth, aligned / from the start pose (the map held: aligned < 0.1 m)",
+         f"{ate} / {slam.get('ate_rmse_m')} m", ate is not None and ate < 0.1),
+        ("map bundle after the run loads", "yes" if bundle_ok else "no", bundle_ok),
+        ("errors", "; ".join(s["errors"]) or "none", not s["errors"]),
+    ]
+
+
+def report_drills(s: dict[str, Any], minutes: float, checks: list[tuple[str, str, bool]],
+                  load: str) -> str:  # fmt: skip
+    c, lat = s["counts"], s["latency_ms"] or {}
+    lines = [
+        f"## Live fault drills ({minutes:.0f} min)",
+        "",
+        f"Date {dt.date.today().isoformat()}; machine: {machine('numpy')}; load (1 min) before / "
+        f"after {load}.",
+        f"Command: `.venv/bin/python bench/bench_live.py --drill-minutes {minutes:.0f}` (the house "
+        f"route driven again and again; every {DRILL_CYCLE_S} s the board emulator closes its pty "
+        f"at +10 s and opens it again at +25 s, and the camera stalls for {DRILL_STALL_S} s at "
+        "+40 s).",
+        "",
+        "| check | result | |",
+        "| --- | --- | --- |",
+        *[f"| {name} | {value} | {'pass' if ok else '**FAIL**'} |" for name, value, ok in checks],
+        f"| frames dropped in the front end / latency p50 / p99 | "
+        f"{c.get('frames_dropped_front_end', 0)} / {lat.get('p50')} / {lat.get('p99')} ms | |",
+        f"| checkpoints written | {c.get('checkpoints', 0)} | |",
+    ]
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--duration", type=float, default=300.0, help="live run length [s]")
@@ -215,8 +287,26 @@ def main() -> None:
     ap.add_argument("--set", dest="overrides", action="append", default=[],
                     help="config override for the live run and a recorded run made here "
                          "(section.key=value; repeatable)")  # fmt: skip
+    ap.add_argument("--drill-minutes", type=float, default=None)
     args = ap.parse_args()
     extra = [a for o in args.overrides for a in ("--set", o)]
+    if args.drill_minutes:
+        from sensors.types import MapError
+        from slam.map_bundle import load_bundle
+
+        load0 = _loadavg()
+        out = REPO / "runs" / "bench_live_drills"
+        drills, cycles = drill_schedule(args.drill_minutes * 60)
+        s = live_run(out, args.drill_minutes * 60, ["--repeat-route", *drills, *extra])
+        try:
+            bundle_ok = load_bundle(out / "map") is not None
+        except MapError as err:  # reported as a failed check
+            print(f"map bundle does not load: {err}")
+            bundle_ok = False
+        checks = drill_checks(s, cycles, bundle_ok)
+        publish(report_drills(s, args.drill_minutes, checks, f"{load0} / {_loadavg()}"),
+                args.out, "live-drills")
+        sys.exit(0 if all(ok for _, _, ok in checks) else 1)
     if args.soak_minutes:
         load0 = _loadavg()
         s = live_run(REPO / "runs" / "bench_live_soak", args.soak_minutes * 60,
