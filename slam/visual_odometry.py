@@ -76,6 +76,7 @@ CHI2_2DOF_95 = 5.991  # chi-square 95 % gate for 2 residuals (u, v)
 CHI2_GATE_SCALE = 2.0  # the gates are widened: keypoint errors have heavier tails than Gaussian
 HAMMING_BLOCK_ROWS = 128  # descriptor rows per block of the Hamming table (~1 MB for M = 1000)
 HAMMING_THREAD_MIN = 20_000  # [pairs] a level block this large is compared in the worker thread
+RIGID_CHUNK = 256  # rigid RANSAC samples checked at a time, until enough have passed
 
 Reason = Literal[
     "ok",
@@ -793,16 +794,25 @@ def rigid_ransac(
     # 4a. Seeded samples of three distinct matches with a rigid-consistent, well spread triangle.
     s = (_uniform_samples(tuning.ransac_seed, tuning.rigid_samples) * n).astype(np.intp)
     s = s[(s[:, 0] != s[:, 1]) & (s[:, 1] != s[:, 2]) & (s[:, 0] != s[:, 2])]
-    # The three sides of each sample only (not all n^2 pairs: most are never drawn).
+    # The three sides of each sample only (not all n^2 pairs: most are never drawn), in chunks
+    # until rigid_max_hypotheses samples have passed: the same first passing samples as checking
+    # them all.
     z2 = p[:, 2] ** 2
-    ok = np.ones(len(s), bool)
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        i, j = s[:, a], s[:, b]
-        dp = np.sqrt(np.einsum("ij,ij->i", p[i] - p[j], p[i] - p[j]))
-        dq = np.sqrt(np.einsum("ij,ij->i", q[i] - q[j], q[i] - q[j]))
-        tol = tuning.rigid_tol_m + tuning.rigid_tol_z2 * (z2[i] + z2[j])
-        ok &= (np.abs(dp - dq) < tol) & (dp > tuning.rigid_min_span_m)
-    s = s[ok][: tuning.rigid_max_hypotheses]
+    passed, found = [], 0
+    for c0 in range(0, len(s), RIGID_CHUNK):
+        chunk = s[c0 : c0 + RIGID_CHUNK]
+        ok = np.ones(len(chunk), bool)
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            i, j = chunk[:, a], chunk[:, b]
+            dp = np.sqrt(np.einsum("ij,ij->i", p[i] - p[j], p[i] - p[j]))
+            dq = np.sqrt(np.einsum("ij,ij->i", q[i] - q[j], q[i] - q[j]))
+            tol = tuning.rigid_tol_m + tuning.rigid_tol_z2 * (z2[i] + z2[j])
+            ok &= (np.abs(dp - dq) < tol) & (dp > tuning.rigid_min_span_m)
+        passed.append(chunk[ok])
+        found += int(ok.sum())
+        if found >= tuning.rigid_max_hypotheses:
+            break
+    s = np.concatenate(passed)[: tuning.rigid_max_hypotheses] if passed else s
     if len(s) == 0:
         return []
     # 4b. Kabsch on every sample at once; MSAC score on all matches.
