@@ -804,8 +804,9 @@ def rigid_ransac(
         ok = np.ones(len(chunk), bool)
         for a, b in ((0, 1), (1, 2), (2, 0)):
             i, j = chunk[:, a], chunk[:, b]
-            dp = np.sqrt(np.einsum("ij,ij->i", p[i] - p[j], p[i] - p[j]))
-            dq = np.sqrt(np.einsum("ij,ij->i", q[i] - q[j], q[i] - q[j]))
+            ep, eq = p[i] - p[j], q[i] - q[j]
+            dp = np.sqrt(np.einsum("ij,ij->i", ep, ep))
+            dq = np.sqrt(np.einsum("ij,ij->i", eq, eq))
             tol = tuning.rigid_tol_m + tuning.rigid_tol_z2 * (z2[i] + z2[j])
             ok &= (np.abs(dp - dq) < tol) & (dp > tuning.rigid_min_span_m)
         passed.append(chunk[ok])
