@@ -287,7 +287,8 @@ def main() -> None:
     ap.add_argument("--set", dest="overrides", action="append", default=[],
                     help="config override for the live run and a recorded run made here "
                          "(section.key=value; repeatable)")  # fmt: skip
-    ap.add_argument("--drill-minutes", type=float, default=None)
+    ap.add_argument("--drill-minutes", type=float, default=None,
+                    help="long fault drills: board unplugged and camera stalled every minute")
     args = ap.parse_args()
     extra = [a for o in args.overrides for a in ("--set", o)]
     if args.drill_minutes:
