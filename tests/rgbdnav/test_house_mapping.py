@@ -12,6 +12,7 @@ badly placed still fails. The whole run takes ~4 minutes on 2 cores, most of it 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -27,9 +28,13 @@ runner = CliRunner()
 def test_the_house_route_maps_within_5_cm_and_matches_the_floor_plan(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setenv("RGBDNAV_CACHE", str(tmp_path / "cache"))  # render here, not in ~/.cache
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("RGBDNAV_CACHE", str(cache))  # render here, not in ~/.cache
     out = tmp_path / "run"
-    result = runner.invoke(app, ["map", str(HOUSE), "--out", str(out), "-q"])
+    try:
+        result = runner.invoke(app, ["map", str(HOUSE), "--out", str(out), "-q"])
+    finally:  # the rendering is 2.8 GB: not left in pytest's kept tmp folders
+        shutil.rmtree(cache, ignore_errors=True)
     assert result.exit_code == 0, result.output
     s = json.loads((out / "summary.json").read_text())
     slam = s["slam_vs_groundtruth"]
