@@ -18,14 +18,17 @@ Default pipeline (``method="orb_pnp"``), one step per line as in :func:`motion_f
    frame, besides ``(u, v)`` we predict a virtual right-image column ``u_r = u - bf / z`` with
    ``bf = fx * KINECT_BASELINE``; a Kinect's depth noise is constant in disparity, so the three
    residuals share one pixel noise model; Huber weights, inliers re-selected by a chi-square
-   gate. The most inliers wins; close calls go through a second, narrower guided search and
-   refinement, which also polishes the winner;
+   gate. A hypothesis whose RANSAC inliers an already refined motion explains is that
+   motion's mode and is not refined again. The most inliers wins; close calls go through a
+   second, narrower guided search and refinement, which also polishes the winner;
 6. acceptance tests (inliers, inlier ratio, motion magnitude) -> ``success=False`` + reason
    otherwise, never a silent garbage pose.
 
-:class:`VisualOdometry` can first try steps 3-5 around a pose prior (:func:`motion_from_prior`:
-a window search around the predicted projections replaces the global k-NN and RANSAC; off by
-default) and run the global steps only when that fails.
+:class:`VisualOdometry` seeds step 5 with the last frame's pose while that pose predicts the
+frames well (``VoTuning.prior_seed``, as ORB-SLAM tracks with its motion model): RANSAC (step 4)
+runs only when the seed's refined inliers fall short. It can also try steps 3-5 around the
+prior (:func:`motion_from_prior`: a window search around the predicted projections replaces the
+global k-NN too; off by default) and run the global steps only when that fails.
 
 Optical flow (``VoConfig.cor_type="optical_flow"``, RTAB-Map's Vis/CorType 1): ORB runs only on
 keyframes; in between, the keyframe's points with depth are tracked frame to frame by pyramidal
@@ -170,6 +173,9 @@ class VoTuning:
     # frame's pose in which VisualOdometry looks for its match first (0 = always global). Off:
     # with 15 px the full house route (3970 frames) was 98 % prior-tracked at 34 % less CPU per
     # frame, but its VO-only ATE rose from 0.156 to 0.293 m (the first 300 frames: unchanged)
+    prior_seed: bool = True  # while the prior holds (``prior_max_error_px``), the last frame's
+    # pose seeds the refinement in place of RANSAC: the global k-NN candidates and the guided
+    # search stay (the window search's best-in-window matches are what cost it accuracy)
     prior_max_error_px: float = 7.5  # [px] the prior path is tried after a frame whose global
     # estimate the prediction matched within this (the cabinet keyframes, 0.15 m apart, miss by
     # 30-140 px: there it would only cost; at 30 Hz it holds on nearly every frame)
@@ -971,8 +977,11 @@ def _explained_share(t_cp: np.ndarray, p_prev: np.ndarray, uv_curr: np.ndarray,
 def motion_from_features(
     prev: Features, curr: Features, k: np.ndarray, cfg: VoConfig, tuning: VoTuning,
     t_base_opt: np.ndarray | None = None, t0: float | None = None,
+    t_seed: np.ndarray | None = None,
 ) -> VoResult:  # fmt: skip
-    """Steps 3-6 of the pipeline on already extracted features."""
+    """Steps 3-6 of the pipeline on already extracted features. ``t_seed`` (T_curr_prev, e.g.
+    the last frame's pose) is refined first, through the same guided search; RANSAC runs only
+    if its inliers fall below ``prior_min_inlier_ratio`` of its guided matches."""
     t0 = time.perf_counter() if t0 is None else t0
     planar = cfg.force_3dof and t_base_opt is not None
     if min(len(prev), len(curr)) < cfg.min_inliers:
@@ -987,6 +996,14 @@ def motion_from_features(
     if n_match < cfg.min_inliers:
         return _fail("too_few_matches", t0, n_match, planar=planar)
     ip, ic = pairs[:, 0], pairs[:, 1]
+    second = tuning.refine == "rgbd" and tuning.second_radius_px > 0  # recomputes covariances
+    if t_seed is not None and tuning.refine == "rgbd":
+        seeded = _refine(t_seed, np.zeros(0, int), sub, curr, pairs, cand, k, cfg, tuning,
+                         tuning.guided_radius_px, tuning.guided_max_hamming,
+                         covariance=not second)  # fmt: skip
+        if seeded[1] >= max(cfg.min_inliers, tuning.prior_min_inlier_ratio * seeded[3]):
+            return _verified([seeded], sub, curr, pairs, cand, k, cfg, tuning, second,
+                             t_base_opt if planar else None, t0, prior=True)  # fmt: skip
     # 4. Robust initial motions: 3D points of the previous frame seen in the current frame.
     hyps = initial_motions(sub.xyz[ip], curr.uv[ic], curr.xyz[ic], curr.octave[ic], k, cfg,
                            tuning)  # fmt: skip
@@ -1003,7 +1020,6 @@ def motion_from_features(
     # converge to it: skipped); the one with the most inliers wins. Close calls (a repeated
     # structure) are decided after a narrower second search around each.
     best_n = len(hyps[0][1])
-    second = tuning.refine == "rgbd" and tuning.second_radius_px > 0  # recomputes covariances
     refined: list[tuple[np.ndarray, int, np.ndarray | None, int]] = []
     for t, inl in hyps:
         if len(inl) < tuning.verify_ratio * best_n or any(
@@ -1016,6 +1032,17 @@ def motion_from_features(
         refined.append(_refine(t, inl, sub, curr, pairs, cand, k, cfg, tuning,
                                tuning.guided_radius_px, tuning.guided_max_hamming,
                                covariance=not second))  # fmt: skip
+    return _verified(refined, sub, curr, pairs, cand, k, cfg, tuning, second,
+                     t_base_opt if planar else None, t0)  # fmt: skip
+
+
+def _verified(refined: list[tuple[np.ndarray, int, np.ndarray | None, int]], sub: Features,
+              curr: Features, pairs: np.ndarray, cand: tuple[np.ndarray, np.ndarray],
+              k: np.ndarray, cfg: VoConfig, tuning: VoTuning, second: bool,
+              t_base_opt: np.ndarray | None, t0: float, prior: bool = False,
+              ) -> VoResult:  # fmt: skip
+    """Step 5's close calls decided by the second, narrower search around each refined motion
+    (``second``); the most inliers win and go to the tests of step 6."""
     if second:
         kept: list[tuple[np.ndarray, int, np.ndarray | None, int]] = []
         for r in sorted(refined, key=lambda r: -r[1]):  # most inliers first; drop converged
@@ -1028,7 +1055,8 @@ def motion_from_features(
             for t, n, _, m in kept if n >= tuning.close_call * top
         ]  # fmt: skip
     t_cp, n_inl, cov_cp, n_match = max(refined, key=lambda r: r[1])
-    return _accept(t_cp, n_inl, cov_cp, n_match, cfg, tuning, t_base_opt if planar else None, t0)
+    res = _accept(t_cp, n_inl, cov_cp, n_match, cfg, tuning, t_base_opt, t0)
+    return replace(res, prior=True) if prior and res.success else res
 
 
 def _accept(t_cp: np.ndarray, n_inl: int, cov_cp: np.ndarray | None, n_match: int,
@@ -1322,8 +1350,9 @@ class VisualOdometry:
             res = None if res is None else replace(res, prior=True)
         if res is None:
             feats = self._features(frame) if feats is None else feats
+            seed = self._prior_holds and self.tuning.prior_seed
             res = motion_from_features(self._kf.features, feats, self.k, cfg6, self.tuning, None,
-                                       t0)  # fmt: skip
+                                       t0, inverse(t_kf_pred) if seed else None)  # fmt: skip
             # Try the prior next time only if it would have hit this frame's window.
             self._prior_holds = res.success and prior_error_px(
                 t_kf_pred, res.T_prev_curr, self.k[0, 0], self._kf.depth_m

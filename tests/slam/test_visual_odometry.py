@@ -203,7 +203,54 @@ def test_a_keyframe_is_taken_when_the_inliers_drop_below_keyframe_inliers() -> N
         assert np.allclose(vo._kf.T_kf_last, np.eye(4)) == renewed
 
 
-PRIOR = VoTuning(prior_radius_px=15.0)  # the pose prior is off by default
+def test_the_last_pose_seeds_a_slow_drive_in_place_of_ransac(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import slam.visual_odometry as vo_module
+
+    ransac: list[int] = []
+    initial = vo_module.initial_motions
+
+    def counted(*args: object, **kw: object) -> object:
+        ransac.append(1)
+        return initial(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(vo_module, "initial_motions", counted)
+    r = renderer()
+    vo = VisualOdometry(r.intrinsics, VO6)
+    poses = [(0.015 * i, 0.0, math.radians(0.4 * i)) for i in range(6)]
+    results = [vo.process(RgbdFrame(i, *frame(r, p), r.intrinsics)) for i, p in enumerate(poses)]
+    # Frame 1 runs RANSAC (no prior yet); its estimate shows the prior holds: seeded from then.
+    assert results[1].success and not results[1].prior
+    assert all(res.success and res.prior for res in results[2:])
+    assert len(ransac) == 1
+    for a, b, res in zip(poses[1:-1], poses[2:], results[2:], strict=True):
+        truth = true_motion(a, b)
+        assert np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) < 0.005
+        assert math.degrees(rotation_angle(inverse(truth) @ res.T_prev_curr)) < 0.3
+    # Off, every frame runs RANSAC, to the same motions.
+    ransac.clear()
+    off = VisualOdometry(r.intrinsics, VO6, tuning=VoTuning(prior_seed=False))
+    plain = [off.process(RgbdFrame(i, *frame(r, p), r.intrinsics)) for i, p in enumerate(poses)]
+    assert len(ransac) == 5 and not any(res.prior for res in plain)
+    for a, b in zip(results[2:], plain[2:], strict=True):
+        np.testing.assert_allclose(a.T_prev_curr, b.T_prev_curr, atol=1e-3)
+
+
+def test_a_wrong_seed_falls_back_to_ransac_and_finds_the_right_motion() -> None:
+    r = renderer()
+    vo = VisualOdometry(r.intrinsics, VO6)
+    poses = [START, (0.01, 0.0, 0.0), (0.02, 0.0, 0.0), (0.12, 0.03, math.radians(6.0))]
+    results = [vo.process(RgbdFrame(i, *frame(r, p), r.intrinsics)) for i, p in enumerate(poses)]
+    assert results[2].prior  # the slow start set the seed up ...
+    jump = results[3]  # ... and the jump (~60 px) is not where it predicts: RANSAC
+    assert jump.success and not jump.prior
+    truth = true_motion(poses[2], poses[3])
+    assert np.linalg.norm(jump.T_prev_curr[:3, 3] - truth[:3, 3]) < 0.01
+    assert math.degrees(rotation_angle(inverse(truth) @ jump.T_prev_curr)) < 0.5
+
+
+PRIOR = VoTuning(prior_radius_px=15.0)  # the window search around the pose prior is off by default
 
 
 def test_pose_prior_tracks_a_slow_drive_with_window_search_only() -> None:
