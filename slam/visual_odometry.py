@@ -77,8 +77,6 @@ KINECT_BASELINE = 0.075  # [m] IR projector - IR camera baseline, sets the dispa
 CHI2_3DOF_95 = 7.815  # chi-square 95 % gate for 3 residuals (u, v, u_r)
 CHI2_2DOF_95 = 5.991  # chi-square 95 % gate for 2 residuals (u, v)
 CHI2_GATE_SCALE = 2.0  # the gates are widened: keypoint errors have heavier tails than Gaussian
-HAMMING_BLOCK_ROWS = 128  # descriptor rows per block of the Hamming table (~1 MB for M = 1000)
-HAMMING_THREAD_MIN = 20_000  # [pairs] a level block this large is compared in the worker thread
 RIGID_CHUNK = 256  # rigid RANSAC samples checked at a time, until enough have passed
 
 Reason = Literal[
@@ -325,7 +323,7 @@ if hasattr(os, "register_at_fork"):  # a forked child has no threads: it makes i
 
 
 def _worker() -> ThreadPoolExecutor:
-    """The second thread of the pipeline (ORB's upper pyramid levels, a Hamming block)."""
+    """The second thread of the pipeline (ORB's upper pyramid levels)."""
     if not _WORKER:
         _WORKER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="vo-worker"))
     return _WORKER[0]
@@ -478,40 +476,14 @@ def backproject(uv: np.ndarray, depth_m: np.ndarray, k: np.ndarray, cfg: VoConfi
 def hamming_knn(a: np.ndarray, b: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The k nearest rows of ``b`` for every row of ``a`` by Hamming distance.
 
-    ``a`` (N, B) and ``b`` (M, B) uint8 binary descriptors with B a multiple of 8, ``k <= M``.
-    Returns (N, k) distances [bits] and (N, k) indices into ``b``, nearest first, ties to the
-    lower index: the same as ``cv2.batchDistance(..., NORM_HAMMING, K=k)`` (which BFMatcher runs),
-    in about 0.7 of its single-thread time here (64-bit XOR + popcount in NumPy; the pip OpenCV
-    build's baseline is SSE3).
+    ``a`` (N, B) and ``b`` (M, B) uint8 binary descriptors, ``k <= M``. Returns (N, k) distances
+    [bits] and (N, k) indices into ``b``, nearest first, ties to the lower index. OpenCV's
+    ``batchDistance`` (what BFMatcher runs): one call that releases the GIL and spreads its rows
+    over OpenCV's threads (a NumPy XOR + popcount took 0.7 of its single-thread time, but ran in
+    many short GIL-holding calls: in a second Python thread it waited on the first).
     """
-    n, m = len(a), len(b)
-    wa = np.ascontiguousarray(a).view(np.uint64)  # (N, B/8)
-    wb = np.ascontiguousarray(np.ascontiguousarray(b).view(np.uint64).T)  # (B/8, M)
-    dist = np.empty((n, k), np.int64)
-    idx = np.empty((n, k), np.int64)
-    # Blocks of query rows keep the (rows, M) tables in cache; buffers are reused.
-    x = np.empty((HAMMING_BLOCK_ROWS, m), np.uint64)
-    bits = np.empty((HAMMING_BLOCK_ROWS, m), np.uint8)
-    d = np.empty((HAMMING_BLOCK_ROWS, m), np.uint16)
-    taken = np.iinfo(np.uint16).max  # above any distance (at most 8 B bits)
-    for s in range(0, n, HAMMING_BLOCK_ROWS):
-        e = min(s + HAMMING_BLOCK_ROWS, n)
-        xb, bb, db = x[: e - s], bits[: e - s], d[: e - s]
-        for w in range(wa.shape[1]):
-            np.bitwise_xor(wa[s:e, w, None], wb[w], out=xb)
-            np.bitwise_count(xb, out=bb)
-            if w == 0:
-                db[...] = bb
-            else:
-                db += bb
-        rows = np.arange(e - s)
-        for j in range(k):  # k passes of argmin: cheaper than a partial sort for k = 2-3
-            i = np.argmin(db, axis=1)  # first minimum: ties to the lower index
-            idx[s:e, j] = i
-            dist[s:e, j] = db[rows, i]
-            if j < k - 1:
-                db[rows, i] = taken
-    return dist, idx
+    dist, idx = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=k)
+    return dist.astype(np.int64), idx.astype(np.int64)
 
 
 def knn_candidates(prev: Features, curr: Features, k: int, level_window: int = -1
@@ -535,21 +507,10 @@ def knn_candidates(prev: Features, curr: Features, k: int, level_window: int = -
         c_lo = np.searchsorted(curr.octave, levels - level_window, "left")
         c_hi = np.searchsorted(curr.octave, levels + level_window, "right")
         blocks = list(zip(p_lo, p_hi, c_lo, c_hi, strict=True))
-    # The largest block (usually level 0, about half the comparisons) goes to the worker
-    # thread while this one does the rest: NumPy releases the GIL in its array loops.
-    size = [(b - a) * (d - c) for a, b, c, d in blocks]
-    big = int(np.argmax(size))
-    a, b, c, d = blocks[big]
-    side = None
-    if len(blocks) > 1 and min(k, d - c) > 0 and size[big] >= HAMMING_THREAD_MIN:
-        side = _worker().submit(hamming_knn, prev.desc[a:b], curr.desc[c:d], min(k, d - c))
-    for i, (a, b, c, d) in enumerate(blocks):
+    for a, b, c, d in blocks:
         kk = min(k, d - c)
-        if kk > 0:
-            if i == big and side is not None:
-                dist[a:b, :kk], idx[a:b, :kk] = side.result()
-            else:
-                dist[a:b, :kk], idx[a:b, :kk] = hamming_knn(prev.desc[a:b], curr.desc[c:d], kk)
+        if kk > 0 and b > a:
+            dist[a:b, :kk], idx[a:b, :kk] = hamming_knn(prev.desc[a:b], curr.desc[c:d], kk)
             idx[a:b, :kk] += c
     return idx, dist
 
