@@ -253,7 +253,8 @@ def bench_per_frame(
     """ms per frame of the stateful odometry (one feature extraction per frame), per run: wall
     time, and the process CPU time (all threads), which other processes on the machine inflate
     far less than the wall time. Medians over the frames, then median and min over the runs.
-    Also the frames the pose prior tracked (the window search instead of the global one)."""
+    Also the frames the last pose tracked (``VoResult.prior``: its seeded refinement, without
+    RANSAC)."""
     wall, cpu, prior = [], [], 0
     for _ in range(repeats):
         vo = VisualOdometry(frames[0].intrinsics, cfg, tuning=tuning, keyframes=False)
@@ -459,8 +460,8 @@ def main() -> None:
             f"**{pf['ms_med']:.1f} ms/frame wall** (runs {pf['ms_lo']:.1f}-{pf['ms_hi']:.1f}), "
             f"**{pf['cpu_ms_med']:.1f} ms/frame CPU** (best run {pf['cpu_ms_lo']:.1f}; process "
             f"time, all threads; the machine's other load inflates it far less than the wall). "
-            f"The keyframes are 0.15 m apart: the pose prior tracked {pf['prior']:.0f} of "
-            f"{len(frames) - 1} frames, the rest went through the global search."
+            f"The keyframes are 0.15 m apart: the last pose seeded {pf['prior']:.0f} of "
+            f"{len(frames) - 1} frames, RANSAC ran on the rest."
         )
         print(frame_line, flush=True)
         o3d_seq = bench_open3d_sequence(*VARIANTS[names[0]])
@@ -478,7 +479,8 @@ def main() -> None:
                 f"{s['end_err_m'] * 100:.1f} cm = **{100 * s['drift_per_10m']:.1f} cm per 10 m**, "
                 f"yaw error {s['yaw_err_deg']:.2f} deg, {s['fails']} failed frames, "
                 f"{s['ms_med']:.1f} ms/frame wall, {s['cpu_ms_med']:.1f} ms CPU median "
-                f"(30 Hz: the pose prior tracked {s['prior']} of {s['frames'] - 1} frames).")  # fmt: skip
+                f"(30 Hz: the last pose seeded {s['prior']} of {s['frames'] - 1} frames, "
+                f"RANSAC ran on the rest).")  # fmt: skip
     load = f"{load_start[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
     body = f"""## Visual odometry
 

@@ -195,8 +195,8 @@ class VoResult:
     ms: float  # [ms] wall time of the estimate
     matches: int = 0
     delta_base: Pose2 | None = None  # planar mode: base_link motion (dx, dy, dyaw)
-    prior: bool = False  # tracked from the last frame's pose without a global search (window
-    # search around the pose prior, or optical flow)
+    prior: bool = False  # tracked from the last frame's pose: its refinement seeded without
+    # RANSAC, the window search around it, or optical flow
 
     @property
     def inlier_ratio(self) -> float:
