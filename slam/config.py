@@ -244,7 +244,11 @@ class DepthToScanConfig:
     angle_increment: float = param(
         0.017453292519943295, unit="rad", gt=0.0, doc="beam spacing (pi/180, as upstream)"
     )
-    scan_time: float = param(0.033, unit="s", ge=0.0, doc="time between scans (LaserScan)")
+    scan_time: float = param(
+        0.033, unit="s", ge=0.0,
+        doc="time between scans: informational, as upstream's LaserScan.scan_time (accepted so "
+        "depthimage_to_laserscan configs load; scans carry their own stamps)",
+    )  # fmt: skip
     return_averaging_window: float = param(
         0.0,
         unit="1/m",
