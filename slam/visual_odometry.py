@@ -109,9 +109,6 @@ class VoTuning:
     # 0 px 96.1 %, 4 px 97.1 %, 8 px 98.2 %; house route EKF ATE 0.154 / 0.153 / 0.191 m
     unmasked_share: float = 0.9  # detect unmasked (then drop keypoints off the mask) if the
     # mask covers this share of the image and this share of the keypoints land on it
-    masked_hold_frames: int = 30  # after an unmasked try fails (and ORB runs again with the
-    # mask), this many frames go straight to the masked detection (house, 300 frames: 30 of
-    # 31 double detections avoided, none of the tries that would pass skipped; 0 = always try)
     fast_threshold: int = 5  # [8-bit levels] ORB's FAST threshold (OpenCV default 20)
     orb_levels: int = 6  # OpenCV default 8. With level_window 0 and knn 2, TUM cabinet mean over
     # 10 draws: 6 levels 100 % / 1.17 cm, 8 levels 98.9 % / 1.29 cm (and a larger pyramid)
@@ -201,14 +198,6 @@ class VoResult:
     @property
     def inlier_ratio(self) -> float:
         return self.inliers / self.matches if self.matches else 0.0
-
-
-class MaskHint:
-    """Carried from frame to frame by :class:`VisualOdometry`: an unmasked ORB try that failed
-    costs a second, masked detection, and the next frames' tries would mostly fail too."""
-
-    def __init__(self) -> None:
-        self.masked_for = 0  # frames left that skip the unmasked try
 
 
 @dataclass(frozen=True, eq=False)
@@ -415,11 +404,9 @@ def grey(rgb: np.ndarray) -> np.ndarray:
 
 
 def extract_features(
-    rgb: np.ndarray, depth_m: np.ndarray, k: np.ndarray, cfg: VoConfig, tuning: VoTuning,
-    hint: MaskHint | None = None,
-) -> Features:  # fmt: skip
-    """Grid-bucketed ORB keypoints with descriptors and depth back-projection. ``hint``: the
-    state of a frame sequence (:attr:`VoTuning.masked_hold_frames`), updated here."""
+    rgb: np.ndarray, depth_m: np.ndarray, k: np.ndarray, cfg: VoConfig, tuning: VoTuning
+) -> Features:
+    """Grid-bucketed ORB keypoints with descriptors and depth back-projection."""
     gray = grey(rgb)
     if tuning.clahe_clip > 0:
         clahe = cv2.createCLAHE(tuning.clahe_clip, (tuning.clahe_tiles, tuning.clahe_tiles))
@@ -432,17 +419,12 @@ def extract_features(
         # ORB's mask argument costs 3-10 ms more (OpenCV 4.x), even a mask of all ones. Where
         # the mask covers nearly the image and nearly every keypoint lands on it, dropping the
         # others keeps nearly the set the mask would: that is tried first.
-        found = held = False
-        if hint is not None and hint.masked_for > 0:
-            hint.masked_for -= 1
-            held = True
-        if not held and cv2.countNonZero(mask) >= tuning.unmasked_share * mask.size:
+        found = False
+        if cv2.countNonZero(mask) >= tuning.unmasked_share * mask.size:
             uv, octave, response, desc = _detect(gray, None, n, tuning)
             on = _lookup(mask, uv) > 0
             found = bool(on.sum() >= tuning.unmasked_share * len(uv))
             uv, octave, response, desc = uv[on], octave[on], response[on], desc[on]
-            if not found and hint is not None:
-                hint.masked_for = tuning.masked_hold_frames
         if not found:  # texture off depth (near floor, far wall) would take ORB's budget
             uv, octave, response, desc = _detect(gray, mask, n, tuning)
     if len(uv) == 0:
@@ -1272,14 +1254,12 @@ class VisualOdometry:
         # Optical flow: (keyframe point indices, their pixels in the last frame)
         self._tracks: tuple[np.ndarray, np.ndarray] | None = None
         self._gray: np.ndarray | None = None  # the keyframe's grey image (optical flow)
-        self._mask_hint = MaskHint()  # ORB's depth-mask path across frames
 
     def reset(self) -> None:
         self._kf = None
         self.T_odom_cam = np.eye(4)
         self._prior_holds = False
         self._tracks, self._gray = None, None
-        self._mask_hint = MaskHint()
 
     def process(self, frame: RgbdFrame) -> VoResult:
         t0 = time.perf_counter()
@@ -1341,8 +1321,7 @@ class VisualOdometry:
         return self._finish(res, t_last_curr, t0)
 
     def _features(self, frame: RgbdFrame) -> Features:
-        return extract_features(frame.rgb, frame.depth_m, self.k, self.cfg, self.tuning,
-                                self._mask_hint)  # fmt: skip
+        return extract_features(frame.rgb, frame.depth_m, self.k, self.cfg, self.tuning)
 
     def _new_keyframe(self, feats: Features, gray: np.ndarray | None) -> None:
         """``feats`` become the keyframe; with optical flow (``gray``, this frame's grey image)

@@ -18,7 +18,6 @@ from slam.config import VoConfig
 from slam.visual_odometry import (
     KINECT_BASELINE,
     Features,
-    MaskHint,
     VisualOdometry,
     VoResult,
     VoTuning,
@@ -617,42 +616,6 @@ def test_depth_mask_grows_into_holes_but_not_into_out_of_range_depth() -> None:
     assert mask.sum(0)[8:].tolist() == [0, 0, 1, 0]  # the speck itself, not grown
     plain = depth_mask(depth, cfg, replace(tuning, depth_margin_px=0)) > 0
     assert plain.sum(0).tolist() == [4] + [5] * 3 + [0] * 6 + [1, 0]
-
-
-def test_a_failed_unmasked_try_sends_the_next_frames_straight_to_the_masked_detection(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """The depth mask covers 92 % of the image, but the strip without depth holds the strong
-    corners: the unmasked try fails and ORB runs again with the mask. With a hint, the next
-    ``masked_hold_frames`` frames skip the try, with the same features."""
-    import slam.visual_odometry as vo
-
-    rng = np.random.default_rng(5)
-    gray = np.clip(128 + rng.normal(0, 12, (480, 640)), 0, 255)
-    v, u = np.mgrid[0:480, 0:52]
-    gray[:, :52] = np.where(((v // 6) + (u // 6)) % 2, 255, 0)  # checkerboard, far away
-    rgb = np.repeat(gray.astype(np.uint8)[:, :, None], 3, axis=2)
-    depth = np.full((480, 640), 2.0, np.float32)
-    depth[:, :52] = 30.0  # beyond max_depth: not grown into
-    calls: list[bool] = []
-    detect = vo._detect
-
-    def counted(g: np.ndarray, mask: np.ndarray | None, n: int, t: VoTuning) -> tuple:
-        calls.append(mask is not None)
-        return detect(g, mask, n, t)
-
-    monkeypatch.setattr(vo, "_detect", counted)
-    tuning = VoTuning(masked_hold_frames=2)
-    plain = extract_features(rgb, depth, K, VO6, tuning)
-    assert calls == [False, True]  # unmasked try, then masked
-    hint, seen = MaskHint(), []
-    for _ in range(4):
-        calls.clear()
-        feats = extract_features(rgb, depth, K, VO6, tuning, hint)
-        seen.append((calls.copy(), hint.masked_for))
-        np.testing.assert_array_equal(feats.uv, plain.uv)
-        np.testing.assert_array_equal(feats.desc, plain.desc)
-    assert seen == [([False, True], 2), ([True], 1), ([True], 0), ([False, True], 2)]
 
 
 def test_features_equal_describing_only_the_kept_keypoints_in_a_second_orb_pass() -> None:
