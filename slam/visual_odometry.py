@@ -143,10 +143,6 @@ class VoTuning:
     rigid_max_hypotheses: int = 64  # [-] consistent samples solved and scored at most
     verify_hypotheses: int = 3  # distinct hypotheses verified by guided search + refinement
     distinct_m: float = 0.05  # [m] hypotheses closer than this in translation are one
-    same_mode_share: float = 0.95  # a hypothesis whose RANSAC inliers reproject within the RANSAC
-    # gate under an already refined motion for this share is that motion's mode (refining it
-    # converges there: house, 600 frames, 2.7 refinements per frame, the runner-up's refined
-    # inliers at the median 100 % of the best's) and is not refined again (> 1: refine all)
     close_call: float = 0.9  # refined candidates within this share of the best go on to the
     # second search, which then decides
     verify_ratio: float = 0.7  # verify only hypotheses with this share of the best's inliers
@@ -904,19 +900,6 @@ def _refine(t_cp: np.ndarray, inl: np.ndarray, sub: Features, curr: Features, pa
     return t_cp, int(mask.sum()), cov, max(len(pairs), len(gp))
 
 
-def _explained_share(t_cp: np.ndarray, p_prev: np.ndarray, uv_curr: np.ndarray,
-                     octave: np.ndarray, k: np.ndarray, cfg: VoConfig, tuning: VoTuning) -> float:
-    """Share of matches (previous 3D points, current pixels) that ``t_cp`` reprojects within the
-    RANSAC gate (``pnp_reproj_error`` times the keypoint's pyramid scale)."""
-    if len(p_prev) == 0:
-        return 0.0
-    q = p_prev @ t_cp[:3, :3].T + t_cp[:3, 3]
-    proj = q[:, :2] / np.maximum(q[:, 2:], 1e-6) * [k[0, 0], k[1, 1]] + [k[0, 2], k[1, 2]]
-    e2 = np.einsum("ij,ij->i", proj - uv_curr, proj - uv_curr)
-    gate = cfg.pnp_reproj_error * tuning.orb_scale ** octave.astype(float)
-    return float(np.mean(e2 < gate**2))
-
-
 def motion_from_features(
     prev: Features, curr: Features, k: np.ndarray, cfg: VoConfig, tuning: VoTuning,
     t_base_opt: np.ndarray | None = None, t0: float | None = None,
@@ -966,10 +949,7 @@ def motion_from_features(
     refined: list[tuple[np.ndarray, int, np.ndarray | None, int]] = []
     for t, inl in hyps:
         if len(inl) < tuning.verify_ratio * best_n or any(
-            np.linalg.norm(t[:3, 3] - r[0][:3, 3]) < tuning.distinct_m
-            or _explained_share(r[0], sub.xyz[ip[inl]], curr.uv[ic[inl]], curr.octave[ic[inl]],
-                                k, cfg, tuning) >= tuning.same_mode_share
-            for r in refined
+            np.linalg.norm(t[:3, 3] - r[0][:3, 3]) < tuning.distinct_m for r in refined
         ):
             continue
         refined.append(_refine(t, inl, sub, curr, pairs, cand, k, cfg, tuning,

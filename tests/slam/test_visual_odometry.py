@@ -22,7 +22,6 @@ from slam.visual_odometry import (
     VoResult,
     VoTuning,
     _bucket,
-    _explained_share,
     _residuals,
     _whitened,
     base_from_optical,
@@ -489,46 +488,6 @@ def test_rigid_ransac_is_repeatable_for_one_seed_and_empty_for_too_few_matches()
     b = rigid_ransac(p, q, uv, scale, K, 3.0, VoTuning(ransac_seed=3))
     assert len(a) == len(b) and all(np.array_equal(x[0], y[0]) for x, y in zip(a, b, strict=True))
     assert rigid_ransac(p[:2], q[:2], uv[:2], scale[:2], K, 3.0, VoTuning()) == []
-
-
-def test_explained_share_counts_matches_a_motion_reprojects_within_the_ransac_gate() -> None:
-    p, _, uv, _, truth, bad = _rigid_scene(13, 200, 0.3)
-    octave = np.zeros(len(p), int)
-    share = _explained_share(truth, p, uv, octave, K, VO6, VoTuning())
-    assert 0.9 * np.mean(~bad) <= share <= np.mean(~bad) + 0.02  # (3 mm depth noise: 1-2 px)
-    off = se3_exp(np.array([0.0, 0.0, 0.0, 0.15, 0.0, 0.0])) @ truth  # 15 cm to the side
-    assert _explained_share(off, p, uv, octave, K, VO6, VoTuning()) < 0.05
-    # Coarser pyramid levels get a wider gate, as in the RANSAC scoring.
-    far = se3_exp(np.array([0.0, 0.0, 0.0, 0.012, 0.0, 0.0])) @ truth
-    assert _explained_share(far, p, uv, octave, K, VO6, VoTuning()) < share - 0.1
-    assert _explained_share(far, p, uv, octave + 5, K, VO6, VoTuning()) >= share - 0.03
-    assert _explained_share(truth, p[:0], uv[:0], octave[:0], K, VO6, VoTuning()) == 0.0
-
-
-def test_hypotheses_of_the_refined_motions_mode_are_not_refined_again(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """RANSAC's runner-up hypotheses on a clean pair are the same motion, a few cm off: one
-    first-pass refinement (and its second search) instead of one per hypothesis, same result."""
-    import slam.visual_odometry as vo
-
-    r = renderer()
-    a, b = frame(r, START), frame(r, MOVED)
-    calls: list[int] = []
-    refine = vo._refine
-
-    def counted(*args: object, **kw: object) -> object:
-        calls.append(1)
-        return refine(*args, **kw)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(vo, "_refine", counted)
-    tuning = VoTuning(distinct_m=0.005)  # runner-ups from the same mode are then "distinct"
-    every = estimate_motion(*a, *b, K, VO6, replace(tuning, same_mode_share=2.0))
-    n_every, calls[:] = len(calls), []
-    merged = estimate_motion(*a, *b, K, VO6, tuning)
-    assert every.success and merged.success
-    assert len(calls) == 2 < n_every
-    np.testing.assert_allclose(merged.T_prev_curr, every.T_prev_curr, atol=1e-3)
 
 
 def test_level_window_compares_only_nearby_pyramid_levels_and_covers_all_when_wide() -> None:
