@@ -90,6 +90,30 @@ def true_motion(a: tuple[float, float, float], b: tuple[float, float, float]) ->
     return inverse(ta) @ tb
 
 
+def assert_pair_motions(poses: list, results: list[VoResult], max_m: float, max_deg: float
+                        ) -> None:  # fmt: skip
+    """Each result's T_prev_curr against the true motion between consecutive ``poses``."""
+    for a, b, res in zip(poses[:-1], poses[1:], results, strict=True):
+        truth = true_motion(a, b)
+        assert np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) < max_m
+        assert math.degrees(rotation_angle(inverse(truth) @ res.T_prev_curr)) < max_deg
+
+
+def count_calls(monkeypatch: pytest.MonkeyPatch, name: str) -> list[int]:
+    """Calls of ``slam.visual_odometry.<name>`` from now on (one entry each)."""
+    import slam.visual_odometry as vo_module
+
+    calls: list[int] = []
+    real = getattr(vo_module, name)
+
+    def counted(*args: object, **kw: object) -> object:
+        calls.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(vo_module, name, counted)
+    return calls
+
+
 K = camera_matrix(renderer().intrinsics)
 START = (0.0, 0.0, 0.0)
 MOVED = (0.06, 0.01, math.radians(3.0))
@@ -204,16 +228,7 @@ def test_a_keyframe_is_taken_when_the_inliers_drop_below_keyframe_inliers() -> N
 def test_the_last_pose_seeds_a_slow_drive_in_place_of_ransac(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    import slam.visual_odometry as vo_module
-
-    ransac: list[int] = []
-    initial = vo_module.initial_motions
-
-    def counted(*args: object, **kw: object) -> object:
-        ransac.append(1)
-        return initial(*args, **kw)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(vo_module, "initial_motions", counted)
+    ransac = count_calls(monkeypatch, "initial_motions")
     r = renderer()
     vo = VisualOdometry(r.intrinsics, VO6)
     poses = [(0.015 * i, 0.0, math.radians(0.4 * i)) for i in range(6)]
@@ -222,10 +237,7 @@ def test_the_last_pose_seeds_a_slow_drive_in_place_of_ransac(
     assert results[1].success and not results[1].prior
     assert all(res.success and res.prior for res in results[2:])
     assert len(ransac) == 1
-    for a, b, res in zip(poses[1:-1], poses[2:], results[2:], strict=True):
-        truth = true_motion(a, b)
-        assert np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) < 0.005
-        assert math.degrees(rotation_angle(inverse(truth) @ res.T_prev_curr)) < 0.3
+    assert_pair_motions(poses[1:], results[2:], 0.005, 0.3)
     # Off, every frame runs RANSAC, to the same motions.
     ransac.clear()
     off = VisualOdometry(r.intrinsics, VO6, tuning=VoTuning(prior_seed=False))
@@ -259,10 +271,7 @@ def test_pose_prior_tracks_a_slow_drive_with_window_search_only() -> None:
     # Frame 1 is matched globally (no prior yet); its estimate shows the prior would hold.
     assert results[1].success and not results[1].prior
     assert all(res.success and res.prior for res in results[2:])
-    for a, b, res in zip(poses[1:-1], poses[2:], results[2:], strict=True):
-        truth = true_motion(a, b)
-        assert np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) < 0.005
-        assert math.degrees(rotation_angle(inverse(truth) @ res.T_prev_curr)) < 0.3
+    assert_pair_motions(poses[1:], results[2:], 0.005, 0.3)
 
 
 def test_a_wrong_pose_prior_falls_back_to_global_matching_and_finds_the_right_motion() -> None:
@@ -299,27 +308,16 @@ FLOW = replace(VO6, cor_type="optical_flow")
 def test_optical_flow_tracks_a_slow_drive_with_orb_only_on_the_keyframe(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    import slam.visual_odometry as vo_mod
-
-    calls = []
-    real = vo_mod.extract_features
-
-    def counting(*args: object, **kw: object) -> Features:
-        calls.append(1)
-        return real(*args, **kw)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(vo_mod, "extract_features", counting)
+    calls = count_calls(monkeypatch, "extract_features")
     r = renderer()
     vo = VisualOdometry(r.intrinsics, FLOW)
     poses = [(0.015 * i, 0.0, math.radians(0.4 * i)) for i in range(6)]  # 7.5 cm: one keyframe
     results = [vo.process(RgbdFrame(i, *frame(r, p), r.intrinsics)) for i, p in enumerate(poses)]
     assert len(calls) == 1  # the first frame, the keyframe: the others are tracked by flow
     assert all(res.success and res.prior for res in results[1:])
-    for a, b, res in zip(poses[:-1], poses[1:], results[1:], strict=True):
-        truth = true_motion(a, b)  # ORB matching: 2.6-4.6 mm, flow 2.2-5.0 mm on these frames
-        assert np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) < 0.006
-        assert math.degrees(rotation_angle(inverse(truth) @ res.T_prev_curr)) < 0.3
-        assert res.inlier_ratio > FLOW.keyframe_thr
+    # ORB matching: 2.6-4.6 mm, flow 2.2-5.0 mm on these frames
+    assert_pair_motions(poses, results[1:], 0.006, 0.3)
+    assert all(res.inlier_ratio > FLOW.keyframe_thr for res in results[1:])
 
 
 def test_optical_flow_that_loses_its_points_falls_back_to_global_matching() -> None:
