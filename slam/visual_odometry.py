@@ -491,7 +491,7 @@ def knn_candidates(prev: Features, curr: Features, k: int, level_window: int = -
         blocks = list(zip(p_lo, p_hi, c_lo, c_hi, strict=True))
     for a, b, c, d in blocks:
         kk = min(k, d - c)
-        if kk > 0 and b > a:
+        if kk > 0:
             dist[a:b, :kk], idx[a:b, :kk] = hamming_knn(prev.desc[a:b], curr.desc[c:d], kk)
             idx[a:b, :kk] += c
     return idx, dist
@@ -932,8 +932,10 @@ def motion_from_features(
                          tuning.guided_radius_px, tuning.guided_max_hamming,
                          covariance=not second)  # fmt: skip
         if seeded[1] >= max(cfg.min_inliers, tuning.prior_min_inlier_ratio * seeded[3]):
-            return _verified([seeded], sub, curr, pairs, cand, k, cfg, tuning, second,
-                             t_base_opt if planar else None, t0, prior=True)  # fmt: skip
+            res = _verified([seeded], sub, curr, pairs, cand, k, cfg, tuning, second,
+                            t_base_opt if planar else None, t0, prior=True)  # fmt: skip
+            if res.success:  # else (the second search lost it, a sanity test): RANSAC decides
+                return res
     # 4. Robust initial motions: 3D points of the previous frame seen in the current frame.
     hyps = initial_motions(sub.xyz[ip], curr.uv[ic], curr.xyz[ic], curr.octave[ic], k, cfg,
                            tuning)  # fmt: skip

@@ -260,6 +260,30 @@ def test_a_wrong_seed_falls_back_to_ransac_and_finds_the_right_motion() -> None:
     assert math.degrees(rotation_angle(inverse(truth) @ jump.T_prev_curr)) < 0.5
 
 
+def test_a_seeded_estimate_that_fails_its_acceptance_tests_goes_to_ransac(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The seed's refinement had the inliers, but the second search or a sanity test rejects
+    it: RANSAC still decides the frame instead of the frame being lost."""
+    import slam.visual_odometry as vo_module
+
+    verified = vo_module._verified
+
+    def reject_seeded(*args: object, prior: bool = False, **kw: object) -> VoResult:
+        res = verified(*args, prior=prior, **kw)  # type: ignore[arg-type]
+        return replace(res, success=False, reason="implausible_motion") if prior else res
+
+    monkeypatch.setattr(vo_module, "_verified", reject_seeded)
+    ransac = count_calls(monkeypatch, "initial_motions")
+    r = renderer()
+    vo = VisualOdometry(r.intrinsics, VO6)
+    poses = [(0.015 * i, 0.0, math.radians(0.4 * i)) for i in range(4)]
+    results = [vo.process(RgbdFrame(i, *frame(r, p), r.intrinsics)) for i, p in enumerate(poses)]
+    assert all(res.success and not res.prior for res in results[1:])
+    assert len(ransac) == 3
+    assert_pair_motions(poses, results[1:], 0.005, 0.3)
+
+
 PRIOR = VoTuning(prior_radius_px=15.0)  # the window search around the pose prior is off by default
 
 
