@@ -129,6 +129,8 @@ class CaseSpec:
     name: str
     every: int = 1  # use every n-th scan
     overrides: tuple[tuple[str, float], ...] = ()  # MapperConfig fields changed from the default
+    range_noise_m: float = 0.0  # [m] sigma of Gaussian noise added to every range (perturbation)
+    noise_seed: int = 1
 
 
 def _run_mapper(
@@ -158,6 +160,11 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
     path = MIT_LOG if spec.name == "mit" else RADISH[spec.name]
     src = CarmenSource(path)
     scans = list(src.scans())[:: spec.every]
+    if spec.range_noise_m > 0:  # a perturbation far below any sensor's noise: the map must hold
+        rng = np.random.default_rng(spec.noise_seed)
+        scans = [dataclasses.replace(s, ranges=np.asarray(s.ranges, np.float64)
+                                     + rng.normal(0.0, spec.range_noise_m, len(s.ranges)))
+                 for s in scans]  # fmt: skip
     stream = src.laser_poses()
     assert stream is not None
     stamps = stream.stamps_ns[:: spec.every]

@@ -324,6 +324,13 @@ class MapperConfig:
         doc="reject a loop match when a pose > loop_match_ambiguity_distance away scores this "
         "fraction of it (aliased corridors); > 1 disables",
     )
+    loop_match_hold_ambiguity: float = param(
+        0.8,
+        gt=0.0,
+        doc="a loop match whose best rival scores more than this fraction of it (but not "
+        "loop_match_maximum_ambiguity) does not enter the graph at once: it waits for the "
+        "final vote of all closures",
+    )
     loop_match_ambiguity_distance: float = param(
         1.0, unit="m", gt=0.0, doc="a rival pose must be this far from the match to count"
     )
@@ -421,6 +428,11 @@ class MapperConfig:
     )
     odom_rotation_noise_per_meter: float = param(
         0.05, unit="rad/m", ge=0.0, doc="odometry heading sigma per metre travelled"
+    )
+    loop_closure_vote: bool = param(
+        True,
+        doc="at the end, every closure (also those held back as inconsistent) votes again under "
+        "a Cauchy kernel: closures the others outvote are dropped",
     )
     loop_closure_max_chi2: float = param(
         16.27,

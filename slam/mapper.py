@@ -143,11 +143,14 @@ class LoopStats:
     proposed: int = 0
     accepted: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
+    readmitted: int = 0  # held back when they came, accepted by the vote (in ``accepted``)
+    outvoted: int = 0  # accepted when they came, removed by the vote (in ``rejected``)
 
     def as_dict(self) -> dict[str, object]:
         return {"proposed": self.proposed, "accepted": self.accepted,
                 "rejected": sum(self.rejected.values()),
-                "rejected_by_reason": dict(self.rejected)}  # fmt: skip
+                "rejected_by_reason": {k: v for k, v in self.rejected.items() if v},
+                "readmitted": self.readmitted, "outvoted": self.outvoted}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -159,6 +162,17 @@ class MatchOutcome:
     response: float  # likelihood-field score at the final pose, in [0, 1]
     inlier_fraction: float
     degenerate: bool = False  # a translational axis was left to odometry (a corridor)
+
+
+@dataclass(frozen=True, eq=False)
+class _Held:
+    """A loop closure kept out of the graph for now, with why; the vote may readmit it."""
+
+    j: int
+    k: int
+    delta: np.ndarray  # (3,) pose k in the frame of j
+    covariance: np.ndarray  # (3, 3)
+    reason: str
 
 
 @dataclass(frozen=True, eq=False)
@@ -204,6 +218,8 @@ class Mapper:
         self._anchor_hops: list[tuple[int, int]] = []  # (old anchor, keyframe made from it)
         self.revisits = 0  # times tracking re-anchored on an older keyframe
         self.loops = LoopStats()
+        # Closures the graph found inconsistent when they came: they vote again at the end.
+        self._held: list[_Held] = []
         self.skipped: Counter[str] = Counter()
         self.matches: Counter[str] = Counter()
         self.timings: dict[str, float] = defaultdict(float)
@@ -563,8 +579,10 @@ class Mapper:
         if hops := self.loop_edges + self._anchor_hops:
             x, y = (np.array(v) for v in zip(*hops, strict=True))
             c = cl[cands][:, None]
-            via = np.minimum(np.abs(cl[a] - cl[y])[None, :] + np.abs(cl[x][None, :] - c),
-                             np.abs(cl[a] - cl[x])[None, :] + np.abs(cl[y][None, :] - c))
+            via = np.minimum(
+                np.abs(cl[a] - cl[y])[None, :] + np.abs(cl[x][None, :] - c),
+                np.abs(cl[a] - cl[x])[None, :] + np.abs(cl[y][None, :] - c),
+            )
             best = np.minimum(best, via.min(axis=1))
         return best
 
@@ -607,6 +625,7 @@ class Mapper:
             self.loops.rejected[match.reason] += 1
             return
         ambiguity_test = cfg.loop_match_maximum_ambiguity <= 1.0
+        rival = best = 0.0
         if local is not None and lin > cfg.loop_match_ambiguity_distance and ambiguity_test:
             # A wide window can hold an aliased twin of the place (a corridor's next door):
             # a match that is not clearly better than its best rival is no evidence.
@@ -619,6 +638,12 @@ class Mapper:
                 return
         loop_cov = match.covariance + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
                                                LOOP_MIN_SIGMA[1] ** 2])  # fmt: skip
+        if rival > cfg.loop_match_hold_ambiguity * best:
+            # Nearly ambiguous: no evidence to bend the graph with now, a vote at the end.
+            reason = "nearly ambiguous (held for the final vote)"
+            self.loops.rejected[reason] += 1
+            self._held.append(_Held(j, k, ominus(poses[j], match.pose), loop_cov, reason))
+            return
         edge = self.graph.add_edge(j, k, ominus(poses[j], match.pose), loop_cov, kind="loop",
                                    robust=True)  # fmt: skip
         self.graph.update(extra_iterations=LOOP_EXTRA_ITERATIONS)
@@ -626,12 +651,48 @@ class Mapper:
         if chi2 > cfg.loop_closure_max_chi2:
             self.graph.remove_edge(edge)
             self.graph.update()
-            self.loops.rejected["inconsistent with the graph"] += 1
-            log.debug("loop %d-%d removed: chi2 %.1f", j, k, chi2)
+            reason = "inconsistent with the graph"
+            self.loops.rejected[reason] += 1
+            self._held.append(_Held(j, k, ominus(poses[j], match.pose), loop_cov, reason))
+            log.debug("loop %d-%d held back: chi2 %.1f", j, k, chi2)
             return
         self.loops.accepted += 1
         self._local = None  # the closure moved the recent keyframes
         self.loop_edges.append((j, k))
+
+    def _vote(self) -> None:
+        """At the end every loop closure votes, the accepted ones and those held back (found
+        inconsistent with the graph, or nearly ambiguous): the graph with all of them goes to
+        :meth:`PoseGraph.robust_edge_outliers` (graduated non-convexity); the outvoted ones
+        leave the graph, the rest stay, and the graph is re-optimised.
+
+        A wrong closure accepted early (an aliased place in a wide window) bends the graph, and
+        every correct closure after it is then rejected as inconsistent: without a vote the map
+        is decided by that one early call, which tiny numeric differences flip (issue #12)."""
+        held, self._held = self._held, []
+        held_ids = {self.graph.add_edge(h.j, h.k, h.delta, h.covariance, kind="loop", robust=True):
+                    h for h in held}  # fmt: skip
+        out = self.graph.robust_edge_outliers(self.config.loop_closure_max_chi2)
+        for eid in sorted(out):
+            e = self.graph.remove_edge(eid)
+            if eid in held_ids:
+                self._held.append(held_ids[eid])
+            else:  # an accepted closure the others outvote
+                reason = "outvoted by the other closures"
+                self.loops.accepted -= 1
+                self.loops.rejected[reason] += 1
+                self.loops.outvoted += 1
+                self._held.append(_Held(e.i, e.j, e.delta, np.linalg.inv(e.information), reason))
+        for eid in held_ids.keys() - out:
+            self.loops.rejected[held_ids[eid].reason] -= 1
+            self.loops.accepted += 1
+            self.loops.readmitted += 1
+        self.loop_edges = [(e.i, e.j) for e in self.graph.edges if e.kind == "loop" and e.robust]
+        if held_ids.keys() - out or out - held_ids.keys():
+            self.graph.optimize_batch()
+            self._local = None
+        elif held_ids:
+            self.graph.update()
 
     # 3e. Output --------------------------------------------------------------------------------
 
@@ -671,6 +732,8 @@ class Mapper:
         if batch_optimise and self.keyframes:
             t0 = time.perf_counter()
             self.graph.optimize_batch()
+            if self.config.loop_closure_vote and self._held:
+                self._vote()
             self.timings["optimisation"] += time.perf_counter() - t0
         poses = self.graph.poses() if self.keyframes else np.zeros((0, 3))
         scan_poses = self._scan_poses(poses)

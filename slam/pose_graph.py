@@ -505,6 +505,52 @@ class PoseGraph:
         )
         return stats
 
+    def robust_edge_outliers(self, max_chi2: float, max_iterations: int = 100) -> set[int]:
+        """Robust edges (loop closures) that the rest of the graph outvotes: graduated
+        non-convexity (GTSAM's ``GncOptimizer``, truncated least squares; Yang et al., RA-L 2020)
+        over the whole graph, every non-robust edge and prior a known inlier, every robust edge
+        a Gaussian whose weight GNC decides; an edge ends an outlier when its chi-square at the
+        robust optimum is above ``max_chi2``. The solver's state is left as it was.
+
+        Unlike a Huber optimum, where one wrong closure bends the graph until the closures
+        after it look wrong, GNC starts convex and tightens the kernel step by step, so a
+        majority of mutually consistent closures decides which ones fit."""
+        new_nodes, priors, edge_ids = self._ready()
+        graph = gtsam.NonlinearFactorGraph()
+        for p in self._priors + priors:
+            graph.add(p.factor)
+        ids = [eid for eid in self._edges if eid in self._factor_index or eid in edge_ids]
+        voters: list[tuple[int, int]] = []  # (edge id, factor slot)
+        for eid in ids:
+            e = self._edges[eid]
+            if e.robust:
+                voters.append((eid, graph.size()))
+                gaussian = gtsam.noiseModel.Gaussian.Information(e.information)
+                graph.add(gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.delta), gaussian))
+            else:
+                graph.add(self._factors[eid])
+        if not voters:
+            return set()
+        initial = gtsam.Values(self._estimate)
+        for k in new_nodes:
+            initial.insert(k, gtsam.Pose2(*self._initial[k]))
+        voting = {slot for _, slot in voters}
+        lm = gtsam.LevenbergMarquardtParams.CeresDefaults()
+        lm.setDiagonalDamping(False)
+        lm.setMaxIterations(int(max_iterations))
+        lm.setLinearSolverType(LM_LINEAR_SOLVER)
+        params = gtsam.GncLMParams(lm)
+        params.setLossType(gtsam.GncLossType.TLS)
+        params.setKnownInliers([k for k in range(graph.size()) if k not in voting])
+        try:
+            gnc = gtsam.GncLMOptimizer(graph, initial, params)
+            gnc.setInlierCostThresholds(0.5 * float(max_chi2))  # factor error = chi2 / 2
+            gnc.optimize()
+            weights = np.asarray(gnc.getWeights(), dtype=np.float64)
+        except RuntimeError as err:
+            raise PoseGraphError(f"loop-closure vote failed: {_gtsam_message(err)}") from err
+        return {eid for eid, slot in voters if weights[slot] < 0.5}
+
     # ---------------------------------------------------------------------------------------------
     # Reading the estimate
     # ---------------------------------------------------------------------------------------------

@@ -187,6 +187,46 @@ def test_removing_the_wrong_loop_closure_restores_the_solution_and_mapping_conti
         graph.remove_edge(loop)
 
 
+def square_with_wrong_majority_check(wrong_first: bool) -> tuple[PoseGraph, list[int], int]:
+    """The square with three correct closures and one wrong one, the wrong one added first
+    (under Huber it then bends the graph so the correct ones look inconsistent) or last."""
+    graph = PoseGraph(robust_kernel="huber")
+    odometry_chain(graph)
+    delta = relative(TRUTH[8], TRUTH[0])
+    delta[0] += WRONG_OFFSET
+    pairs = [(N - 1, 0), (N - 2, 1), (N - 3, 2)]
+    wrong = -1
+    if wrong_first:
+        wrong = graph.add_edge(8, 0, delta, LOOP_COV, "loop", robust=True)
+    good = [graph.add_edge(i, j, relative(TRUTH[i], TRUTH[j]), LOOP_COV, "loop", robust=True)
+            for i, j in pairs]  # fmt: skip
+    if not wrong_first:
+        wrong = graph.add_edge(8, 0, delta, LOOP_COV, "loop", robust=True)
+    graph.update(extra_iterations=30)
+    return graph, good, wrong
+
+
+@pytest.mark.parametrize("wrong_first", [True, False])
+def test_consistent_closures_outvote_a_wrong_one_whatever_the_order(wrong_first):
+    graph, good, wrong = square_with_wrong_majority_check(wrong_first)
+    before = graph.poses()
+
+    outliers = graph.robust_edge_outliers(max_chi2=16.27)
+
+    assert outliers == {wrong}
+    np.testing.assert_array_equal(graph.poses(), before)  # the vote leaves the solver alone
+    graph.remove_edge(wrong)
+    graph.optimize_batch()
+    assert max(graph.edge_errors(good).values()) < CHI2_3DOF_99
+    assert max_position_error(graph.poses(), TRUTH) < 0.2  # [m]
+
+
+def test_a_vote_without_loop_closures_outvotes_nothing():
+    graph = PoseGraph()
+    odometry_chain(graph)
+    assert graph.robust_edge_outliers(max_chi2=16.27) == set()
+
+
 def test_removing_a_bridge_edge_is_refused():
     graph = PoseGraph()
     graph.add_node([0, 0, 0])
