@@ -50,6 +50,9 @@ log = logging.getLogger(__name__)
 NO_RETURN_RANGE_M = 81.9  # [m] SICK LMS reports 81.91 m (8191 cm) when nothing returns
 DEFAULT_RANGE_MIN_M = 0.01  # [m] SICK readings below 1 cm are error codes, not distances
 SYNTHETIC_SCAN_PERIOD_NS = 200_000_000  # [ns] 5 Hz, used only when a log has no usable time
+# A log whose ipc stamps would drop more than this fraction of its scans (stamps printed with
+# 6 digits, 10 s apart; 32-bit wrap-arounds) has no usable clock: the logger's or synthesised.
+MAX_UNORDERED_FRACTION = 0.5
 FLASER_EXTRA_FIELDS = 11  # FLASER n [n ranges] + 6 pose + ipc_timestamp hostname logger_ts
 ROBOTLASER_EXTRA_FIELDS = 24  # 9 header + n + 1 + m + 6 pose + 5 motion + 3 stamp/host
 ODOM_FIELDS = 10
@@ -296,8 +299,9 @@ def read_carmen_log(
     A malformed line (wrong field count, bad count, non-numeric or non-finite pose, bad
     timestamp) and a scan whose time does not advance are skipped and counted in
     ``skipped`` by reason (a few logged); with ``strict`` the first is a SensorError naming
-    ``file:line``. A log whose scans all share one ipc timestamp uses the logger timestamps,
-    or synthesises 5 Hz stamps when those are no better (``stamp_source`` says which).
+    ``file:line``. A log whose ipc timestamps would drop most of its scans (all equal, printed
+    too coarsely, wrapped) uses the logger timestamps, or synthesises 5 Hz stamps when those
+    are no better (``stamp_source`` says which).
     """
     path = Path(path)
     text = _read_text(path)
@@ -349,9 +353,13 @@ def read_carmen_log(
     stamps = _stamps([lasers[i].stamp for i in good], lines, problems, "ipc")
     stamp_source = "ipc_timestamp"
     ok = stamps != BAD_STAMP
-    if len(good) > 1 and ok[0] and np.all(stamps == stamps[0]):
-        stamps, stamp_source = _fallback_stamps(lasers, good, lines, stamps)
     keep, duplicate = first_time_increase(stamps)
+    unordered = np.count_nonzero(ok & ~keep)
+    if len(good) > 1 and ok[0] and unordered > MAX_UNORDERED_FRACTION * len(good):
+        stamps, stamp_source = _fallback_stamps(lasers, good, lines, stamps)
+        log.warning("%s: the ipc timestamps of %d of %d scans do not advance: using %s stamps",
+                    path, unordered, len(good), stamp_source.split("_")[0])  # fmt: skip
+        keep, duplicate = first_time_increase(stamps)
     keep &= ok
     # The scan each dropped one failed to follow: the last kept before it.
     last_kept = np.maximum.accumulate(np.where(keep, np.arange(len(keep)), 0))
@@ -392,12 +400,13 @@ def _fallback_stamps(
     lines: list[int],
     ipc: np.ndarray,
 ) -> tuple[np.ndarray, str]:
-    """Stamps for a log whose ipc timestamps never change: the logger's, else synthesised."""
+    """Stamps for a log whose ipc timestamps cannot order it: the logger's, else synthesised."""
     quiet = _Problems(Path(), strict=False)
     logger = _stamps([lasers[i].logger_stamp for i in good], lines, quiet, "logger")
     if not quiet.found and np.all(np.diff(logger) > 0):
         return logger, "logger_timestamp"
-    synthetic = ipc[0] + np.arange(len(good), dtype=np.int64) * SYNTHETIC_SCAN_PERIOD_NS
+    start = ipc[0] if ipc[0] != BAD_STAMP else 0
+    synthetic = start + np.arange(len(good), dtype=np.int64) * SYNTHETIC_SCAN_PERIOD_NS
     return synthetic, "synthesised"
 
 

@@ -169,6 +169,14 @@ def test_log_without_time_falls_back_to_synthesised_stamps(tmp_path):
     np.testing.assert_array_equal([s.stamp_ns for s in log.scans], [0, 200_000_000, 400_000_000])
 
 
+def test_log_whose_stamps_drop_most_scans_falls_back_to_synthesised_stamps(tmp_path, caplog):
+    # Radish's csail log prints its stamps with 6 digits (1.13486e+09): 10 s apart, 400 scans.
+    lines = [flaser([1.0], 1.13486e9 + 10.0 * (k // 4)) for k in range(12)]
+    log = read_carmen_log(write_log(tmp_path / "a.log", lines))
+    assert log.stamp_source == "synthesised" and log.skipped == {}
+    assert len(log.scans) == 12 and "ipc timestamps of 9 of 12 scans do not advance" in caplog.text
+
+
 def test_gzipped_log_reads_like_the_plain_one(tmp_path):
     lines = [flaser([1.0, 2.0, 3.0], 1.0 + k) for k in range(4)]
     plain = write_log(tmp_path / "a.log", lines)
