@@ -131,6 +131,7 @@ class CaseSpec:
     overrides: tuple[tuple[str, float], ...] = ()  # MapperConfig fields changed from the default
     range_noise_m: float = 0.0  # [m] sigma of Gaussian noise added to every range (perturbation)
     noise_seed: int = 1
+    float32_ranges: bool = False  # ranges rounded to float32 (perturbation)
 
 
 def _run_mapper(
@@ -164,6 +165,9 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
         rng = np.random.default_rng(spec.noise_seed)
         scans = [dataclasses.replace(s, ranges=np.asarray(s.ranges, np.float64)
                                      + rng.normal(0.0, spec.range_noise_m, len(s.ranges)))
+                 for s in scans]  # fmt: skip
+    if spec.float32_ranges:
+        scans = [dataclasses.replace(s, ranges=np.asarray(s.ranges, np.float32).astype(np.float64))
                  for s in scans]  # fmt: skip
     stream = src.laser_poses()
     assert stream is not None
