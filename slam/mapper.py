@@ -271,7 +271,11 @@ class Mapper:
         moved = math.hypot(delta[0], delta[1]) >= self.config.minimum_travel_distance
         turned = abs(delta[2]) >= self.config.minimum_travel_heading
         waited = (scan.stamp_ns - self._ref_stamp) * 1e-9 >= self.config.minimum_time_interval
-        is_keyframe = (moved or turned) and waited
+        # The time gate bounds the keyframe rate of a fast sensor; it never lets keyframes drift
+        # further apart than twice the travel thresholds (a sparse log: one scan a metre).
+        far = (math.hypot(delta[0], delta[1]) >= 2 * self.config.minimum_travel_distance
+               or abs(delta[2]) >= 2 * self.config.minimum_travel_heading)  # fmt: skip
+        is_keyframe = (moved or turned) and (waited or far)
         # 3. Track the scan against the local map.
         kf = self._make_keyframe(scan, odom)
         t0 = time.perf_counter()

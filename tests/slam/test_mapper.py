@@ -457,3 +457,15 @@ def test_edges_are_well_formed(corrupted_loop: LoopRun) -> None:
         assert info.shape == (3, 3)
         np.testing.assert_allclose(info, info.T, rtol=1e-12, atol=0.0)
         assert np.linalg.eigvalsh(info).min() > 0.0
+
+
+@pytest.mark.parametrize(("step_m", "keyframes"), [(0.6, 3), (1.2, 5)])
+def test_the_time_gate_never_spreads_keyframes_past_twice_the_travel_threshold(step_m, keyframes):
+    # Five scans 0.1 s apart, inside minimum_time_interval: 0.6 m steps (past the 0.5 m travel
+    # threshold) make a keyframe every other scan, once 1 m is reached; one scan every 1.2 m (a
+    # sparse log with synthetic stamps) makes one each scan. Time alone gave 2 in both cases.
+    truth = legs_route((1.0, 3.0, 0.0), [(4 * step_m, 0.0)], step=step_m)
+    scans = scans_along(ROOM, truth, noise_m=0.0, seed=0, period_ns=100_000_000)
+    config = replace(CFG, minimum_time_interval=0.25)
+    result = run_mapper(scans, truth, config)
+    assert result.counts["keyframes"] == keyframes
