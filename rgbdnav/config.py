@@ -60,6 +60,9 @@ class LiveConfig:
     checkpoint_period: float = param(
         30.0, unit="s", gt=0.0, doc="the map bundle is saved this often (and on exit)"
     )
+    first_checkpoint_after: float = param(
+        2.0, unit="s", gt=0.0, doc="the first save comes this soon after mapping starts"
+    )
     control_rate: float = param(10.0, unit="Hz", gt=0.0, doc="velocity commands to the board")
     pose_before_vo: bool = param(
         True, doc="a frame's pose leaves before its VO is fused (VO corrects the next frames)"
