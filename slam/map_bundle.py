@@ -35,7 +35,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
 from sensors.atomic import (
     atomic_write_bytes,
@@ -44,6 +43,7 @@ from sensors.atomic import (
     interrupted_replacement,
     make_staging_dir,
 )
+from sensors.safe_yaml import read_yaml
 from sensors.types import LaserScan, MapError
 from slam.occupancy_grid import OCCUPIED, UNKNOWN, GridGeometry, OccupancyGrid
 
@@ -123,16 +123,9 @@ class MapYaml:
 
 
 def _read_yaml_doc(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError as err:
-        raise MapError(f"{path}: missing file") from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise MapError(f"{path}: cannot read: {err}") from err
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise MapError(f"{path}: not valid YAML: {err}") from err
+    if not path.exists():
+        raise MapError(f"{path}: missing file")
+    doc = read_yaml(path, MapError)
     if not isinstance(doc, dict):
         raise MapError(f"{path}: expected a mapping of map metadata, got {type(doc).__name__}")
     return doc
@@ -396,6 +389,8 @@ def _parse_graph(path: Path) -> dict[str, Any]:
         raise MapError(f"{path}: missing file") from err
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise MapError(f"{path}: not valid JSON: {err}") from err
+    except RecursionError:  # json's decoder recurses per nesting level
+        raise MapError(f"{path}: not valid JSON: nested too deeply") from None
     if not isinstance(doc, dict):
         raise MapError(f"{path}: expected a JSON object")
     version = doc.get("schema_version")

@@ -30,8 +30,8 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
+from sensors.safe_yaml import read_yaml
 from sensors.types import WorldError
 
 DEFAULT_WALL_THICKNESS = 0.1  # [m]
@@ -180,12 +180,7 @@ def _wall_boxes(w: Mapping[str, Any], where: str, defaults: Mapping[str, float])
 def load_world(path: str | Path) -> World:
     """Read and validate a world YAML; errors name the file and the offending entry."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as err:
-        raise WorldError(f"{path}: cannot read world file ({err.strerror})") from err
-    except yaml.YAMLError as err:
-        raise WorldError(f"{path}: not valid YAML") from err
+    data = read_yaml(path, WorldError, "world file")
     if not isinstance(data, Mapping):
         raise WorldError(f"{path}: top level must be a mapping")
     return world_from_dict(data, source=str(path))

@@ -250,6 +250,7 @@ def edit_yaml(folder: Path, old: str, new: str) -> None:
         ("negate: 0", "negate: 2", "'negate' must be 0 or 1"),
         ("negate: 0\n", "", "missing key 'negate'"),
         ("image: map.pgm", "image: [", "map.yaml: not valid YAML"),
+        ("negate: 0\n", "negate: 0\nnegate: 1\n", r"map.yaml: line \d+: duplicate key 'negate'"),
         ("image: map.pgm", "image: other.pgm", "other.pgm: missing image file"),
     ],
 )
@@ -321,6 +322,9 @@ def test_graph_json_problems_are_map_errors(tmp_path):
     bad_kf = {**good["keyframes"][0], "pose": [1, 2]}
     graph.write_text(json.dumps({**good, "keyframes": [bad_kf, *good["keyframes"][1:]]}))
     with pytest.raises(MapError, match=r"keyframes\[0\].pose must be a list of 3 numbers"):
+        load_bundle(folder)
+    graph.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(MapError, match="graph.json: not valid JSON: nested too deeply"):
         load_bundle(folder)
     graph.unlink()
     with pytest.raises(MapError, match="graph.json: missing file"):
