@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import os
 import re
-import stat
-from pathlib import Path
 from typing import Any
 
 import yaml
 
+from sensors.bounded_read import read_bounded
 from sensors.types import ConfigError, RgbdNavError
 
 MAX_YAML_BYTES = 16 * 2**20  # [bytes] configs, scenes, worlds and map.yaml are kilobytes
@@ -148,18 +147,7 @@ def read_yaml(
 ) -> Any:
     """:func:`load_yaml` of a file, which must be a regular UTF-8 file of sane size (a FIFO
     or ``/dev/zero`` would block or never end); ``what`` names it in errors ("config file")."""
-    path = Path(path)
-    try:
-        st = path.stat()  # before open(): opening a FIFO blocks until a writer comes
-        if not stat.S_ISREG(st.st_mode):
-            raise error(f"{path}: cannot read {what} (not a regular file)")
-        if st.st_size > MAX_YAML_BYTES:
-            raise error(f"{path}: cannot read {what} ({st.st_size} bytes, more than the "
-                        f"{MAX_YAML_BYTES} a YAML file here may hold)")  # fmt: skip
-        with open(path, "rb") as f:
-            data = f.read(MAX_YAML_BYTES + 1)
-    except OSError as err:
-        raise error(f"{path}: cannot read {what} ({err.strerror or err})") from None
+    data = read_bounded(path, MAX_YAML_BYTES, error, what)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as err:

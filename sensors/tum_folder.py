@@ -29,11 +29,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import yaml
 
-from sensors.images import ImageError, read_image
+from sensors.bounded_read import read_bounded
+from sensors.images import (
+    MAX_IMAGE_FILE_BYTES,
+    ImageError,
+    declared_size,
+    decode_image,
+    read_image,
+)
 from sensors.recording import DEFAULT_MAX_DIFFERENCE_NS, associate, counts_to_depth
 from sensors.source import PoseStream, SourceBase, SourceOptions
 from sensors.tum import load_tum_trajectory, read_stamped_text, yaw_from_quaternion
@@ -310,9 +316,13 @@ class TumFolderSource(SourceBase):
     def _probe_size(self) -> tuple[int, int]:
         """(width, height) of the first decodable colour image; the Kinect's without one."""
         for i in self.rgb_index[:10]:
-            image = cv2.imread(str(self.root / self._rgb.files[int(i)]), cv2.IMREAD_UNCHANGED)
-            if image is not None:
-                return int(image.shape[1]), int(image.shape[0])
+            try:
+                image = read_bounded(self.root / self._rgb.files[int(i)], MAX_IMAGE_FILE_BYTES,
+                                     SensorError, "image")  # fmt: skip
+                size = declared_size(image) or decode_image(image, "", SensorError).shape[1::-1]
+            except SensorError:
+                continue
+            return int(size[0]), int(size[1])
         return KINECT_SIZE
 
     def _groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

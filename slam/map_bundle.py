@@ -33,7 +33,6 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from sensors.atomic import (
@@ -43,6 +42,8 @@ from sensors.atomic import (
     interrupted_replacement,
     make_staging_dir,
 )
+from sensors.bounded_read import read_bounded
+from sensors.images import MAX_IMAGE_FILE_BYTES, MAX_IMAGE_PIXELS, decode_image
 from sensors.safe_yaml import read_yaml
 from sensors.types import LaserScan, MapError
 from slam.occupancy_grid import OCCUPIED, UNKNOWN, GridGeometry, OccupancyGrid
@@ -201,6 +202,9 @@ def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, i
     width, height, maxval = (int(g) for g in m.groups())
     if width < 1 or height < 1:
         raise MapError(f"{name}: PGM size {width}x{height} is empty")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise MapError(f"{name}: PGM declares {width}x{height} pixels, more than the "
+                       f"{MAX_IMAGE_PIXELS} read here")  # fmt: skip
     if not 0 < maxval <= _MAX_8BIT:
         raise MapError(f"{name}: PGM maxval {maxval} unsupported; need an 8-bit image (1..255)")
     body = data[m.end() :]
@@ -222,18 +226,14 @@ def encode_pgm(pixels: np.ndarray) -> bytes:
 def _read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Image -> (shade (H, W) float64 in [0, 1] averaged over colour channels, top row first;
     alpha (H, W) float64 in [0, 1] or None)."""
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError as err:
-        raise MapError(f"{path}: missing image file") from err
-    except OSError as err:
-        raise MapError(f"{path}: cannot read image: {err}") from err
+    if not path.exists():
+        raise MapError(f"{path}: missing image file")
+    # A regular file only: `image: /dev/zero` would be read until memory runs out.
+    data = read_bounded(path, MAX_IMAGE_FILE_BYTES, MapError, "image")
     if data[:1] == b"P" and data[1:2].isdigit():  # any netpbm: only P5 is supported
         pixels, maxval = decode_pgm(data, path)
         return pixels.astype(np.float64) / maxval, None
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise MapError(f"{path}: not a readable image (PGM P5, PNG, ...)")
+    img = decode_image(data, path, MapError)  # a declared size is checked before decoding
     full = float(np.iinfo(img.dtype.type).max) if img.dtype.kind in "ui" else 1.0  # type: ignore[type-var]
     img = img.astype(np.float64) / full
     if img.ndim == 2:

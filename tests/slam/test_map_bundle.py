@@ -261,6 +261,37 @@ def test_bad_map_yaml_is_a_map_error_naming_the_problem(tmp_path, old, new, matc
         load_bundle(folder)
 
 
+def _plain_map(tmp_path: Path, folder: Path, image: str) -> Path:
+    yaml_path = tmp_path / "plain.yaml"
+    yaml_path.write_text((folder / "map.yaml").read_text().replace("image: map.pgm",
+                                                                  f"image: {image}"))  # fmt: skip
+    return yaml_path
+
+
+def test_a_map_image_that_is_not_a_regular_file_is_refused_not_read_forever(tmp_path):
+    folder = saved(tmp_path)
+    with pytest.raises(MapError, match=r"/dev/zero: cannot read image \(not a regular file\)"):
+        load_map_yaml(_plain_map(tmp_path, folder, "/dev/zero"))
+
+
+def test_an_empty_or_oversized_map_image_is_a_map_error_before_decoding(tmp_path):
+    folder = saved(tmp_path)
+    for name in ("empty.pgm", "empty.png"):
+        (tmp_path / name).write_bytes(b"")
+        with pytest.raises(MapError, match=rf"{name}: empty image file"):
+            load_map_yaml(_plain_map(tmp_path, folder, str(tmp_path / name)))
+    # A 57-byte PNG whose header claims 30000 x 30000: refused from the header alone.
+    ok, png = cv2.imencode(".png", np.zeros((2, 2), np.uint8))
+    data = bytearray(png.tobytes())
+    data[16:24] = (30000).to_bytes(4, "big") * 2
+    (tmp_path / "huge.png").write_bytes(bytes(data))
+    with pytest.raises(MapError, match=r"huge\.png: image declares 30000x30000 pixels"):
+        load_map_yaml(_plain_map(tmp_path, folder, str(tmp_path / "huge.png")))
+    (tmp_path / "huge.pgm").write_bytes(b"P5 30000 30000 255\n" + bytes(16))
+    with pytest.raises(MapError, match=r"huge\.pgm: PGM declares 30000x30000 pixels"):
+        load_map_yaml(_plain_map(tmp_path, folder, str(tmp_path / "huge.pgm")))
+
+
 def test_plain_loader_allows_absolute_and_resolves_relative_images(tmp_path):
     folder = saved(tmp_path)
     other = tmp_path / "elsewhere"
