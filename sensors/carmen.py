@@ -280,8 +280,8 @@ def _stamps(tokens: list[str], lines: list[int], problems: _Problems, what: str)
     for i, token in enumerate(tokens):
         try:
             out[i] = parse_stamp(token)
-        except ValueError:
-            problems.add(lines[i], "bad_timestamp", f"{what} timestamp {token!r} is not a number")
+        except ValueError as err:
+            problems.add(lines[i], "bad_timestamp", f"{what} timestamp: {err}")
             out[i] = BAD_STAMP
     return out
 

@@ -43,9 +43,10 @@ from sensors.atomic import (
     make_staging_dir,
 )
 from sensors.bounded_read import read_bounded
+from sensors.config import short_repr
 from sensors.images import MAX_IMAGE_FILE_BYTES, MAX_IMAGE_PIXELS, decode_image
 from sensors.safe_yaml import read_yaml
-from sensors.types import LaserScan, MapError
+from sensors.types import MAX_STAMP_NS, LaserScan, MapError
 from slam.occupancy_grid import OCCUPIED, UNKNOWN, GridGeometry, OccupancyGrid
 
 log = logging.getLogger(__name__)
@@ -377,8 +378,11 @@ def _floats(value: Any, n: int, where: str) -> tuple[float, ...]:
 
 
 def _int(value: Any, where: str) -> int:
+    """An id or stamp [ns] of graph.json: an integer the bundle's int64 arrays can hold."""
     if isinstance(value, bool) or not isinstance(value, int):
-        raise MapError(f"{where} must be an integer, got {value!r}")
+        raise MapError(f"{where} must be an integer, got {short_repr(value)}")
+    if abs(value) > MAX_STAMP_NS:
+        raise MapError(f"{where} {short_repr(value)} is out of range (|value| <= {MAX_STAMP_NS})")
     return value
 
 

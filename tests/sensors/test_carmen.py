@@ -219,3 +219,9 @@ def test_radish_logs_read(name, scans, beams):
     assert {len(s.ranges) for s in src.log.scans} == {beams}
     assert src.log.ignored == {"NEFF": scans}
     assert set(src.skipped) <= {"odom_non_monotonic"}  # their ODOM stamps are partly 0 or junk
+
+
+def test_a_stamp_beyond_int64_nanoseconds_is_a_counted_skip(tmp_path):
+    lines = [flaser([1.0] * 181, t) for t in (12.5, 1e30, 13.0)]
+    log = read_carmen_log(write_log(tmp_path / "a.clf", lines))
+    assert log.skipped == {"bad_timestamp": 1} and len(log.scans) == 2

@@ -354,6 +354,10 @@ def test_graph_json_problems_are_map_errors(tmp_path):
     graph.write_text(json.dumps({**good, "keyframes": [bad_kf, *good["keyframes"][1:]]}))
     with pytest.raises(MapError, match=r"keyframes\[0\].pose must be a list of 3 numbers"):
         load_bundle(folder)
+    huge = {**good["keyframes"][0], "stamp_ns": 10**30}
+    graph.write_text(json.dumps({**good, "keyframes": [huge, *good["keyframes"][1:]]}))
+    with pytest.raises(MapError, match=r"keyframes\[0\]\.stamp_ns 10{30} is out of range"):
+        load_bundle(folder)
     graph.write_text("[" * 100_000 + "]" * 100_000)
     with pytest.raises(MapError, match="graph.json: not valid JSON: nested too deeply"):
         load_bundle(folder)
