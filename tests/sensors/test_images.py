@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import cv2
@@ -52,3 +53,15 @@ def test_a_frame_image_that_is_a_device_is_unreadable_not_read(tmp_path: Path) -
     with pytest.raises(ImageError, match="not a regular file") as info:
         read_image(tmp_path / "rgb.png", (640, 480), depth=False)
     assert info.value.reason == "unreadable"
+
+
+def test_a_png_chunk_claiming_gigabytes_is_refused_without_handing_it_to_opencv() -> None:
+    # One byte of the IDAT length field changed: OpenCV took 6-11 s to give up on it.
+    png = _encoded(".png", np.arange(48, dtype=np.uint8).reshape(4, 4, 3))
+    bad = png[:33] + b"\xac" + png[34:]
+    t0 = time.perf_counter()
+    with pytest.raises(SensorError, match=r"x\.png: corrupt PNG \(PNG chunk b'IDAT' at byte 33"):
+        decode_image(bad, "x.png", SensorError)
+    assert time.perf_counter() - t0 < 0.5
+    with pytest.raises(SensorError, match="ends without an IEND"):
+        decode_image(png[:-12], "x.png", SensorError)
