@@ -4,6 +4,7 @@ driver and checkpoints as on the robot, with only the camera and board adapters 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -142,6 +143,24 @@ def test_sigterm_stops_the_motors_and_saves_the_map(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
     s = json.loads((out / "summary.json").read_text())
     assert s["counts"]["checkpoints"] >= 1 and s["errors"] == []
+    assert load_bundle(out / "map") is not None
+
+
+def test_ctrl_c_ends_the_run_cleanly_without_a_traceback_from_any_process(tmp_path: Path) -> None:
+    out = tmp_path / "ctrl_c"
+    proc = subprocess.Popen(
+        [str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "-q"],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )  # fmt: skip
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (out / "trajectory.tum").exists():
+        time.sleep(0.5)
+    time.sleep(2)
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C does: the host and the simulated robot
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
     assert load_bundle(out / "map") is not None
 
 
