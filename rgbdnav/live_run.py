@@ -71,7 +71,7 @@ from slam.ekf import EkfError, PlanarEkf, spanning_motion_twists, wheel_twist_in
 from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper
-from slam.metrics import drift_report
+from slam.metrics import drift_summary
 from slam.scan_matching import scan_points, transform_points
 from slam.visual_odometry import VisualOdometry
 
@@ -964,10 +964,10 @@ class LiveRun:
         if len(truth) > 1:
             for name, a in tracks.items():
                 if len(a) >= 2:
-                    rep = drift_report(a[:, 0].astype(np.int64), (a[:, 1], a[:, 2], a[:, 3]),
-                                       truth[:, 0].astype(np.int64),
-                                       (truth[:, 1], truth[:, 2], truth[:, 3]))  # fmt: skip
-                    summary[f"{name}_vs_groundtruth"] = rep.as_dict()
+                    ref = (truth[:, 1], truth[:, 2], truth[:, 3])
+                    summary[f"{name}_vs_groundtruth"] = drift_summary(
+                        a[:, 0].astype(np.int64), (a[:, 1], a[:, 2], a[:, 3]),
+                        truth[:, 0].astype(np.int64), ref)  # fmt: skip
         paths = []
         if len(truth):
             paths.append(("ground truth", truth[:, 1], truth[:, 2]))

@@ -29,7 +29,7 @@ from slam.diff_drive import (
 )
 from slam.ekf import TwistInput, fuse, motion_twist, wheel_twist_inputs
 from slam.geometry import compose
-from slam.metrics import drift_report, interpolate_poses
+from slam.metrics import drift_summary, interpolate_poses
 from slam.visual_odometry import VisualOdometry
 
 CONTACT_SHEET_FRAMES = 4
@@ -223,15 +223,16 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     if vo_track is not None:
         paths.append(("visual odometry", vo_track.x, vo_track.y))
     if gt is not None and gt.frame == "base_link":
-        report = drift_report(stamps, (x, y, yaw), gt.stamps_ns, (gt.x, gt.y, gt.yaw))
-        summary["wheel_odometry_vs_groundtruth"] = report.as_dict()
-        fused_report = drift_report(fused.stamps_ns[good], (ex[good], ey[good], eyaw[good]),
-                                    gt.stamps_ns, (gt.x, gt.y, gt.yaw))  # fmt: skip
-        summary["fused_vs_groundtruth"] = fused_report.as_dict()
+        ref = (gt.x, gt.y, gt.yaw)
+        summary["wheel_odometry_vs_groundtruth"] = drift_summary(stamps, (x, y, yaw),
+                                                                 gt.stamps_ns, ref)  # fmt: skip
+        summary["fused_vs_groundtruth"] = drift_summary(
+            fused.stamps_ns[good], (ex[good], ey[good], eyaw[good]), gt.stamps_ns, ref
+        )
         if vo_track is not None:
-            vo_report = drift_report(vo_track.stamps_ns, (vo_track.x, vo_track.y, vo_track.yaw),
-                                     gt.stamps_ns, (gt.x, gt.y, gt.yaw))  # fmt: skip
-            summary["vo_vs_groundtruth"] = vo_report.as_dict()
+            summary["vo_vs_groundtruth"] = drift_summary(
+                vo_track.stamps_ns, (vo_track.x, vo_track.y, vo_track.yaw), gt.stamps_ns, ref
+            )
         write_tum_trajectory(run.file("groundtruth.tum"), gt.stamps_ns, gt.x, gt.y, gt.yaw)
         outputs["ground truth"] = run.file("groundtruth.tum")
         paths.insert(0, ("ground truth", gt.x, gt.y))
