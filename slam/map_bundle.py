@@ -496,6 +496,13 @@ def _parse_scans(path: Path) -> tuple[LaserScan, ...]:
     for key in _SCAN_KEYS[2:]:
         if a[key].shape != (k,):
             raise MapError(f"{path}: '{key}' has shape {a[key].shape}, expected ({k},)")
+    # The scans' geometry must be numbers (their ranges may hold inf/NaN: no return, REP-117).
+    for key in ("angle_min", "angle_increment", "range_min", "range_max", "stamp_ns"):
+        if a[key].dtype.kind not in "iuf":
+            raise MapError(f"{path}: '{key}' must be numbers, got {a[key].dtype}")
+        bad = np.flatnonzero(~np.isfinite(a[key]))
+        if bad.size:
+            raise MapError(f"{path}: '{key}' of scan {int(bad[0])} is not a finite number")
     ranges = a["ranges"].astype(np.float32, copy=False)
     return tuple(
         LaserScan(int(a["stamp_ns"][i]), float(a["angle_min"][i]), float(a["angle_increment"][i]),
@@ -575,6 +582,14 @@ def _bundle_grid(folder: Path, occupied_thresh: float, free_thresh: float) -> Oc
     return precise
 
 
+def _config_probability(config: dict[str, Any], key: str, default: float, where: str) -> float:
+    value = config.get(key, default)
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (ok and 0.0 < value < 1.0):  # NaN fails too
+        raise MapError(f"{where}.{key} must be a number in (0, 1), got {short_repr(value)}")
+    return float(value)
+
+
 def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
     """Read and validate a bundle folder written by :func:`save_bundle` (or by hand)."""
     folder = Path(path)
@@ -591,8 +606,12 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
                        f"{len(graph['ids'])} keyframes, {folder / SCANS_NPZ} has "
                        f"{len(scans)} scans")  # fmt: skip
     config = graph["config"]
-    grid = _bundle_grid(folder, float(config.get("occupied_thresh", 0.65)),
-                        float(config.get("free_thresh", 0.25)))  # fmt: skip
+    where = f"{folder / GRAPH_JSON}: config"
+    occupied = _config_probability(config, "occupied_thresh", 0.65, where)
+    free = _config_probability(config, "free_thresh", 0.25, where)
+    if not free < occupied:
+        raise MapError(f"{where}: free_thresh ({free}) must be below occupied_thresh ({occupied})")
+    grid = _bundle_grid(folder, occupied, free)
     return MapBundle(grid, graph["ids"], graph["stamps"], graph["poses"], graph["odom"],
                      graph["edges"], scans, config, graph["source"], graph["created"])  # fmt: skip
 

@@ -366,6 +366,21 @@ def test_graph_json_problems_are_map_errors(tmp_path):
         load_bundle(folder)
 
 
+@pytest.mark.parametrize(("key", "value", "match"), [
+    ("occupied_thresh", "high", r"config\.occupied_thresh must be a number in \(0, 1\), got 'hi"),
+    ("free_thresh", float("nan"), r"config\.free_thresh must be a number in \(0, 1\), got nan"),
+    ("free_thresh", 0.9, r"free_thresh \(0\.9\) must be below occupied_thresh \(0\.65\)"),
+])  # fmt: skip
+def test_a_stored_config_value_that_is_not_a_threshold_is_a_map_error(tmp_path, key, value, match):
+    folder = saved(tmp_path)
+    graph = folder / "graph.json"
+    doc = json.loads(graph.read_text())
+    doc["config"] = {**doc["config"], "occupied_thresh": 0.65, key: value}
+    graph.write_text(json.dumps(doc))
+    with pytest.raises(MapError, match=match):
+        load_bundle(folder)
+
+
 def test_scans_npz_problems_are_map_errors(tmp_path):
     folder = saved(tmp_path)
     scans = folder / "scans.npz"
@@ -379,6 +394,11 @@ def test_scans_npz_problems_are_map_errors(tmp_path):
     arrays["offsets"] = np.array([0, 3, 2, 12])
     np.savez_compressed(scans, **arrays)
     with pytest.raises(MapError, match="'offsets' must rise from 0"):
+        load_bundle(folder)
+    arrays = mb._scans_arrays(make_bundle().scans)
+    arrays["angle_increment"][1] = np.nan  # --continue would match against it
+    np.savez_compressed(scans, **arrays)
+    with pytest.raises(MapError, match="'angle_increment' of scan 1 is not a finite number"):
         load_bundle(folder)
     scans.unlink()
     with pytest.raises(MapError, match="scans.npz: missing file"):
