@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import os
 import re
 from collections import deque
@@ -147,19 +148,28 @@ _LenientLoader.add_multi_constructor("!", _construct_unknown)
 
 
 def read_camera_yaml(file: Path) -> dict[str, float] | None:
-    """:func:`camera_from_mapping` of a YAML file (OpenCV's ``%YAML:1.0`` line tolerated)."""
+    """:func:`camera_from_mapping` of a YAML file (OpenCV's ``%YAML:1.0`` line tolerated);
+    None when it holds no intrinsics. A file that does not parse is logged as a warning: the
+    intrinsics it may have held are not silently replaced by defaults."""
+    return _camera_yaml(file)[0]
+
+
+def _camera_yaml(file: Path) -> tuple[dict[str, float] | None, str | None]:
+    """(intrinsics or None, why the file could not be read or None)."""
     try:
         text = file.read_text(encoding="utf-8", errors="replace")
-    except OSError:
-        return None
+    except OSError as err:
+        return None, f"{file.name} unreadable ({err.strerror or err})"
     if text.startswith("%YAML:"):
         text = text.split("\n", 1)[1] if "\n" in text else ""
     try:
         doc = yaml.load(text, Loader=_LenientLoader)  # noqa: S506 (safe loader subclass)
-    except yaml.YAMLError as err:
-        log.debug("%s: not a camera YAML: %s", file, err)
-        return None
-    return camera_from_mapping(doc) if isinstance(doc, Mapping) else None
+    except (yaml.YAMLError, RecursionError) as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        log.warning("%s: not valid YAML%s; camera intrinsics in it are ignored", file, where)
+        return None, f"{file.name} not valid YAML{where}"
+    return (camera_from_mapping(doc) if isinstance(doc, Mapping) else None), None
 
 
 def _read_index(file: Path) -> _Index:
@@ -280,19 +290,31 @@ class TumFolderSource(SourceBase):
         else:
             times = np.arange(last + 1, dtype=np.int64) * INDEX_PERIOD_NS
             note = "stamps synthesised at 30 Hz"
+            if gt is not None and gt_file is not None and len(gt[0]) <= last:
+                # Said, not silent: the user gave stamps that do not cover the frames.
+                note += (f" because {gt_file.name} has {len(gt[0])} rows and the frames go "
+                         f"to index {last}")  # fmt: skip
+                log.warning("%s: %s", self.root, note)
         note += " (rgb.txt/depth.txt list frame indices)"
         return _Index(times[k_rgb], rgb.files), _Index(times[k_depth], depth.files), note
 
     def _resolve_intrinsics(self, default_scale: float) -> tuple[CameraIntrinsics, str]:
         camera, source = None, ""
+        problems = []
         for file in sorted([*self.root.glob("*.yaml"), *self.root.glob("*.yml")]):
-            camera = read_camera_yaml(file)
+            camera, problem = _camera_yaml(file)
+            if problem is not None:
+                problems.append(problem)
             if camera is not None:
                 source = file.name
                 break
         if camera is None:
             source, (fx, fy, cx, cy) = preset_for_folder(self.root.resolve().name)
             camera = {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
+            if problems:  # said where the user will look: the source's description
+                source += f"; {'; '.join(problems)}"
+        if not all(math.isfinite(v) for v in camera.values()):
+            raise SensorError(f"{self.root}: intrinsics from {source} are not finite: {camera}")
         if "width" in camera and "height" in camera:
             size = (int(camera["width"]), int(camera["height"]))
         else:
@@ -306,7 +328,8 @@ class TumFolderSource(SourceBase):
             cy=camera["cy"],
             depth_scale=camera.get("depth_scale", default_scale),
         )
-        if min(intr.width, intr.height) <= 0 or min(intr.fx, intr.fy, intr.depth_scale) <= 0:
+        positive = (intr.width, intr.height, intr.fx, intr.fy, intr.depth_scale)
+        if not all(math.isfinite(v) and v > 0 for v in positive):
             raise SensorError(
                 f"{self.root}: intrinsics from {source}: width, height, fx, fy, depth_scale "
                 "must be > 0"
