@@ -244,6 +244,14 @@ class TopicsConfig:
     imu: str = param("/imu/data", doc="sensor_msgs/Imu")
     wheels: str = param("/wheel_encoders", doc="Int32MultiArray [left, right] or JointState")
 
+    def validate(self) -> str | None:
+        # An empty name matched no topic and silently dropped the role (VO off for rgb).
+        for f in dataclasses.fields(self):
+            if not str(getattr(self, f.name)).strip():
+                return (f"{f.name}: empty topic name (leave it out to use the default, which "
+                        "falls back to the bag's unique topic of the right type)")  # fmt: skip
+        return None
+
 
 @dataclass(frozen=True)
 class BoardConfig:

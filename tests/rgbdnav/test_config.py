@@ -279,6 +279,12 @@ def test_a_number_that_is_not_finite_is_refused_where_a_range_would_let_it_pass(
         load_config(overrides=[f"camera.fx={typed}"])
 
 
+@pytest.mark.parametrize("value", ["", "' '"])
+def test_an_empty_topic_name_is_an_error_not_a_stream_silently_dropped(value: str) -> None:
+    with pytest.raises(ConfigError, match=r"topics: rgb: empty topic name"):
+        load_config(overrides=[f"topics.rgb={value}"])
+
+
 def test_a_yaml_file_that_is_not_a_regular_file_is_refused_without_blocking(
     tmp_path: Path,
 ) -> None:
