@@ -86,7 +86,7 @@ def reject_encoder_glitches(
     limit = (GLITCH_SPEED_FACTOR * robot.max_wheel_speed * dt_s / robot.metres_per_tick
              + GLITCH_SLACK_TICKS)[:, None]  # [ticks] per interval  # fmt: skip
     step = np.diff(counts, axis=0)
-    bad = (np.abs(step) > limit).any(axis=1)
+    bad = np.asarray((np.abs(step) > limit).any(axis=1))
     # 1. Spikes: interval i and i+1 both implausible, their sum plausible -> reading i+1 off.
     pair_ok = (np.abs(step[:-1] + step[1:]) <= limit[:-1] + limit[1:]).all(axis=1)
     spike = np.flatnonzero(bad[:-1] & bad[1:] & pair_ok) + 1

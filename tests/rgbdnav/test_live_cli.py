@@ -137,7 +137,12 @@ def test_sigterm_stops_the_motors_and_saves_the_map(tmp_path: Path) -> None:
         [str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "-q"],
         cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    time.sleep(10)
+    # Until it maps, not a fixed 10 s: on a loaded machine the imports alone took longer, and
+    # SIGTERM then came before the run had installed its handler.
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (out / "trajectory.tum").exists():
+        time.sleep(0.5)
+    time.sleep(3)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
