@@ -558,11 +558,20 @@ def save_bundle(bundle: MapBundle, path: str | os.PathLike[str]) -> None:
              bundle.grid.geometry.width, bundle.grid.geometry.height)  # fmt: skip
 
 
+def _member(folder: Path, name: str) -> Path:
+    """``folder / name``, which must not lead out of the bundle (a symlinked file): a bundle
+    is self-contained, and one copied or shared must not read whatever the link points at."""
+    path = folder / name
+    if path.is_symlink() and not path.resolve().is_relative_to(folder.resolve()):
+        raise MapError(f"{path}: a link out of the bundle folder (to {path.resolve()})")
+    return path
+
+
 def _bundle_grid(folder: Path, occupied_thresh: float, free_thresh: float) -> OccupancyGrid:
     """The PGM/YAML map, refined by grid.npz when present and consistent with the PGM."""
-    meta = parse_map_yaml(folder / MAP_YAML, inside_folder=True)
+    meta = parse_map_yaml(_member(folder, MAP_YAML), inside_folder=True)
     from_image = _grid_from_yaml(meta)
-    grid_path = folder / GRID_NPZ
+    grid_path = _member(folder, GRID_NPZ)
     if not grid_path.exists():
         return from_image
     a = _load_npz(grid_path, ("log_odds", "observed"))
@@ -599,8 +608,8 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
         folder = aside
     if not folder.is_dir():
         raise MapError(f"{folder}: missing map bundle folder")
-    graph = _parse_graph(folder / GRAPH_JSON)
-    scans = _parse_scans(folder / SCANS_NPZ)
+    graph = _parse_graph(_member(folder, GRAPH_JSON))
+    scans = _parse_scans(_member(folder, SCANS_NPZ))
     if len(scans) != len(graph["ids"]):
         raise MapError(f"keyframe count mismatch: {folder / GRAPH_JSON} has "
                        f"{len(graph['ids'])} keyframes, {folder / SCANS_NPZ} has "

@@ -405,6 +405,16 @@ def test_scans_npz_problems_are_map_errors(tmp_path):
         load_bundle(folder)
 
 
+@pytest.mark.parametrize("name", ["grid.npz", "scans.npz", "graph.json", "map.yaml"])
+def test_a_bundle_file_linked_from_outside_its_folder_is_refused(tmp_path, name):
+    folder = saved(tmp_path)
+    outside = tmp_path / f"elsewhere-{name}"
+    (folder / name).rename(outside)
+    (folder / name).symlink_to(outside)
+    with pytest.raises(MapError, match=rf"{name}: a link out of the bundle folder"):
+        load_bundle(folder)
+
+
 def test_missing_files_are_map_errors(tmp_path):
     with pytest.raises(MapError, match="missing map bundle folder"):
         load_bundle(tmp_path / "nope")
