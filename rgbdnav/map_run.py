@@ -132,6 +132,7 @@ def run_map(
                           occupied=occ, origin=(g.origin_x, g.origin_y),
                           resolution=g.resolution)  # fmt: skip
         outputs["picture"] = run.file("map.png")
+        summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
         outputs["summary"] = run.write_summary(summary)
         _visualize(vis, result, occ, g, gt if gt is not None and frame == "base_link" else None)
         if rrd is not None:

@@ -266,5 +266,6 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
         contact_sheet(run.file("frames.png"), frames)
         outputs["frames"] = run.file("frames.png")
     summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
+    summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
     outputs["summary"] = run.write_summary(summary)
     return outputs
