@@ -413,7 +413,9 @@ def live(
         typer.Option("--map", "-m", help="Localise in this map bundle / map.yaml (no mapping)."),
     ] = None,
     duration: Annotated[
-        float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")
+        float | None,
+        typer.Option(help="Stop after this many seconds, counted from the first camera frame "
+                          "(default: Ctrl-C)."),
     ] = None,
     drive: Annotated[
         str, typer.Option(help="route: drive the route/goals on the estimated pose (auto; "

@@ -34,7 +34,9 @@ from sensors.config import (
     build_section,
     param,
     section_to_dict,
+    short_repr,
 )
+from sensors.safe_yaml import load_yaml, read_yaml
 from sensors.source import SourceOptions
 from sensors.types import ConfigError
 from slam.config import (
@@ -45,6 +47,7 @@ from slam.config import (
     VoConfig,
 )
 
+SHOWN_OVERRIDE_CHARS = 80  # [chars] of a --set quoted in its error
 REPO_CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 
 
@@ -59,6 +62,9 @@ class LiveConfig:
     )
     checkpoint_period: float = param(
         30.0, unit="s", gt=0.0, doc="the map bundle is saved this often (and on exit)"
+    )
+    first_checkpoint_after: float = param(
+        2.0, unit="s", gt=0.0, doc="the first save comes this soon after mapping starts"
     )
     control_rate: float = param(10.0, unit="Hz", gt=0.0, doc="velocity commands to the board")
     pose_before_vo: bool = param(
@@ -176,16 +182,8 @@ def config_to_dict(cfg: Config) -> dict[str, dict[str, Any]]:
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read config file ({err.strerror})") from err
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{path}:{where} is not valid YAML") from err
+    data = read_yaml(path, ConfigError, "config file",
+                     "{source}: line {line} is not valid YAML ({problem})")  # fmt: skip
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -206,7 +204,9 @@ def _merge_layer(
         if values is None:
             continue
         if not isinstance(values, Mapping):
-            raise ConfigError(f"{source}: {section}: expected a mapping of keys, got {values!r}")
+            raise ConfigError(
+                f"{source}: {section}: expected a mapping of keys, got {short_repr(values)}"
+            )
         out[section].update(values)
         # Validate now so the error names the file that introduced the bad value.
         try:
@@ -216,16 +216,21 @@ def _merge_layer(
     return out
 
 
+def _shown(text: str) -> str:
+    return text if len(text) <= SHOWN_OVERRIDE_CHARS else text[:SHOWN_OVERRIDE_CHARS] + "..."
+
+
 def parse_override(text: str) -> tuple[str, str, Any]:
     """``"ekf.frequency=30"`` -> ("ekf", "frequency", 30); the value is parsed as YAML."""
     key, sep, raw = text.partition("=")
     section, dot, name = key.strip().partition(".")
     if not sep or not dot or not section or not name:
-        raise ConfigError(f"--set {text!r}: expected section.key=value, e.g. ekf.frequency=30")
-    try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError as err:
-        raise ConfigError(f"--set {text!r}: value is not valid YAML") from err
+        raise ConfigError(
+            f"--set {_shown(text)!r}: expected section.key=value, e.g. ekf.frequency=30"
+        )
+    invalid = "{source}: value is not valid YAML ({problem})"
+    source = f"--set {_shown(text)!r}"
+    value = load_yaml(raw, source, ConfigError, invalid) if raw.strip() else ""
     return section, name, value
 
 
@@ -243,7 +248,7 @@ def load_config(
         merged = _merge_layer(merged, _read_yaml(path), str(path))
     for text in overrides:
         section, name, value = parse_override(text)
-        merged = _merge_layer(merged, {section: {name: value}}, f"--set {text}")
+        merged = _merge_layer(merged, {section: {name: value}}, f"--set {_shown(text)}")
     return Config(**{s: build_section(SECTIONS[s], merged[s], s) for s in SECTIONS})
 
 

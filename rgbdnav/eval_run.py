@@ -18,7 +18,12 @@ import numpy as np
 from rgbdnav.config import load_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
-from sensors.tum import TRAJECTORY_COLUMNS, read_stamped_text, yaw_from_quaternion
+from sensors.tum import (
+    TRAJECTORY_COLUMNS,
+    check_poses,
+    read_stamped_text,
+    yaw_from_quaternion,
+)
 from sensors.types import NS_PER_S, SensorError, format_stamp
 from slam.trajectory_eval import (
     ALIGN_MODES,
@@ -61,9 +66,7 @@ def read_trajectory(path: Path) -> Trajectory:
     if not len(table.stamps_ns):
         raise SensorError(f"{path}: no poses (expected lines '{' '.join(TRAJECTORY_COLUMNS)}')")
     data = table.numeric(np.float64, "pose (tx ty tz qx qy qz qw)")
-    norms = np.linalg.norm(data[:, 3:], axis=1)
-    if (bad := np.flatnonzero(norms < 1e-9)).size:
-        raise SensorError(f"{path}:{table.lines[bad[0]]}: quaternion has zero length")
+    check_poses(table, data)
     # Sort by stamp (stable), then keep the last line of each run of equal stamps.
     order = np.argsort(table.stamps_ns, kind="stable")
     sorted_ns = table.stamps_ns[order]

@@ -64,14 +64,14 @@ from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, 
 from sensors.eddie import BoardError, EddieBoard, OdometryPoller
 from sensors.source import Source, open_source
 from sensors.tum import write_tum_trajectory
-from sensors.types import ConfigError, RgbdFrame, SensorError, WheelTicks
+from sensors.types import ConfigError, RgbdFrame, RgbdNavError, SensorError, WheelTicks
 from slam.depth_to_scan import DepthToScan
 from slam.diff_drive import WheelErrorModel
 from slam.ekf import EkfError, PlanarEkf, spanning_motion_twists, wheel_twist_inputs
 from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper
-from slam.metrics import drift_report
+from slam.metrics import drift_summary
 from slam.scan_matching import scan_points, transform_points
 from slam.visual_odometry import VisualOdometry
 
@@ -256,6 +256,9 @@ class LiveRun:
         self.localizer: Any = None
         self._last_checkpoint = time.monotonic()
         self._checkpoint_lock = threading.Lock()
+        # [s] monotonic: the first camera frame, and the devices up (the duration's clock).
+        self._first_frame_at: float | None = None
+        self._devices_up_at: float | None = None
         self.start_pose = np.zeros(3)
         self.route = np.zeros((0, 2))
         self.route_done = False
@@ -342,6 +345,8 @@ class LiveRun:
                     break
                 if frame is None:
                     continue
+                if self._first_frame_at is None:
+                    self._first_frame_at = time.monotonic()
                 self.counts.inc("frames_received")
                 self.arrival_ms.add((time.monotonic_ns() - frame.stamp_ns) / 1e6)
                 try:
@@ -506,6 +511,11 @@ class LiveRun:
                 pose, tracking = np.asarray(out), True
                 m2o = oplus(pose, ominus(odom, np.zeros(3)))
                 self._hand_map_to_navigator()
+                if self.map_track.count == 0:
+                    # The first checkpoint comes soon after mapping starts, not a whole period
+                    # later: a crash in the first minute still leaves a bundle.
+                    self._last_checkpoint = (time.monotonic() - cfg.live.checkpoint_period
+                                             + cfg.live.first_checkpoint_after)  # fmt: skip
             with self.shared.lock:
                 self.shared.map_to_odom = np.asarray(m2o, dtype=np.float64)
                 self.shared.tracking = tracking
@@ -670,6 +680,25 @@ class LiveRun:
                               occupied_cells_xy(occ, (g.origin_x, g.origin_y), g.resolution))
             return path
 
+    def _final_checkpoint(self) -> Path | None:
+        """The run's last save, whatever happened before it: a batch optimisation that fails
+        falls back to the graph as tracked, and a save that fails is an error in the summary
+        (which is still written) rather than a run lost without one."""
+        try:
+            return self.checkpoint(final=True)
+        except RgbdNavError as err:
+            log.error("final map checkpoint failed: %s", err)
+            self.errors.append(f"final map checkpoint: {err}")
+        except Exception as err:  # gtsam and numpy raise their own types from the optimiser
+            log.exception("final map checkpoint failed")
+            self.errors.append(f"final map checkpoint: {type(err).__name__}: {err}")
+        try:
+            return self.checkpoint(final=False)
+        except Exception as err:
+            log.exception("map checkpoint without batch optimisation failed too")
+            self.errors.append(f"map checkpoint: {type(err).__name__}: {err}")
+            return None
+
     # 4. The whole run.
 
     def execute(self, progress: Callable[[float, float], None] | None = None) -> dict[str, Path]:
@@ -693,7 +722,7 @@ class LiveRun:
         self.vis = AsyncVisualizer(vis, cfg.live.visualize_queue_size)
         try:
             sim_stats, wall = self._run_threads(t0, progress)
-            if self.mapper is not None and self.checkpoint(final=True) is not None:
+            if self.mapper is not None and self._final_checkpoint() is not None:
                 outputs["map bundle"] = self.run.file("map")
         finally:
             self.vis.close()  # also when the devices failed to start: the .rrd is flushed
@@ -734,6 +763,7 @@ class LiveRun:
                                       daemon=True)  # fmt: skip
                 th.start()
                 threads.append(th)
+            self._devices_up_at = time.monotonic()
             self._wait(t0, progress)
         finally:
             self.stop.set()
@@ -773,16 +803,29 @@ class LiveRun:
             if name == "front-end":
                 self.scan_q.put(None)
 
+    def _clock_start(self) -> float | None:
+        """When ``--duration`` and the drills start counting: the first camera frame, not the
+        process start (on a loaded machine the devices alone can take longer than a short run),
+        or ``live.camera_stall_timeout`` after the devices are up when no frame comes at all."""
+        if self._first_frame_at is not None:
+            return self._first_frame_at
+        up = self._devices_up_at
+        if up is not None and time.monotonic() - up >= self.cfg.live.camera_stall_timeout:
+            return up + self.cfg.live.camera_stall_timeout
+        return None
+
     def _wait(self, t0: float, progress: Callable[[float, float], None] | None) -> None:
         drills = sorted(self.opts.drills, key=lambda d: d.at_s)
         total = self.opts.duration_s or math.inf
         next_sample = 0.0
         while not self.stop.is_set():
-            elapsed = time.monotonic() - t0
-            if elapsed >= next_sample:
-                self.rss_timeline.add(round(elapsed, 1), round(rss_mb(), 1))
+            now = time.monotonic()
+            if now - t0 >= next_sample:
+                self.rss_timeline.add(round(now - t0, 1), round(rss_mb(), 1))
                 next_sample += MEMORY_SAMPLE_S
-            while drills and drills[0].at_s <= elapsed:
+            start = self._clock_start()
+            elapsed = 0.0 if start is None else now - start
+            while start is not None and drills and drills[0].at_s <= elapsed:
                 d = drills.pop(0)
                 log.warning("fault drill at %.1f s: %s", elapsed, d.action)
                 self.counts.inc(f"drill_{d.action}")
@@ -895,6 +938,8 @@ class LiveRun:
             ps = self.poller.stats()
             summary["board_link"] = {"port": str(self.board.url) if self.board else None,
                                 "polls": ps.polls, "errors": ps.errors,
+                                "late_replies_dropped": self.board.late_replies_dropped
+                                if self.board else 0,
                                 "last_error": ps.last_error}  # fmt: skip
         if sim_stats is not None:
             summary["sim_robot"] = {
@@ -919,10 +964,10 @@ class LiveRun:
         if len(truth) > 1:
             for name, a in tracks.items():
                 if len(a) >= 2:
-                    rep = drift_report(a[:, 0].astype(np.int64), (a[:, 1], a[:, 2], a[:, 3]),
-                                       truth[:, 0].astype(np.int64),
-                                       (truth[:, 1], truth[:, 2], truth[:, 3]))  # fmt: skip
-                    summary[f"{name}_vs_groundtruth"] = rep.as_dict()
+                    ref = (truth[:, 1], truth[:, 2], truth[:, 3])
+                    summary[f"{name}_vs_groundtruth"] = drift_summary(
+                        a[:, 0].astype(np.int64), (a[:, 1], a[:, 2], a[:, 3]),
+                        truth[:, 0].astype(np.int64), ref)  # fmt: skip
         paths = []
         if len(truth):
             paths.append(("ground truth", truth[:, 1], truth[:, 2]))

@@ -16,6 +16,7 @@ import ctypes.util
 import logging
 import math
 import threading
+import time
 from pathlib import Path
 from typing import IO
 
@@ -28,6 +29,7 @@ log = logging.getLogger(__name__)
 M_MMAP_THRESHOLD = -3  # glibc mallopt parameters (malloc.h)
 M_ARENA_MAX = -8
 DEFAULT_TRACK_POINTS = 20000  # thinned trajectory points kept in memory at most
+TRACK_FLUSH_PERIOD_S = 1.0  # [s] streamed rows reach the OS this often: a kill -9 loses <= this
 DEFAULT_TIMELINE_POINTS = 720  # e.g. an hour of 5 s samples before the first halving
 
 
@@ -71,7 +73,8 @@ class Reservoir:
 
 class TrackWriter:
     """Planar poses streamed to ``path`` (TUM, as :func:`sensors.tum.write_tum_trajectory`
-    writes them) and a thinned in-memory track for pictures."""
+    writes them) and a thinned in-memory track for pictures. Rows are flushed to the OS at
+    least every ``TRACK_FLUSH_PERIOD_S``, so a process killed with -9 leaves what it tracked."""
 
     def __init__(self, path: Path, spacing_m: float,
                  capacity: int = DEFAULT_TRACK_POINTS) -> None:  # fmt: skip
@@ -81,6 +84,7 @@ class TrackWriter:
         self._file: IO[str] | None = None
         self._thin: list[tuple[float, float]] = []
         self._last: tuple[float, float] | None = None
+        self._flushed_at = -math.inf  # [s] monotonic
         self.count = 0
 
     def add(self, stamp_ns: int, x: float, y: float, yaw: float) -> None:
@@ -89,6 +93,10 @@ class TrackWriter:
             self._file.write(PLANAR_TUM_HEADER)
         self._file.write(planar_tum_row(stamp_ns, x, y, yaw))
         self.count += 1
+        now = time.monotonic()
+        if now - self._flushed_at >= TRACK_FLUSH_PERIOD_S:
+            self._file.flush()
+            self._flushed_at = now
         if self._last is None or math.hypot(x - self._last[0], y - self._last[1]) >= self.spacing_m:
             self._last = (float(x), float(y))
             self._thin.append(self._last)

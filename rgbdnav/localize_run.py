@@ -322,6 +322,7 @@ def run_localize(
                    gt if gt is not None and gt.frame == frame == "base_link" else None)
         if rrd is not None:
             outputs["rerun recording"] = rrd
+        summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
         outputs["summary"] = run.write_summary(summary)
         return outputs, summary
     finally:

@@ -38,7 +38,7 @@ from sensors.tum import load_tum_trajectory, write_tum_trajectory, yaw_from_quat
 from sensors.types import LaserScan, SensorError
 from slam.map_bundle import GraphEdge, MapBundle, load_bundle, save_bundle
 from slam.mapper import Mapper, MapperResult
-from slam.metrics import align_se2, drift_report, interpolate_poses
+from slam.metrics import align_se2, drift_summary, interpolate_poses
 from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
 from slam.scan_matching import scan_points, transform_points
 
@@ -132,6 +132,7 @@ def run_map(
                           occupied=occ, origin=(g.origin_x, g.origin_y),
                           resolution=g.resolution)  # fmt: skip
         outputs["picture"] = run.file("map.png")
+        summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
         outputs["summary"] = run.write_summary(summary)
         _visualize(vis, result, occ, g, gt if gt is not None and frame == "base_link" else None)
         if rrd is not None:
@@ -289,9 +290,9 @@ def _score_against_truth(
     summary: dict,
 ) -> None:  # fmt: skip
     p = result.scan_poses
-    report = drift_report(result.scan_stamps_ns, (p[:, 0], p[:, 1], p[:, 2]), gt.stamps_ns,
-                          (gt.x, gt.y, gt.yaw))  # fmt: skip
-    summary["slam_vs_groundtruth"] = report.as_dict()
+    summary["slam_vs_groundtruth"] = drift_summary(
+        result.scan_stamps_ns, (p[:, 0], p[:, 1], p[:, 2]), gt.stamps_ns, (gt.x, gt.y, gt.yaw)
+    )
     world = scene.get("world_description")
     if not isinstance(world, dict):
         return

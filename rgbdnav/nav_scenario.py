@@ -42,6 +42,7 @@ from rgbdnav.config import load_config
 from rgbdnav.localize_run import load_map
 from rgbdnav.run_dir import RunDir
 from sensors.atomic import atomic_write_text
+from sensors.safe_yaml import read_yaml
 from sensors.sim.world import FloorPlan, floor_plan, world_from_dict
 from sensors.types import ConfigError
 from slam.map_bundle import save_map_yaml
@@ -76,10 +77,7 @@ def _number(data: Mapping[str, Any], key: str, default: float, where: str, lo: f
 
 def load_scenario(path: Path) -> Scenario:
     """Read a scenario YAML; unknown keys and bad values raise :class:`ConfigError`."""
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read scenario ({err.strerror})") from err
+    data = read_yaml(path, ConfigError, "scenario")
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path}: a scenario is a mapping")
     known = {"world", "goals", "seed", "furniture_shift", "furniture_yaw", "goal_clearance",
@@ -90,10 +88,7 @@ def load_scenario(path: Path) -> Scenario:
     if "world" not in data:
         raise ConfigError(f"{path}: missing 'world'")
     world_path = (Path(path).parent / str(data["world"])).resolve()
-    try:
-        world = yaml.safe_load(world_path.read_text())
-    except OSError as err:
-        raise ConfigError(f"{path}: world {world_path}: {err.strerror}") from err
+    world = read_yaml(world_path, ConfigError, "world")
     world_from_dict(world, str(world_path))  # validate now
     boxes = []
     for i, k in enumerate(data.get("keepout") or []):

@@ -3,6 +3,7 @@ against its ground truth when it has some."""
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import Counter
@@ -22,15 +23,19 @@ from sensors.sync import interpolate_wheels, synchronise
 from sensors.tum import write_tum_trajectory
 from sensors.types import NS_PER_S, ImuSample, Pose2, RgbdFrame, SensorError
 from slam.diff_drive import (
+    GLITCH_SPEED_FACTOR,
     WheelErrorModel,
     integrate_ticks,
     propagate_covariance,
+    reject_encoder_glitches,
     wheel_increments,
 )
 from slam.ekf import TwistInput, fuse, motion_twist, wheel_twist_inputs
 from slam.geometry import compose
-from slam.metrics import drift_report, interpolate_poses
+from slam.metrics import drift_summary, interpolate_poses
 from slam.visual_odometry import VisualOdometry
+
+log = logging.getLogger(__name__)
 
 CONTACT_SHEET_FRAMES = 4
 LABELS = {"odom0": "wheels", "imu0": "gyro", "vo0": "VO"}
@@ -124,7 +129,13 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     wheels = src.wheels()
     if wheels is None or len(wheels.stamps_ns) < 2:
         raise SensorError(f"{source_path}: no wheel encoder readings (need at least 2)")
-    stamps, left, right = wheels.stamps_ns, wheels.left, wheels.right
+    # Plausibility gate: a glitched reading is not 300 km of motion (counted in the summary).
+    clean = reject_encoder_glitches(wheels.stamps_ns, wheels.left, wheels.right, cfg.robot)
+    stamps, left, right = clean.stamps_ns, clean.left, clean.right
+    if clean.glitches_dropped or clean.jumps_zeroed:
+        log.warning("%s: %d encoder reading(s) jumped off and back (dropped), %d step(s) "
+                    "faster than %.0fx the wheel speed limit (taken as no motion)", source_path,
+                    clean.glitches_dropped, clean.jumps_zeroed, GLITCH_SPEED_FACTOR)  # fmt: skip
     gt = src.groundtruth()
     start = Pose2(0.0, 0.0, 0.0)
     if gt is not None and gt.frame == "base_link":
@@ -167,6 +178,8 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
         "estimator": "wheel odometry (diff drive, midpoint integration)",
         "frames": int(len(frame_t)),
         "wheel_readings": int(len(stamps)),
+        "wheel_readings_dropped_glitch": clean.glitches_dropped,
+        "wheel_jumps_taken_as_no_motion": clean.jumps_zeroed,
         "trajectory_poses": int(ok.sum()),
         "frames_without_odometry": int((~ok).sum()),
         "final_pose_sigma": {
@@ -223,15 +236,16 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
     if vo_track is not None:
         paths.append(("visual odometry", vo_track.x, vo_track.y))
     if gt is not None and gt.frame == "base_link":
-        report = drift_report(stamps, (x, y, yaw), gt.stamps_ns, (gt.x, gt.y, gt.yaw))
-        summary["wheel_odometry_vs_groundtruth"] = report.as_dict()
-        fused_report = drift_report(fused.stamps_ns[good], (ex[good], ey[good], eyaw[good]),
-                                    gt.stamps_ns, (gt.x, gt.y, gt.yaw))  # fmt: skip
-        summary["fused_vs_groundtruth"] = fused_report.as_dict()
+        ref = (gt.x, gt.y, gt.yaw)
+        summary["wheel_odometry_vs_groundtruth"] = drift_summary(stamps, (x, y, yaw),
+                                                                 gt.stamps_ns, ref)  # fmt: skip
+        summary["fused_vs_groundtruth"] = drift_summary(
+            fused.stamps_ns[good], (ex[good], ey[good], eyaw[good]), gt.stamps_ns, ref
+        )
         if vo_track is not None:
-            vo_report = drift_report(vo_track.stamps_ns, (vo_track.x, vo_track.y, vo_track.yaw),
-                                     gt.stamps_ns, (gt.x, gt.y, gt.yaw))  # fmt: skip
-            summary["vo_vs_groundtruth"] = vo_report.as_dict()
+            summary["vo_vs_groundtruth"] = drift_summary(
+                vo_track.stamps_ns, (vo_track.x, vo_track.y, vo_track.yaw), gt.stamps_ns, ref
+            )
         write_tum_trajectory(run.file("groundtruth.tum"), gt.stamps_ns, gt.x, gt.y, gt.yaw)
         outputs["ground truth"] = run.file("groundtruth.tum")
         paths.insert(0, ("ground truth", gt.x, gt.y))
@@ -252,5 +266,6 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
         contact_sheet(run.file("frames.png"), frames)
         outputs["frames"] = run.file("frames.png")
     summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
+    summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
     outputs["summary"] = run.write_summary(summary)
     return outputs

@@ -32,9 +32,17 @@ def plot_trajectories(
     resolution: float = 0.05,
 ) -> None:
     """Top view: optional occupancy background (row 0 at the bottom) and labelled x/y paths."""
+    # A path without a finite point (every frame of a source unusable) is listed, not drawn.
+    finite = [np.isfinite(np.asarray(x, float)) & np.isfinite(np.asarray(y, float))
+              for _, x, y in paths]  # fmt: skip
+    paths = [(label, np.asarray(x, float)[ok], np.asarray(y, float)[ok])
+             for (label, x, y), ok in zip(paths, finite, strict=True)]  # fmt: skip
     pts = [np.column_stack([x, y]) for _, x, y in paths if len(x)]
-    lo = np.min([p.min(axis=0) for p in pts], axis=0)
-    hi = np.max([p.max(axis=0) for p in pts], axis=0)
+    if pts:
+        lo = np.min([p.min(axis=0) for p in pts], axis=0)
+        hi = np.max([p.max(axis=0) for p in pts], axis=0)
+    else:
+        lo = hi = np.asarray(origin, dtype=float)
     if occupied is not None:
         h, w = occupied.shape
         lo = np.minimum(lo, origin)
@@ -64,9 +72,12 @@ def plot_trajectories(
         img[mask > 0] = (90, 90, 90)
     for i, (label, x, y) in enumerate(paths):
         color = COLORS_BGR[i % len(COLORS_BGR)]
-        px = to_px(np.column_stack([x, y]))
-        cv2.polylines(img, [px.reshape(-1, 1, 2)], False, color, 2, cv2.LINE_AA)
-        cv2.circle(img, tuple(int(c) for c in px[0]), 6, color, 2, cv2.LINE_AA)
+        if len(x):
+            px = to_px(np.column_stack([x, y]))
+            cv2.polylines(img, [px.reshape(-1, 1, 2)], False, color, 2, cv2.LINE_AA)
+            cv2.circle(img, tuple(int(c) for c in px[0]), 6, color, 2, cv2.LINE_AA)
+        else:
+            label += " (no poses)"
         cv2.putText(img, label, (MARGIN_PX + 10, 28 + LINE_PX * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX,
                     0.6, color, 2, cv2.LINE_AA)  # fmt: skip
     cv2.putText(img, title, (MARGIN_PX + 10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.65, (0, 0, 0), 2,

@@ -38,6 +38,7 @@ import numpy as np
 
 from sensors.source import PoseStream, SourceBase, SourceOptions
 from sensors.types import (
+    NS_PER_S,
     LaserScan,
     RgbdFrame,
     SensorError,
@@ -57,6 +58,8 @@ FLASER_EXTRA_FIELDS = 11  # FLASER n [n ranges] + 6 pose + ipc_timestamp hostnam
 ROBOTLASER_EXTRA_FIELDS = 24  # 9 header + n + 1 + m + 6 pose + 5 motion + 3 stamp/host
 ODOM_FIELDS = 10
 MAX_WARNINGS = 5  # per log; the rest are summarised once
+MAX_POSE_SPEED = 10.0  # [m/s] faster between two scans and back again is a glitched pose
+POSE_JUMP_SLACK_M = 1.0  # [m] per step, for stamps that bunch up
 GZIP_MAGIC = b"\x1f\x8b"
 SNIFF_BYTES = 65_536  # bytes looked at by try_open
 CARMEN_SUFFIXES = (".clf", ".log", ".gz")
@@ -283,8 +286,8 @@ def _stamps(tokens: list[str], lines: list[int], problems: _Problems, what: str)
     for i, token in enumerate(tokens):
         try:
             out[i] = parse_stamp(token)
-        except ValueError:
-            problems.add(lines[i], "bad_timestamp", f"{what} timestamp {token!r} is not a number")
+        except ValueError as err:
+            problems.add(lines[i], "bad_timestamp", f"{what} timestamp: {err}")
             out[i] = BAD_STAMP
     return out
 
@@ -373,6 +376,7 @@ def read_carmen_log(
             f"{format_stamp(int(stamps[j]))} (line {lines[j]})",
         )
     kept = [(good[k], int(stamps[k])) for k in np.flatnonzero(keep)]
+    kept = _drop_pose_spikes(lasers, values, kept, problems)
 
     # 3. ODOM messages.
     odom, odom_twist = _odometry(odom_rows, odom_stamps, odom_lines, problems)
@@ -392,6 +396,34 @@ def read_carmen_log(
         ignored=ignored,
         stamp_source=stamp_source,
     )
+
+
+def _drop_pose_spikes(
+    lasers: list[_RawLaser],
+    values: list[np.ndarray | None],
+    kept: list[tuple[int, int]],
+    problems: _Problems,
+) -> list[tuple[int, int]]:
+    """A scan whose laser or odometry pose is off by more than ``MAX_POSE_SPEED`` from both its
+    neighbours while they agree with each other is a glitched line (one 1 km off blew the
+    grid up 20x): skipped and counted as ``pose_jump``. Vectorised over the log."""
+    if len(kept) < 3:
+        return kept
+    poses = np.array([_row(values, i)[-6:] if lasers[i].kind == "FLASER"
+                      else _row(values, i)[-10:-4] for i, _ in kept])  # fmt: skip
+    t_s = np.array([t for _, t in kept], dtype=np.int64) / NS_PER_S
+    spike = np.zeros(len(kept), bool)
+    for xy in (poses[:, 0:2], poses[:, 3:5]):  # laser pose, odometry pose
+        step = np.hypot(*np.diff(xy, axis=0).T)
+        limit = MAX_POSE_SPEED * np.diff(t_s) + POSE_JUMP_SLACK_M
+        bad = step > limit
+        skip = np.hypot(*(xy[2:] - xy[:-2]).T) <= limit[:-1] + limit[1:]
+        spike[1:-1] |= bad[:-1] & bad[1:] & skip
+    for k in np.flatnonzero(spike):
+        problems.add(lasers[kept[k][0]].line, "pose_jump",
+                     f"{lasers[kept[k][0]].kind} pose jumps more than {MAX_POSE_SPEED:g} m/s "
+                     "away from both neighbouring scans")  # fmt: skip
+    return [kv for kv, s in zip(kept, spike, strict=True) if not s]
 
 
 def _fallback_stamps(

@@ -8,6 +8,9 @@ dataclass and rejects unknown keys, wrong types and out-of-range values with the
 from __future__ import annotations
 
 import dataclasses
+import math
+import reprlib
+import sys
 import types
 import typing
 from collections.abc import Mapping
@@ -17,6 +20,9 @@ from typing import Any, Literal, TypeVar, Union
 from sensors.types import ConfigError
 
 T = TypeVar("T")
+_QUOTE_LIMIT = 80  # [chars] of a bad value quoted in an error (an alias bomb is gigabytes)
+_REPR = reprlib.Repr()  # nested containers are cut short before they are ever joined
+_REPR.maxstring = _REPR.maxother = _QUOTE_LIMIT
 
 
 def param(
@@ -44,22 +50,32 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
+def short_repr(value: Any) -> str:
+    """``repr`` cut to a line: errors quote bad values, which may be huge."""
+    text = _REPR.repr(value)
+    return text if len(text) <= _QUOTE_LIMIT else text[: _QUOTE_LIMIT - 3] + "..."
+
+
 def _check_scalar(value: Any, tp: Any, path: str) -> Any:
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{path}: expected true/false, got {value!r}")
+            raise ConfigError(f"{path}: expected true/false, got {short_repr(value)}")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path}: expected an integer, got {value!r}")
+            raise ConfigError(f"{path}: expected an integer, got {short_repr(value)}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{path}: expected a number, got {value!r}")
+            raise ConfigError(f"{path}: expected a number, got {short_repr(value)}")
+        # NaN passes every "> 0" and "< x" check: a parameter is a finite number.
+        huge_int = isinstance(value, int) and abs(value) > sys.float_info.max
+        if huge_int or (isinstance(value, float) and not math.isfinite(value)):
+            raise ConfigError(f"{path}: expected a finite number, got {short_repr(value)}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{path}: expected a string, got {value!r}")
+            raise ConfigError(f"{path}: expected a string, got {short_repr(value)}")
         return value
     raise ConfigError(f"{path}: unsupported config type {_type_name(tp)}")  # pragma: no cover
 
@@ -69,7 +85,7 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
     if origin is Literal:
         choices = typing.get_args(tp)
         if value not in choices:
-            raise ConfigError(f"{path}: {value!r} is not one of {list(choices)}")
+            raise ConfigError(f"{path}: {short_repr(value)} is not one of {list(choices)}")
         return value
     if origin in (Union, types.UnionType):
         members = [a for a in typing.get_args(tp) if a is not type(None)]
@@ -79,7 +95,7 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
     if origin is tuple:
         args = typing.get_args(tp)
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path}: expected a list, got {value!r}")
+            raise ConfigError(f"{path}: expected a list, got {short_repr(value)}")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_coerce(v, args[0], f"{path}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
@@ -117,7 +133,7 @@ def build_section(cls: type[T], data: Mapping[str, Any] | None, path: str) -> T:
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
-        raise ConfigError(f"{path}: expected a mapping of keys, got {data!r}")
+        raise ConfigError(f"{path}: expected a mapping of keys, got {short_repr(data)}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(fields), key=str)
@@ -227,6 +243,14 @@ class TopicsConfig:
     odom: str = param("/odom", doc="nav_msgs/Odometry")
     imu: str = param("/imu/data", doc="sensor_msgs/Imu")
     wheels: str = param("/wheel_encoders", doc="Int32MultiArray [left, right] or JointState")
+
+    def validate(self) -> str | None:
+        # An empty name matched no topic and silently dropped the role (VO off for rgb).
+        for f in dataclasses.fields(self):
+            if not str(getattr(self, f.name)).strip():
+                return (f"{f.name}: empty topic name (leave it out to use the default, which "
+                        "falls back to the bag's unique topic of the right type)")  # fmt: skip
+        return None
 
 
 @dataclass(frozen=True)

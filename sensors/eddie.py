@@ -65,8 +65,10 @@ on a real board); the battery on ADC channel 7 with the 3.21 divider (a wiring c
 driver); 16 as the largest number of PING sensors (16 PING-able pins).
 
 Threading: one lock serialises command/reply pairs, so concurrent callers never see each other's
-replies. A host-side watchdog sends ``STOP 0`` when :meth:`EddieBoard.set_velocity` has not been
-called for ``BoardConfig.watchdog_timeout``. Serial failures close the port; the failing call
+replies. Replies carry no command name, so after a timeout the next command first waits up to
+one more ``timeout`` for the late reply and drops it (``late_replies_dropped``). A host-side
+watchdog sends ``STOP 0`` when :meth:`EddieBoard.set_velocity` has not been called for
+``BoardConfig.watchdog_timeout``. Serial failures close the port; the failing call
 raises :class:`BoardError` ("disconnected") and a later call reopens the port once
 ``BoardConfig.reconnect_interval`` has passed.
 """
@@ -109,6 +111,7 @@ BATTERY_DIVIDER = 3.21  # [-] battery voltage / ADC input voltage
 DIAGNOSTICS_PERIOD_S = 1.0  # [s] ADC and PING polling period of OdometryPoller
 POLLER_QUEUE_SIZE = 256  # WheelTicks kept when nobody drains the queue
 WATCHDOG_CHECK_PERIOD_S = 0.02  # [s] STOP goes out within watchdog_timeout + this
+LATE_REPLY_POLL_S = 0.002  # [s] a timed-out command's late reply is looked for this often
 
 
 class BoardError(SensorError):
@@ -349,6 +352,9 @@ class EddieBoard:
         self._watchdog_armed = False
         self._watchdog: threading.Thread | None = None
         self._stop_event = threading.Event()
+        # [s] monotonic time a command went unanswered (timed out): its reply may still come.
+        self._unanswered_at: float | None = None
+        self.late_replies_dropped = 0  # replies that came after their command had timed out
         self._port = self._open()
 
     # -- connection ----------------------------------------------------------------------------
@@ -447,6 +453,22 @@ class EddieBoard:
             f"{cmd}: incomplete reply {_quote(line)} within {self.board_cfg.timeout} s (timeout)"
         )
 
+    def _await_late_reply(self, port: Any) -> None:
+        """The board answers in order and its replies carry no command name: a reply that comes
+        after its command timed out would be read as the answer to the next command (a late
+        HEAD ``000`` parses as a PING). So the next command first waits, up to one more
+        ``timeout`` after the timeout, for that reply and drops it (counted and logged)."""
+        assert self._unanswered_at is not None
+        deadline = self._unanswered_at + self.board_cfg.timeout
+        self._unanswered_at = None
+        while time.monotonic() < deadline:
+            waiting = port.in_waiting
+            if waiting and TERMINATOR in port.read(waiting):
+                self.late_replies_dropped += 1
+                log.warning("a reply came after its command had timed out: dropped")
+                return
+            time.sleep(LATE_REPLY_POLL_S)
+
     def _transact(
         self, cmd: str, params: tuple[int, ...], widths: Sequence[HexField] | None = None
     ) -> tuple[tuple[int, ...], int]:
@@ -462,11 +484,18 @@ class EddieBoard:
         with self._lock:
             port = self._ensure_open(cmd)
             try:
+                if self._unanswered_at is not None:
+                    self._await_late_reply(port)
                 port.reset_input_buffer()  # stale bytes from an earlier timeout or garbage
                 sent_ns = time.monotonic_ns()
                 port.write(line)
-                reply = self._read_line(port, cmd)
+                try:
+                    reply = self._read_line(port, cmd)
+                except BoardError:
+                    self._unanswered_at = time.monotonic()
+                    raise
             except _LINK_ERRORS as err:
+                self._unanswered_at = None
                 self._drop_connection()
                 raise BoardError(f"{cmd}: disconnected from {self.url}: {err}") from err
         on_line_ns = len(line) * 10 * NS_PER_S // max(int(self.board_cfg.baudrate), 1)

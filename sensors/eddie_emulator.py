@@ -228,6 +228,8 @@ class EddieEmulator:
         self._overflow = False
         self._garbage = b""
         self._drop_replies = 0
+        self._late_replies: list[float] = []  # [s] delays of the next replies, in order
+        self._held: list[tuple[float, bytes]] = []  # (monotonic release time, reply) queued
         self._log: collections.deque[tuple[float, str]] = collections.deque(maxlen=4096)
         # transport state
         self._kind: Literal["pty", "socket"] | None = None
@@ -313,9 +315,23 @@ class EddieEmulator:
                 if self._drop_replies:
                     self._drop_replies -= 1
                     continue
+                if self._late_replies or self._held:  # replies leave in order: queue behind
+                    delay = self._late_replies.pop(0) if self._late_replies else 0.0
+                    release = max([time.monotonic() + delay] + [t for t, _ in self._held])
+                    self._held.append((release, self._garbage + reply))
+                    self._garbage = b""
+                    continue
                 out += self._garbage + reply
                 self._garbage = b""
         return bytes(out)
+
+    def due_replies(self) -> bytes:
+        """Held (late) replies whose time has come; the transports send them."""
+        with self._lock:
+            now = time.monotonic()
+            due = [r for t, r in self._held if t <= now]
+            self._held = [(t, r) for t, r in self._held if t > now]
+        return b"".join(due)
 
     def _on_byte(self, byte: int) -> bytes | None:
         if self._overflow:
@@ -475,14 +491,21 @@ class EddieEmulator:
     # -- fault injection -----------------------------------------------------------------------
 
     def inject(
-        self, garbage: bytes | None = None, drop_next_replies: int = 0, disconnect: bool = False
+        self,
+        garbage: bytes | None = None,
+        drop_next_replies: int = 0,
+        disconnect: bool = False,
+        late_reply_s: float = 0.0,
     ) -> None:
         """``garbage`` is sent just before the next reply; the next ``drop_next_replies`` commands
-        are executed but not answered; ``disconnect`` closes the pty or socket now."""
+        are executed but not answered; ``late_reply_s`` holds the next reply back that long (a
+        board busy past the host's timeout); ``disconnect`` closes the pty or socket now."""
         with self._lock:
             if garbage:
                 self._garbage += garbage
             self._drop_replies += drop_next_replies
+            if late_reply_s > 0:
+                self._late_replies.append(late_reply_s)
         if disconnect:
             self._shutdown_transport()
 
@@ -560,13 +583,13 @@ class EddieEmulator:
     def _serve_pty(self, master: int, stop: threading.Event) -> None:
         while not stop.is_set():
             ready, _, _ = select.select([master], [], [], POLL_S)
-            if not ready:
-                continue
-            try:
-                data = os.read(master, 4096)
-            except OSError:  # EIO: no slave side open any more
-                return
-            reply = self.feed(data)
+            reply = self.due_replies()
+            if ready:
+                try:
+                    data = os.read(master, 4096)
+                except OSError:  # EIO: no slave side open any more
+                    return
+                reply += self.feed(data)
             while reply:
                 reply = reply[os.write(master, reply) :]
 
@@ -586,15 +609,15 @@ class EddieEmulator:
     def _serve_connection(self, conn: socket.socket, stop: threading.Event) -> None:
         while not stop.is_set():
             ready, _, _ = select.select([conn], [], [], POLL_S)
-            if not ready:
-                continue
-            try:
-                data = conn.recv(4096)
-            except OSError:
-                return
-            if not data:
-                return
-            reply = self.feed(data)
+            reply = self.due_replies()
+            if ready:
+                try:
+                    data = conn.recv(4096)
+                except OSError:
+                    return
+                if not data:
+                    return
+                reply += self.feed(data)
             if reply:
                 try:
                     conn.sendall(reply)

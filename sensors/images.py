@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import re
+import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from sensors.bounded_read import read_bounded
 from sensors.types import SensorError
 
 PNG_IEND = b"IEND"  # type of the last chunk of every complete PNG
 JPEG_EOI = b"\xff\xd9"  # end-of-image marker of every complete JPEG
+MAX_IMAGE_FILE_BYTES = 256 * 2**20  # [bytes] an image file larger than this is not read
 
 
 class ImageError(SensorError):
@@ -22,25 +27,29 @@ class ImageError(SensorError):
         self.reason = reason
 
 
+class _Unreadable(ImageError):
+    def __init__(self, message: str) -> None:
+        super().__init__(message, "unreadable")
+
+
 def read_image(file: Path, size: tuple[int, int], depth: bool) -> np.ndarray:
     """A colour image as (H, W, 3) uint8 RGB, or a depth image as (H, W) uint16 counts, of
     ``size`` = (width, height); anything else raises :class:`ImageError` naming the file."""
-    try:
-        data = file.read_bytes()
-    except FileNotFoundError as err:
-        raise ImageError(f"{file}: image is missing", "missing") from err
-    except OSError as err:
-        raise ImageError(f"{file}: cannot read: {err.strerror or err}", "unreadable") from err
+    if not file.exists():
+        raise ImageError(f"{file}: image is missing", "missing")
+    data = read_bounded(file, MAX_IMAGE_FILE_BYTES, _Unreadable, "image")
     # OpenCV decodes a truncated PNG or JPEG partially without an error: check the end marker.
     suffix = file.suffix.lower()
     if (suffix == ".png" and data[-8:-4] != PNG_IEND) or (
         suffix in (".jpg", ".jpeg") and data.rstrip(b"\0\r\n")[-2:] != JPEG_EOI
     ):
         raise ImageError(f"{file}: truncated {suffix[1:].upper()}", "truncated")
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ImageError(f"{file}: not a readable image", "unreadable")
     w, h = size
+    declared = declared_size(data)
+    if declared is not None and declared != (w, h):  # before decoding what it claims
+        raise ImageError(f"{file}: image is {declared[0]}x{declared[1]}, camera is {w}x{h}",
+                         "wrong_size")  # fmt: skip
+    image = decode_image(data, file, _Unreadable)
     if image.shape[:2] != (h, w):
         raise ImageError(
             f"{file}: image is {image.shape[1]}x{image.shape[0]}, camera is {w}x{h}", "wrong_size"
@@ -52,3 +61,82 @@ def read_image(file: Path, size: tuple[int, int], depth: bool) -> np.ndarray:
             "wrong_dtype",
         )
     return image if depth else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+# --- decoding bytes safely ---------------------------------------------------------------------
+
+MAX_IMAGE_PIXELS = 2**26  # [pixels] largest image decoded (8192 x 8192; a map 410 m square)
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNM_HEADER = re.compile(rb"P[1-7](?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)")
+# JPEG start-of-frame markers (baseline, progressive, lossless...), not DHT/JPG/DAC.
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def declared_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) an image's header declares, read without decoding (PNG, JPEG, PNM);
+    None for other formats or a header that does not parse."""
+    if data.startswith(_PNG_SIGNATURE) and len(data) >= 24 and data[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", data[16:24])
+        return int(w), int(h)
+    m = _PNM_HEADER.match(data)
+    if m is not None:
+        return int(m.group(1)), int(m.group(2))
+    if data[:2] == b"\xff\xd8":
+        i = 2
+        while i + 9 <= len(data):
+            if data[i] != 0xFF:
+                return None
+            marker = data[i + 1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            if marker in _JPEG_SOF:
+                h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+                return int(w), int(h)
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # no length field
+                i += 2
+                continue
+            (length,) = struct.unpack(">H", data[i + 2 : i + 4])
+            i += 2 + length
+    return None
+
+
+def png_chunk_problem(data: bytes) -> str | None:
+    """Why a PNG's chunk layout is broken (a chunk running past the end of the data), or None.
+    OpenCV spends seconds on a chunk whose length field claims gigabytes (the fuzz benchmark
+    found 6-36 s for one flipped byte); walking the length fields costs microseconds."""
+    i = len(_PNG_SIGNATURE)
+    while i + 12 <= len(data):
+        (length,) = struct.unpack(">I", data[i : i + 4])
+        if length > len(data) - i - 12:
+            return f"PNG chunk {data[i + 4 : i + 8]!r} at byte {i} claims {length} bytes"
+        if data[i + 4 : i + 8] == PNG_IEND:
+            return None
+        i += 12 + length
+    return "PNG ends without an IEND chunk"
+
+
+def decode_image(
+    data: bytes,
+    name: str | Path,
+    error: Callable[[str], Exception],
+    max_pixels: int = MAX_IMAGE_PIXELS,
+) -> np.ndarray:
+    """``cv2.imdecode(data, IMREAD_UNCHANGED)`` that never allocates for a size only declared
+    (a 100-byte PNG may claim 30000 x 30000), never raises ``cv2.error`` (an empty buffer does),
+    and never returns None: every failure is ``error(message)``."""
+    if not data:
+        raise error(f"{name}: empty image file")
+    if data.startswith(_PNG_SIGNATURE) and (problem := png_chunk_problem(data)) is not None:
+        raise error(f"{name}: corrupt PNG ({problem})")
+    size = declared_size(data)
+    if size is not None and size[0] * size[1] > max_pixels:
+        raise error(f"{name}: image declares {size[0]}x{size[1]} pixels, more than the "
+                    f"{max_pixels} read here")  # fmt: skip
+    try:
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as err:
+        raise error(f"{name}: not a readable image ({str(err).strip().splitlines()[-1]})") from None
+    if image is None:
+        raise error(f"{name}: not a readable image")
+    return image

@@ -32,6 +32,7 @@ import yaml
 
 from sensors.atomic import atomic_write_text, commit_staging_dir, make_staging_dir
 from sensors.images import ImageError, read_image
+from sensors.safe_yaml import read_yaml
 from sensors.tum import (
     load_tum_trajectory,
     read_stamped_text,
@@ -406,10 +407,7 @@ class Recording:
         for name in ("rgb.txt", "depth.txt", "scene.yaml"):
             if not (path / name).is_file():
                 raise SensorError(f"{path}: missing {name}; {FOLDER_CONTENTS}")
-        try:
-            scene = yaml.safe_load((path / "scene.yaml").read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
-            raise SensorError(f"{path / 'scene.yaml'}: cannot parse: {err}") from err
+        scene = read_yaml(path / "scene.yaml", SensorError)
         if not isinstance(scene, dict):
             raise SensorError(f"{path / 'scene.yaml'}: must be a mapping")
         return cls(

@@ -54,6 +54,7 @@ import cv2
 import numpy as np
 
 from sensors.config import CameraConfig, RobotConfig, SyncConfig
+from sensors.images import decode_image
 from sensors.recording import associate
 from sensors.source import ImuStream, PoseStream, SourceBase, SourceOptions, WheelStream
 from sensors.tum import yaw_from_quaternion
@@ -271,11 +272,10 @@ def depth_from_image(
 
 
 def _imdecode(data: Any, what: str) -> np.ndarray:
-    buf = np.frombuffer(bytes(data), dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
-    if img is None:
-        raise _BadMessage("undecodable", f"{what}: OpenCV cannot decode the image data")
-    return img
+    def undecodable(message: str) -> _BadMessage:
+        return _BadMessage("undecodable", message)
+
+    return decode_image(bytes(data), what, undecodable)
 
 
 def rgb_from_compressed(fmt: str, data: Any) -> np.ndarray:

@@ -18,6 +18,8 @@ from sensors.atomic import atomic_write_text
 from sensors.types import SensorError, format_stamp, parse_stamp
 
 TRAJECTORY_COLUMNS = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+MAX_COORDINATE_M = 1e8  # [m] no robot pose is farther from its origin (UTM northings < 1e7 m)
+MIN_QUATERNION_NORM = 1e-9  # [-] shorter is no rotation at all
 PLANAR_TUM_HEADER = (
     f"# planar trajectory (z = 0, rotation about z)\n# {' '.join(TRAJECTORY_COLUMNS)}\n"
 )
@@ -120,12 +122,27 @@ def quaternion_from_yaw(yaw: np.ndarray) -> np.ndarray:
     return np.stack([zero, zero, np.sin(half), np.cos(half)], axis=-1)
 
 
+def check_poses(table: StampedText, data: np.ndarray) -> None:
+    """TUM pose rows ``(N, 7)`` (tx ty tz qx qy qz qw) that cannot be a robot's: a position
+    farther than ``MAX_COORDINATE_M`` from the origin or a zero-length quaternion is an error
+    naming its line (a 1e30 m pose would otherwise be scored as a huge but valid error)."""
+    far = np.flatnonzero(np.abs(data[:, :3]).max(axis=1, initial=0.0) > MAX_COORDINATE_M)
+    if far.size:
+        raise SensorError(f"{table.path}:{table.lines[far[0]]}: position "
+                          f"{data[far[0], :3].tolist()} is farther than {MAX_COORDINATE_M:g} m "
+                          "from the origin")  # fmt: skip
+    zero = np.flatnonzero(np.linalg.norm(data[:, 3:7], axis=1) < MIN_QUATERNION_NORM)
+    if zero.size:
+        raise SensorError(f"{table.path}:{table.lines[zero[0]]}: quaternion has zero length")
+
+
 def load_tum_trajectory(
     path: str | os.PathLike[str],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """TUM trajectory -> (stamps_ns (N,) int64, xyz (N, 3) float64 [m], quat_xyzw (N, 4))."""
     table = read_stamped_text(path, TRAJECTORY_COLUMNS)
-    data = table.numeric(np.float64, "pose (tx ty tz qx qy qz qw)")
+    data = table.numeric(np.float64, "pose (tx ty tz qx qy qz qw)").reshape(-1, 7)
+    check_poses(table, data)
     return table.stamps_ns, data[:, :3].reshape(-1, 3), data[:, 3:].reshape(-1, 4)
 
 

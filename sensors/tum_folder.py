@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import os
 import re
 from collections import deque
@@ -29,11 +30,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import yaml
 
-from sensors.images import ImageError, read_image
+from sensors.bounded_read import read_bounded
+from sensors.images import (
+    MAX_IMAGE_FILE_BYTES,
+    ImageError,
+    declared_size,
+    decode_image,
+    read_image,
+)
 from sensors.recording import DEFAULT_MAX_DIFFERENCE_NS, associate, counts_to_depth
 from sensors.source import PoseStream, SourceBase, SourceOptions
 from sensors.tum import load_tum_trajectory, read_stamped_text, yaw_from_quaternion
@@ -141,19 +148,28 @@ _LenientLoader.add_multi_constructor("!", _construct_unknown)
 
 
 def read_camera_yaml(file: Path) -> dict[str, float] | None:
-    """:func:`camera_from_mapping` of a YAML file (OpenCV's ``%YAML:1.0`` line tolerated)."""
+    """:func:`camera_from_mapping` of a YAML file (OpenCV's ``%YAML:1.0`` line tolerated);
+    None when it holds no intrinsics. A file that does not parse is logged as a warning: the
+    intrinsics it may have held are not silently replaced by defaults."""
+    return _camera_yaml(file)[0]
+
+
+def _camera_yaml(file: Path) -> tuple[dict[str, float] | None, str | None]:
+    """(intrinsics or None, why the file could not be read or None)."""
     try:
         text = file.read_text(encoding="utf-8", errors="replace")
-    except OSError:
-        return None
+    except OSError as err:
+        return None, f"{file.name} unreadable ({err.strerror or err})"
     if text.startswith("%YAML:"):
         text = text.split("\n", 1)[1] if "\n" in text else ""
     try:
         doc = yaml.load(text, Loader=_LenientLoader)  # noqa: S506 (safe loader subclass)
-    except yaml.YAMLError as err:
-        log.debug("%s: not a camera YAML: %s", file, err)
-        return None
-    return camera_from_mapping(doc) if isinstance(doc, Mapping) else None
+    except (yaml.YAMLError, RecursionError) as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        log.warning("%s: not valid YAML%s; camera intrinsics in it are ignored", file, where)
+        return None, f"{file.name} not valid YAML{where}"
+    return (camera_from_mapping(doc) if isinstance(doc, Mapping) else None), None
 
 
 def _read_index(file: Path) -> _Index:
@@ -274,19 +290,31 @@ class TumFolderSource(SourceBase):
         else:
             times = np.arange(last + 1, dtype=np.int64) * INDEX_PERIOD_NS
             note = "stamps synthesised at 30 Hz"
+            if gt is not None and gt_file is not None and len(gt[0]) <= last:
+                # Said, not silent: the user gave stamps that do not cover the frames.
+                note += (f" because {gt_file.name} has {len(gt[0])} rows and the frames go "
+                         f"to index {last}")  # fmt: skip
+                log.warning("%s: %s", self.root, note)
         note += " (rgb.txt/depth.txt list frame indices)"
         return _Index(times[k_rgb], rgb.files), _Index(times[k_depth], depth.files), note
 
     def _resolve_intrinsics(self, default_scale: float) -> tuple[CameraIntrinsics, str]:
         camera, source = None, ""
+        problems = []
         for file in sorted([*self.root.glob("*.yaml"), *self.root.glob("*.yml")]):
-            camera = read_camera_yaml(file)
+            camera, problem = _camera_yaml(file)
+            if problem is not None:
+                problems.append(problem)
             if camera is not None:
                 source = file.name
                 break
         if camera is None:
             source, (fx, fy, cx, cy) = preset_for_folder(self.root.resolve().name)
             camera = {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
+            if problems:  # said where the user will look: the source's description
+                source += f"; {'; '.join(problems)}"
+        if not all(math.isfinite(v) for v in camera.values()):
+            raise SensorError(f"{self.root}: intrinsics from {source} are not finite: {camera}")
         if "width" in camera and "height" in camera:
             size = (int(camera["width"]), int(camera["height"]))
         else:
@@ -300,7 +328,8 @@ class TumFolderSource(SourceBase):
             cy=camera["cy"],
             depth_scale=camera.get("depth_scale", default_scale),
         )
-        if min(intr.width, intr.height) <= 0 or min(intr.fx, intr.fy, intr.depth_scale) <= 0:
+        positive = (intr.width, intr.height, intr.fx, intr.fy, intr.depth_scale)
+        if not all(math.isfinite(v) and v > 0 for v in positive):
             raise SensorError(
                 f"{self.root}: intrinsics from {source}: width, height, fx, fy, depth_scale "
                 "must be > 0"
@@ -310,9 +339,13 @@ class TumFolderSource(SourceBase):
     def _probe_size(self) -> tuple[int, int]:
         """(width, height) of the first decodable colour image; the Kinect's without one."""
         for i in self.rgb_index[:10]:
-            image = cv2.imread(str(self.root / self._rgb.files[int(i)]), cv2.IMREAD_UNCHANGED)
-            if image is not None:
-                return int(image.shape[1]), int(image.shape[0])
+            try:
+                image = read_bounded(self.root / self._rgb.files[int(i)], MAX_IMAGE_FILE_BYTES,
+                                     SensorError, "image")  # fmt: skip
+                size = declared_size(image) or decode_image(image, "", SensorError).shape[1::-1]
+            except SensorError:
+                continue
+            return int(size[0]), int(size[1])
         return KINECT_SIZE
 
     def _groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

@@ -13,6 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 NS_PER_S = 1_000_000_000  # [ns/s]
+# [ns] largest |stamp| read from a file (year 2116 since 1970): the sum or difference of two
+# stamps still fits an int64, where numpy would wrap around silently.
+MAX_STAMP_NS = 2**62
 
 
 class RgbdNavError(Exception):
@@ -44,6 +47,13 @@ def seconds_to_ns(t_s: float) -> int:
     return int(round(t_s * NS_PER_S))
 
 
+def _check_stamp_range(ns: int, text: str) -> int:
+    if not -MAX_STAMP_NS <= ns <= MAX_STAMP_NS:
+        limit = MAX_STAMP_NS // NS_PER_S
+        raise ValueError(f"timestamp {text!r} is out of range (|t| <= {limit} s)")
+    return ns
+
+
 def ns_to_seconds(t_ns: int | np.ndarray) -> float | np.ndarray:
     return t_ns / NS_PER_S
 
@@ -66,7 +76,9 @@ def parse_stamp(text: str) -> int:
         value = float(s)
         if not math.isfinite(value):
             raise ValueError(f"timestamp {text!r} is not finite")
-        return seconds_to_ns(value)
+        if abs(value) > MAX_STAMP_NS / NS_PER_S:
+            return _check_stamp_range(MAX_STAMP_NS + 1, text)
+        return _check_stamp_range(seconds_to_ns(value), text)
     neg = s.startswith("-")
     if neg or s.startswith("+"):
         s = s[1:]
@@ -75,8 +87,10 @@ def parse_stamp(text: str) -> int:
         raise ValueError(f"timestamp {text!r} is not a decimal number of seconds")
     frac9 = (frac + "000000000")[:9]
     rounding = 1 if len(frac) > 9 and frac[9] >= "5" else 0
+    if len(whole) > len(str(MAX_STAMP_NS // NS_PER_S)):  # no 10^6-digit int() to find out
+        return _check_stamp_range(MAX_STAMP_NS + 1, text)
     ns = int(whole or "0") * NS_PER_S + int(frac9 or "0") + rounding
-    return -ns if neg else ns
+    return _check_stamp_range(-ns if neg else ns, text)
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,55 @@ def integrate_ticks(
     return integrate_increments(ds, dtheta, start)
 
 
+GLITCH_SPEED_FACTOR = 5.0  # [-] a wheel faster than this times robot.max_wheel_speed is a glitch
+GLITCH_SLACK_TICKS = 2  # [ticks] per interval, for stamps that bunch up
+
+
+@dataclass(frozen=True)
+class EncoderCleanup:
+    """Encoder readings with implausible jumps taken out (:func:`reject_encoder_glitches`)."""
+
+    stamps_ns: np.ndarray  # (M,) int64 [ns]
+    left: np.ndarray  # (M,) int64 cumulative counts, jumps removed
+    right: np.ndarray  # (M,) int64
+    glitches_dropped: int  # single readings off and back (a spike): removed
+    jumps_zeroed: int  # steps that stayed (a counter reset): taken as no motion
+
+
+def reject_encoder_glitches(
+    stamps_ns: np.ndarray, left: np.ndarray, right: np.ndarray, robot: RobotConfig
+) -> EncoderCleanup:
+    """A reading whose step from the previous one would need a wheel faster than
+    ``GLITCH_SPEED_FACTOR * robot.max_wheel_speed`` is not motion: one glitched reading sent a
+    wheel trajectory 300 km away. A spike (off, then back within the next step) drops the
+    reading; a step that stays (a counter reset) is integrated as no motion. Vectorised."""
+    t = np.asarray(stamps_ns, dtype=np.int64)
+    counts = np.column_stack([np.asarray(left, np.int64), np.asarray(right, np.int64)])
+    if len(t) < 2:
+        return EncoderCleanup(t, counts[:, 0], counts[:, 1], 0, 0)
+    dt_s = np.maximum(np.diff(t), 0) / NS_PER_S
+    limit = (GLITCH_SPEED_FACTOR * robot.max_wheel_speed * dt_s / robot.metres_per_tick
+             + GLITCH_SLACK_TICKS)[:, None]  # [ticks] per interval  # fmt: skip
+    step = np.diff(counts, axis=0)
+    bad = np.asarray((np.abs(step) > limit).any(axis=1))
+    # 1. Spikes: interval i and i+1 both implausible, their sum plausible -> reading i+1 off.
+    pair_ok = (np.abs(step[:-1] + step[1:]) <= limit[:-1] + limit[1:]).all(axis=1)
+    spike = np.flatnonzero(bad[:-1] & bad[1:] & pair_ok) + 1
+    spike = spike[np.diff(np.concatenate([[-2], spike])) > 1]  # a reading, not its neighbour
+    keep = np.ones(len(t), bool)
+    keep[spike] = False
+    t, counts = t[keep], counts[keep]
+    # 2. Steps that stayed: no motion over that interval, the counts after it shifted back.
+    step = np.diff(counts, axis=0)
+    dt_s = np.maximum(np.diff(t), 0) / NS_PER_S
+    limit = (GLITCH_SPEED_FACTOR * robot.max_wheel_speed * dt_s / robot.metres_per_tick
+             + GLITCH_SLACK_TICKS)[:, None]  # fmt: skip
+    jump = (np.abs(step) > limit).any(axis=1)
+    step[jump] = 0
+    counts = counts[0] + np.vstack([np.zeros((1, 2), np.int64), np.cumsum(step, axis=0)])
+    return EncoderCleanup(t, counts[:, 0], counts[:, 1], int(len(spike)), int(jump.sum()))
+
+
 def wheel_twist(
     stamps_ns: np.ndarray, left: np.ndarray, right: np.ndarray, robot: RobotConfig
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -33,9 +33,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
-import yaml
 
 from sensors.atomic import (
     atomic_write_bytes,
@@ -44,7 +42,11 @@ from sensors.atomic import (
     interrupted_replacement,
     make_staging_dir,
 )
-from sensors.types import LaserScan, MapError
+from sensors.bounded_read import read_bounded
+from sensors.config import short_repr
+from sensors.images import MAX_IMAGE_FILE_BYTES, MAX_IMAGE_PIXELS, decode_image
+from sensors.safe_yaml import read_yaml
+from sensors.types import MAX_STAMP_NS, LaserScan, MapError
 from slam.occupancy_grid import OCCUPIED, UNKNOWN, GridGeometry, OccupancyGrid
 
 log = logging.getLogger(__name__)
@@ -123,16 +125,9 @@ class MapYaml:
 
 
 def _read_yaml_doc(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError as err:
-        raise MapError(f"{path}: missing file") from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise MapError(f"{path}: cannot read: {err}") from err
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise MapError(f"{path}: not valid YAML: {err}") from err
+    if not path.exists():
+        raise MapError(f"{path}: missing file")
+    doc = read_yaml(path, MapError)
     if not isinstance(doc, dict):
         raise MapError(f"{path}: expected a mapping of map metadata, got {type(doc).__name__}")
     return doc
@@ -208,6 +203,9 @@ def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, i
     width, height, maxval = (int(g) for g in m.groups())
     if width < 1 or height < 1:
         raise MapError(f"{name}: PGM size {width}x{height} is empty")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise MapError(f"{name}: PGM declares {width}x{height} pixels, more than the "
+                       f"{MAX_IMAGE_PIXELS} read here")  # fmt: skip
     if not 0 < maxval <= _MAX_8BIT:
         raise MapError(f"{name}: PGM maxval {maxval} unsupported; need an 8-bit image (1..255)")
     body = data[m.end() :]
@@ -229,18 +227,14 @@ def encode_pgm(pixels: np.ndarray) -> bytes:
 def _read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Image -> (shade (H, W) float64 in [0, 1] averaged over colour channels, top row first;
     alpha (H, W) float64 in [0, 1] or None)."""
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError as err:
-        raise MapError(f"{path}: missing image file") from err
-    except OSError as err:
-        raise MapError(f"{path}: cannot read image: {err}") from err
+    if not path.exists():
+        raise MapError(f"{path}: missing image file")
+    # A regular file only: `image: /dev/zero` would be read until memory runs out.
+    data = read_bounded(path, MAX_IMAGE_FILE_BYTES, MapError, "image")
     if data[:1] == b"P" and data[1:2].isdigit():  # any netpbm: only P5 is supported
         pixels, maxval = decode_pgm(data, path)
         return pixels.astype(np.float64) / maxval, None
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise MapError(f"{path}: not a readable image (PGM P5, PNG, ...)")
+    img = decode_image(data, path, MapError)  # a declared size is checked before decoding
     full = float(np.iinfo(img.dtype.type).max) if img.dtype.kind in "ui" else 1.0  # type: ignore[type-var]
     img = img.astype(np.float64) / full
     if img.ndim == 2:
@@ -384,8 +378,11 @@ def _floats(value: Any, n: int, where: str) -> tuple[float, ...]:
 
 
 def _int(value: Any, where: str) -> int:
+    """An id or stamp [ns] of graph.json: an integer the bundle's int64 arrays can hold."""
     if isinstance(value, bool) or not isinstance(value, int):
-        raise MapError(f"{where} must be an integer, got {value!r}")
+        raise MapError(f"{where} must be an integer, got {short_repr(value)}")
+    if abs(value) > MAX_STAMP_NS:
+        raise MapError(f"{where} {short_repr(value)} is out of range (|value| <= {MAX_STAMP_NS})")
     return value
 
 
@@ -396,6 +393,8 @@ def _parse_graph(path: Path) -> dict[str, Any]:
         raise MapError(f"{path}: missing file") from err
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise MapError(f"{path}: not valid JSON: {err}") from err
+    except RecursionError:  # json's decoder recurses per nesting level
+        raise MapError(f"{path}: not valid JSON: nested too deeply") from None
     if not isinstance(doc, dict):
         raise MapError(f"{path}: expected a JSON object")
     version = doc.get("schema_version")
@@ -497,6 +496,13 @@ def _parse_scans(path: Path) -> tuple[LaserScan, ...]:
     for key in _SCAN_KEYS[2:]:
         if a[key].shape != (k,):
             raise MapError(f"{path}: '{key}' has shape {a[key].shape}, expected ({k},)")
+    # The scans' geometry must be numbers (their ranges may hold inf/NaN: no return, REP-117).
+    for key in ("angle_min", "angle_increment", "range_min", "range_max", "stamp_ns"):
+        if a[key].dtype.kind not in "iuf":
+            raise MapError(f"{path}: '{key}' must be numbers, got {a[key].dtype}")
+        bad = np.flatnonzero(~np.isfinite(a[key]))
+        if bad.size:
+            raise MapError(f"{path}: '{key}' of scan {int(bad[0])} is not a finite number")
     ranges = a["ranges"].astype(np.float32, copy=False)
     return tuple(
         LaserScan(int(a["stamp_ns"][i]), float(a["angle_min"][i]), float(a["angle_increment"][i]),
@@ -552,11 +558,20 @@ def save_bundle(bundle: MapBundle, path: str | os.PathLike[str]) -> None:
              bundle.grid.geometry.width, bundle.grid.geometry.height)  # fmt: skip
 
 
+def _member(folder: Path, name: str) -> Path:
+    """``folder / name``, which must not lead out of the bundle (a symlinked file): a bundle
+    is self-contained, and one copied or shared must not read whatever the link points at."""
+    path = folder / name
+    if path.is_symlink() and not path.resolve().is_relative_to(folder.resolve()):
+        raise MapError(f"{path}: a link out of the bundle folder (to {path.resolve()})")
+    return path
+
+
 def _bundle_grid(folder: Path, occupied_thresh: float, free_thresh: float) -> OccupancyGrid:
     """The PGM/YAML map, refined by grid.npz when present and consistent with the PGM."""
-    meta = parse_map_yaml(folder / MAP_YAML, inside_folder=True)
+    meta = parse_map_yaml(_member(folder, MAP_YAML), inside_folder=True)
     from_image = _grid_from_yaml(meta)
-    grid_path = folder / GRID_NPZ
+    grid_path = _member(folder, GRID_NPZ)
     if not grid_path.exists():
         return from_image
     a = _load_npz(grid_path, ("log_odds", "observed"))
@@ -576,6 +591,14 @@ def _bundle_grid(folder: Path, occupied_thresh: float, free_thresh: float) -> Oc
     return precise
 
 
+def _config_probability(config: dict[str, Any], key: str, default: float, where: str) -> float:
+    value = config.get(key, default)
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (ok and 0.0 < value < 1.0):  # NaN fails too
+        raise MapError(f"{where}.{key} must be a number in (0, 1), got {short_repr(value)}")
+    return float(value)
+
+
 def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
     """Read and validate a bundle folder written by :func:`save_bundle` (or by hand)."""
     folder = Path(path)
@@ -585,15 +608,19 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
         folder = aside
     if not folder.is_dir():
         raise MapError(f"{folder}: missing map bundle folder")
-    graph = _parse_graph(folder / GRAPH_JSON)
-    scans = _parse_scans(folder / SCANS_NPZ)
+    graph = _parse_graph(_member(folder, GRAPH_JSON))
+    scans = _parse_scans(_member(folder, SCANS_NPZ))
     if len(scans) != len(graph["ids"]):
         raise MapError(f"keyframe count mismatch: {folder / GRAPH_JSON} has "
                        f"{len(graph['ids'])} keyframes, {folder / SCANS_NPZ} has "
                        f"{len(scans)} scans")  # fmt: skip
     config = graph["config"]
-    grid = _bundle_grid(folder, float(config.get("occupied_thresh", 0.65)),
-                        float(config.get("free_thresh", 0.25)))  # fmt: skip
+    where = f"{folder / GRAPH_JSON}: config"
+    occupied = _config_probability(config, "occupied_thresh", 0.65, where)
+    free = _config_probability(config, "free_thresh", 0.25, where)
+    if not free < occupied:
+        raise MapError(f"{where}: free_thresh ({free}) must be below occupied_thresh ({occupied})")
+    grid = _bundle_grid(folder, occupied, free)
     return MapBundle(grid, graph["ids"], graph["stamps"], graph["poses"], graph["odom"],
                      graph["edges"], scans, config, graph["source"], graph["created"])  # fmt: skip
 

@@ -8,6 +8,7 @@ optional rigid alignment, drift is end-point error per distance travelled.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -81,3 +82,18 @@ def drift_report(
         drift_percent=100 * final / length if length > 0 else float("nan"),
         drift_per_10m_m=10 * final / length if length > 0 else float("nan"),
     )
+
+
+def drift_summary(
+    t_est: np.ndarray,
+    est: tuple[np.ndarray, np.ndarray, np.ndarray],
+    t_ref: np.ndarray,
+    ref: tuple[np.ndarray, np.ndarray, np.ndarray],
+) -> dict[str, Any]:
+    """:func:`drift_report` for a run's summary: when the two do not overlap in time (a source
+    whose every frame was unusable leaves an estimate of 0 or 1 poses), a summary that says so
+    rather than an exception after the run's work is done."""
+    try:
+        return drift_report(t_est, est, t_ref, ref).as_dict()
+    except ValueError as err:
+        return {"matched": 0, "not_compared": str(err), "estimate_poses": int(len(t_est))}

@@ -49,6 +49,8 @@ UNKNOWN = -1
 # A map read from an image carries only 0..100 occupancy values; they become probabilities clamped
 # to the MapperConfig default clamping band so that trinary() with the default thresholds gives back
 # the same classes and a loaded map can be extended by integrate_scans without saturating.
+MAX_GRID_CELLS = 2**28  # [cells] largest grid allocated (1 GiB of float32 log-odds alone)
+GRID_BYTES_PER_CELL = 4 + 1 + 1  # [bytes] log-odds float32, observed flag, occupancy int8
 LOADED_P_MIN = 0.12  # [probability] same as MapperConfig.clamping_thres_min
 LOADED_P_MAX = 0.97  # [probability] same as MapperConfig.clamping_thres_max
 
@@ -59,6 +61,19 @@ _UNTOUCHED, _FREE, _HIT = 0, 1, 2
 def logit(p: float) -> float:
     """log(p / (1 - p)), the log-odds of probability ``p``."""
     return math.log(p) - math.log1p(-p)
+
+
+def check_grid_size(width: float, height: float, resolution: float) -> None:
+    """MapError, before anything is allocated, for a grid over ``MAX_GRID_CELLS`` cells (a
+    resolution typed too fine, or a pose or landmark absurdly far away)."""
+    cells = width * height
+    if not cells <= MAX_GRID_CELLS:  # also NaN / inf
+        gib = cells * GRID_BYTES_PER_CELL / 2**30
+        raise MapError(
+            f"a {width:.3g} x {height:.3g} cell grid at {resolution:g} m/cell would need "
+            f"{gib:.3g} GiB (more than {MAX_GRID_CELLS} cells): a coarser resolution "
+            "(mapper.resolution), or a pose or point far outside the mapped area"
+        )
 
 
 @dataclass(frozen=True)
@@ -78,6 +93,7 @@ class GridGeometry:
             raise MapError(f"grid size must be at least 1x1, got {self.width}x{self.height}")
         if not (math.isfinite(self.origin_x) and math.isfinite(self.origin_y)):
             raise MapError(f"grid origin must be finite, got ({self.origin_x}, {self.origin_y})")
+        check_grid_size(self.width, self.height, self.resolution)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -105,6 +121,9 @@ class GridGeometry:
             raise MapError(f"grid bounds are inverted: {(xmin, ymin, xmax, ymax)}")
         if not resolution > 0.0:
             raise MapError(f"grid resolution must be positive, got {resolution}")
+        # The size first, in floats: a 1e300 m extent or a 0.2 mm cell must not reach floor().
+        check_grid_size((xmax - xmin + 2 * margin) / resolution + 2,
+                        (ymax - ymin + 2 * margin) / resolution + 2, resolution)  # fmt: skip
         ox = math.floor((xmin - margin) / resolution) * resolution
         oy = math.floor((ymin - margin) / resolution) * resolution
         width = max(1, math.floor((xmax + margin - ox) / resolution) + 1)
@@ -350,6 +369,7 @@ def _integrate_one(
 
 __all__ = [
     "FREE",
+    "MAX_GRID_CELLS",
     "LOADED_P_MAX",
     "LOADED_P_MIN",
     "OCCUPIED",
@@ -357,6 +377,7 @@ __all__ = [
     "GridGeometry",
     "OccupancyGrid",
     "bounds_of_scans",
+    "check_grid_size",
     "integrate_scans",
     "logit",
 ]

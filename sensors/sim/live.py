@@ -34,6 +34,7 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import signal
 import time
 from dataclasses import dataclass
 from multiprocessing import shared_memory
@@ -118,7 +119,10 @@ class SimRobotStats:
 
 
 def _child(*args: Any) -> None:
-    """The child's entry: any failure is reported to the host, not lost with the process."""
+    """The child's entry: any failure is reported to the host, not lost with the process.
+    Ctrl-C reaches the whole process group; the host decides when the robot stops (it sends
+    "stop"), so the child ignores SIGINT instead of dying with a KeyboardInterrupt traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     replies = args[-1]
     try:
         _simulate(*args)

@@ -30,14 +30,16 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
+from sensors.config import short_repr
+from sensors.safe_yaml import read_yaml
 from sensors.types import WorldError
 
 DEFAULT_WALL_THICKNESS = 0.1  # [m]
 DEFAULT_WALL_HEIGHT = 2.5  # [m]
 DEFAULT_DOOR_HEIGHT = 2.0  # [m]
 MIN_WALL_PIECE = 1e-3  # [m] shorter wall pieces beside doors are dropped
+MAX_WORLD_COORDINATE = 1000.0  # [m] a simulated building fits in a 2 km square
 
 
 @dataclass(frozen=True)
@@ -102,12 +104,20 @@ class World:
 # --- loading ----------------------------------------------------------------------------------
 
 
-def _num(d: Mapping[str, Any], key: str, where: str, default: float | None = None) -> float:
+def _num(
+    d: Mapping[str, Any],
+    key: str,
+    where: str,
+    default: float | None = None,
+    positive: bool = False,
+) -> float:
     v = d.get(key, default)
     if v is None:
         raise WorldError(f"{where}: missing '{key}'")
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise WorldError(f"{where}.{key}: expected a number, got {v!r}")
+        raise WorldError(f"{where}.{key}: expected a number, got {short_repr(v)}")
+    if positive and not v > 0:
+        raise WorldError(f"{where}.{key}: must be > 0, got {v}")
     return float(v)
 
 
@@ -117,8 +127,13 @@ def _vec(d: Mapping[str, Any], key: str, n: int, where: str) -> tuple[float, ...
         not isinstance(v, (list, tuple))
         or len(v) != n
         or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+        or not all(math.isfinite(x) for x in v)
     ):
-        raise WorldError(f"{where}.{key}: expected a list of {n} numbers, got {v!r}")
+        raise WorldError(f"{where}.{key}: expected a list of {n} numbers (finite), "
+                         f"got {short_repr(v)}")  # fmt: skip
+    if any(abs(x) > MAX_WORLD_COORDINATE for x in v[:2]):
+        raise WorldError(f"{where}.{key}: {list(v)} is farther than {MAX_WORLD_COORDINATE:g} m "
+                         "from the origin")  # fmt: skip
     return tuple(float(x) for x in v)
 
 
@@ -127,7 +142,8 @@ def _surface(d: Any, where: str, default: Surface) -> Surface:
         return default
     if not isinstance(d, Mapping):
         raise WorldError(f"{where}: expected a mapping with texture and scale")
-    return Surface(str(d.get("texture", default.texture)), _num(d, "scale", where, default.scale))
+    scale = _num(d, "scale", where, default.scale, positive=True)
+    return Surface(str(d.get("texture", default.texture)), scale)
 
 
 def _wall_boxes(w: Mapping[str, Any], where: str, defaults: Mapping[str, float]) -> list[Box]:
@@ -137,18 +153,18 @@ def _wall_boxes(w: Mapping[str, Any], where: str, defaults: Mapping[str, float])
     length = math.hypot(x1 - x0, y1 - y0)
     if length < MIN_WALL_PIECE:
         raise WorldError(f"{where}: wall has zero length")
-    thickness = _num(w, "thickness", where, defaults["wall_thickness"])
-    height = _num(w, "height", where, defaults["wall_height"])
+    thickness = _num(w, "thickness", where, defaults["wall_thickness"], positive=True)
+    height = _num(w, "height", where, defaults["wall_height"], positive=True)
     door_h = defaults["door_height"]
     tex = str(w.get("texture", "plaster"))
-    scale = _num(w, "texture_scale", where, 1.5)
+    scale = _num(w, "texture_scale", where, 1.5, positive=True)
     yaw = math.atan2(y1 - y0, x1 - x0)
     ux, uy = (x1 - x0) / length, (y1 - y0) / length
     # Solid intervals along the wall, after cutting out the doors.
     doors = sorted(
         (
             _num(d, "at", f"{where}.doors[{i}]"),
-            _num(d, "width", f"{where}.doors[{i}]", 0.9),
+            _num(d, "width", f"{where}.doors[{i}]", 0.9, positive=True),
         )
         for i, d in enumerate(w.get("doors", []) or [])
     )
@@ -180,12 +196,7 @@ def _wall_boxes(w: Mapping[str, Any], where: str, defaults: Mapping[str, float])
 def load_world(path: str | Path) -> World:
     """Read and validate a world YAML; errors name the file and the offending entry."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as err:
-        raise WorldError(f"{path}: cannot read world file ({err.strerror})") from err
-    except yaml.YAMLError as err:
-        raise WorldError(f"{path}: not valid YAML") from err
+    data = read_yaml(path, WorldError, "world file")
     if not isinstance(data, Mapping):
         raise WorldError(f"{path}: top level must be a mapping")
     return world_from_dict(data, source=str(path))
@@ -200,9 +211,9 @@ def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
     if unknown:
         raise WorldError(f"{source}: {unknown[0]}: unknown key (valid: {', '.join(sorted(known))})")
     defaults = {
-        "wall_thickness": _num(data, "wall_thickness", source, DEFAULT_WALL_THICKNESS),
-        "wall_height": _num(data, "wall_height", source, DEFAULT_WALL_HEIGHT),
-        "door_height": _num(data, "door_height", source, DEFAULT_DOOR_HEIGHT),
+        "wall_thickness": _num(data, "wall_thickness", source, DEFAULT_WALL_THICKNESS, True),
+        "wall_height": _num(data, "wall_height", source, DEFAULT_WALL_HEIGHT, True),
+        "door_height": _num(data, "door_height", source, DEFAULT_DOOR_HEIGHT, True),
     }
     walls = data.get("walls") or []
     if not isinstance(walls, list) or not walls:
@@ -224,7 +235,7 @@ def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
         boxes.append(
             Box(
                 cx, cy, length / 2, width / 2, _num(f, "yaw", where, 0.0), z0, z0 + height,
-                str(f.get("texture", "wood")), _num(f, "texture_scale", where, 1.0),
+                str(f.get("texture", "wood")), _num(f, "texture_scale", where, 1.0, True),
                 str(f.get("name", f"furniture{i}")),
             )
         )  # fmt: skip
@@ -234,7 +245,7 @@ def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
         raise WorldError(f"{source}: route: expected a non-empty list of [x, y] waypoints")
     route = np.array([_vec({"p": p}, "p", 2, f"{source}: route[{i}]") for i, p in
                       enumerate(route_raw)], dtype=np.float64)  # fmt: skip
-    return World(
+    world = World(
         name=str(data.get("name", Path(source).stem)),
         boxes=tuple(boxes),
         floor=_surface(data.get("floor"), f"{source}: floor", Surface("wood", 1.0)),
@@ -244,6 +255,12 @@ def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
         route=route,
         source=source,
     )
+    plan = floor_plan(world)  # a robot that starts inside a wall would be stuck from frame 0
+    r, c = plan.cell_of(np.array([start[:2]]))[0]
+    if 0 <= r < plan.occupied.shape[0] and 0 <= c < plan.occupied.shape[1] and plan.occupied[r, c]:
+        raise WorldError(f"{source}: start ({start[0]:g}, {start[1]:g}) is inside a wall or "
+                         "furniture")  # fmt: skip
+    return world
 
 
 # --- floor plan -------------------------------------------------------------------------------

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -164,6 +165,24 @@ def test_odometry_without_vo_skips_it(recording: Path, tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     assert not (out / "vo.tum").exists() and (out / "fused.tum").is_file()
     assert json.loads((out / "summary.json").read_text())["ekf"]["inputs"] == ["imu0", "odom0"]
+
+
+def test_a_glitched_encoder_reading_is_counted_in_the_summary_not_driven(
+    recording: Path, tmp_path: Path
+) -> None:
+    glitched = tmp_path / "glitched"
+    shutil.copytree(recording, glitched)
+    lines = (glitched / "wheels.txt").read_text().splitlines()
+    rows = [i for i, ln in enumerate(lines) if ln and not ln.startswith("#")]
+    t, left, right = lines[rows[20]].split()
+    lines[rows[20]] = f"{t} {int(left) + 2**31 - 1} {right}"  # one reading, high bit flipped
+    (glitched / "wheels.txt").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["odometry", str(glitched), "--out", str(out), "-q", "--no-vo"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["wheel_readings_dropped_glitch"] == 1
+    assert summary["wheel_odometry_vs_groundtruth"]["final_position_error_m"] < 0.1
 
 
 def test_odometry_refuses_a_source_without_wheel_readings(tmp_path: Path) -> None:

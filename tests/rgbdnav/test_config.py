@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +21,11 @@ from rgbdnav.config import (
 )
 from rgbdnav.config_docs import render_eddie_yaml, render_section_yaml
 from sensors.types import ConfigError
+
+
+def write_text(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
 
 
 def write_yaml(path: Path, data: object) -> Path:
@@ -210,6 +217,83 @@ def test_invalid_yaml_file_names_the_line(tmp_path: Path) -> None:
 def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"nope\.yaml: cannot read config file"):
         load_config([tmp_path / "nope.yaml"])
+
+
+# --- hostile files and values ----------------------------------------------------------------
+
+
+def test_a_config_that_is_not_utf8_is_a_config_error_naming_the_byte(tmp_path: Path) -> None:
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes("camera:\n  fx: 525 # \u00b5m\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match=r"latin1\.yaml: config file is not UTF-8 text \(byte"):
+        load_config([path])
+
+
+@pytest.mark.parametrize("text", ["[" * 5000 + "]" * 5000, "a:\n" + "".join(
+    " " * i + "b:\n" for i in range(1, 200)) + " " * 200 + "1\n"])  # fmt: skip
+def test_deeply_nested_yaml_is_an_error_not_a_recursion_error(tmp_path: Path, text: str) -> None:
+    path = tmp_path / "deep.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=r"deep\.yaml: line \d+: nested deeper than 64"):
+        load_config([path])
+
+
+def test_a_yaml_alias_bomb_is_refused_at_once_with_a_short_message(tmp_path: Path) -> None:
+    lines = ["a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]"]
+    for prev, name in zip("abcdefgh", "bcdefghi", strict=True):
+        lines.append(f"{name}: &{name} [{', '.join(['*' + prev] * 9)}]")
+    path = tmp_path / "bomb.yaml"
+    path.write_text("\n".join(lines + ["ekf: *i"]) + "\n")
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match="more than 1000000 nodes") as info:
+        load_config([path])
+    assert time.perf_counter() - t0 < 2.0 and len(str(info.value)) < 300
+
+
+def test_a_small_alias_that_expands_to_a_big_value_is_quoted_short() -> None:
+    with pytest.raises(ConfigError, match=r"ekf\.frequency: expected a number") as info:
+        load_config(overrides=["ekf.frequency=[" + ", ".join(["x" * 50] * 2000) + "]"])
+    assert len(str(info.value)) < 300
+
+
+def test_a_duplicate_key_is_an_error_naming_the_key_and_line(tmp_path: Path) -> None:
+    path = write_text(tmp_path / "dup.yaml", "ekf:\n  frequency: 30\n  frequency: 50\n")
+    with pytest.raises(ConfigError, match=r"dup\.yaml: line 3: duplicate key 'frequency'"):
+        load_config([path])
+    path = write_text(tmp_path / "dup2.yaml", "ekf: {}\nmapper: {}\nekf: {}\n")
+    with pytest.raises(ConfigError, match=r"line 3: duplicate key 'ekf'"):
+        load_config([path])
+
+
+@pytest.mark.parametrize(("typed", "value"), [("1e12", 1e12), ("5E2", 500.0), ("5.25e2", 525.0)])
+def test_numbers_typed_with_an_exponent_and_no_dot_are_numbers(typed: str, value: float) -> None:
+    assert load_config(overrides=[f"camera.fx={typed}"]).camera.fx == value
+    assert load_config(overrides=["camera.baseline=75e-3"]).camera.baseline == 0.075
+
+
+@pytest.mark.parametrize("typed", [".nan", ".inf", "-.inf", "1" + "0" * 400])
+def test_a_number_that_is_not_finite_is_refused_where_a_range_would_let_it_pass(
+    typed: str,
+) -> None:
+    with pytest.raises(ConfigError, match=r"camera\.fx: expected a finite number"):
+        load_config(overrides=[f"camera.fx={typed}"])
+
+
+@pytest.mark.parametrize("value", ["", "' '"])
+def test_an_empty_topic_name_is_an_error_not_a_stream_silently_dropped(value: str) -> None:
+    with pytest.raises(ConfigError, match=r"topics: rgb: empty topic name"):
+        load_config(overrides=[f"topics.rgb={value}"])
+
+
+def test_a_yaml_file_that_is_not_a_regular_file_is_refused_without_blocking(
+    tmp_path: Path,
+) -> None:
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)
+    with pytest.raises(ConfigError, match=r"fifo\.yaml: cannot read config file \(not a regular"):
+        load_config([fifo])
+    with pytest.raises(ConfigError, match=r"/dev/zero: cannot read config file"):
+        load_config(["/dev/zero"])
 
 
 # --- writing ----------------------------------------------------------------------------------

@@ -159,6 +159,18 @@ def test_a_track_is_streamed_in_full_and_thinned_in_memory(tmp_path: Path) -> No
     assert len(tw.thinned()) < 100
 
 
+def test_a_streamed_track_reaches_the_file_before_it_is_closed(tmp_path: Path) -> None:
+    # A kill -9 never reaches close(): the first row and every second's rows are flushed.
+    tw = TrackWriter(tmp_path / "t.tum", spacing_m=0.05)
+    tw.add(10**9, 1.0, 2.0, 0.0)
+    on_disk = np.loadtxt(tmp_path / "t.tum", comments="#", ndmin=2)
+    assert len(on_disk) == 1 and on_disk[0, 1] == pytest.approx(1.0)
+    tw._flushed_at -= 2.0  # a second and more later
+    tw.add(2 * 10**9, 3.0, 2.0, 0.0)
+    assert len(np.loadtxt(tmp_path / "t.tum", comments="#", ndmin=2)) == 2
+    tw.close()
+
+
 def test_a_timeline_halves_instead_of_growing() -> None:
     tl = Timeline(capacity=64)
     for k in range(10_000):

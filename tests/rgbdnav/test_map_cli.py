@@ -69,6 +69,18 @@ def test_map_of_a_laser_log_corrects_bad_odometry_and_writes_a_loadable_bundle(
     assert occ[max(r[0] - 1, 0) : r[0] + 2, max(c[0] - 1, 0) : c[0] + 2].any()
 
 
+def test_records_the_reader_skipped_are_counted_in_the_summary(tmp_path: Path) -> None:
+    truth = _route(40)
+    log = _write_log(tmp_path / "room.clf", truth, truth)
+    with log.open("a") as f:
+        f.write("FLASER 3 1.0 zwei 3.0 0 0 0 0 0 0 99.0 host 99.0\n")  # one garbage line
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["map", str(log), "--out", str(out), "-q"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["source_skipped"] == {"non_numeric": 1}
+
+
 def test_map_continue_relocalises_a_new_log_in_another_odometry_frame(tmp_path: Path) -> None:
     truth = _route(60)
     first = tmp_path / "first"

@@ -227,3 +227,24 @@ def test_radish_logs_read(name, scans, beams):
     assert {len(s.ranges) for s in src.log.scans} == {beams}
     assert src.log.ignored == {"NEFF": scans}
     assert set(src.skipped) <= {"odom_non_monotonic"}  # their ODOM stamps are partly 0 or junk
+
+
+def test_a_stamp_beyond_int64_nanoseconds_is_a_counted_skip(tmp_path):
+    lines = [flaser([1.0] * 181, t) for t in (12.5, 1e30, 13.0)]
+    log = read_carmen_log(write_log(tmp_path / "a.clf", lines))
+    assert log.skipped == {"bad_timestamp": 1} and len(log.scans) == 2
+
+
+def test_a_scan_whose_pose_is_a_kilometre_off_between_agreeing_neighbours_is_a_counted_skip(
+    tmp_path,
+):
+    lines = [flaser([1.0] * 181, 10 + 0.2 * k, pose=(0.1 * k, 0.0, 0.0), odom=(0.1 * k, 0, 0))
+             for k in range(6)]  # fmt: skip
+    lines[3] = flaser([1.0] * 181, 10.6, pose=(1000.0, 0.0, 0.0), odom=(0.3, 0.0, 0.0))
+    log = read_carmen_log(write_log(tmp_path / "a.clf", lines))
+    assert log.skipped == {"pose_jump": 1} and len(log.scans) == 5
+    assert np.abs(log.laser_pose.x).max() < 1.0
+    # A robot that really moved on (every later pose agrees) keeps all its scans.
+    moved = [flaser([1.0] * 181, 10 + 0.2 * k, pose=(0.1 * k + (50 if k > 2 else 0), 0, 0))
+             for k in range(6)]  # fmt: skip
+    assert read_carmen_log(write_log(tmp_path / "b.clf", moved)).skipped == {}

@@ -331,6 +331,28 @@ def test_concurrent_callers_never_get_each_others_replies(board, emulator):
     assert sum(1 for _, text in emulator.commands() if text == "DIST") == 300
 
 
+@pytest.mark.parametrize("late_s", [0.25, 0.35])
+def test_a_reply_that_comes_after_its_command_timed_out_is_not_the_next_commands_answer(
+    board, emulator, late_s
+):
+    # HEAD's "000" would parse as a PING of one 0 mm echo: the late line must be dropped.
+    emulator.inject(late_reply_s=late_s)  # past the 0.2 s timeout, within one more
+    with pytest.raises(BoardError, match=r"HEAD: no reply within 0.2 s \(timeout\)"):
+        board.heading()
+    assert board.ping() == (500, 1200)
+    assert board.late_replies_dropped == 1
+    assert board.distance() == (0, 0) and board.late_replies_dropped == 1
+
+
+def test_a_reply_that_never_comes_delays_only_the_next_command_by_one_timeout(board, emulator):
+    emulator.inject(drop_next_replies=1)
+    with pytest.raises(BoardError, match="HEAD: no reply"):
+        board.heading()
+    t0 = time.monotonic()
+    assert board.ping() == (500, 1200)
+    assert time.monotonic() - t0 < 0.2 + 0.15 and board.late_replies_dropped == 0
+
+
 def test_open_failure_is_a_board_error():
     with pytest.raises(BoardError, match="cannot open Eddie board at /nonexistent/tty"):
         EddieBoard("/nonexistent/tty")

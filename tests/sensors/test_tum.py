@@ -62,3 +62,29 @@ def test_trajectory_going_back_in_time_names_the_line(tmp_path):
     path.write_text("2.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n")
     with pytest.raises(SensorError, match=r"traj\.txt:2: non-monotonic timestamp"):
         load_tum_trajectory(path)
+
+
+@pytest.mark.parametrize("stamp", ["1e10", "1e30", "100000000000000000000", "-4611686019"])
+def test_a_stamp_beyond_int64_nanoseconds_is_an_error_naming_the_line(tmp_path, stamp):
+    path = tmp_path / "traj.txt"
+    path.write_text(f"1.0 0 0 0 0 0 0 1\n{stamp} 0 0 0 0 0 0 1\n")
+    with pytest.raises(SensorError, match=r"traj\.txt:2: bad timestamp: .* is out of range"):
+        load_tum_trajectory(path)
+
+
+def test_a_stamp_a_digit_string_long_enough_to_stall_int_is_refused_at_once(tmp_path):
+    path = tmp_path / "traj.txt"
+    path.write_text("9" * 100_000 + " 0 0 0 0 0 0 1\n")
+    with pytest.raises(SensorError, match=r"traj\.txt:1: bad timestamp"):
+        load_tum_trajectory(path)
+
+
+@pytest.mark.parametrize(("row", "match"), [
+    ("1e30 0 0 0 0 0 1", r"position \[1e\+30, 0\.0, 0\.0\] is farther than 1e\+08 m"),
+    ("0 0 0 0 0 0 0", "quaternion has zero length"),
+])  # fmt: skip
+def test_a_pose_no_robot_can_have_is_an_error_naming_the_line(tmp_path, row, match):
+    path = tmp_path / "traj.txt"
+    path.write_text(f"1.0 0 0 0 0 0 0 1\n2.0 {row}\n")
+    with pytest.raises(SensorError, match=rf"traj\.txt:2: {match}"):
+        load_tum_trajectory(path)

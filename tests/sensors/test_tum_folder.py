@@ -241,3 +241,39 @@ def test_yaml_with_non_positive_focal_length_is_an_error_naming_the_yaml(tmp_pat
     write_tum_folder(tmp_path / "seq", yaml_text="fx: 0\nfy: 10\ncx: 3.5\ncy: 2.5\n")
     with pytest.raises(SensorError, match=r"intrinsics from camera\.yaml: .* must be > 0"):
         TumFolderSource(tmp_path / "seq")
+
+
+def test_an_unparseable_camera_yaml_is_said_not_silently_replaced_by_the_preset(
+    tmp_path, caplog
+):
+    root = tmp_path / "rgbd_dataset_freiburg2_desk"
+    write_tum_folder(root, yaml_text="fx: 520.9\nfy: [521.0\ncx: 325.1\n")
+    with caplog.at_level(logging.WARNING):
+        src = TumFolderSource(root)
+    assert "camera.yaml: not valid YAML at line" in caplog.text
+    assert "freiburg2 preset (folder name); camera.yaml not valid YAML at line 3" in src.describe()
+
+
+def test_non_finite_intrinsics_are_an_error_naming_the_yaml(tmp_path):
+    write_tum_folder(tmp_path / "seq", yaml_text="fx: .nan\nfy: 10\ncx: 3.5\ncy: 2.5\n")
+    with pytest.raises(SensorError, match=r"intrinsics from camera\.yaml are not finite"):
+        TumFolderSource(tmp_path / "seq")
+    write_tum_folder(tmp_path / "seq2", yaml_text="fx: 1\nfy: 1\ncx: 1\ncy: 1\nwidth: .inf\n"
+                     "height: 4\n")  # fmt: skip
+    with pytest.raises(SensorError, match=r"intrinsics from camera\.yaml are not finite"):
+        TumFolderSource(tmp_path / "seq2")
+
+
+def test_ground_truth_too_short_for_index_stamps_is_said_when_stamps_are_synthesised(
+    tmp_path, caplog
+):
+    root = tmp_path / "keyframes"
+    write_tum_folder(root)
+    for name in ("rgb.txt", "depth.txt"):
+        rows = [ln.split() for ln in (root / name).read_text().splitlines() if ln[0] != "#"]
+        (root / name).write_text("".join(f"{k} {f}\n" for k, (_, f) in enumerate(rows)))
+    (root / "groundtruth.txt").write_text("1305031102.1 1 2 3 0 0 0 1\n")
+    with caplog.at_level(logging.WARNING):
+        src = TumFolderSource(root)
+    assert "synthesised at 30 Hz because groundtruth.txt has 1 rows" in src.describe()
+    assert "frames go to index 2" in caplog.text

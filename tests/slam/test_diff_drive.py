@@ -9,7 +9,12 @@ import pytest
 
 from sensors.config import RobotConfig
 from sensors.types import Pose2
-from slam.diff_drive import integrate_increments, integrate_ticks, wheel_twist
+from slam.diff_drive import (
+    integrate_increments,
+    integrate_ticks,
+    reject_encoder_glitches,
+    wheel_twist,
+)
 
 ROBOT = RobotConfig()
 TICK = ROBOT.metres_per_tick  # [m] 13.3 mm on Eddie
@@ -57,3 +62,29 @@ def test_twist_is_distance_over_time() -> None:
     v, w = wheel_twist(stamps, np.array([0, 10, 20]), np.array([0, 10, 30]), ROBOT)
     assert v[0] == pytest.approx(10 * TICK / 0.1)
     assert w[1] == pytest.approx(10 * TICK / ROBOT.track_width / 0.1)
+
+
+def test_one_glitched_encoder_reading_is_dropped_not_integrated_as_300_km() -> None:
+    robot = RobotConfig()
+    t = np.arange(10, dtype=np.int64) * 20_000_000  # [ns] 50 Hz
+    ticks = np.arange(10, dtype=np.int64)  # 1 tick per 20 ms: 0.67 m/s, under the 0.9 limit
+    glitched = ticks.copy()
+    glitched[4] += 2**31 - 5  # one reading with a flipped high bit
+    clean = reject_encoder_glitches(t, glitched, ticks, robot)
+    assert (clean.glitches_dropped, clean.jumps_zeroed) == (1, 0)
+    assert list(clean.left) == [0, 1, 2, 3, 5, 6, 7, 8, 9] and len(clean.stamps_ns) == 9
+    x, _, _ = integrate_ticks(clean.left, clean.right, robot)
+    assert abs(x[-1] - 9 * robot.metres_per_tick) < 1e-9
+
+
+def test_an_encoder_step_that_stays_is_taken_as_no_motion_and_counted() -> None:
+    robot = RobotConfig()
+    t = np.arange(10, dtype=np.int64) * 20_000_000
+    ticks = np.arange(10, dtype=np.int64)
+    reset = ticks.copy()
+    reset[6:] -= 1000  # the board's counter was reset
+    clean = reject_encoder_glitches(t, reset, ticks, robot)
+    assert (clean.glitches_dropped, clean.jumps_zeroed) == (0, 1)
+    assert list(clean.left) == [0, 1, 2, 3, 4, 5, 5, 6, 7, 8]
+    same = reject_encoder_glitches(t, ticks, ticks, robot)  # nothing to clean: untouched
+    assert (same.glitches_dropped, same.jumps_zeroed) == (0, 0) and (same.left == ticks).all()

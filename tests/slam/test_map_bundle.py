@@ -250,6 +250,7 @@ def edit_yaml(folder: Path, old: str, new: str) -> None:
         ("negate: 0", "negate: 2", "'negate' must be 0 or 1"),
         ("negate: 0\n", "", "missing key 'negate'"),
         ("image: map.pgm", "image: [", "map.yaml: not valid YAML"),
+        ("negate: 0\n", "negate: 0\nnegate: 1\n", r"map.yaml: line \d+: duplicate key 'negate'"),
         ("image: map.pgm", "image: other.pgm", "other.pgm: missing image file"),
     ],
 )
@@ -258,6 +259,37 @@ def test_bad_map_yaml_is_a_map_error_naming_the_problem(tmp_path, old, new, matc
     edit_yaml(folder, old, new)
     with pytest.raises(MapError, match=match):
         load_bundle(folder)
+
+
+def _plain_map(tmp_path: Path, folder: Path, image: str) -> Path:
+    yaml_path = tmp_path / "plain.yaml"
+    yaml_path.write_text((folder / "map.yaml").read_text().replace("image: map.pgm",
+                                                                  f"image: {image}"))  # fmt: skip
+    return yaml_path
+
+
+def test_a_map_image_that_is_not_a_regular_file_is_refused_not_read_forever(tmp_path):
+    folder = saved(tmp_path)
+    with pytest.raises(MapError, match=r"/dev/zero: cannot read image \(not a regular file\)"):
+        load_map_yaml(_plain_map(tmp_path, folder, "/dev/zero"))
+
+
+def test_an_empty_or_oversized_map_image_is_a_map_error_before_decoding(tmp_path):
+    folder = saved(tmp_path)
+    for name in ("empty.pgm", "empty.png"):
+        (tmp_path / name).write_bytes(b"")
+        with pytest.raises(MapError, match=rf"{name}: empty image file"):
+            load_map_yaml(_plain_map(tmp_path, folder, str(tmp_path / name)))
+    # A 57-byte PNG whose header claims 30000 x 30000: refused from the header alone.
+    ok, png = cv2.imencode(".png", np.zeros((2, 2), np.uint8))
+    data = bytearray(png.tobytes())
+    data[16:24] = (30000).to_bytes(4, "big") * 2
+    (tmp_path / "huge.png").write_bytes(bytes(data))
+    with pytest.raises(MapError, match=r"huge\.png: image declares 30000x30000 pixels"):
+        load_map_yaml(_plain_map(tmp_path, folder, str(tmp_path / "huge.png")))
+    (tmp_path / "huge.pgm").write_bytes(b"P5 30000 30000 255\n" + bytes(16))
+    with pytest.raises(MapError, match=r"huge\.pgm: PGM declares 30000x30000 pixels"):
+        load_map_yaml(_plain_map(tmp_path, folder, str(tmp_path / "huge.pgm")))
 
 
 def test_plain_loader_allows_absolute_and_resolves_relative_images(tmp_path):
@@ -322,8 +354,30 @@ def test_graph_json_problems_are_map_errors(tmp_path):
     graph.write_text(json.dumps({**good, "keyframes": [bad_kf, *good["keyframes"][1:]]}))
     with pytest.raises(MapError, match=r"keyframes\[0\].pose must be a list of 3 numbers"):
         load_bundle(folder)
+    huge = {**good["keyframes"][0], "stamp_ns": 10**30}
+    graph.write_text(json.dumps({**good, "keyframes": [huge, *good["keyframes"][1:]]}))
+    with pytest.raises(MapError, match=r"keyframes\[0\]\.stamp_ns 10{30} is out of range"):
+        load_bundle(folder)
+    graph.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(MapError, match="graph.json: not valid JSON: nested too deeply"):
+        load_bundle(folder)
     graph.unlink()
     with pytest.raises(MapError, match="graph.json: missing file"):
+        load_bundle(folder)
+
+
+@pytest.mark.parametrize(("key", "value", "match"), [
+    ("occupied_thresh", "high", r"config\.occupied_thresh must be a number in \(0, 1\), got 'hi"),
+    ("free_thresh", float("nan"), r"config\.free_thresh must be a number in \(0, 1\), got nan"),
+    ("free_thresh", 0.9, r"free_thresh \(0\.9\) must be below occupied_thresh \(0\.65\)"),
+])  # fmt: skip
+def test_a_stored_config_value_that_is_not_a_threshold_is_a_map_error(tmp_path, key, value, match):
+    folder = saved(tmp_path)
+    graph = folder / "graph.json"
+    doc = json.loads(graph.read_text())
+    doc["config"] = {**doc["config"], "occupied_thresh": 0.65, key: value}
+    graph.write_text(json.dumps(doc))
+    with pytest.raises(MapError, match=match):
         load_bundle(folder)
 
 
@@ -341,8 +395,23 @@ def test_scans_npz_problems_are_map_errors(tmp_path):
     np.savez_compressed(scans, **arrays)
     with pytest.raises(MapError, match="'offsets' must rise from 0"):
         load_bundle(folder)
+    arrays = mb._scans_arrays(make_bundle().scans)
+    arrays["angle_increment"][1] = np.nan  # --continue would match against it
+    np.savez_compressed(scans, **arrays)
+    with pytest.raises(MapError, match="'angle_increment' of scan 1 is not a finite number"):
+        load_bundle(folder)
     scans.unlink()
     with pytest.raises(MapError, match="scans.npz: missing file"):
+        load_bundle(folder)
+
+
+@pytest.mark.parametrize("name", ["grid.npz", "scans.npz", "graph.json", "map.yaml"])
+def test_a_bundle_file_linked_from_outside_its_folder_is_refused(tmp_path, name):
+    folder = saved(tmp_path)
+    outside = tmp_path / f"elsewhere-{name}"
+    (folder / name).rename(outside)
+    (folder / name).symlink_to(outside)
+    with pytest.raises(MapError, match=rf"{name}: a link out of the bundle folder"):
         load_bundle(folder)
 
 

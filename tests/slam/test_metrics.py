@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from slam.metrics import align_se2, drift_report, interpolate_poses
+from slam.metrics import align_se2, drift_report, drift_summary, interpolate_poses
 
 
 def test_identical_trajectories_have_zero_error() -> None:
@@ -40,3 +40,12 @@ def test_reference_is_not_extrapolated() -> None:
     _, _, _, inside = interpolate_poses(t_ref, np.zeros(2), np.zeros(2), np.zeros(2),
                                         np.array([-1, 5, 11]))  # fmt: skip
     assert inside.tolist() == [False, True, False]
+
+
+def test_a_drift_summary_of_tracks_that_do_not_overlap_says_so_instead_of_raising() -> None:
+    t_ref = np.array([0, 10**9, 2 * 10**9], dtype=np.int64)
+    ref = (np.zeros(3), np.zeros(3), np.zeros(3))
+    s = drift_summary(np.array([5 * 10**9], dtype=np.int64), (np.zeros(1),) * 3, t_ref, ref)
+    assert s == {"matched": 0, "not_compared": "estimate and reference do not overlap in time",
+                 "estimate_poses": 1}  # fmt: skip
+    assert drift_summary(t_ref, ref, t_ref, ref)["matched"] == 3

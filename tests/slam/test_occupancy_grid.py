@@ -284,3 +284,14 @@ def test_aces_map_from_corrected_poses_is_sharp():
     assert inside.mean() > 0.99
     assert (d <= 1.5).mean() > 0.65, f"only {(d <= 1.5).mean():.1%} within one cell"
     assert (d <= 3.5).mean() > 0.85, f"only {(d <= 3.5).mean():.1%} within three cells"
+
+
+def test_a_grid_too_big_to_allocate_is_a_map_error_before_any_allocation() -> None:
+    # mapper.resolution=0.0002 over a 44 m building: ~2.2e5 x 2.2e5 cells, 278 GiB.
+    with pytest.raises(MapError, match=r"0\.0002 m/cell would need 2\d\d GiB.*mapper\.resol"):
+        GridGeometry.from_bounds(0.0, 0.0, 44.0, 44.0, 0.0002)
+    with pytest.raises(MapError, match="would need"):  # a pose absurdly far away
+        GridGeometry.from_bounds(0.0, 0.0, 1e300, 1.0, 0.05)
+    with pytest.raises(MapError, match="would need"):
+        GridGeometry(0.05, 0.0, 0.0, 2**20, 2**20)
+    assert GridGeometry.from_bounds(0.0, 0.0, 44.0, 44.0, 0.05).shape == (881, 881)

@@ -1,0 +1,241 @@
+"""Run a seeded mutation corpus through the readers a run reads and count how each input ends:
+ok, counted skip (the reader dropped and counted something), clean error (an RgbdNavError,
+or parse_stamp's documented ValueError), traceback (any other exception) or hang (no answer
+within --timeout seconds). Target: 0 tracebacks and 0 hangs.
+
+Run: ``.venv/bin/python bench/fuzz_inputs.py [--count 300] [--seed 0] [--out docs/benchmarks.md]``.
+Exits 1 when any input ended in a traceback or a hang.
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import signal
+import sys
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
+
+from rgbdnav.config import load_config  # noqa: E402
+from sensors.carmen import read_carmen_log  # noqa: E402
+from sensors.images import decode_image  # noqa: E402
+from sensors.tum import load_tum_trajectory  # noqa: E402
+from sensors.types import LaserScan, RgbdNavError, SensorError, parse_stamp  # noqa: E402
+from slam.map_bundle import GraphEdge, MapBundle, load_bundle, load_map_yaml, save_bundle  # noqa: E402
+from slam.occupancy_grid import GridGeometry, OccupancyGrid  # noqa: E402
+
+OUTCOMES = ("ok", "counted skip", "clean error", "traceback", "hang")
+SECTION = "fuzz_inputs"
+MAX_EXAMPLES = 3  # tracebacks and hangs quoted per reader
+SPECIALS = [b"\x00", b"\xff\xfe", b"1e30", b"nan", b".nan", b"-.inf", b"&a [*a, *a]", b"*a",
+            b"9" * 40, b"[" * 200, b"\n" * 3, b"-", b"0", b"1e12", b"{a: 1, a: 2}"]  # fmt: skip
+
+
+class _Hang(Exception):
+    pass
+
+
+def mutate(rng: random.Random, base: bytes) -> bytes:
+    """1-3 byte-level edits of ``base``: replace, insert, delete, repeat a span, cut, splice a
+    special token (huge numbers, NaN, aliases, deep nesting, invalid UTF-8)."""
+    data = bytearray(base)
+    for _ in range(rng.randint(1, 3)):
+        pos = rng.randint(0, len(data))
+        kind = rng.randrange(6)
+        if kind == 0 and pos < len(data):
+            data[pos] = rng.randrange(256)
+        elif kind == 1:
+            data[pos:pos] = bytes([rng.randrange(256)]) * rng.randint(1, 8)
+        elif kind == 2:
+            del data[pos : pos + rng.randint(1, 32)]
+        elif kind == 3:
+            data[pos:pos] = bytes(data[pos : pos + 16]) * rng.randint(1, 64)
+        elif kind == 4 and rng.random() < 0.2:
+            del data[pos:]
+        else:
+            data[pos:pos] = rng.choice(SPECIALS)
+    return bytes(data)
+
+
+# --- the readers: each takes the mutated bytes and a scratch folder --------------------------
+
+
+def _config(data: bytes, tmp: Path) -> str:
+    (tmp / "c.yaml").write_bytes(data)
+    load_config([tmp / "c.yaml"])
+    return "ok"
+
+
+def _override(data: bytes, tmp: Path) -> str:
+    load_config(overrides=[data.decode("utf-8", errors="replace")])
+    return "ok"
+
+
+def _stamp(data: bytes, tmp: Path) -> str:
+    try:
+        parse_stamp(data.decode("utf-8", errors="replace"))
+    except ValueError as err:  # parse_stamp's documented error
+        raise SensorError(str(err)) from None
+    return "ok"
+
+
+def _tum(data: bytes, tmp: Path) -> str:
+    (tmp / "t.txt").write_bytes(data)
+    load_tum_trajectory(tmp / "t.txt")
+    return "ok"
+
+
+def _carmen(data: bytes, tmp: Path) -> str:
+    (tmp / "a.clf").write_bytes(data)
+    log = read_carmen_log(tmp / "a.clf")
+    return "counted skip" if sum(log.skipped.values()) else "ok"
+
+
+def _image(data: bytes, tmp: Path) -> str:
+    decode_image(data, "x", SensorError)
+    return "ok"
+
+
+def _map_yaml(data: bytes, tmp: Path) -> str:
+    (tmp / "m.yaml").write_bytes(data)
+    load_map_yaml(tmp / "m.yaml")
+    return "ok"
+
+
+def _graph_json(data: bytes, tmp: Path) -> str:
+    (tmp / "b" / "graph.json").write_bytes(data)
+    load_bundle(tmp / "b")
+    return "ok"
+
+
+def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
+    """Reader name -> (reader, the valid input it mutates)."""
+    config = (b"ekf:\n  frequency: 30.0\n  sensor_timeout: 0.1\ncamera:\n  fx: 525.0\n"
+              b"  width: 640\nmapper: {resolution: 0.05, minimum_travel_distance: 0.5}\n"
+              b"live: {checkpoint_period: 30.0}\n")  # fmt: skip
+    tum = b"# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.5 1.5 -2 0 0 0 0.7071 0.7071\n"
+    ranges = " ".join(["1.5"] * 181)
+    carmen = b"".join(f"FLASER 181 {ranges} 1 2 0.5 0.1 0.2 0.3 {t} host {t + 0.01}\n".encode()
+                      for t in (1.0, 1.2, 1.4))  # fmt: skip
+    png = cv2.imencode(".png", np.arange(48, dtype=np.uint8).reshape(4, 4, 3))[1].tobytes()
+    jpg = cv2.imencode(".jpg", np.arange(48, dtype=np.uint8).reshape(4, 4, 3))[1].tobytes()
+    pgm = b"P5\n4 3\n255\n" + bytes([0, 254, 205, 0] * 3)
+    (tmp / "map.pgm").write_bytes(pgm)
+    map_yaml = (b"image: map.pgm\nmode: trinary\nresolution: 0.05\norigin: [-1.0, -0.5, 0.0]\n"
+                b"negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n")  # fmt: skip
+    geom = GridGeometry(0.1, -1.0, -0.5, 20, 10)
+    grid = OccupancyGrid.from_occupancy_values(geom, np.zeros(geom.shape, np.int8))
+    scans = tuple(LaserScan(10 + i, -1.0, 0.5, np.ones(3, np.float32), 0.1, 5.0) for i in range(3))
+    poses = np.array([[0.1 * i, 0.0, 0.0] for i in range(3)])
+    info = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    edges = tuple(GraphEdge("odometry", i, i + 1, (0.1, 0.0, 0.0), info) for i in range(2))
+    save_bundle(MapBundle(grid, np.arange(3, dtype=np.int64), np.arange(3) + 10, poses, poses,
+                          edges, scans, {"resolution": 0.1}, "fuzz", "2026-01-01T00:00:00+00:00"),
+                tmp / "b")  # fmt: skip
+    graph = (tmp / "b" / "graph.json").read_bytes()
+    return {
+        "config file (YAML)": (_config, config),
+        "--set override": (_override, b"ekf.frequency=30"),
+        "text timestamp": (_stamp, b"1305031102.175304"),
+        "TUM trajectory": (_tum, tum),
+        "CARMEN log": (_carmen, carmen),
+        "image bytes (PNG)": (_image, png),
+        "image bytes (JPEG)": (_image, jpg),
+        "image bytes (PGM)": (_image, pgm),
+        "Nav2 map.yaml": (_map_yaml, map_yaml),
+        "bundle graph.json": (_graph_json, graph),
+    }
+
+
+def run_one(reader: Callable[[bytes, Path], str], data: bytes, tmp: Path, timeout_s: float
+            ) -> tuple[str, str | None]:  # fmt: skip
+    """(outcome, the exception for a traceback or hang)."""
+    signal.setitimer(signal.ITIMER_REAL, timeout_s)
+    try:
+        return reader(data, tmp), None
+    except _Hang:
+        return "hang", f"no answer within {timeout_s} s"
+    except RgbdNavError:
+        return "clean error", None
+    except Exception as err:  # what this benchmark exists to find
+        return "traceback", f"{type(err).__name__}: {str(err)[:120]}"
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--count", type=int, default=300, help="mutated inputs per reader")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--timeout", type=float, default=5.0, help="[s] per input before a hang")
+    ap.add_argument("--out", type=Path, help="publish into this markdown file's section")
+    args = ap.parse_args()
+
+    def on_alarm(_signum: int, _frame: Any) -> None:
+        raise _Hang
+
+    signal.signal(signal.SIGALRM, on_alarm)
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # OpenCV's own stderr lines for each bad image: the outcome is counted
+    rng = random.Random(args.seed)
+    rows, problems, total = [], [], Counter()
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as scratch:
+        tmp = Path(scratch)
+        for name, (reader, base) in _corpus(tmp).items():
+            if run_one(reader, base, tmp, args.timeout)[0] != "ok":  # else it measures nothing
+                raise SystemExit(f"{name}: the unmutated input does not read")
+            counts: Counter[str] = Counter()
+            slowest = 0.0
+            for _ in range(args.count):
+                data = mutate(rng, base)
+                t = time.perf_counter()
+                outcome, why = run_one(reader, data, tmp, args.timeout)
+                slowest = max(slowest, time.perf_counter() - t)
+                counts[outcome] += 1
+                if why is not None and sum(1 for p in problems if p[0] == name) < MAX_EXAMPLES:
+                    problems.append((name, why, data[:60]))
+            total.update(counts)
+            rows.append(f"| {name} | {args.count} | "
+                        + " | ".join(str(counts[o]) for o in OUTCOMES)
+                        + f" | {1e3 * slowest:.0f} |")  # fmt: skip
+    wall = time.perf_counter() - t0
+    n = args.count * len(rows)
+    lines = [
+        "## Hostile inputs: mutation fuzzing of the readers (issue 28)",
+        "",
+        f"`bench/fuzz_inputs.py --count {args.count} --seed {args.seed}`: every reader gets "
+        f"{args.count} seeded mutations of a valid input (byte edits, repeats, cuts, and "
+        "spliced NaN / 1e30 / huge digit strings / aliases / deep nesting / invalid UTF-8). "
+        f"{n} inputs in {wall:.1f} s on {machine('cv2', 'yaml')}.",
+        "",
+        "| reader | inputs | " + " | ".join(OUTCOMES) + " | slowest [ms] |",
+        "|---|---:|" + "---:|" * len(OUTCOMES) + "---:|",
+        *rows,
+        f"| **all** | {n} | " + " | ".join(f"**{total[o]}**" for o in OUTCOMES) + " | |",
+        "",
+        "ok and clean error are both right answers (most mutations make an input invalid); a "
+        "counted skip is a CARMEN line dropped and counted in `skipped`. A traceback is any "
+        "exception other than an RgbdNavError; a hang is an input still running after "
+        f"{args.timeout:g} s. This cannot see a silent wrong result: those are pinned by the "
+        "unit tests named after them.",
+    ]
+    if problems:
+        lines += ["", "Tracebacks and hangs (first inputs):", ""]
+        lines += [f"- {name}: `{why}` from `{data!r}`" for name, why, data in problems]
+    publish("\n".join(lines), args.out, SECTION)
+    return 1 if total["traceback"] or total["hang"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
