@@ -10,6 +10,8 @@ that never blocks: each :meth:`Navigator.tick` decides one command and returns i
   goal still without a path is *refused*.
 - **Follow** with regulated pure pursuit (controller_server at ``follower.controller_frequency``);
   the follower's goal checker (``xy_goal_tolerance``, ``yaw_goal_tolerance``) says *reached*.
+  An estimate in the inscribed band is no refusal: the planner plans out of it (NavFn's
+  ``clearRobotCell``), and on that way out the arc check only stops the robot for walls.
 - **Replan** when the path ahead is blocked, when the arc is blocked (FollowPath fails: the next
   recovery of the round first), when no progress is made (SimpleProgressChecker:
   ``required_movement_radius`` within ``movement_time_allowance``: clear the costmap, back up),

@@ -24,27 +24,18 @@ Each simulation step, in simulated time (never wall time):
    With ``navigate.replan_frequency`` > 0 (Nav2's behaviour tree replans at 1 Hz) the path is
    also planned again at that rate on the costmap as it now is, so that it keeps the
    inflation's distance from what the camera has seen since (furniture moved since the map).
-2. At ``follower.controller_frequency`` the regulated pure pursuit follower turns the path and
-   the estimated pose into (v, w); ``blocked``, an invalidated path or no progress
-   (:class:`nav.behaviors.ProgressChecker`) triggers a replan (at most ``max_replans`` per
-   goal); a blocked arc (the controller failing) first runs the next behaviour of Nav2's
-   recovery round-robin (clear the costmap, spin, wait, back up), a replan that fails runs the
-   round until one succeeds, and being stuck clears the costmap and backs up. An estimate in the
-   inscribed band is not a refusal: the planner plans out of it (NavFn's ``clearRobotCell``),
-   and while the robot follows that way out the controller's collision check only stops it for
-   walls (lethal cells).
-   **Settle** (``navigate.goal_settle_spin`` > 0, localizer mode): when the goal checker says
-   "reached" (on the estimate), the robot stops, turns in place and the localiser fuses one
-   match of the turn's scans stacked by odometry (:meth:`Localizer.match_recent`); the next
-   control cycle checks the goal again and drives on to the corrected goal if needed (at most
-   ``goal_settle_attempts`` settles per goal). A narrow depth scan fits moved furniture
-   confidently off and the localiser's gate then holds the estimate there; the walls all round
-   outweigh one piece of furniture. ``navigate.settle_on_gated_scans`` settles (and replans)
-   while driving too, after that many gated matches in a row.
-3. At ``smoother.smoothing_frequency`` the velocity smoother limits the command, which goes to
-   the wheels as a ``GOSPD`` line through the Eddie board emulator; the true pose follows the
-   wheels with diameter/track errors and slip, and wheel odometry integrates the encoder counts
-   (:mod:`rgbdnav.nav_drive`).
+2. The navigator (:class:`nav.navigator.Navigator`, the one ``rgbdnav live`` ticks in wall
+   time) is ticked with the estimate: it plans, follows at ``follower.controller_frequency``,
+   checks progress, replans (``navigate.max_replans``, ``navigate.replan_frequency``), runs
+   Nav2's recoveries and smooths the command; the goal's outcome and its reason come from it.
+   This simulation is its pose corrector: a **settle** (``navigate.goal_settle_spin`` > 0,
+   localizer mode) fuses one match of the settle turn's scans stacked by odometry
+   (:meth:`Localizer.match_recent`), at goals and after ``navigate.settle_on_gated_scans``
+   gated matches in a row; a narrow depth scan fits moved furniture confidently off, and the
+   walls all round outweigh one piece of furniture.
+3. At ``smoother.smoothing_frequency`` the smoothed command goes to the wheels as a ``GOSPD``
+   line through the Eddie board emulator; the true pose follows the wheels with diameter/track
+   errors and slip, and wheel odometry integrates the encoder counts (:mod:`rgbdnav.nav_drive`).
 
 A goal in a wall, a keepout zone, outside the map or unreachable is refused with a reason;
 after every goal (reached or not) the robot is brought to rest, then the waypoint task (a pause)
