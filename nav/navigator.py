@@ -310,8 +310,12 @@ class Navigator:
 
     def hold(self, now_ns: int, twist: tuple[float, float], status: str) -> Drive:
         """Command ``twist`` for the caller this tick (turning in place to relocalise): smoothed,
-        no decision taken, progress judged afresh afterwards."""
+        no decision taken but the goal timeout, progress judged afresh afterwards."""
         self._anchor = None
+        g, timeout = self._goal, self.cfg.navigate.goal_timeout
+        if g is not None and (now_ns - g.start_ns) / NS_PER_S > timeout:
+            self._finish(now_ns, "failed", "timeout", f"timeout after {timeout:g} s")
+            twist = (0.0, 0.0)
         return self._smooth(now_ns, twist[0], twist[1], status)
 
     def _smooth(self, now_ns: int, v: float, w: float, status: str) -> Drive:

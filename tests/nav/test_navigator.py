@@ -265,3 +265,15 @@ def test_navigator_config_sections_are_reused_not_copied() -> None:
     nav = Navigator(Sections(navigate=navigate), two_rooms())
     assert nav.progress.required_movement_radius == 0.3
     assert nav.progress.movement_time_allowance == 4.0
+
+
+def test_a_goal_held_by_the_caller_past_goal_timeout_fails() -> None:
+    # The caller turning in place to relocalise does not stop the goal's clock.
+    nav = Navigator(Sections(navigate=NavigateConfig(goal_timeout=2.0)), two_rooms())
+    nav.set_goal((3.0, 1.0), 0)
+    for k in range(60):
+        d = nav.hold(k * DT_NS, (0.0, 0.4), "relocalising")
+        if not nav.active:
+            break
+    out = outcome_of(nav)
+    assert out.code == "timeout" and d.w < 0.4  # the spin is being smoothed down to rest
