@@ -12,8 +12,9 @@ that never blocks: each :meth:`Navigator.tick` decides one command and returns i
   the follower's goal checker (``xy_goal_tolerance``, ``yaw_goal_tolerance``) says *reached*.
   An estimate in the inscribed band is no refusal: the planner plans out of it (NavFn's
   ``clearRobotCell``), and on that way out the arc check only stops the robot for walls.
-- **Replan** when the path ahead is blocked, when the arc is blocked (FollowPath fails: the next
-  recovery of the round first), when no progress is made (SimpleProgressChecker:
+- **Replan** when the path ahead is blocked (checked as the costmap changes), when the arc is
+  blocked (FollowPath fails: the next recovery of the round first), when no progress is made
+  (SimpleProgressChecker:
   ``required_movement_radius`` within ``movement_time_allowance``: clear the costmap, back up),
   and every ``1 / navigate.replan_frequency`` s. A replan whose plans fail runs the round (clear,
   spin, wait, back up) one behaviour per failure. ``navigate.max_replans`` replans, an exhausted
@@ -261,6 +262,7 @@ class Navigator:
         self._planned_ns = 0  # last (re)plan, for replan_frequency
         self._periodic: int | None = None  # ticket of a periodic plan in flight
         self._pose: np.ndarray | None = None  # the last estimate ticked with
+        self._path_checked: tuple[int, int, int] | None = None  # (costmap, revision, path) ids
 
     # 1. Goals.
 
@@ -365,7 +367,8 @@ class Navigator:
             self._actions.append(_Plan("settle"))
             return False
         self._periodic_replan(now_ns, pose)
-        if self._path_blocked(pose):
+        seen = (id(self.costmap), self.costmap.revision, id(self.path))
+        if seen != self._path_checked and self._path_blocked(pose):
             self.counts["replans_blocked_path"] += 1
             return self._replan(now_ns, "path blocked by a new obstacle", "path")
         if self._anchor is None or self.progress.moved(self._anchor[0], pose):
@@ -430,6 +433,7 @@ class Navigator:
         the band it is escaping) is one the planner may no longer enter."""
         assert self.path is not None
         cm, pc = self.costmap, self.cfg.planner
+        self._path_checked = (id(cm), cm.revision, id(self.path))
         ahead = path_ahead(self.path[:, :2], pose[:2], self.inscribed)
         if self._escaping(pose):
             ahead = past_escape(ahead, points_passable(ahead, cm.master(), cm.geometry, pc))
