@@ -289,6 +289,7 @@ class Costmap:
         self._keepout: np.ndarray | None = None
         self._master: np.ndarray | None = None  # combined costs, None = recompute all
         self._dirty: Box | None = None  # cells changed since the master was last brought up to date
+        self.revision = 0  # bumped by every layer update: a consumer can tell what changed
 
     # 1. Construction from maps.
     @classmethod
@@ -312,6 +313,7 @@ class Costmap:
     def update_scan(self, scan: LaserScan, laser_pose: Pose2) -> None:
         """Clear and mark one scan taken at ``laser_pose`` (laser frame in the map frame)."""
         box = raytrace_scan(self._obstacles, self.geometry, scan, laser_pose, self.config)
+        self.revision += 1
         if box is not None and self._master is not None:
             d = self._dirty or box
             self._dirty = (min(d[0], box[0]), max(d[1], box[1]),
@@ -325,6 +327,7 @@ class Costmap:
         """Forget everything the obstacle layer has seen."""
         self._obstacles.fill(NO_INFORMATION if self.config.track_unknown_space else FREE)
         self._master = None
+        self.revision += 1
 
     def set_keepout(
         self,
@@ -359,6 +362,7 @@ class Costmap:
             log.debug("keepout mask covers %d of %d costmap cells", covered, costs.size)
         self._keepout = costs
         self._master = None
+        self.revision += 1
 
     def set_keepout_yaml(self, path: str | os.PathLike[str]) -> None:
         """Install a keepout mask from a Nav2 filter-mask map.yaml + image."""

@@ -24,27 +24,18 @@ Each simulation step, in simulated time (never wall time):
    With ``navigate.replan_frequency`` > 0 (Nav2's behaviour tree replans at 1 Hz) the path is
    also planned again at that rate on the costmap as it now is, so that it keeps the
    inflation's distance from what the camera has seen since (furniture moved since the map).
-2. At ``follower.controller_frequency`` the regulated pure pursuit follower turns the path and
-   the estimated pose into (v, w); ``blocked``, an invalidated path or no progress
-   (:class:`nav.behaviors.ProgressChecker`) triggers a replan (at most ``max_replans`` per
-   goal); a blocked arc (the controller failing) first runs the next behaviour of Nav2's
-   recovery round-robin (clear the costmap, spin, wait, back up), a replan that fails runs the
-   round until one succeeds, and being stuck clears the costmap and backs up. An estimate in the
-   inscribed band is not a refusal: the planner plans out of it (NavFn's ``clearRobotCell``),
-   and while the robot follows that way out the controller's collision check only stops it for
-   walls (lethal cells).
-   **Settle** (``navigate.goal_settle_spin`` > 0, localizer mode): when the goal checker says
-   "reached" (on the estimate), the robot stops, turns in place and the localiser fuses one
-   match of the turn's scans stacked by odometry (:meth:`Localizer.match_recent`); the next
-   control cycle checks the goal again and drives on to the corrected goal if needed (at most
-   ``goal_settle_attempts`` settles per goal). A narrow depth scan fits moved furniture
-   confidently off and the localiser's gate then holds the estimate there; the walls all round
-   outweigh one piece of furniture. ``navigate.settle_on_gated_scans`` settles (and replans)
-   while driving too, after that many gated matches in a row.
-3. At ``smoother.smoothing_frequency`` the velocity smoother limits the command, which goes to
-   the wheels as a ``GOSPD`` line through the Eddie board emulator; the true pose follows the
-   wheels with diameter/track errors and slip, and wheel odometry integrates the encoder counts
-   (:mod:`rgbdnav.nav_drive`).
+2. The navigator (:class:`nav.navigator.Navigator`, the one ``rgbdnav live`` ticks in wall
+   time) is ticked with the estimate: it plans, follows at ``follower.controller_frequency``,
+   checks progress, replans (``navigate.max_replans``, ``navigate.replan_frequency``), runs
+   Nav2's recoveries and smooths the command; the goal's outcome and its reason come from it.
+   This simulation is its pose corrector: a **settle** (``navigate.goal_settle_spin`` > 0,
+   localizer mode) fuses one match of the settle turn's scans stacked by odometry
+   (:meth:`Localizer.match_recent`), at goals and after ``navigate.settle_on_gated_scans``
+   gated matches in a row; a narrow depth scan fits moved furniture confidently off, and the
+   walls all round outweigh one piece of furniture.
+3. At ``smoother.smoothing_frequency`` the smoothed command goes to the wheels as a ``GOSPD``
+   line through the Eddie board emulator; the true pose follows the wheels with diameter/track
+   errors and slip, and wheel odometry integrates the encoder counts (:mod:`rgbdnav.nav_drive`).
 
 A goal in a wall, a keepout zone, outside the map or unreachable is refused with a reason;
 after every goal (reached or not) the robot is brought to rest, then the waypoint task (a pause)
@@ -78,20 +69,10 @@ from typing import Any
 
 import numpy as np
 
-from nav.behaviors import (
-    RECOVERY_SEQUENCE,
-    Behavior,
-    ProgressChecker,
-    behavior_twist,
-    next_waypoint,
-    wait_at_waypoint,
-    waypoints,
-)
+from nav.behaviors import Behavior, next_waypoint, wait_at_waypoint, waypoints
 from nav.config import NavigateConfig
-from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap, inscribed_radius
-from nav.path_follower import compute_velocity
-from nav.planner import GridPlanner, PlanResult, points_passable, replan_needed
-from nav.velocity_smoother import VelocitySmoother
+from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap
+from nav.navigator import MAX_STOP_S, Navigator
 from rgbdnav.config import Config, load_config
 from rgbdnav.localize_run import LoadedMap, load_map
 from rgbdnav.map_run import RGBD_PROFILE
@@ -101,9 +82,10 @@ from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.visualize import Visualizer, log_run, make_visualizer, occupied_cells_xy
 from sensors.atomic import atomic_write_text
+from sensors.sim.scan import cast_scan, depth_range_sigma
 from sensors.sim.world import FloorPlan, floor_plan, load_world
 from sensors.tum import write_tum_trajectory
-from sensors.types import ConfigError, LaserScan, MapError, Pose2
+from sensors.types import NS_PER_S, ConfigError, LaserScan, MapError, Pose2
 from slam.geometry import oplus, path_length, wrap_angle
 from slam.localization import Localizer, MapModel
 from slam.map_bundle import load_map_yaml
@@ -112,59 +94,13 @@ from slam.occupancy_grid import OccupancyGrid
 log = logging.getLogger(__name__)
 
 LOCALIZATION_MODES: tuple[str, ...] = ("groundtruth", "localizer")
-NS_PER_S = 1_000_000_000
 NAVIGATE_PROFILE = RGBD_PROFILE.with_name("navigate.yaml")  # localising on the robot's wheels
 SCAN_COLUMNS_PER_BEAM = 2  # [px] image columns per simulated scan beam (640 px -> 320 beams)
-RAY_STEP_CELLS = 0.5  # [cells] ray-marching step in the floor plan
-STOP_EPS = 1e-3  # [m/s, rad/s] smoothed speeds below this count as at rest
-MAX_STOP_S = 10.0  # [s] longest braking we simulate before giving up on "at rest"
-STUCK_BEHAVIORS = (RECOVERY_SEQUENCE[0], RECOVERY_SEQUENCE[3])  # clear the costmap, back up
-SETTLE_SEGMENT_RAD = 3.0  # [rad] longest spin of a goal settle (a Spin turns less than pi)
-SETTLE_TIME_FACTOR = 2.0  # [-] a settle spin's time allowance: this x its nominal duration, +1 s
 CSV_HEADER = ("t_s", "goal", "status", "cmd_v_mps", "cmd_w_radps", "smoothed_v_mps",
               "smoothed_w_radps", "gospd_left", "gospd_right")  # fmt: skip
 
 
-# 1. Pure kernels ----------------------------------------------------------------------------
-
-
-def cast_scan(
-    plan: FloorPlan,
-    pose: np.ndarray,
-    angles: np.ndarray,
-    range_min: float,
-    range_max: float,
-) -> np.ndarray:
-    """(N,) float32 ranges [m] of beams at ``angles`` [rad, laser frame] from ``pose`` (x, y, yaw)
-    marched through the occupied cells of ``plan``: +inf = no return within ``range_max``, NaN =
-    a return closer than ``range_min`` (a depth camera sees nothing there). Outside the floor plan
-    is free space."""
-    step = RAY_STEP_CELLS * plan.resolution  # [m]
-    s = np.arange(1, math.ceil(range_max / step) + 2) * step  # (S,) [m] sample distances
-    a = pose[2] + angles
-    x = pose[0] + np.cos(a)[:, None] * s  # (N, S)
-    y = pose[1] + np.sin(a)[:, None] * s
-    col = np.floor((x - plan.origin_x) / plan.resolution).astype(np.int64)
-    row = np.floor((y - plan.origin_y) / plan.resolution).astype(np.int64)
-    h, w = plan.occupied.shape
-    inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
-    hit = np.zeros(x.shape, dtype=bool)
-    hit[inside] = plan.occupied[row[inside], col[inside]]
-    any_hit = hit.any(axis=1)
-    r = np.where(any_hit, s[np.argmax(hit, axis=1)], np.inf)
-    r = np.where(r > range_max, np.inf, r)
-    r = np.where(r < range_min, np.nan, r)
-    return r.astype(np.float32)
-
-
-def depth_range_sigma(
-    ranges: np.ndarray, focal_px: float, baseline_m: float, disparity_sigma_px: float,
-    subpixel: int,
-) -> np.ndarray:  # fmt: skip
-    """Kinect v1 range noise [m]: disparity noise and 1/``subpixel``-px quantisation through
-    z = f b / d give sigma_z = z^2 sigma_d / (f b), sigma_d^2 = sigma_n^2 + (1/subpixel)^2 / 12."""
-    sigma_d = math.sqrt(disparity_sigma_px**2 + (1.0 / subpixel) ** 2 / 12.0)  # [px]
-    return np.asarray(ranges, dtype=np.float64) ** 2 * sigma_d / (focal_px * baseline_m)
+# 1. Ground truth of the simulation ----------------------------------------------------------
 
 
 def clearance_map(plan: FloorPlan) -> np.ndarray:
@@ -179,24 +115,6 @@ def clearance_at(plan: FloorPlan, dist: np.ndarray, x: float, y: float) -> float
     row, col = plan.cell_of(np.array([[x, y]]))[0]
     h, w = dist.shape
     return float(dist[row, col]) if 0 <= row < h and 0 <= col < w else math.inf
-
-
-def path_ahead(path_xy: np.ndarray, xy: np.ndarray, skip_m: float) -> np.ndarray:
-    """The part of a path after the point nearest ``xy``, without points within ``skip_m`` of it
-    (the robot's own inflated footprint would invalidate them)."""
-    d = np.hypot(path_xy[:, 0] - xy[0], path_xy[:, 1] - xy[1])
-    k = int(np.argmin(d))
-    rest = path_xy[k:]
-    return rest[d[k:] > skip_m]
-
-
-def past_escape(path_xy: np.ndarray, passable: np.ndarray) -> np.ndarray:
-    """``path_xy`` without its leading run of points where ``passable`` (N,) is false: the
-    planner's way out of the inflated band when the robot's estimate stands in it (blocked
-    when planned, so no new obstacle)."""
-    if passable.all():
-        return path_xy
-    return path_xy[int(np.argmax(passable)) if passable.any() else len(path_xy) :]
 
 
 # 2. Goal vetting ----------------------------------------------------------------------------
@@ -245,8 +163,9 @@ class _Log:
 
 
 class _Sim:
-    """Holds the world, the robot (board emulator + slip), the navigator's costmap, localiser
-    and clocks; one instance per run."""
+    """The world, the robot (board emulator + slip), its sensing and localisation, and the
+    simulated clock around one :class:`nav.navigator.Navigator`; one instance per run. It is
+    also the navigator's pose corrector for goal settles (localizer mode)."""
 
     def __init__(
         self,
@@ -260,14 +179,9 @@ class _Sim:
         nav: NavigateConfig,
     ) -> None:
         self.cfg, self.plan, self.costmap, self.rng, self.nav = cfg, plan, costmap, rng, nav
-        self.progress = ProgressChecker(nav.required_movement_radius, nav.movement_time_allowance)
         self.dist = clearance_map(plan)
         self.radius = cfg.costmap.robot_radius  # [m]
-        self.inscribed = inscribed_radius(cfg.costmap)  # [m]
-        self.planner = GridPlanner(cfg.planner)
-        self.smoother = VelocitySmoother(cfg.smoother)
         self.dt_ns = round(NS_PER_S / cfg.smoother.smoothing_frequency)
-        self.ctrl_ns = round(NS_PER_S / cfg.follower.controller_frequency)
         self.scan_ns = round(NS_PER_S / cfg.costmap.update_frequency)
         cam = cfg.camera
         fov = 2.0 * math.atan(cam.width / (2.0 * cam.fx))  # [rad] horizontal field of view
@@ -287,6 +201,10 @@ class _Sim:
         self.last_fix_ns = 0  # [ns] of the last believed localiser answer
         self.loc_covariance: np.ndarray | None = None  # of the last tracking answer
         self.reseeds = 0
+        self.fresh_scan = False  # a scan was localised since the navigator last asked
+        self._settle_scans0 = 0
+        self.navigator = Navigator(replace(cfg, navigate=nav), costmap,
+                                   corrector=self if localizer is not None else None)  # fmt: skip
         self.keepout_dist: np.ndarray | None = None
         self.keepout_geometry = None if keepout is None else keepout.geometry
         if keepout is not None:
@@ -295,10 +213,8 @@ class _Sim:
             mask = keepout.occupied_mask()
             self.keepout_dist = np.asarray(distance_transform_edt(~mask)) * \
                 keepout.geometry.resolution  # fmt: skip
-        self.next_ctrl_ns = 0
-        self.escape_plan = False  # the path followed starts with a way out of the band
         self.next_scan_ns = 0
-        self.cmd = (0.0, 0.0)  # last controller command (v, w)
+        self.cmd = (0.0, 0.0)  # the navigator's command before smoothing (v, w)
         self.vel = (0.0, 0.0)  # smoothed command being executed (v, w)
         self.collision_steps = 0
         self.collision_events = 0
@@ -309,8 +225,7 @@ class _Sim:
         self.min_clearance = math.inf
         self.min_keepout_distance = math.inf
         self.scans = 0
-        self.control_steps = 0
-        self.control_s = 0.0  # [s] wall time in costmap updates + controller cycles
+        self.control_s = 0.0  # [s] wall time of the driving steps: sensing + controller
         self.log = _Log()
         self._record(-1, "start")
 
@@ -363,6 +278,7 @@ class _Sim:
         (``localizer.match_gate``, ``localizer.jump_confirm_scans``)."""
         assert self.localizer is not None
         result = self.localizer.update(scan, oplus(self.odometry.pose, self.T_base_laser))
+        self.fresh_scan = True
         self.log.loc_status.append(result.status)
         self.log.loc_confidence.append(result.confidence)
         if result.status == "tracking":
@@ -381,16 +297,43 @@ class _Sim:
                                             self.loc_covariance)  # fmt: skip
             self.reseeds += 1
 
-    # 3b. Acting: one smoother period of motion.
-    def command(self, v: float, w: float) -> None:
-        """A controller output: the smoother's new target."""
-        self.cmd = (v, w)
-        self.smoother.set_target((v, 0.0, w), self.t_ns)
+    # 3b. The navigator's pose corrector (nav.navigator.PoseCorrector): goal settles.
+    def settle_due(self, gated_scans: int) -> bool:
+        """A scan since the last call left the localiser with ``gated_scans`` gated matches in
+        a row (``navigate.settle_on_gated_scans``)."""
+        fresh, self.fresh_scan = self.fresh_scan, False
+        return fresh and self.localizer is not None and self.localizer.gated_streak >= gated_scans
 
-    def step(self, goal: int, status: str) -> None:
-        out = self.smoother.tick(self.t_ns)
-        self.vel = (out[0], out[2])
-        self.drive.command(out[0], out[2])
+    def begin_settle(self) -> None:
+        self._settle_scans0 = self.scans
+
+    def finish_settle(self) -> str:
+        """Correct the pose with the settle turn's scans stacked by odometry
+        (:meth:`Localizer.match_recent`); the localiser's reason."""
+        assert self.localizer is not None
+        result = self.localizer.match_recent(self.scans - self._settle_scans0)
+        if result.status == "tracking":
+            self.T_map_odom = result.map_to_odom
+            self.last_fix_ns = self.t_ns
+            self.loc_covariance = result.covariance
+        return result.reason
+
+    # 3c. One smoother period: sense, decide, move, check against the world.
+    def step(self, goal: int, status: str | None = None,
+             hold: tuple[float, float] | None = None) -> None:  # fmt: skip
+        """``status`` labels the step in commands.csv (default: the navigator's); ``hold``
+        commands that twist instead of the navigator's decision."""
+        w0 = time.perf_counter()
+        self.sense()
+        nav = self.navigator
+        if hold is not None:
+            d = nav.hold(self.t_ns, hold, status or "holding")
+        else:
+            d = nav.tick(self.t_ns, self.estimate, moving=bool(np.any(self.drive.speeds)))
+        if d.status == "driving":
+            self.control_s += time.perf_counter() - w0
+        self.cmd, self.vel = nav.target, (d.v, d.w)
+        self.drive.command(d.v, d.w)
         self.drive.advance(self.dt_ns)
         self.odometry.update(self.drive.ticks())
         x, y = float(self.pose[0]), float(self.pose[1])
@@ -403,13 +346,13 @@ class _Sim:
         if self.keepout_dist is not None and self.keepout_geometry is not None:
             g = self.keepout_geometry
             row, col = g.world_to_cell(x, y)
-            d = float(self.keepout_dist[row, col]) if bool(g.contains(row, col)) else math.inf
-            self.min_keepout_distance = min(self.min_keepout_distance, d)
-            inside = d == 0.0
+            d_k = float(self.keepout_dist[row, col]) if bool(g.contains(row, col)) else math.inf
+            self.min_keepout_distance = min(self.min_keepout_distance, d_k)
+            inside = d_k == 0.0
             self.keepout_steps += inside
             self.keepout_events += inside and not self.in_keepout
             self.in_keepout = inside
-        self._record(goal, status)
+        self._record(goal, status or d.status)
 
     def _record(self, goal: int, status: str) -> None:
         self.log.stamps_ns.append(self.t_ns)
@@ -418,260 +361,57 @@ class _Sim:
         self.log.rows.append((self.t_ns / NS_PER_S, goal, status, *self.cmd, *self.vel,
                               *self.drive.sent))  # fmt: skip
 
-    def at_rest(self) -> bool:
-        return max(abs(self.vel[0]), abs(self.vel[1])) < STOP_EPS and not np.any(
-            self.drive.speeds
-        )
-
     def stop(self, goal: int) -> None:
         """Command zero and let the smoother and the board bring the wheels to rest."""
-        self.command(0.0, 0.0)
         for _ in range(math.ceil(MAX_STOP_S * NS_PER_S / self.dt_ns)):
-            if self.at_rest():
+            if self.navigator.at_rest(bool(np.any(self.drive.speeds))):
                 break
             self.step(goal, "stopping")
 
-    # 3c. Planning.
-    def make_plan(self, goal: tuple[float, float]) -> PlanResult:
-        est = self.estimate
-        return self.planner.plan(self.costmap.master().copy(), self.costmap.geometry,
-                                 (float(est[0]), float(est[1])), goal)  # fmt: skip
-
-    def run_behavior(self, k: int, behavior: Behavior) -> str:
-        """Run one behaviour (a recovery or a waypoint task) to its end; its name."""
-        if behavior.clears_costmap:
-            self.costmap.reset_obstacles()
-            return behavior.name
-        start, t0 = self.estimate, self.t_ns
-        while True:
-            self.sense()
-            twist = behavior_twist(behavior, start, self.estimate, (self.t_ns - t0) / NS_PER_S,
-                                   lambda x, y: bool(self.costmap.is_free(x, y)))  # fmt: skip
-            if twist is None:
-                break
-            self.command(*twist)
-            self.step(k, f"behavior:{behavior.name}")
-        self.stop(k)
+    def run_task(self, k: int, behavior: Behavior) -> str:
+        """A waypoint task, run by the navigator to its end; its name."""
+        self.navigator.run_task(behavior)
+        while self.navigator.busy:
+            self.step(k)
         return behavior.name
 
-    def settle_due(self) -> bool:
-        """The localiser has gated ``navigate.settle_on_gated_scans`` matches in a row (and
-        settling is on)."""
-        n = self.nav.settle_on_gated_scans
-        return (self.localizer is not None and n > 0 and self.nav.goal_settle_spin > 0.0
-                and self.localizer.gated_streak >= n)  # fmt: skip
-
-    def settle(self, k: int) -> str:
-        """Goal settle (``navigate.goal_settle_spin``): stop, turn in place, and correct the
-        pose with the turn's scans stacked by odometry (:meth:`Localizer.match_recent`); the
-        localiser's reason."""
-        assert self.localizer is not None
-        self.stop(k)
-        scans0 = self.scans
-        angle, speed = self.nav.goal_settle_spin, self.nav.goal_settle_spin_speed
-        n_seg = math.ceil(angle / SETTLE_SEGMENT_RAD)
-        for _ in range(n_seg):
-            seg = angle / n_seg
-            spin = Behavior("spin", target=seg, speed=speed,
-                            time_allowance=SETTLE_TIME_FACTOR * seg / speed + 1.0)  # fmt: skip
-            self.run_behavior(k, spin)
-        result = self.localizer.match_recent(self.scans - scans0)
-        if result.status == "tracking":
-            self.T_map_odom = result.map_to_odom
-            self.last_fix_ns = self.t_ns
-            self.loc_covariance = result.covariance
-        return result.reason
-
-    def adopt(self, plan: PlanResult) -> np.ndarray:
-        """The poses of a new plan to follow; notes whether it starts with the planner's way out
-        of an inscribed (or otherwise impassable, non-lethal) cell the estimate stands in."""
-        self.escape_plan = not bool(
-            points_passable(plan.poses[:1, :2], self.costmap.master(), self.costmap.geometry,
-                            self.cfg.planner).all()  # fmt: skip
-        )
-        return plan.poses
-
-    def escaping(self) -> bool:
-        """Following a plan's way out of the cell the estimate stood in when it was made, and
-        not out yet. (An estimate that drifts into the band while following an ordinary plan is
-        not escaping: the controller's collision check stops it and the recoveries run.)"""
-        if self.escape_plan:
-            x, y = float(self.estimate[0]), float(self.estimate[1])
-            allow = self.cfg.planner.allow_unknown
-            self.escape_plan = not bool(self.costmap.is_free(x, y, allow_unknown=allow))
-        return self.escape_plan
-
-    def arc_free_fn(self) -> Callable[[float, float], bool]:
-        """The controller's collision test. On the way out of the band the usual test (cost
-        below INSCRIBED) would call every sample a collision, so only walls count."""
-        if self.escaping():
-            return lambda x, y: int(self.costmap.cost_at(x, y)) < LETHAL
-        return lambda x, y: bool(self.costmap.is_free(x, y))
-
-    def costmap_has_obstacles(self) -> bool:
-        return bool(self.costmap.obstacle_count() > 0)
-
-    def recover_and_replan(
-        self, k: int, goal: tuple[float, float], outcome: dict[str, Any]
-    ) -> PlanResult:
-        """Plan again; while that fails, run Nav2's recovery round one behaviour at a time."""
-        plan = self.make_plan(goal)
-        for behavior in RECOVERY_SEQUENCE:
-            if plan.success:
-                break
-            self.stop(k)
-            outcome["recoveries"].append(self.run_behavior(k, behavior))
-            plan = self.make_plan(goal)
-        return plan
-
-    def drive_to(
-        self, k: int, goal: tuple[float, float], timeout_s: float, max_replans: int
-    ) -> dict[str, Any]:
-        """Plan to and follow one goal; its outcome (reached / failed / refused) with a reason."""
-        cfg = self.cfg
+    def drive_to(self, k: int, goal: tuple[float, float]) -> dict[str, Any]:
+        """Tick the navigator to one goal; its outcome (reached / failed / refused) and why."""
         t0, travelled0 = self.t_ns, len(self.log.poses)
-        outcome: dict[str, Any] = {"goal": list(goal), "replans": 0, "recoveries": []}
         self.last_fix_ns = max(self.last_fix_ns, t0)  # each goal gets relocalize_timeout
-        plan = self.make_plan(goal)
-        if not plan.success and self.costmap_has_obstacles():
-            # Maybe only what the camera saw blocks it: forget that once, as Nav2's recovery
-            # would; no motion before a first plan.
-            outcome["recoveries"].append(self.run_behavior(k, RECOVERY_SEQUENCE[0]))
-            plan = self.make_plan(goal)
-        if not plan.success and plan.reason.startswith("start"):
-            # The robot stands in an inflated (or lethal) cell: moving may free it.
-            plan = self.recover_and_replan(k, goal, outcome)
-        if not plan.success:
-            outcome.update(status="refused", reason=f"no path: {plan.reason}")
-            return outcome
-        outcome["first_plan"] = plan.poses[:, :2]
-        outcome["planned_length_m"] = round(plan.length_m, 3)
-        path = self.adopt(plan)
-        status, reason = "failed", ""
-        anchor, anchor_ns = self.estimate, self.t_ns  # progress checker
-        replan_ns = (round(NS_PER_S / self.nav.replan_frequency)
-                     if self.nav.replan_frequency > 0.0 else None)  # fmt: skip
-        planned_ns = self.t_ns
-        controller_failures = 0  # recovery round-robin position
-        settles = 0  # goal settles so far (navigate.goal_settle_spin)
-        can_settle = self.localizer is not None and self.nav.goal_settle_spin > 0.0
-        settle_max = self.nav.goal_settle_attempts if can_settle else 0
-        while True:
-            if (self.t_ns - t0) / NS_PER_S > timeout_s:
-                reason = f"timeout after {timeout_s:g} s"
-                break
-            replan_why = ""
-            w0 = time.perf_counter()
-            if self.sense():
-                if self.settle_due():
-                    # The localiser's estimate and its scans disagree: a wide look decides
-                    # before the robot drives on, on a pose that may be drifting.
-                    self.control_s += time.perf_counter() - w0  # the scan, not the settle
-                    outcome.setdefault("settles", []).append(self.settle(k))
-                    plan = self.make_plan(goal)
-                    if plan.success:
-                        path = self.adopt(plan)
-                    anchor, anchor_ns = self.estimate, self.t_ns
-                    self.next_ctrl_ns = planned_ns = self.t_ns
+        nav = self.navigator
+        nav.set_goal(goal, self.t_ns)
+        while nav.active:
+            if self.localizer is not None:
+                if (self.t_ns - self.last_fix_ns) / NS_PER_S > self.nav.relocalize_timeout:
+                    nav.cancel(self.t_ns, f"no believable localiser answer for "
+                               f"{self.nav.relocalize_timeout:g} s (last status "
+                               f"{self.log.loc_status[-1]})")  # fmt: skip
+                    break
+                if not self.localized:
+                    # Never drive on a pose the localiser does not vouch for: turn in place
+                    # (new views for the global relocalisation) until it tracks again.
+                    self.step(k, "relocalising", hold=(0.0, self.nav.relocalize_spin_speed))
                     continue
-                if replan_ns is not None and self.t_ns - planned_ns >= replan_ns:
-                    # Nav2's rate-controlled ComputePathToPose: the costmap has changed since
-                    # (obstacles seen, furniture where the map does not have it).
-                    planned_ns = self.t_ns
-                    fresh = self.make_plan(goal)
-                    if fresh.success:
-                        path = self.adopt(fresh)
-                ahead = path_ahead(path[:, :2], self.estimate[:2], self.inscribed)
-                if self.escaping():
-                    ok = points_passable(ahead, self.costmap.master(), self.costmap.geometry,
-                                         cfg.planner)  # fmt: skip
-                    ahead = past_escape(ahead, ok)
-                if replan_needed(ahead, self.costmap.master(), self.costmap.geometry,
-                                 cfg.planner):  # fmt: skip
-                    replan_why = "path blocked by a new obstacle"
-            est = self.estimate
-            fix_age_s = (self.t_ns - self.last_fix_ns) / NS_PER_S
-            if self.localizer is not None and fix_age_s > self.nav.relocalize_timeout:
-                reason = (f"no believable localiser answer for {self.nav.relocalize_timeout:g} s "
-                          f"(last status {self.log.loc_status[-1]})")  # fmt: skip
-                self.control_s += time.perf_counter() - w0
-                break
-            if not self.localized:
-                # Never drive on a pose the localiser does not vouch for: turn in place (new
-                # views for the global relocalisation) until it tracks again.
-                self.command(0.0, self.nav.relocalize_spin_speed)
-                self.control_s += time.perf_counter() - w0
-                self.step(k, "relocalising")
-                anchor, anchor_ns = self.estimate, self.t_ns
-                continue
-            if self.progress.moved(anchor, est):
-                anchor, anchor_ns = est, self.t_ns
-            elif self.progress.stuck((self.t_ns - anchor_ns) / NS_PER_S):
-                pc = self.progress
-                replan_why = (f"no progress: moved less than {pc.required_movement_radius} m in "
-                              f"{pc.movement_time_allowance:g} s")  # fmt: skip
-                anchor, anchor_ns = est, self.t_ns
-            if not replan_why and self.t_ns >= self.next_ctrl_ns:
-                self.next_ctrl_ns += self.ctrl_ns
-                cmd = compute_velocity(
-                    Pose2(*est.tolist()), path, self.vel, cfg.follower,
-                    cost_fn=lambda x, y: float(self.costmap.cost_at(x, y)),
-                    is_free=self.arc_free_fn(),
-                    inscribed_radius_m=self.inscribed,
-                )  # fmt: skip
-                self.control_steps += 1
-                if cmd.status == "goal_reached" and settles < settle_max:
-                    # Reached as far as the estimate says: settle (a wide look corrects it),
-                    # then the next control cycle checks the goal again.
-                    self.control_s += time.perf_counter() - w0  # the settle is no control cycle
-                    settles += 1
-                    outcome.setdefault("settles", []).append(self.settle(k))
-                    anchor, anchor_ns = self.estimate, self.t_ns
-                    self.next_ctrl_ns = self.t_ns
-                    continue
-                if cmd.status == "goal_reached":
-                    status, reason = "reached", ""
-                    self.control_s += time.perf_counter() - w0
-                    break
-                if cmd.status == "blocked":
-                    replan_why = cmd.reason
-                self.command(cmd.v, cmd.w)
-            self.control_s += time.perf_counter() - w0
-            if replan_why:
-                if outcome["replans"] >= max_replans:
-                    reason = f"gave up after {max_replans} replans; last: {replan_why}"
-                    break
-                if int(self.costmap.cost_at(*goal)) in (INSCRIBED, LETHAL):
-                    # Every plan would end there, so replanning cannot help.
-                    reason = (f"the camera sees an obstacle within the robot radius of the goal "
-                              f"({replan_why})")  # fmt: skip
-                    break
-                outcome["replans"] += 1
-                log.debug("goal %d: replanning (%s)", k, replan_why)
-                if replan_why.startswith("no progress"):
-                    self.stop(k)
-                    for behavior in STUCK_BEHAVIORS:
-                        outcome["recoveries"].append(self.run_behavior(k, behavior))
-                elif replan_why.startswith("collision ahead"):
-                    # The controller failed (Nav2: FollowPath fails): the next behaviour of the
-                    # recovery round-robin before planning again.
-                    self.stop(k)
-                    behavior = RECOVERY_SEQUENCE[controller_failures % len(RECOVERY_SEQUENCE)]
-                    controller_failures += 1
-                    outcome["recoveries"].append(self.run_behavior(k, behavior))
-                plan = self.recover_and_replan(k, goal, outcome)
-                if not plan.success:
-                    reason = f"replan failed ({replan_why}) after recoveries: {plan.reason}"
-                    break
-                path = self.adopt(plan)
-                anchor, anchor_ns = self.estimate, self.t_ns
-                planned_ns = self.t_ns
-            self.step(k, "driving")
+            self.step(k)
+        result = nav.outcome
+        assert result is not None
+        outcome: dict[str, Any] = {"goal": list(goal), "status": result.status,
+                                   "reason": result.reason, "replans": result.replans,
+                                   "recoveries": list(result.recoveries)}  # fmt: skip
+        if result.settles:
+            outcome["settles"] = list(result.settles)
+        if result.first_plan is not None:
+            outcome["first_plan"] = result.first_plan
+            outcome["planned_length_m"] = round(result.planned_length_m or 0.0, 3)
         self.stop(k)
+        if result.status == "refused":
+            return outcome
         driven = np.array(self.log.poses[travelled0 - 1 :])[:, :2]
-        est = self.estimate
+        # The estimate's error as the navigator judged the goal (its goal checker's verdict).
+        est = self.estimate if result.end_pose is None else result.end_pose
         outcome.update(
-            status=status, reason=reason, time_s=round((self.t_ns - t0) / NS_PER_S, 2),
+            time_s=round((self.t_ns - t0) / NS_PER_S, 2),
             driven_m=round(path_length(driven), 3),
             final_error_m=round(float(np.hypot(*(self.pose[:2] - np.asarray(goal)))), 3),
             estimated_error_m=round(float(np.hypot(*(est[:2] - np.asarray(goal)))), 3),
@@ -823,19 +563,25 @@ def run_navigate(
         goal = (wp.x, wp.y)
         if next_waypoint([o["status"] for o in outcomes], len(route),
                          nav.stop_on_failure) is None:  # fmt: skip
-            outcomes.append({"goal": list(goal), "status": "skipped", "replans": 0,
-                             "recoveries": [],
-                             "reason": "an earlier goal failed and stop_on_failure is set"})
+            outcomes.append(
+                {
+                    "goal": list(goal),
+                    "status": "skipped",
+                    "replans": 0,
+                    "recoveries": [],
+                    "reason": "an earlier goal failed and stop_on_failure is set",
+                }
+            )
             continue
         problem = goal_problem(goal, costmap, loaded, keepout, cfg.planner.allow_unknown)
         if problem is not None:
             outcome = {"goal": list(goal), "status": "refused", "reason": problem, "replans": 0,
                        "recoveries": []}  # fmt: skip
         else:
-            outcome = sim.drive_to(k, goal, nav.goal_timeout, nav.max_replans)
+            outcome = sim.drive_to(k, goal)
         sim.stop(k)  # refused or not, the robot ends every goal at rest
         if wp.task is not None and outcome["status"] == "reached":
-            outcome["task"] = sim.run_behavior(k, wp.task)
+            outcome["task"] = sim.run_task(k, wp.task)
         log.info("goal %d (%.2f, %.2f): %s %s", k, *goal, outcome["status"], outcome["reason"])
         outcomes.append(outcome)
         if progress is not None:
@@ -926,9 +672,9 @@ def run_navigate(
         "rates_hz": {"controller": cfg.follower.controller_frequency,
                      "smoother": cfg.smoother.smoothing_frequency,
                      "costmap": cfg.costmap.update_frequency},
-        "control": {"steps": sim.control_steps,
-                    "ms_per_step": (round(1e3 * sim.control_s / sim.control_steps, 3)
-                                    if sim.control_steps else None),
+        "control": {"steps": sim.navigator.controller_cycles,
+                    "ms_per_step": (round(1e3 * sim.control_s / sim.navigator.controller_cycles,
+                                          3) if sim.navigator.controller_cycles else None),
                     "what": "wall time per controller cycle incl. due scans: localiser, "
                             "costmap update, path check, follower"},
         "wall_s": round(wall_s, 3),
@@ -938,8 +684,15 @@ def run_navigate(
     return outputs, summary
 
 
-def _visualize(vis: Visualizer, stamps: np.ndarray, poses: np.ndarray, estimates: np.ndarray,
-               outcomes: list[dict[str, Any]], loaded: LoadedMap, costmap: Costmap) -> None:
+def _visualize(
+    vis: Visualizer,
+    stamps: np.ndarray,
+    poses: np.ndarray,
+    estimates: np.ndarray,
+    outcomes: list[dict[str, Any]],
+    loaded: LoadedMap,
+    costmap: Costmap,
+) -> None:
     """The run on rerun's time line: the estimated pose and path (world/robot), the true path
     (world/truth), each goal's first plan, the map and the final costmap's lethal cells."""
     try:
@@ -970,6 +723,5 @@ def describe(summary: dict[str, Any]) -> str:
             f"({summary['localization']['mode']} localisation)")  # fmt: skip
 
 
-__all__ = ["LOCALIZATION_MODES", "cast_scan", "clearance_map", "commands_csv",
-           "depth_range_sigma", "describe", "goal_problem", "navigate_settings",
-           "parse_goal_args", "path_ahead", "pose_errors", "run_navigate"]  # fmt: skip
+__all__ = ["LOCALIZATION_MODES", "clearance_map", "commands_csv", "describe", "goal_problem",
+           "navigate_settings", "parse_goal_args", "pose_errors", "run_navigate"]  # fmt: skip

@@ -14,9 +14,11 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from nav.navigator import past_escape
 from rgbdnav.cli import app
 from rgbdnav.nav_charts import accelerations
-from rgbdnav.navigate_run import cast_scan, depth_range_sigma, parse_goal_args, past_escape
+from rgbdnav.navigate_run import parse_goal_args
+from sensors.sim.scan import cast_scan, depth_range_sigma
 from sensors.sim.world import FloorPlan, floor_plan, load_world, world_from_dict
 from sensors.tum import load_tum_trajectory
 from sensors.types import ConfigError
