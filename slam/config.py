@@ -247,7 +247,7 @@ class VoConfig:
         0.01,
         ge=0.0,
         doc="depth_icp: smallest point-to-plane information eigenvalue per point "
-        "(rotations per median depth), else degenerate (a blank wall: the slide along it)",
+        "(within 60 deg of it), else degenerate (a blank wall and the floor: none)",
     )
 
     def validate(self) -> str | None:

@@ -28,6 +28,7 @@ import logging
 import math
 import time
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -48,6 +49,19 @@ from slam.visual_odometry import (
 log = logging.getLogger(__name__)
 
 ICP_DEPTH_EDGE = 0.05  # [-] neighbours further apart than this share of depth: no normal
+ICP_SUPPORT_COS = 0.5  # [-] a normal within 60 deg of a direction constrains a slide along it
+ICP_BLOCK_VALID = 0.75  # [-] share of a block's pixels with depth for it to have a point
+
+
+def orthonormalised(t: np.ndarray) -> np.ndarray:
+    """``t`` with its rotation projected onto SO(3) (SVD). KISS-ICP's Sophus aborts the whole
+    process (not an exception) on a rotation off orthogonal by ~1e-10, which products of a few
+    hundred motions reach."""
+    u, _, vt = np.linalg.svd(t[:3, :3])
+    out = np.array(t, dtype=np.float64, copy=True)
+    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def depth_to_points(depth_m: np.ndarray, intr: CameraIntrinsics, min_depth: float,
@@ -63,25 +77,36 @@ def depth_to_points(depth_m: np.ndarray, intr: CameraIntrinsics, min_depth: floa
 
 def organised_normals(depth_m: np.ndarray, intr: CameraIntrinsics, min_depth: float,
                       max_depth: float, stride: int) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Points and unit normals of the ``stride`` grid of the organised cloud: the cross product
-    of the central differences along the rows and the columns, where all four neighbours have
-    depth and none is across a depth edge. Returns (N, 3) points, (N, 3) normals (towards the
-    camera)."""
-    d = depth_m[::stride, ::stride].astype(np.float64)
-    d = np.where(np.isfinite(d) & (d >= max(min_depth, 1e-6)) & (d <= max_depth), d, np.nan)
-    v, u = np.mgrid[0 : depth_m.shape[0] : stride, 0 : depth_m.shape[1] : stride]
-    p = np.stack([(u - intr.cx) / intr.fx * d, (v - intr.cy) / intr.fy * d, d], axis=-1)
+    """Points and unit normals of the organised cloud on ``stride`` x ``stride`` pixel blocks.
+
+    Each block's depth is the mean of its in-range pixels (blocks with less than
+    ``ICP_BLOCK_VALID`` of them are holes): Kinect depth noise (~1 cm at 2 m) would otherwise
+    tilt the normals so much that a blank wall looks constrained in every direction. Normals are
+    the cross product of the central differences along the block rows and columns, where all
+    four neighbours have depth and none is across a depth edge. Returns (N, 3) points at the
+    block centres, (N, 3) normals facing the camera."""
+    h, w = depth_m.shape[:2]
+    hb, wb = h // stride, w // stride
+    d = depth_m[: hb * stride, : wb * stride].astype(np.float32)
+    ok = np.isfinite(d) & (d >= max(min_depth, 1e-6)) & (d <= max_depth)
+    size = (wb, hb)
+    share = cv2.resize(ok.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    mean = cv2.resize(np.where(ok, d, 0.0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    z = np.where(share >= ICP_BLOCK_VALID, mean / np.maximum(share, 1e-6), np.nan).astype(
+        np.float64
+    )
+    v, u = np.mgrid[0:hb, 0:wb] * stride + (stride - 1) / 2.0
+    p = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], axis=-1)
     du = p[1:-1, 2:] - p[1:-1, :-2]
     dv = p[2:, 1:-1] - p[:-2, 1:-1]
     n = np.cross(du, dv)
     c = p[1:-1, 1:-1]
-    z = c[..., 2]
-    edge = ICP_DEPTH_EDGE * 2 * z  # central differences span two grid steps
-    ok = np.isfinite(n).all(-1) & (np.abs(du[..., 2]) < edge) & (np.abs(dv[..., 2]) < edge)
-    n, c = n[ok], c[ok]
+    edge = ICP_DEPTH_EDGE * 2 * c[..., 2]  # central differences span two blocks
+    good = np.isfinite(n).all(-1) & (np.abs(du[..., 2]) < edge) & (np.abs(dv[..., 2]) < edge)
+    n, c = n[good], c[good]
     norm = np.linalg.norm(n, axis=1)
-    good = norm > 0
-    n, c = n[good] / norm[good, None], c[good]
+    keep = norm > 0
+    n, c = n[keep] / norm[keep, None], c[keep]
     n *= -np.sign(np.einsum("ij,ij->i", n, c))[:, None]  # face the camera
     return c, n
 
@@ -127,6 +152,18 @@ def point_to_plane_refine(t_prev_curr: np.ndarray, curr: np.ndarray, prev: np.nd
     return t
 
 
+def weakest_direction_support(normals: np.ndarray) -> float:
+    """Share of ``normals`` (N, 3) that push against the least constrained translation: those
+    with ``|n . e| > ICP_SUPPORT_COS`` for ``e`` the eigenvector of the smallest eigenvalue of
+    ``sum n n^T``. A blank wall with the floor has none (the slide along the wall); a room corner
+    or furniture, a few per cent. (The smallest eigenvalue itself does not separate them: the
+    residual normal noise alone gives a wall + floor half the cabinet scene's.)"""
+    if len(normals) == 0:
+        return 0.0
+    e = np.linalg.eigh(normals.T @ normals)[1][:, 0]
+    return float(np.mean(np.abs(normals @ e) > ICP_SUPPORT_COS))
+
+
 def icp_check(t_prev_curr: np.ndarray, curr: np.ndarray, prev: np.ndarray,
               prev_normals: np.ndarray, prev_tree: cKDTree, max_dist: float
               ) -> tuple[int, float, np.ndarray, float]:  # fmt: skip
@@ -149,7 +186,7 @@ def icp_check(t_prev_curr: np.ndarray, curr: np.ndarray, prev: np.ndarray,
     r = np.einsum("ij,ij->i", nn, q - prev[idx[hit]])
     scale = float(np.median(q[:, 2]))
     h = point_to_plane_information(q, nn, scale)
-    lam = float(np.linalg.eigvalsh(h)[0]) / m
+    lam = weakest_direction_support(nn)
     s2 = float(r @ r) / (m - 6)
     try:
         h_inv = np.linalg.inv(h)
@@ -224,7 +261,7 @@ class DepthIcpOdometry:
             return _fail("no_previous_frame", t0, len(source), planar=planar)
         # 3. Point-to-map ICP from the constant-velocity guess.
         sigma = self._threshold.get_threshold()
-        guess = self._pose @ self._delta
+        guess = orthonormalised(self._pose @ self._delta)
         pose = self._registration.align_points_to_map(
             points=source, voxel_map=self._map, initial_guess=guess,
             max_correspondance_distance=3 * sigma, kernel=sigma,
@@ -233,7 +270,7 @@ class DepthIcpOdometry:
         if c.icp_refine_iterations > 0:  # point-to-plane polish against the previous frame
             t_pc = point_to_plane_refine(t_pc, chk, *prev, c.icp_check_distance,
                                          c.icp_refine_iterations)  # fmt: skip
-            pose = self._pose @ t_pc
+            pose = orthonormalised(self._pose @ t_pc)
         # 4. Checks against the previous frame: overlap, constraint, motion limits.
         matched, lam, cov_wv, _ = icp_check(t_pc, chk, *prev, max_dist=c.icp_check_distance)
         reason = None
@@ -253,7 +290,7 @@ class DepthIcpOdometry:
             self._map.update(fine, self._pose)
             return _fail(reason, t0, len(chk), matched, planar=planar)
         # KISS-ICP's update step: threshold, local map, constant-velocity model, pose.
-        self._threshold.update_model_deviation(inverse(guess) @ pose)
+        self._threshold.update_model_deviation(orthonormalised(inverse(guess) @ pose))
         self._map.update(fine, pose)
         self._delta, self._pose = t_pc, pose
         # 5. Covariance in (x y z roll pitch yaw) order, planar projection.
