@@ -217,7 +217,7 @@ class VoConfig:
     )
 
     icp_voxel_size: float = param(
-        0.1, unit="m", gt=0.0, doc="depth_icp: KISS-ICP voxel size (map 0.5x, ICP 1.5x)"
+        0.05, unit="m", gt=0.0, doc="depth_icp: KISS-ICP voxel size (map 0.5x, ICP 1.5x)"
     )
     icp_initial_threshold: float = param(
         0.1, unit="m", gt=0.0, doc="depth_icp: KISS-ICP sigma before motion is seen (3 sigma gate)"
@@ -239,6 +239,12 @@ class VoConfig:
     )
     icp_refine_iterations: int = param(
         3, ge=0, doc="depth_icp: point-to-plane Gauss-Newton steps after KISS-ICP (0 = none)"
+    )
+    icp_max_deviation: float = param(
+        0.03,
+        unit="m",
+        ge=0.0,
+        doc="depth_icp: a motion off the last one by more than this -> implausible_motion (0 = off)",
     )
     icp_min_overlap: float = param(
         0.5, ge=0.0, le=1.0, doc="depth_icp: share of check points matched, else too_few_inliers"

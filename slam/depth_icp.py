@@ -282,6 +282,11 @@ class DepthIcpOdometry:
             np.linalg.norm(t_pc[:3, 3]) > c.max_translation or rotation_angle(t_pc) > c.max_rotation
         ):
             reason = "implausible_motion"
+        elif (
+            c.icp_max_deviation > 0
+            and np.linalg.norm(t_pc[:3, 3] - self._delta[:3, 3]) > c.icp_max_deviation
+        ):
+            reason = "implausible_motion"  # a jump off the constant velocity: a wrong minimum
         if reason is not None:
             log.debug("depth ICP rejected a frame: %s (overlap %d/%d, constraint %.4f)",
                       reason, matched, len(chk), lam)  # fmt: skip
