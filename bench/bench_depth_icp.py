@@ -44,10 +44,10 @@ from slam.visual_odometry import VisualOdometry, inverse  # noqa: E402
 SECTION = "vo-depth-icp"
 # name -> VoConfig changes of the compared methods (the VoConfig defaults otherwise)
 METHODS: dict[str, dict[str, str]] = {
-    "ORB features (default)": {},
-    "optical flow": {"cor_type": "optical_flow"},
+    "ORB features": {"fallback": "none"},
+    "optical flow": {"cor_type": "optical_flow", "fallback": "none"},
     "depth ICP (KISS-ICP)": {"method": "depth_icp"},
-    "ORB + depth ICP fallback": {"fallback": "depth_icp"},
+    "ORB + depth ICP fallback (default)": {"fallback": "depth_icp"},
 }
 
 

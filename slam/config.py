@@ -157,7 +157,7 @@ class VoConfig:
         "bench_vo); depth_icp: KISS-ICP on the depth cloud, geometry only (bench_depth_icp)",
     )
     fallback: Literal["none", "depth_icp"] = param(
-        "none",
+        "depth_icp",
         doc="when orb_pnp fails on a frame, take depth_icp's motion for it (counted in "
         "VisualOdometry.stats; docs/design/kiss_icp_and_filterpy.md)",
     )

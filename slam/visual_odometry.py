@@ -39,6 +39,11 @@ at the last frame's pose. Tracks the refinement rejects are dropped; when too fe
 frame goes through the ORB steps above and becomes the next keyframe. Measured in
 docs/benchmarks.md: a third of the time per frame, at some cost in VO-only accuracy.
 
+Depth ICP (``VoConfig.method="depth_icp"``; :mod:`slam.depth_icp`): KISS-ICP on the depth cloud,
+geometry only, for rooms where colour features fail. With ``VoConfig.fallback="depth_icp"`` a
+frame the features lose gets depth ICP's motion from the last frame instead (``VoResult.fallback``,
+counted in ``VisualOdometry.stats``). Measured in docs/design/kiss_icp_and_filterpy.md.
+
 Covariance: the Gauss-Newton normal matrix ``H = J^T W J`` of step 5 at the solution, scaled by
 the a-posteriori variance of unit weight ``s^2 = sum(w r^2) / (m - 6)``: ``cov = s^2 H^-1``,
 over the left perturbation ``T_true = exp(d) T`` of ``T_curr_prev``, re-expressed for the camera
