@@ -486,6 +486,8 @@ class LiveRun:
                     1.0 / self.cfg.ekf.frequency))  # fmt: skip
                 if out and out[0].reason == "span_rejected":
                     self.counts.inc("vo_spans_rejected")
+                if res.fallback:
+                    self.counts.inc("vo_fallbacks")  # the features failed, depth ICP tracked
             else:
                 self.counts.inc(f"vo_failures_{res.reason}")
         self._vo_skipped.clear()

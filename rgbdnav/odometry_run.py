@@ -73,6 +73,7 @@ class _VoTrack:
     yaw: np.ndarray
     failures: dict[str, int]
     ms_median: float
+    stats: dict[str, int]  # VisualOdometry.stats: depth ICP fallbacks used / failed
 
 
 def _visual_odometry(src: Source, cfg: Config, start: Pose2,
@@ -112,7 +113,8 @@ def _visual_odometry(src: Source, cfg: Config, start: Pose2,
             progress(k + 1, n)
     arr = np.array(poses).reshape(-1, 3)
     return _VoTrack(inputs, np.array(stamps, np.int64), arr[:, 0], arr[:, 1], arr[:, 2],
-                    dict(failures), float(np.median(ms)) if ms else math.nan)  # fmt: skip
+                    dict(failures), float(np.median(ms)) if ms else math.nan,
+                    dict(vo.stats))  # fmt: skip
 
 
 def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path],
@@ -216,6 +218,7 @@ def _run(src: Source, source_path: Path, out: Path, config_files: Sequence[Path]
             "pairs_tracked": int(sum(i.valid for i in vo_track.inputs)),
             "failures": vo_track.failures,
             "ms_per_frame_median": round(vo_track.ms_median, 2),
+            **vo_track.stats,  # fallback_used / fallback_failed (vo.fallback)
         }
     imu = src.imu()
     if imu is not None and len(imu.stamps_ns) and any(cfg.ekf.imu0_config):

@@ -151,9 +151,15 @@ class EkfConfig:
 class VoConfig:
     """RGB-D visual odometry (names after RTAB-Map's Vis/* and Odom/* parameters)."""
 
-    method: Literal["orb_pnp"] = param(
+    method: Literal["orb_pnp", "depth_icp"] = param(
         "orb_pnp",
-        doc="ORB + PnP RANSAC + RGB-D refinement (Open3D RGB-D odometry measured worse: bench_vo)",
+        doc="orb_pnp: ORB + PnP RANSAC + RGB-D refinement (Open3D RGB-D odometry measured worse: "
+        "bench_vo); depth_icp: KISS-ICP on the depth cloud, geometry only (bench_depth_icp)",
+    )
+    fallback: Literal["none", "depth_icp"] = param(
+        "depth_icp",
+        doc="when orb_pnp fails on a frame, take depth_icp's motion for it (counted in "
+        "VisualOdometry.stats; docs/design/kiss_icp_and_filterpy.md)",
     )
     force_3dof: bool = param(
         True, doc="keep x, y, yaw only (Reg/Force3DoF; RTAB-Map default false)"
@@ -208,6 +214,46 @@ class VoConfig:
     )
     cor_flow_max_level: int = param(
         3, ge=0, doc="Lucas-Kanade pyramid levels above the image (Vis/CorFlowMaxLevel)"
+    )
+
+    icp_voxel_size: float = param(
+        0.05, unit="m", gt=0.0, doc="depth_icp: KISS-ICP voxel size (map 0.5x, ICP 1.5x)"
+    )
+    icp_initial_threshold: float = param(
+        0.1, unit="m", gt=0.0, doc="depth_icp: KISS-ICP sigma before motion is seen (3 sigma gate)"
+    )
+    icp_min_motion: float = param(
+        0.01, unit="m", ge=0.0, doc="depth_icp: KISS-ICP min_motion_th of its adaptive threshold"
+    )
+    icp_pixel_stride: int = param(
+        4, unit="px", ge=1, doc="depth_icp: every n-th pixel per row and column becomes a point"
+    )
+    icp_min_points: int = param(
+        100, ge=7, doc="depth_icp: fewer points after down-sampling -> too_few_points"
+    )
+    icp_check_stride: int = param(
+        8, unit="px", ge=1, doc="depth_icp: pixel grid of the overlap / constraint check"
+    )
+    icp_check_distance: float = param(
+        0.05, unit="m", gt=0.0, doc="depth_icp: a check point within this of the previous frame's"
+    )
+    icp_refine_iterations: int = param(
+        3, ge=0, doc="depth_icp: point-to-plane Gauss-Newton steps after KISS-ICP (0 = none)"
+    )
+    icp_max_deviation: float = param(
+        0.03,
+        unit="m",
+        ge=0.0,
+        doc="depth_icp: a motion off the last one by more than this -> implausible_motion (0 = off)",
+    )
+    icp_min_overlap: float = param(
+        0.5, ge=0.0, le=1.0, doc="depth_icp: share of check points matched, else too_few_inliers"
+    )
+    icp_min_constraint: float = param(
+        0.01,
+        ge=0.0,
+        doc="depth_icp: smallest point-to-plane information eigenvalue per point "
+        "(within 60 deg of it), else degenerate (a blank wall and the floor: none)",
     )
 
     def validate(self) -> str | None:

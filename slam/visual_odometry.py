@@ -39,6 +39,11 @@ at the last frame's pose. Tracks the refinement rejects are dropped; when too fe
 frame goes through the ORB steps above and becomes the next keyframe. Measured in
 docs/benchmarks.md: a third of the time per frame, at some cost in VO-only accuracy.
 
+Depth ICP (``VoConfig.method="depth_icp"``; :mod:`slam.depth_icp`): KISS-ICP on the depth cloud,
+geometry only, for rooms where colour features fail. With ``VoConfig.fallback="depth_icp"`` a
+frame the features lose gets depth ICP's motion from the last frame instead (``VoResult.fallback``,
+counted in ``VisualOdometry.stats``). Measured in docs/design/kiss_icp_and_filterpy.md.
+
 Covariance: the Gauss-Newton normal matrix ``H = J^T W J`` of step 5 at the solution, scaled by
 the a-posteriori variance of unit weight ``s^2 = sum(w r^2) / (m - 6)``: ``cov = s^2 H^-1``,
 over the left perturbation ``T_true = exp(d) T`` of ``T_curr_prev``, re-expressed for the camera
@@ -89,6 +94,8 @@ Reason = Literal[
     "too_few_inliers",
     "implausible_motion",
     "no_previous_frame",
+    "too_few_points",  # depth_icp: too little in-range depth
+    "degenerate",  # depth_icp: the geometry leaves a motion unconstrained (a blank wall)
 ]
 
 
@@ -194,6 +201,8 @@ class VoResult:
     delta_base: Pose2 | None = None  # planar mode: base_link motion (dx, dy, dyaw)
     prior: bool = False  # tracked from the last frame's pose: its refinement seeded without
     # RANSAC, the window search around it, or optical flow
+    fallback: bool = False  # the features failed on this frame and the motion is depth ICP's
+    # (``vo.fallback: depth_icp``; counted in ``VisualOdometry.stats``)
 
     @property
     def inlier_ratio(self) -> float:
@@ -1228,8 +1237,19 @@ class VisualOdometry:
                  robot: RobotConfig | None = None, tuning: VoTuning | None = None,
                  keyframes: bool = True) -> None:  # fmt: skip
         self.cfg = cfg or VoConfig()
-        if self.cfg.method != "orb_pnp":
-            raise ConfigError(f"vo.method: {self.cfg.method!r} is not implemented (use 'orb_pnp')")
+        if self.cfg.method not in ("orb_pnp", "depth_icp"):
+            raise ConfigError(f"vo.method: {self.cfg.method!r} is not implemented "
+                              "(use 'orb_pnp' or 'depth_icp')")  # fmt: skip
+        # Geometry-only odometry: the whole job (vo.method) or the fallback (vo.fallback).
+        self._icp = None
+        if self.cfg.method == "depth_icp" or self.cfg.fallback == "depth_icp":
+            from slam.depth_icp import DepthIcpOdometry  # imports kiss_icp
+
+            self._icp = DepthIcpOdometry(intrinsics, self.cfg, robot)
+        self._icp_live = False  # the fallback's map holds the last frame (it is running)
+        self._last_frame: RgbdFrame | None = None  # the fallback starts from it
+        # Per-run counts: feature failures the fallback bridged, and those it could not.
+        self.stats: dict[str, int] = {"fallback_used": 0, "fallback_failed": 0}
         self.tuning = tuning or VoTuning()
         self.k = camera_matrix(intrinsics)
         self.keyframes = keyframes
@@ -1242,12 +1262,49 @@ class VisualOdometry:
         self._gray: np.ndarray | None = None  # the keyframe's grey image (optical flow)
 
     def reset(self) -> None:
+        if self._icp is not None:
+            self._icp.reset()
+        self._icp_live, self._last_frame = False, None
         self._kf = None
         self.T_odom_cam = np.eye(4)
         self._prior_holds = False
         self._tracks, self._gray = None, None
 
     def process(self, frame: RgbdFrame) -> VoResult:
+        if self._icp is not None and self.cfg.method == "depth_icp":
+            res = self._icp.process(frame)
+            self.T_odom_cam = self._icp.T_odom_cam
+            return res
+        res = self._process_features(frame)
+        if self._icp is not None:
+            res = self._fall_back(frame, res)
+        return res
+
+    def _fall_back(self, frame: RgbdFrame, res: VoResult) -> VoResult:
+        """``vo.fallback: depth_icp``: a frame the features lost gets depth ICP's motion from
+        the last frame (the ICP runs only while the features fail: its map starts from the last
+        frame on the first failure and goes on while they keep failing)."""
+        last, self._last_frame = self._last_frame, frame
+        if res.success or res.reason == "no_previous_frame" or last is None:
+            self._icp_live = False
+            return res
+        assert self._icp is not None
+        t0 = time.perf_counter()
+        if not self._icp_live:
+            self._icp.reset()
+            self._icp.process(last)
+        icp = self._icp.process(frame)
+        self._icp_live = icp.success
+        if not icp.success:
+            self.stats["fallback_failed"] += 1
+            return res
+        self.stats["fallback_used"] += 1
+        log.debug("VO %s: depth ICP fallback (%d points matched)", res.reason, icp.inliers)
+        # The features' keyframe is this frame already (a failed frame becomes the keyframe).
+        self.T_odom_cam = self.T_odom_cam @ icp.T_prev_curr
+        return replace(icp, fallback=True, ms=res.ms + (time.perf_counter() - t0) * 1e3)
+
+    def _process_features(self, frame: RgbdFrame) -> VoResult:
         t0 = time.perf_counter()
         flow = self.cfg.cor_type == "optical_flow"
         gray = grey(frame.rgb) if flow else None

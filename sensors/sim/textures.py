@@ -37,7 +37,7 @@ PHOTO_FILES = {
     "horse": "horse.png",
     "cell": "cell.png",
 }
-PROCEDURAL = ("plaster", "wood", "tiles", "carpet")
+PROCEDURAL = ("plaster", "wood", "tiles", "carpet", "matte")  # append: the index seeds the noise
 TEXTURE_NAMES = tuple(PHOTO_FILES) + PROCEDURAL
 
 
@@ -93,6 +93,9 @@ def _procedural(name: str) -> np.ndarray:
         base = np.array([200, 205, 210], np.float32)
         grout = ((xx * 4) % 1 < 0.03) | ((yy * 4) % 1 < 0.03)
         shade = np.where(grout, 0.45, 0.85 + 0.25 * noise)
+    elif name == "matte":  # dim flat paint without any pattern: nothing for ORB but edges
+        base = np.array([80, 78, 74], np.float32)
+        shade = np.ones_like(noise)
     else:  # carpet
         base = np.array([120, 70, 80], np.float32)
         fine = rng.random((TEXTURE_SIZE, TEXTURE_SIZE)).astype(np.float32)

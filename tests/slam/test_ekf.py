@@ -620,3 +620,51 @@ def test_a_wrong_motion_spread_over_its_span_is_gated_as_one_measurement() -> No
     good = spanning_motion_twists([], int(end), right, vo_cov, dt, max_step_s=1 / 30)
     out = ekf.process_span("vo0", good)
     assert len(out) == len(good) and all(r.accepted for r in out)
+
+
+def filterpy_sequence(steps: int, seed: int) -> tuple[list[np.ndarray], ...]:
+    """One fused run twice: slam.ekf's kernels and filterpy's ExtendedKalmanFilter (the
+    reference) on the same constant-velocity model, 30 Hz predictions, alternately a twist update
+    (vx, vyaw) and a pose update (x, y, yaw, angle residual). Returns the states and
+    covariances of both after every step."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    rng = np.random.default_rng(seed)
+    dt = 1.0 / 30
+    q = np.diag([1e-4, 1e-4, 1e-4, 1e-2, 1e-2, 1e-2])
+    truth = np.array([0.0, 0.0, math.pi - 0.2, 0.3, 0.0, 0.4])  # yaw crosses +-pi
+    x, p = truth + 0.1, np.diag([0.1, 0.1, 0.05, 0.1, 0.1, 0.1])
+    ref = ExtendedKalmanFilter(dim_x=6, dim_z=3)
+    ref.x, ref.P = x.copy(), p.copy()
+
+    def predict_x(u: Any = 0) -> None:  # the nonlinear motion (filterpy's hook for it)
+        ref.x = transition(ref.x, dt)[0]
+
+    ref.predict_x = predict_x
+    twist_h, pose_h = np.eye(6)[[3, 5]], np.eye(6)[:3]
+    twist_r, pose_r = np.diag([0.01, 0.02]), np.diag([0.02, 0.02, 0.01])
+    yaw_res = angle_residual(np.array([False, False, True]))
+    out: tuple[list[np.ndarray], ...] = ([], [], [], [])
+    for k in range(steps):
+        truth = transition(truth, dt)[0]
+        ref.F, ref.Q = transition(ref.x, dt)[1], dt * q
+        ref.predict()
+        x, p = predict(x, p, dt, q)
+        h, r, res = (twist_h, twist_r, np.subtract) if k % 2 else (pose_h, pose_r, yaw_res)
+        z = h @ truth + rng.multivariate_normal(np.zeros(len(r)), r)
+        if h is pose_h:
+            z[2] = wrap_angle(z[2])
+        ref.update(z, lambda s, h=h: h, lambda s, h=h: h @ s, R=r, residual=res)
+        x, p, *_ = update(x, p, z, h, r, res)
+        for lst, v in zip(out, (x, p, ref.x, ref.P), strict=True):
+            lst.append(np.array(v, dtype=np.float64))
+    return out
+
+
+def test_a_whole_fused_run_matches_filterpys_extended_kalman_filter() -> None:
+    xs, ps, ref_xs, ref_ps = filterpy_sequence(300, seed=4)
+    for k in range(300):
+        np.testing.assert_allclose(xs[k], ref_xs[k], rtol=0, atol=1e-9, err_msg=f"x step {k}")
+        np.testing.assert_allclose(ps[k], ref_ps[k], rtol=0, atol=1e-12, err_msg=f"P step {k}")
+    yaws = [x[2] for x in xs]
+    assert max(yaws) > 3.0 and min(yaws) < -2.0  # the yaw crossed +-pi: the wraps were exercised
