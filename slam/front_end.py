@@ -49,6 +49,8 @@ from slam.visual_odometry import VisualOdometry, VoResult
 log = logging.getLogger(__name__)
 
 OdometryMessage = PoseInput | TwistInput
+GAP_PERIODS = 1.5  # a VO pair longer than this many camera frame periods spans a lost frame
+MIN_HISTORY_S = 1.0  # [s] EKF history for spans fused late (a gap of up to ~1 s)
 
 
 @dataclass(frozen=True)
@@ -125,6 +127,11 @@ class FrontEnd:
         self.d2s_cfg = depth_to_scan
         if options.odometry == "pose" and not options.wheels:
             ekf = pose_only_odom0(ekf)
+        # A reading or VO pair that came after a gap is fused spread over its span
+        # (slam.ekf.interval_twists): its pieces are older than messages of other sensors in
+        # that span, so the filter re-filters from its history rather than drop them.
+        ekf = replace(ekf, smooth_lagged_data=True,
+                      history_length=max(ekf.history_length, MIN_HISTORY_S))  # fmt: skip
         self.ekf_cfg = ekf
         self.ekf = PlanarEkf(ekf, ekf.imu0_angular_velocity_variance) if options.planar else None
         self.model = WheelErrorModel.from_robot(robot)
@@ -247,15 +254,14 @@ class FrontEnd:
             if not ok:
                 self.counts[f"vo_failures_{res.reason}"] += 1
             elif self.ekf is not None and d is not None and "vo0" in self.inputs:
+                # Spread over its span when it spans skipped or dropped frames; a pair a few
+                # ms longer than a frame period (camera jitter) is one twist at its end.
+                gap = dt > GAP_PERIODS / self.options.camera_rate_hz
+                step = 1.0 / self.ekf_cfg.frequency if self._vo_skipped or gap else None
                 out = self.ekf.process_span(
                     "vo0",
                     spanning_motion_twists(
-                        self._vo_skipped,
-                        frame.stamp_ns,
-                        d,
-                        res.covariance,
-                        dt,
-                        1.0 / self.ekf_cfg.frequency,
+                        self._vo_skipped, frame.stamp_ns, d, res.covariance, dt, step
                     ),
                 )
                 if out and out[0].reason == "span_rejected":
