@@ -22,6 +22,7 @@ from sensors.tum import write_tum_trajectory
 from sensors.types import LaserScan, SensorError
 from slam.front_end import FrontEnd, odom_origin, options_for, replay
 from slam.geometry import oplus
+from slam.metrics import drift_report
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,11 @@ def _rgbd_stream(
         a = np.array(poses, np.float64).reshape(-1, 3)
         write_tum_trajectory(run.file("odom.tum"), np.array(stamps, np.int64), a[:, 0], a[:, 1],
                              a[:, 2])  # fmt: skip
+        gt = src.groundtruth()
+        if gt is not None and gt.frame == "base_link" and len(a):
+            summary["odometry_vs_groundtruth"] = drift_report(
+                np.array(stamps, np.int64), (a[:, 0], a[:, 1], a[:, 2]), gt.stamps_ns,
+                (gt.x, gt.y, gt.yaw)).as_dict()  # fmt: skip
         assert fe.ekf is not None
         summary["front_end"] = {"inputs": list(fe.inputs), "ekf": fe.ekf.stats,
                                 "frames_timed_out": timed_out,
