@@ -252,7 +252,8 @@ class FrontEnd:
             d = res.delta_base
             ok = res.success and dt > 0 and (d is not None or not self.options.planar)
             if not ok:
-                self.counts[f"vo_failures_{res.reason}"] += 1
+                # (vo.force_3dof off on a ground robot: no planar motion for the EKF)
+                self.counts[f"vo_failures_{res.reason if not res.success else 'not_planar'}"] += 1
             elif self.ekf is not None and d is not None and "vo0" in self.inputs:
                 # Spread over its span when it spans skipped or dropped frames; a pair a few
                 # ms longer than a frame period (camera jitter) is one twist at its end.
