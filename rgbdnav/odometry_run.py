@@ -71,7 +71,7 @@ def _run(
     if not (opts.wheels or opts.odometry or opts.vo):
         raise SensorError(
             f"{source_path}: no odometry input: no wheel encoder readings (need at "
-            "least 2), no odometry messages and no RGB-D frames for VO"
+            "least 2), no odometry messages, and no visual odometry (--no-vo, or no RGB-D frames)"
         )
     wheels = src.wheels() if opts.wheels else None
     start = odom_origin(src)
@@ -90,9 +90,11 @@ def _run(
     summary["frames"] = len(steps)
     tracked = sum(s.vo is not None and s.vo.success for s in steps)
     if not (opts.wheels or opts.odometry) and tracked == 0:
-        raise SensorError(f"{source_path}: no usable odometry: VO tracked none of the "
-                          f"{max(len(steps) - 1, 0)} frame pairs and there are no wheel "
-                          "encoder readings or odometry messages")
+        raise SensorError(
+            f"{source_path}: no usable odometry: VO tracked none of the "
+            f"{max(len(steps) - 1, 0)} frame pairs and there are no wheel "
+            "encoder readings or odometry messages"
+        )
     vo_path = None
     if opts.vo:
         vo_path = _vo_outputs(steps, opts.planar, start, run, summary, outputs)
