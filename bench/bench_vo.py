@@ -414,7 +414,7 @@ odometry (`keyframes=False`, so every pair is matched as it comes), 5 cm success
 "From the last pose": optical flow from the keyframe, or (features) the refinement seeded by
 the last frame's pose without RANSAC. The whole route (3970 frames, with the EKF and the mapper): `rgbdnav map scenes/house.yaml
 --out runs/flow --set vo.cor_type=optical_flow` against `make demo`, in `summary.json` and
-`odometry/summary.json`.
+its `front_end` section.
 
 {chr(10).join(rows)}
 """

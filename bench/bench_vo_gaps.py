@@ -30,7 +30,7 @@ from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
 from rgbdnav.cli import _recording_for  # noqa: E402
 from rgbdnav.config import load_config  # noqa: E402
-from rgbdnav.map_run import RGBD_PROFILE  # noqa: E402
+from rgbdnav.scan_stream import RGBD_PROFILE  # noqa: E402
 from sensors.recording import Recording  # noqa: E402
 from slam.diff_drive import WheelErrorModel  # noqa: E402
 from slam.ekf import (  # noqa: E402

@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python bench/sweep_rgbd_mapper.py RUN_DIR [--set KEY=VALUE ...] ...``
 
 ``RUN_DIR`` is a run of ``rgbdnav map`` on a recording (``runs/demo`` after ``make demo``): its
-``odometry/fused.tum`` is the odometry and its ``summary.json`` names the recording. The depth
+``odom.tum`` (the front end's fused odometry) is the odometry and its ``summary.json`` names the recording. The depth
 frames are turned into scans once; each variant then runs only the mapper (seconds, not the
 minutes visual odometry takes), builds the grid and is scored as ``rgbdnav map`` scores it
 (SLAM ATE against ground truth, occupied-cell IoU against the floor plan). A variant is one
@@ -25,7 +25,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from rgbdnav.map_run import _score_against_truth, build_grid, source_config  # noqa: E402
+from rgbdnav.map_run import _score_against_truth, build_grid  # noqa: E402
+from rgbdnav.scan_stream import source_config  # noqa: E402
 from sensors.source import open_source  # noqa: E402
 from sensors.tum import load_tum_trajectory, yaw_from_quaternion  # noqa: E402
 from slam.depth_to_scan import DepthToScan  # noqa: E402
@@ -40,10 +41,10 @@ def main() -> None:
     ap.add_argument("--set", dest="variants", action="append", default=[],
                     help="one variant: comma-separated KEY=VALUE overrides (repeatable)")
     args = ap.parse_args()
-    summary_path, fused_path = args.run / "summary.json", args.run / "odometry" / "fused.tum"
+    summary_path, fused_path = args.run / "summary.json", args.run / "odom.tum"
     if not summary_path.is_file() or not fused_path.is_file():
         sys.exit(f"{args.run}: not an rgbdnav map run of a recording (needs summary.json and "
-                 "odometry/fused.tum)")
+                 "odom.tum)")
     src = open_source(Path(json.loads(summary_path.read_text())["source"]), {})
     # 1. Scans once (the depth -> scan settings are not swept), odometry at their stamps.
     _, _, cfg = source_config(src, [], [])

@@ -34,6 +34,14 @@ SetOpt = Annotated[
     list[str] | None,
     typer.Option("--set", "-s", help="Override one key: section.key=value (YAML value)."),
 ]
+Force3DofOpt = Annotated[
+    bool,
+    typer.Option(
+        "--force-3dof",
+        help="A source without wheels or /odom rides on a ground robot: planar VO (RTAB-Map's "
+        "Reg/Force3DoF) and a 2-D map, instead of a handheld camera's 6-DoF poses.",
+    ),
+]
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")]
@@ -246,6 +254,7 @@ def odometry(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     vo: Annotated[bool, typer.Option(help="Run visual odometry on the RGB-D frames.")] = True,
+    force_3dof: Force3DofOpt = False,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -257,7 +266,7 @@ def odometry(
     cfg = load_config(config or [], set_ or [])
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("visual odometry", quiet or not vo) as progress:
-        outputs = run_odometry(recording, out, config or [], set_ or [], vo, progress)
+        outputs = run_odometry(recording, out, config or [], set_ or [], vo, progress, force_3dof)
     _echo_source(source, recording)
     _echo_outputs(outputs)
 
@@ -276,6 +285,7 @@ def map_(
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    force_3dof: Force3DofOpt = False,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -288,7 +298,7 @@ def map_(
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("mapping", quiet) as progress:
         outputs = run_map(recording, out, config or [], set_ or [], progress, continue_, rrd,
-                          viewer)  # fmt: skip
+                          viewer, force_3dof)  # fmt: skip
     _echo_source(source, recording)
     _echo_outputs(outputs)
 
@@ -312,6 +322,7 @@ def localize(
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    force_3dof: Force3DofOpt = False,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -326,7 +337,8 @@ def localize(
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("localising", quiet) as progress:
         outputs, summary = run_localize(recording, map_, out, config or [], set_ or [],
-                                        initial_pose, progress, rrd, viewer)  # fmt: skip
+                                        initial_pose, progress, rrd, viewer,
+                                        force_3dof)  # fmt: skip
     _echo_source(source, recording)
     typer.echo(f"result      {describe(summary)}")
     _echo_outputs(outputs)

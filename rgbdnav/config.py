@@ -263,5 +263,6 @@ def write_config(cfg: Config, path: Path) -> None:
 def source_options(cfg: Config, strict: bool = False) -> SourceOptions:
     """What adapters need from the configuration (rosbag topics, robot, camera)."""
     return SourceOptions(
-        topics=section_to_dict(cfg.topics), robot=cfg.robot, camera=cfg.camera, strict=strict
+        topics=section_to_dict(cfg.topics), robot=cfg.robot, camera=cfg.camera, strict=strict,
+        sync=cfg.sync,
     )

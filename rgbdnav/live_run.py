@@ -40,7 +40,7 @@ import signal
 import sys
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -56,24 +56,22 @@ from rgbdnav.live_nav import LiveNavigator, MapSnapshot
 from rgbdnav.live_record import LiveRecorder
 from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
 from rgbdnav.localize_run import initial_pose_array
-from rgbdnav.map_run import RGBD_PROFILE, build_grid, make_bundle
+from rgbdnav.map_run import build_grid, make_bundle
 from rgbdnav.navigate_run import NAVIGATE_PROFILE
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
+from rgbdnav.scan_stream import RGBD_PROFILE
 from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, occupied_cells_xy
 from sensors.eddie import BoardError, EddieBoard, OdometryPoller
 from sensors.source import Source, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, RgbdNavError, SensorError, WheelTicks
-from slam.depth_to_scan import DepthToScan
-from slam.diff_drive import WheelErrorModel
-from slam.ekf import EkfError, PlanarEkf, spanning_motion_twists, wheel_twist_inputs
+from slam.front_end import FrontEnd, FrontEndOptions
 from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper
 from slam.metrics import drift_summary
 from slam.scan_matching import scan_points, transform_points
-from slam.visual_odometry import VisualOdometry
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +80,6 @@ JOIN_TIMEOUT_S = 30.0  # [s] a thread that does not finish its queue by then is 
 MIN_LATENCIES = 1  # percentiles need at least one processed frame
 MODE_SWITCH_KEY = "\t"  # Tab: manual (teleop keys) <-> auto (route)
 GIL_SWITCH_INTERVAL_S = 0.001  # [s] (Python's default 0.005)
-WHEEL_READINGS_KEPT = 64  # encoder readings kept for the twist variance window (0.5 s at 126 Hz)
 MEMORY_SAMPLE_S = 5.0  # [s] resident memory is sampled this often for the summary
 
 
@@ -265,7 +262,7 @@ class LiveRun:
         self.keys: queue.Queue[str] = queue.Queue()  # terminal keys (tests put them here)
         self.mode = "manual" if opts.drive == "teleop" else "auto"
         self.recorder: LiveRecorder | None = None
-        self._vo_skipped: list[int] = []  # frames VO skipped since the last one it ran on
+        self.front_end: FrontEnd | None = None
         if opts.record is not None:
             self.recorder = LiveRecorder(opts.record, self._recording_scene())
 
@@ -360,16 +357,15 @@ class LiveRun:
             self.frame_q.put(None)
 
     def _front_end_loop(self) -> None:
+        """Frames and the wheel readings that came meanwhile into the front end (the one
+        :class:`slam.front_end.FrontEnd` the offline commands drive); its scan and pose go to
+        the mapper, the collision monitor and the navigator."""
         cfg = self.cfg
-        vo: VisualOdometry | None = None
-        d2s: DepthToScan | None = None
-        ekf = PlanarEkf(cfg.ekf, cfg.ekf.imu0_angular_velocity_variance,
-                        x0=None)  # fmt: skip
-        model = WheelErrorModel.from_robot(cfg.robot)
-        # Recent readings: a wheel twist's variance comes from the travel over the last
-        # WHEEL_VARIANCE_WINDOW_S, not from its own tick count (slam.ekf.wheel_twist_inputs).
-        recent: deque[WheelTicks] = deque(maxlen=WHEEL_READINGS_KEPT)
-        prev_frame_ns: int | None = None
+        opts = FrontEndOptions(wheels=self.opts.board != "none",
+                               pose_before_vo=cfg.live.pose_before_vo,
+                               camera_rate_hz=cfg.camera.rate)  # fmt: skip
+        fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
+        self.front_end = fe
         last_mapped_ns = -(2**62)  # [ns] stamp of the last scan handed to the mapper
         stalled = False
         vis_every = cfg.live.visualize_every
@@ -398,100 +394,48 @@ class LiveRun:
                     t = self.ticks_q.get_nowait()
                 except queue.Empty:
                     break
-                if recent and t.stamp_ns <= recent[-1].stamp_ns:
-                    continue  # a repeated or older reading says nothing new
-                recent.append(t)
-                if self.recorder is not None:
+                if fe.wheels(t) and self.recorder is not None:
                     self.recorder.wheels(t)
-                if len(recent) >= 2:
-                    # The last interval: one twist, or its pieces when the reading came late.
-                    ekf.process_span("odom0", wheel_twist_inputs(
-                        np.array([r.stamp_ns for r in recent]),
-                        np.array([r.left for r in recent]), np.array([r.right for r in recent]),
-                        cfg.robot, model, vy_variance=cfg.ekf.odom0_vy_variance,
-                        last_only=True, max_interval_s=1.0 / cfg.ekf.frequency,
-                    ))  # fmt: skip
-            t_b = time.perf_counter()
-            if vo is None:
-                vo = VisualOdometry(frame.intrinsics, cfg.vo, cfg.robot)
-                d2s = DepthToScan(frame.intrinsics, cfg.robot, cfg.depth_to_scan)
-            vo_ms = None
-            if not cfg.live.pose_before_vo:
-                vo_ms, prev_frame_ns = self._visual_odometry(vo, ekf, frame, prev_frame_ns)
-            # b. The pose at the frame's stamp and the scan go out: latency ends here.
-            t_c = time.perf_counter()
-            try:
-                od = ekf.state_at(frame.stamp_ns)
-            except EkfError:  # no wheel reading yet, or the frame is older than the history
-                self.counts.inc("frames_without_odometry")
-                od = None
-            if od is not None:
-                odom = oplus(self.start_pose, [od.pose.x, od.pose.y, od.pose.yaw])
-                assert d2s is not None
-                t_d = time.perf_counter()
-                scan = d2s.from_frame(frame).scan
-                self.stage_ms["depth_to_scan"].add(1e3 * (time.perf_counter() - t_d))
-                self.stage_ms["wheels_ekf"].add(1e3 * (t_b - t_a + t_d - t_c))
-                with self.shared.lock:
-                    self.shared.odom = odom
-                    self.shared.obstacles.add(frame.stamp_ns, odom, scan_points(scan))
-                    m2o = self.shared.map_to_odom
-                self.latency_ms.add((time.monotonic_ns() - frame.stamp_ns) / 1e6)
-                self.counts.inc("frames_processed")
-                self.odom_track.add(frame.stamp_ns, float(odom[0]), float(odom[1]), float(odom[2]))
-                if self.navigator is not None:  # the scan is in base_link: laser = base pose
-                    self.navigator.add_scan(scan, oplus(m2o, odom))
-                rate = cfg.live.mapper_rate
-                if rate and frame.stamp_ns - last_mapped_ns < 1e9 / rate:
-                    self.counts.inc("scans_thinned_mapper_rate")
-                else:
-                    last_mapped_ns = frame.stamp_ns
-                    try:
-                        self.scan_q.put_nowait((scan, odom))
-                    except queue.Full:
-                        self.counts.inc("scans_dropped_mapper_behind")
-            # c. VO after the pose is out: it corrects the filter for the frames that follow.
-            if cfg.live.pose_before_vo:
-                vo_ms, prev_frame_ns = self._visual_odometry(vo, ekf, frame, prev_frame_ns)
-            if vo_ms is not None:
-                self.stage_ms["vo"].add(vo_ms)
-            if od is None:
+            wheels_ms = 1e3 * (time.perf_counter() - t_a)
+            # b. VO (skipped when frames wait: the next VO pair spans both), the pose at the
+            #    frame's stamp and the scan: latency ends here.
+            step = fe.frame(frame, skip_vo=cfg.live.skip_vo_when_behind
+                            and not self.frame_q.empty())  # fmt: skip
+            if math.isfinite(step.vo_ms):
+                self.stage_ms["vo"].add(step.vo_ms)
+            if step.odom is None or step.scan is None:
                 continue
+            p = step.odom.pose
+            odom = oplus(self.start_pose, [p.x, p.y, p.yaw])
+            scan = step.scan
+            self.stage_ms["depth_to_scan"].add(step.scan_ms)
+            self.stage_ms["wheels_ekf"].add(wheels_ms + step.ekf_ms)
+            with self.shared.lock:
+                self.shared.odom = odom
+                self.shared.obstacles.add(frame.stamp_ns, odom, scan_points(scan))
+                m2o = self.shared.map_to_odom
+            self.latency_ms.add((time.monotonic_ns() - frame.stamp_ns) / 1e6)
+            self.counts.inc("frames_processed")
+            self.odom_track.add(frame.stamp_ns, float(odom[0]), float(odom[1]), float(odom[2]))
+            if self.navigator is not None:  # the scan is in base_link: laser = base pose
+                self.navigator.add_scan(scan, oplus(m2o, odom))
+            rate = cfg.live.mapper_rate
+            if rate and frame.stamp_ns - last_mapped_ns < 1e9 / rate:
+                self.counts.inc("scans_thinned_mapper_rate")
+            else:
+                last_mapped_ns = frame.stamp_ns
+                try:
+                    self.scan_q.put_nowait((scan, odom))
+                except queue.Full:
+                    self.counts.inc("scans_dropped_mapper_behind")
             n += 1
             if vis_every and n % vis_every == 0:
                 self.vis.frame(frame.stamp_ns, frame.rgb, frame.depth_m)
-        self.ekf_stats = ekf.stats  # per sensor: received, fused, rejected by the gate, late
+        assert fe.ekf is not None
+        self.ekf_stats = fe.ekf.stats  # per sensor: received, fused, rejected by the gate, late
+        for name, count in fe.counts.items():
+            self.counts.inc(name, count)
         self.scan_q.put(None)
-
-    def _visual_odometry(self, vo: VisualOdometry, ekf: PlanarEkf, frame: RgbdFrame,
-                         prev_frame_ns: int | None) -> tuple[float | None, int | None]:  # fmt: skip
-        """VO between ``frame`` and the last frame VO ran on, fused as a twist; (ms or None
-        when skipped, the stamp VO pairs the next frame with)."""
-        # Behind (frames waiting)? Skip VO on this frame rather than drop the next one: the
-        # next VO pair spans both frames and the wheels carry the EKF meanwhile.
-        if self.cfg.live.skip_vo_when_behind and prev_frame_ns is not None \
-                and not self.frame_q.empty():  # fmt: skip
-            self.counts.inc("vo_skipped_behind")
-            self._vo_skipped.append(frame.stamp_ns)
-            return None, prev_frame_ns
-        t0 = time.perf_counter()
-        res = vo.process(frame)
-        if prev_frame_ns is not None:
-            dt = (frame.stamp_ns - prev_frame_ns) / 1e9
-            d = res.delta_base
-            if res.success and d is not None and dt > 0:
-                # The pair's mean velocity at every frame it spans (slam.ekf docstring).
-                out = ekf.process_span("vo0", spanning_motion_twists(
-                    self._vo_skipped, frame.stamp_ns, d, res.covariance, dt,
-                    1.0 / self.cfg.ekf.frequency))  # fmt: skip
-                if out and out[0].reason == "span_rejected":
-                    self.counts.inc("vo_spans_rejected")
-                if res.fallback:
-                    self.counts.inc("vo_fallbacks")  # the features failed, depth ICP tracked
-            else:
-                self.counts.inc(f"vo_failures_{res.reason}")
-        self._vo_skipped.clear()
-        return 1e3 * (time.perf_counter() - t0), frame.stamp_ns
 
     def _mapper_loop(self) -> None:
         cfg = self.cfg

@@ -2,7 +2,7 @@
 
 The map is a bundle folder written by ``rgbdnav map`` or any Nav2 ``map.yaml`` (slam_toolbox,
 map_server, ...). Scans and their odometry come from the same stream as ``rgbdnav map``
-(:func:`rgbdnav.map_run.scan_stream`): a laser log's per-scan laser poses, or for a recording
+(:func:`rgbdnav.scan_stream.scan_stream`): a laser log's per-scan laser poses, or for a recording
 the EKF-fused odometry with depth turned into scans. Each scan goes through
 :meth:`slam.localization.Localizer.update`. The run directory holds:
 
@@ -37,9 +37,9 @@ from typing import Any
 import numpy as np
 
 from rgbdnav.config import load_config, source_options
-from rgbdnav.map_run import scan_stream, source_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
+from rgbdnav.scan_stream import scan_stream, source_config
 from rgbdnav.visualize import (
     NullVisualizer,
     Visualizer,
@@ -209,6 +209,7 @@ def run_localize(
     progress: Callable[[int, int], None] | None = None,
     rrd: Path | None = None,
     viewer: bool = False,
+    force_3dof: bool = False,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
     """Localise every scan of ``source_path`` in the map; (files written, summary). ``rrd`` /
     ``viewer`` log the run to rerun (:mod:`rgbdnav.visualize`)."""
@@ -246,7 +247,7 @@ def run_localize(
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
         stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs,
-                                           (config_files, overrides))  # fmt: skip
+                                           force_3dof)  # fmt: skip
         # 2. Localise every scan.
         loc = Localizer(model, cfg.localizer, init)
         results: list[LocalizationResult] = []

@@ -1,9 +1,8 @@
-"""`rgbdnav map`: a pose-graph map of a CARMEN laser log or an RGB-D recording, as a map bundle.
+"""`rgbdnav map`: a pose-graph map of a CARMEN laser log or an RGB-D source, as a map bundle.
 
-Laser logs feed their scans with the log's per-scan laser pose as odometry. RGB-D recordings
-first run the odometry pipeline (wheels + VO + gyro in the EKF, ``odometry/`` in the run
-directory), then turn every frame into a scan (depth -> scan, base_link frame) and feed it with
-the fused pose at the frame's stamp.
+Laser logs feed their scans with the log's per-scan laser pose as odometry. RGB-D sources go
+through the front end (:mod:`rgbdnav.scan_stream`: wheels, ``/odom``, IMU and VO in the EKF,
+depth -> scan), each frame's scan fed with its fused pose; ``odom.tum`` in the run directory.
 """
 
 from __future__ import annotations
@@ -12,7 +11,7 @@ import logging
 import math
 import resource
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,7 @@ import numpy as np
 from rgbdnav.config import Config, load_config, source_options
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
+from rgbdnav.scan_stream import scan_stream, source_config
 from rgbdnav.visualize import (
     NullVisualizer,
     Visualizer,
@@ -31,11 +31,10 @@ from rgbdnav.visualize import (
     occupied_cells_xy,
 )
 from sensors.carmen import CarmenSource
-from sensors.recording_source import RecordingSource
 from sensors.sim.world import FloorPlan, floor_plan, world_from_dict
-from sensors.source import PoseStream, Source, open_source
-from sensors.tum import load_tum_trajectory, write_tum_trajectory, yaw_from_quaternion
-from sensors.types import LaserScan, SensorError
+from sensors.source import PoseStream, open_source
+from sensors.tum import write_tum_trajectory
+from sensors.types import SensorError
 from slam.map_bundle import GraphEdge, MapBundle, load_bundle, save_bundle
 from slam.mapper import Mapper, MapperResult
 from slam.metrics import align_se2, drift_summary, interpolate_poses
@@ -44,7 +43,6 @@ from slam.scan_matching import scan_points, transform_points
 
 log = logging.getLogger(__name__)
 
-RGBD_PROFILE = Path(__file__).resolve().parents[1] / "config" / "profiles" / "rgbd_mapping.yaml"
 GRID_MARGIN_M = 1.0  # [m] around the mapped area
 IOU_TOLERANCE_CELLS = 1  # a mapped wall within one cell of the true one counts
 
@@ -58,6 +56,7 @@ def run_map(
     continue_bundle: Path | None = None,
     rrd: Path | None = None,
     viewer: bool = False,
+    force_3dof: bool = False,
 ) -> dict[str, Path]:
     t0 = time.perf_counter()
     vis = make_visualizer("map", rrd, viewer)  # fails before minutes of mapping, not after
@@ -83,7 +82,7 @@ def run_map(
             mapper = Mapper(mapper_cfg)
         summary["config_files"] = [str(p) for p in config_files]
         stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs,
-                                           (config_files, overrides))  # fmt: skip
+                                           force_3dof)  # fmt: skip
         t_map = time.perf_counter()
         first_ns = last_ns = None
         for k, (scan, odom) in enumerate(stream):
@@ -158,85 +157,6 @@ def _visualize(vis: Visualizer, result: MapperResult, occupied: np.ndarray, g: G
     if len(result.scan_stamps_ns):
         p = result.scan_poses
         vis.pose(int(result.scan_stamps_ns[-1]), p[-1], p[:, :2])
-
-
-def source_config(
-    src: Source, config_files: Sequence[Path], overrides: Sequence[str]
-) -> tuple[dict, list[Path], Config]:
-    """The source's scene (recordings), the config files with the RGB-D profile put first for
-    depth-camera sources (yours still win), and the config resolved over the recording's own
-    robot description."""
-    scene = src.recording.scene if isinstance(src, RecordingSource) else {}
-    base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
-    files = list(config_files)
-    if not isinstance(src, CarmenSource) and RGBD_PROFILE.is_file():
-        files = [RGBD_PROFILE, *files]
-    return scene, files, load_config(files, overrides, base=base)
-
-
-# 1. Scans with odometry --------------------------------------------------------------------
-
-
-def scan_stream(
-    src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
-    outputs: dict[str, Path], cli_config: tuple[Sequence[Path], Sequence[str]],
-) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
-    """(scan, odometry pose) pairs, their count, and the frame the poses are of."""
-    if isinstance(src, CarmenSource):
-        odo = src.laser_poses()
-        if odo is None:
-            raise SensorError(f"{source_path}: the log has no laser scans")
-        scans = list(src.scans())
-        return _with_poses(scans, odo), len(scans), "laser"
-    if src.intrinsics() is not None and src.wheels() is not None:
-        return _rgbd_stream(src, source_path, cfg, run, summary, outputs, cli_config)
-    raise SensorError(
-        f"{source_path}: cannot map this source: it needs laser scans with odometry (CARMEN) or "
-        "RGB-D frames with wheel encoders (a recording)"
-    )
-
-
-def _with_poses(
-    scans: Sequence[LaserScan], odo: PoseStream
-) -> Iterator[tuple[LaserScan, np.ndarray]]:
-    for k, scan in enumerate(scans):
-        yield scan, np.array([odo.x[k], odo.y[k], odo.yaw[k]])
-
-
-def _rgbd_stream(
-    src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
-    outputs: dict[str, Path], cli_config: tuple[Sequence[Path], Sequence[str]],
-) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
-    from rgbdnav.odometry_run import run_odometry
-    from slam.depth_to_scan import DepthToScan
-
-    intrinsics = src.intrinsics()
-    assert intrinsics is not None
-    d2s = DepthToScan(intrinsics, cfg.robot, cfg.depth_to_scan)
-    # Scans are made in the odometry pass's frame loop: each frame is decoded once.
-    scans: list[LaserScan] = []
-    odom_out = run_odometry(source_path, run.file("odometry"), list(cli_config[0]),
-                            list(cli_config[1]), use_vo=True,
-                            on_frame=lambda f: scans.append(d2s.from_frame(f).scan))  # fmt: skip
-    outputs["odometry"] = run.file("odometry")
-    stamps, xyz, quat = load_tum_trajectory(odom_out["fused odom"])
-    yaw = yaw_from_quaternion(quat)
-    n = len(src.stream_stamps().get("depth", ()))
-    summary["odometry_source"] = "EKF fused (odometry/fused.tum)"
-
-    def gen() -> Iterator[tuple[LaserScan, np.ndarray]]:
-        frame_scans = scans or (d2s.from_frame(f).scan for f in src.frames())
-        for scan in frame_scans:
-            fx, fy, fyaw, inside = interpolate_poses(stamps, xyz[:, 0], xyz[:, 1], yaw,
-                                                     np.array([scan.stamp_ns]))  # fmt: skip
-            if not inside[0]:
-                continue  # no fused pose brackets this frame: counted by the odometry run
-            yield scan, np.array([fx[0], fy[0], fyaw[0]])
-
-    return gen(), n, "base_link"
-
-
-# 2. Grid, bundle, scores ---------------------------------------------------------------------
 
 
 def build_grid(result: MapperResult, cfg: Config) -> OccupancyGrid:

@@ -75,11 +75,11 @@ from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap
 from nav.navigator import MAX_STOP_S, Navigator
 from rgbdnav.config import Config, load_config
 from rgbdnav.localize_run import LoadedMap, load_map
-from rgbdnav.map_run import RGBD_PROFILE
 from rgbdnav.nav_charts import velocity_chart
 from rgbdnav.nav_drive import EmulatedDrive, WheelOdometry
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
+from rgbdnav.scan_stream import RGBD_PROFILE
 from rgbdnav.visualize import Visualizer, log_run, make_visualizer, occupied_cells_xy
 from sensors.atomic import atomic_write_text
 from sensors.sim.scan import cast_scan, depth_range_sigma

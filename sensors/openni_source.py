@@ -318,7 +318,8 @@ class OpenNISource(SourceBase):
     ) -> OpenNISource | None:
         target = parse_target(path)
         camera = options.camera if options else None
-        return None if target is None else cls.open(target, camera=camera)
+        sync = options.sync if options else None
+        return None if target is None else cls.open(target, camera=camera, sync=sync)
 
     @classmethod
     def open(

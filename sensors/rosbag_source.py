@@ -17,7 +17,7 @@ depth       sensor_msgs/Image (16UC1/mono16 = mm,          RgbdFrame.depth_m (fl
             32FC1 = m), CompressedImage (16-bit png,       assumed registered to rgb
             compressedDepth png)
 camera_info sensor_msgs/CameraInfo (K, width, height)      CameraIntrinsics
-odom        nav_msgs/Odometry                              PoseStream (x, y, yaw from quaternion)
+odom        nav_msgs/Odometry                              PoseStream (x, y, yaw, twist, covs)
 imu         sensor_msgs/Imu                                ImuStream (angular_velocity.z)
 wheels      std_msgs/Int32MultiArray, Int64MultiArray      WheelStream, data = [left, right]
             (data = [left, right] encoder counts), or      counts; JointState angles become
@@ -106,6 +106,8 @@ ROLE_TYPES: Mapping[str, tuple[str, ...]] = {
     "imu": (IMU,),
     "wheels": (INT32_MULTI_ARRAY, INT64_MULTI_ARRAY, JOINT_STATE),
 }
+# (x, y, yaw) rows and columns of a ROS 6x6 covariance (x, y, z, roll, pitch, yaw), row-major.
+PLANAR_COV = (np.array([0, 1, 5])[:, None] * 6 + np.array([0, 1, 5])).ravel()
 STREAM_NAMES: Mapping[str, str] = {"odom": "odometry"}  # role -> stream_stamps() key if different
 
 COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8")
@@ -609,7 +611,7 @@ class RosbagSource(SourceBase):
         topics = RosbagTopics(**options.topics) if options.topics else None
         # Intrinsics from the user's camera config only stand in when the bag has no CameraInfo.
         return cls.open(p, topics, strict=options.strict, robot=options.robot,
-                        camera=options.camera)  # fmt: skip
+                        camera=options.camera, sync=options.sync)  # fmt: skip
 
     @classmethod
     def open(
@@ -787,11 +789,20 @@ class RosbagSource(SourceBase):
 
             def pose(m: Any) -> tuple[float, ...]:
                 p, q = m.pose.pose.position, m.pose.pose.orientation
-                return (float(p.x), float(p.y), float(q.x), float(q.y), float(q.z), float(q.w))
+                lin, ang = m.twist.twist.linear, m.twist.twist.angular
+                return (float(p.x), float(p.y), float(q.x), float(q.y), float(q.z), float(q.w),
+                        float(lin.x), float(lin.y), float(ang.z),
+                        *np.asarray(m.pose.covariance, np.float64)[PLANAR_COV],
+                        *np.asarray(m.twist.covariance, np.float64)[PLANAR_COV])  # fmt: skip
 
             stamps, v = self._read_stamped("odom", pose)
+            v = v.reshape(-1, 27)
             yaw = yaw_from_quaternion(v[:, 2:6]) if len(v) else np.zeros(0)
-            self._cache["odom"] = PoseStream(stamps, v[:, 0].copy(), v[:, 1].copy(), yaw)
+            self._cache["odom"] = PoseStream(
+                stamps, v[:, 0].copy(), v[:, 1].copy(), yaw, frame="base_link",
+                twist=v[:, 6:9].copy(), pose_covariance=v[:, 9:18].reshape(-1, 3, 3).copy(),
+                twist_covariance=v[:, 18:27].reshape(-1, 3, 3).copy(),
+            )  # fmt: skip
         stream: PoseStream = self._cache["odom"]
         return stream
 

@@ -16,7 +16,7 @@ from typing import Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
-from sensors.config import CameraConfig, RobotConfig
+from sensors.config import CameraConfig, RobotConfig, SyncConfig
 from sensors.types import CameraIntrinsics, LaserScan, RgbdFrame, SensorError
 
 
@@ -36,6 +36,10 @@ class PoseStream:
     y: np.ndarray  # (N,) [m]
     yaw: np.ndarray  # (N,) [rad]
     frame: str = "base_link"  # which frame the poses describe (base_link, camera, laser)
+    # nav_msgs/Odometry extras (None when the source has no such field):
+    twist: np.ndarray | None = None  # (N, 3) vx [m/s], vy [m/s], vyaw [rad/s] in the child frame
+    pose_covariance: np.ndarray | None = None  # (N, 3, 3) over x, y, yaw
+    twist_covariance: np.ndarray | None = None  # (N, 3, 3) over vx, vy, vyaw
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,6 +129,7 @@ class SourceOptions:
     robot: RobotConfig | None = None  # wheel geometry, e.g. for JointState wheel angles
     camera: CameraConfig | None = None  # intrinsics when a source carries none
     strict: bool = False  # raise on the first bad record instead of counting skips
+    sync: SyncConfig | None = None  # association windows (rosbag and OpenNI readers)
 
 
 Opener = Callable[[Path | str, SourceOptions], "Source | None"]

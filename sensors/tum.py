@@ -168,6 +168,21 @@ def write_tum_trajectory(
     atomic_write_text(path, PLANAR_TUM_HEADER + "".join(r + "\n" for r in rows))
 
 
+def write_tum_poses(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: np.ndarray) -> None:
+    """Atomically write 6-DoF poses ((N, 4, 4) homogeneous matrices) as a TUM trajectory."""
+    from scipy.spatial.transform import Rotation
+
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    if len(poses) != len(stamps_ns):
+        raise ValueError("stamps_ns and poses must have the same length")
+    quat = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
+    rows = np.concatenate([poses[:, :3, 3], quat], axis=1)
+    text = "".join(format_stamp(int(t)) + " " + " ".join(repr(float(v)) for v in r) + "\n"
+                   for t, r in zip(stamps_ns, rows, strict=True))  # fmt: skip
+    atomic_write_text(path, "# timestamp tx ty tz qx qy qz qw\n" + text)
+
+
 def planar_tum_row(stamp_ns: int, x: float, y: float, yaw: float) -> str:
     """One line of :func:`write_tum_trajectory`'s format, for a trajectory written as it
     grows (e.g. the live run's streamed tracks)."""

@@ -105,6 +105,11 @@ class EkfConfig:
     imu0_gyro_bias_process_noise: float = param(
         1e-8, unit="(rad/s)^2/s", ge=0.0, doc="random walk of the gyro z bias"
     )
+    odom0_default_variance: float = param(
+        1e-3, unit="(m/s)^2, (rad/s)^2 or m^2, rad^2", gt=0.0,
+        doc="odometry messages (nav_msgs/Odometry) whose covariance is all zero, as many "
+        "drivers leave it: this variance on each fused variable instead",
+    )  # fmt: skip
     odom0_vy_variance: float = param(
         1e-4, unit="(m/s)^2", gt=0.0, doc="variance of the non-holonomic vy = 0 measurement"
     )
@@ -244,7 +249,7 @@ class VoConfig:
         0.03,
         unit="m",
         ge=0.0,
-        doc="depth_icp: a motion off the last one by more than this -> implausible_motion (0 = off)",
+        doc="depth_icp: a motion this far off the last one is implausible_motion (0 = off)",
     )
     icp_min_overlap: float = param(
         0.5, ge=0.0, le=1.0, doc="depth_icp: share of check points matched, else too_few_inliers"

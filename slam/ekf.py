@@ -507,6 +507,15 @@ class PlanarEkf:
         self._first_pose: dict[str, Pose2] = {}
         self.timed_out_outputs = 0
 
+    def start(self, stamp_ns: int) -> None:
+        """Start the filter at ``x0`` at ``stamp_ns`` without a measurement: the odom frame is
+        where the robot is now (REP-105). For a front end whose only motion input is a twist
+        (VO): its first twist would otherwise set the pose at the twist's end, losing the
+        first pair's motion. No effect once the filter has a state."""
+        if self.t_ns is None:
+            self.t_ns = int(stamp_ns)
+            self._history.append(_Entry(self.t_ns, self.x.copy(), self.P.copy(), None, True))
+
     # 1. Messages -> measurements (per sensor, in arrival order, like robot_localization's
     #    callbacks: differential and relative state depends on what that sensor sent before).
 

@@ -185,7 +185,16 @@ def test_a_glitched_encoder_reading_is_counted_in_the_summary_not_driven(
     assert summary["wheel_odometry_vs_groundtruth"]["final_position_error_m"] < 0.1
 
 
-def test_odometry_refuses_a_source_without_wheel_readings(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        ([], "rec: no usable odometry: VO tracked none of the 1 frame pairs"),
+        (["--no-vo"], "rec: no odometry input: no wheel encoder readings"),
+    ],
+)
+def test_odometry_refuses_a_source_without_wheels_whose_frames_vo_cannot_track(
+    tmp_path: Path, extra: list[str], message: str
+) -> None:
     from sensors.recording import RecordingWriter
     from sensors.types import CameraIntrinsics, RgbdFrame
 
@@ -194,9 +203,10 @@ def test_odometry_refuses_a_source_without_wheel_readings(tmp_path: Path) -> Non
         for k in range(2):
             writer.add_frame(RgbdFrame(k * 33_000_000, np.zeros((3, 4, 3), np.uint8),
                                        np.ones((3, 4), np.float32), intr))  # fmt: skip
-    result = runner.invoke(app, ["odometry", str(tmp_path / "rec"), "--out", str(tmp_path / "o")])
+    result = runner.invoke(app, ["odometry", str(tmp_path / "rec"), "--out", str(tmp_path / "o"),
+                                 *extra])  # fmt: skip
     assert result.exit_code == 1
-    assert "rec: no wheel encoder readings (need at least 2)" in result.output
+    assert message in result.output
 
 
 def test_an_unreadable_cached_rendering_is_rendered_again(tmp_path: Path, monkeypatch,

@@ -155,7 +155,7 @@ def test_map_of_the_start_of_mit_csail_is_locally_accurate(tmp_path: Path) -> No
 
 def test_the_rgbd_mapping_profile_is_a_valid_config_that_trusts_odometry_more() -> None:
     from rgbdnav.config import load_config
-    from rgbdnav.map_run import RGBD_PROFILE
+    from rgbdnav.scan_stream import RGBD_PROFILE
 
     default, profiled = load_config([], []), load_config([RGBD_PROFILE], [])
     assert profiled.depth_to_scan.return_averaging_window > 0

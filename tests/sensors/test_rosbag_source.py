@@ -601,3 +601,14 @@ def test_topics_from_the_user_config_reach_the_adapter_through_open_source(tmp_p
     with open_source(path, source_options(cfg)) as src:
         odom = src.odometry()
         assert odom is not None and odom.x.tolist() == [2.0]
+
+
+def test_set_sync_slop_reaches_the_bag_reader_through_the_source_options(tmp_path):
+    from rgbdnav.config import load_config, source_options
+
+    path = bag_path(tmp_path, "db3")
+    write_scene(path, "db3")  # depth stamped 5 ms after its rgb image
+    with open_source(path, source_options(load_config([], []))) as src:
+        assert len(list(src.frames())) == 4  # default slop 20 ms
+    with open_source(path, source_options(load_config([], ["sync.slop=0.001"]))) as src:
+        assert list(src.frames()) == []  # --set sync.slop=0.001: 5 ms apart is no pair

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from rgbdnav.config import Config, load_config
-from rgbdnav.map_run import RGBD_PROFILE
+from rgbdnav.scan_stream import RGBD_PROFILE
 from sensors.sim.motion import Trajectory, drive_route
 from sensors.sim.render import KinectRenderer
 from sensors.sim.world import World, floor_plan, load_world

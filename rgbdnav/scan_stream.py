@@ -1,0 +1,117 @@
+"""Scans with odometry from any source, shared by `rgbdnav map` and `rgbdnav localize`.
+
+A laser log feeds its scans with the log's per-scan laser pose. An RGB-D source goes through
+the front end (:mod:`slam.front_end`: wheels, ``/odom``, IMU and VO in the EKF, depth -> scan),
+each frame's scan paired with its ``odom -> base_link`` pose, in one pass over the frames.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from rgbdnav.config import Config, load_config
+from rgbdnav.run_dir import RunDir
+from sensors.carmen import CarmenSource
+from sensors.recording_source import RecordingSource
+from sensors.source import PoseStream, Source
+from sensors.tum import write_tum_trajectory
+from sensors.types import LaserScan, SensorError
+from slam.front_end import FrontEnd, odom_origin, options_for, replay
+from slam.geometry import oplus
+from slam.metrics import drift_report
+
+log = logging.getLogger(__name__)
+
+RGBD_PROFILE = Path(__file__).resolve().parents[1] / "config" / "profiles" / "rgbd_mapping.yaml"
+HANDHELD = (
+    "a handheld camera (no wheel encoders and no /odom): a 2-D map needs a ground robot; pass "
+    "--force-3dof if the camera rides on one"
+)
+
+
+def source_config(
+    src: Source, config_files: Sequence[Path], overrides: Sequence[str]
+) -> tuple[dict, list[Path], Config]:
+    """The source's scene (recordings), the config files with the RGB-D profile put first for
+    depth-camera sources (yours still win), and the config resolved over the recording's own
+    robot description."""
+    scene = src.recording.scene if isinstance(src, RecordingSource) else {}
+    base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
+    files = list(config_files)
+    if not isinstance(src, CarmenSource) and RGBD_PROFILE.is_file():
+        files = [RGBD_PROFILE, *files]
+    return scene, files, load_config(files, overrides, base=base)
+
+
+def scan_stream(
+    src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
+    outputs: dict[str, Path], force_3dof: bool = False,
+) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
+    """(scan, odometry pose) pairs, their count, and the frame the poses are of."""
+    if isinstance(src, CarmenSource):
+        odo = src.laser_poses()
+        if odo is None:
+            raise SensorError(f"{source_path}: the log has no laser scans")
+        scans = list(src.scans())
+        return _with_poses(scans, odo), len(scans), "laser"
+    if src.intrinsics() is not None:
+        return _rgbd_stream(src, source_path, cfg, run, summary, outputs, force_3dof)
+    raise SensorError(
+        f"{source_path}: cannot map this source: it needs laser scans with odometry (CARMEN) or "
+        "RGB-D frames (with wheel encoders, /odom, or --force-3dof for VO alone)"
+    )
+
+
+def _with_poses(
+    scans: Sequence[LaserScan], odo: PoseStream
+) -> Iterator[tuple[LaserScan, np.ndarray]]:
+    for k, scan in enumerate(scans):
+        yield scan, np.array([odo.x[k], odo.y[k], odo.yaw[k]])
+
+
+def _rgbd_stream(
+    src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
+    outputs: dict[str, Path], force_3dof: bool,
+) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
+    opts = options_for(src, True, force_3dof, cfg.camera.rate)
+    if not opts.planar:
+        raise SensorError(f"{source_path}: {HANDHELD}")
+    fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
+    start = odom_origin(src)
+    n = len(src.stream_stamps().get("depth", ()))
+    summary["odometry_source"] = "front end: EKF (" + ", ".join(fe.inputs) + ")"
+    outputs["odometry"] = run.file("odom.tum")
+
+    def gen() -> Iterator[tuple[LaserScan, np.ndarray]]:
+        timed_out = 0
+        stamps, poses = [], []
+        for step in replay(src, fe):
+            if step.odom is None or step.scan is None:
+                continue  # no input has reached the filter yet: counted by the front end
+            timed_out += step.timed_out
+            p = step.odom.pose
+            odom = oplus([start.x, start.y, start.yaw], [p.x, p.y, p.yaw])
+            stamps.append(step.stamp_ns)
+            poses.append(odom)
+            yield step.scan, odom
+        a = np.array(poses, np.float64).reshape(-1, 3)
+        write_tum_trajectory(run.file("odom.tum"), np.array(stamps, np.int64), a[:, 0], a[:, 1],
+                             a[:, 2])  # fmt: skip
+        gt = src.groundtruth()
+        if gt is not None and gt.frame == "base_link" and len(a):
+            summary["odometry_vs_groundtruth"] = drift_report(
+                np.array(stamps, np.int64), (a[:, 0], a[:, 1], a[:, 2]), gt.stamps_ns,
+                (gt.x, gt.y, gt.yaw)).as_dict()  # fmt: skip
+        assert fe.ekf is not None
+        summary["front_end"] = {"inputs": list(fe.inputs), "ekf": fe.ekf.stats,
+                                "frames_timed_out": timed_out,
+                                "counts": dict(sorted(fe.counts.items()))}  # fmt: skip
+
+    return gen(), n, "base_link"
+
+
+__all__ = ["HANDHELD", "RGBD_PROFILE", "scan_stream", "source_config"]

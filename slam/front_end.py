@@ -1,0 +1,401 @@
+"""One front end for every caller: wheel ticks, odometry messages (``/odom``), IMU and RGB-D
+frames in, per frame the ``odom -> base_link`` pose with its covariance, the depth scan and the
+VO result out.
+
+The offline commands (:func:`replay` over a :class:`~sensors.source.Source`) and the live run's
+front-end thread (messages as they arrive) drive the same :class:`FrontEnd`, so an offline
+figure vouches for the live path. Inputs are whatever the source has, in any subset:
+
+* wheel ticks -> body twists (:func:`slam.ekf.wheel_twist_inputs`) as EKF sensor ``odom0``;
+* odometry messages (nav_msgs/Odometry) as ``odom0`` when there are no wheels: the twist with
+  its covariance as robot_localization fuses ``odom0``, or a pose-only stream differenced
+  (``odom0_differential``); with wheels too, the wheels win (both usually count the same ticks);
+* gyro z as ``imu0``; VO frame-pair motions as ``vo0`` (:func:`slam.ekf.spanning_motion_twists`).
+
+With no wheels and no odometry messages the robot's VO carries the EKF (planar mode). Without
+``planar`` (a handheld camera) there is no EKF and no scan: the VO's 6-DoF camera motions are
+chained into camera poses (``FrontEndStep.camera_pose``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from sensors.config import RobotConfig
+from sensors.source import Source
+from sensors.types import NS_PER_S, ImuSample, LaserScan, Odometry2D, Pose2, RgbdFrame, WheelTicks
+from slam.config import STATE_NAMES, DepthToScanConfig, EkfConfig, VoConfig
+from slam.depth_to_scan import DepthToScan
+from slam.diff_drive import WheelErrorModel
+from slam.ekf import (
+    WHEEL_VARIANCE_WINDOW_S,
+    EkfError,
+    PlanarEkf,
+    PoseInput,
+    TwistInput,
+    spanning_motion_twists,
+    wheel_twist_inputs,
+)
+from slam.metrics import interpolate_poses
+from slam.visual_odometry import VisualOdometry, VoResult
+
+log = logging.getLogger(__name__)
+
+OdometryMessage = PoseInput | TwistInput
+GAP_PERIODS = 1.5  # a VO pair longer than this many camera frame periods spans a lost frame
+MIN_HISTORY_S = 1.0  # [s] EKF history for spans fused late (a gap of up to ~1 s)
+
+
+@dataclass(frozen=True)
+class FrontEndOptions:
+    """What a caller decides about the front end (the tunables are in the config sections)."""
+
+    wheels: bool = False  # the source has wheel encoder readings
+    odometry: str = ""  # odometry messages: "twist" (with or without pose), "pose" or "" (none)
+    imu: bool = False  # the source has a gyro
+    vo: bool = True  # run visual odometry on the frames
+    scan: bool = True  # turn each frame's depth into a scan (planar mode only)
+    planar: bool = True  # a ground robot; False: a handheld camera, 6-DoF VO poses, no EKF
+    pose_before_vo: bool = False  # live: a frame's pose leaves before its VO is fused
+    frame_interval_s: float = 0.0  # [s] median frame interval when longer than the camera's
+    camera_rate_hz: float = 30.0  # [Hz] the rate VO's per-frame sanity limits are meant for
+
+
+@dataclass(frozen=True, eq=False)
+class FrontEndStep:
+    """What the front end made of one RGB-D frame."""
+
+    stamp_ns: int  # [ns] the frame's stamp
+    odom: Odometry2D | None  # odom -> base_link at the frame, 3x3 covariance; None: no estimate
+    timed_out: bool  # the pose is predicted only: no input for longer than ekf.sensor_timeout
+    scan: LaserScan | None  # depth -> scan in base_link (planar mode with scans on)
+    vo: VoResult | None  # None: VO off, or skipped on this frame
+    camera_pose: np.ndarray | None  # (4, 4) handheld: camera in the first camera's optical frame
+    vo_ms: float = math.nan  # [ms] VO time (incl. fusing its twist)
+    scan_ms: float = math.nan  # [ms] depth -> scan time
+    ekf_ms: float = math.nan  # [ms] the pose query
+
+
+def vo_for_interval(vo: VoConfig, interval_s: float, rate_hz: float) -> VoConfig:
+    """VO's per-frame sanity limits (``max_translation``, ``max_rotation``) are meant for frames
+    at the camera's rate; frames further apart (a keyframe set, a thinned recording) may move
+    that much further between them, so the limits grow with the interval (rotation up to pi)."""
+    factor = interval_s * rate_hz
+    if factor <= 1.0:
+        return vo
+    return replace(
+        vo,
+        max_translation=vo.max_translation * factor,
+        max_rotation=min(vo.max_rotation * factor, math.pi),
+    )
+
+
+def pose_only_odom0(cfg: EkfConfig) -> EkfConfig:
+    """``odom0`` for odometry messages that carry a pose but no twist: the pose differenced
+    into the velocities the config asks for (robot_localization: ``odom0_differential`` with
+    the x, y, yaw flags)."""
+    flags = list(cfg.odom0_config)
+    for pose_name, rate_name in (("x", "vx"), ("y", "vy"), ("yaw", "vyaw")):
+        flags[STATE_NAMES.index(pose_name)] = flags[STATE_NAMES.index(rate_name)]
+        flags[STATE_NAMES.index(rate_name)] = False
+    return replace(cfg, odom0_config=tuple(flags), odom0_differential=True)
+
+
+class FrontEnd:
+    """Feed messages in time order (live: as they arrive; late ones are re-filtered when
+    ``ekf.smooth_lagged_data`` is on); :meth:`frame` gives the step of each RGB-D frame."""
+
+    def __init__(
+        self,
+        robot: RobotConfig,
+        ekf: EkfConfig,
+        vo: VoConfig,
+        depth_to_scan: DepthToScanConfig,
+        options: FrontEndOptions,
+    ) -> None:
+        self.options = options
+        self.robot = robot
+        vo = vo_for_interval(vo, options.frame_interval_s, options.camera_rate_hz)
+        self.vo_cfg = vo if options.planar else replace(vo, force_3dof=False)
+        self.d2s_cfg = depth_to_scan
+        if options.odometry == "pose" and not options.wheels:
+            ekf = pose_only_odom0(ekf)
+        # A reading or VO pair that came after a gap is fused spread over its span
+        # (slam.ekf.interval_twists): its pieces are older than messages of other sensors in
+        # that span, so the filter re-filters from its history rather than drop them.
+        ekf = replace(ekf, smooth_lagged_data=True,
+                      history_length=max(ekf.history_length, MIN_HISTORY_S))  # fmt: skip
+        self.ekf_cfg = ekf
+        self.ekf = PlanarEkf(ekf, ekf.imu0_angular_velocity_variance) if options.planar else None
+        self.model = WheelErrorModel.from_robot(robot)
+        # Which EKF sensors get messages: available, and selected by their <sensor>_config.
+        self.inputs: tuple[str, ...] = ()
+        if self.ekf is not None:
+            odom0 = options.wheels or bool(options.odometry)
+            wanted = {"odom0": odom0, "imu0": options.imu, "vo0": options.vo}
+            self.inputs = tuple(
+                sorted(n for n, on in wanted.items() if on and any(getattr(ekf, f"{n}_config")))
+            )
+        self.counts: Counter[str] = Counter()
+        self._recent: deque[WheelTicks] = deque()
+        self._window_ns = int(WHEEL_VARIANCE_WINDOW_S * NS_PER_S)
+        self._vo: VisualOdometry | None = None
+        self._d2s: DepthToScan | None = None
+        self._vo_prev_ns: int | None = None  # the frame VO last ran on
+        self._vo_skipped: list[int] = []  # frames VO skipped since then
+
+    @property
+    def vo_stats(self) -> dict[str, int]:
+        """The VO's own counters (depth ICP fallbacks used / failed), empty before any frame."""
+        return dict(self._vo.stats) if self._vo is not None else {}
+
+    @property
+    def vo_carries(self) -> bool:
+        """VO is the filter's only motion input (no wheels, no odometry messages)."""
+        return "vo0" in self.inputs and "odom0" not in self.inputs
+
+    # 1. Messages other than frames.
+
+    def wheels(self, t: WheelTicks) -> bool:
+        """One encoder reading: the twist of the interval it ends, its variance from the travel
+        over the last WHEEL_VARIANCE_WINDOW_S (as :func:`wheel_twist_inputs` over the whole
+        log). False: a repeated or older reading, which says nothing new (counted)."""
+        if self._recent and t.stamp_ns <= self._recent[-1].stamp_ns:
+            self.counts["wheel_readings_repeated"] += 1
+            return False
+        self._recent.append(t)
+        while len(self._recent) > 2 and self._recent[1].stamp_ns <= t.stamp_ns - self._window_ns:
+            self._recent.popleft()
+        if self.ekf is not None and "odom0" in self.inputs and len(self._recent) >= 2:
+            r = self._recent
+            self.ekf.process_span(
+                "odom0",
+                wheel_twist_inputs(
+                    np.array([x.stamp_ns for x in r]),
+                    np.array([x.left for x in r]),
+                    np.array([x.right for x in r]),
+                    self.robot,
+                    self.model,
+                    vy_variance=self.ekf_cfg.odom0_vy_variance,
+                    last_only=True,
+                    max_interval_s=1.0 / self.ekf_cfg.frequency,
+                ),
+            )
+        return True
+
+    def odometry(self, msg: OdometryMessage) -> None:
+        """One odometry message (nav_msgs/Odometry twist, or pose when it has no twist)."""
+        if self.ekf is not None and "odom0" in self.inputs and not self.options.wheels:
+            self.ekf.process("odom0", msg)
+
+    def imu(self, s: ImuSample) -> None:
+        if self.ekf is not None and "imu0" in self.inputs:
+            self.ekf.process("imu0", s)
+
+    # 2. Frames.
+
+    def frame(self, frame: RgbdFrame, skip_vo: bool = False) -> FrontEndStep:
+        """VO (unless ``skip_vo``: a live front end behind), the pose at the frame's stamp and
+        the scan. A skipped frame's motion is fused with the next VO pair, spread over both."""
+        if self._vo is None and self.options.vo:
+            self._vo = VisualOdometry(frame.intrinsics, self.vo_cfg, self.robot)
+        if self._d2s is None and self.options.scan and self.options.planar:
+            self._d2s = DepthToScan(frame.intrinsics, self.robot, self.d2s_cfg)
+        if self.ekf is not None and self.vo_carries:
+            self.ekf.start(frame.stamp_ns)  # the odom frame is where the robot starts
+        res, vo_ms = (None, math.nan)
+        if not self.options.pose_before_vo:
+            res, vo_ms = self._visual_odometry(frame, skip_vo)
+        t0 = time.perf_counter()
+        odom, timed_out = self._pose_at(frame.stamp_ns)
+        ekf_ms = 1e3 * (time.perf_counter() - t0)
+        scan, scan_ms = None, math.nan
+        if self._d2s is not None and odom is not None:
+            t0 = time.perf_counter()
+            scan = self._d2s.from_frame(frame).scan
+            scan_ms = 1e3 * (time.perf_counter() - t0)
+        if self.options.pose_before_vo:  # VO corrects the filter for the frames that follow
+            res, vo_ms = self._visual_odometry(frame, skip_vo)
+        camera = None
+        if not self.options.planar and self._vo is not None:
+            camera = self._vo.T_odom_cam.copy()
+        return FrontEndStep(
+            frame.stamp_ns, odom, timed_out, scan, res, camera, vo_ms, scan_ms, ekf_ms
+        )
+
+    def _pose_at(self, stamp_ns: int) -> tuple[Odometry2D | None, bool]:
+        if self.ekf is None:
+            return None, False
+        try:
+            od = self.ekf.state_at(stamp_ns)
+        except EkfError:  # no input yet, or the frame is older than the kept history
+            self.counts["frames_without_odometry"] += 1
+            return None, False
+        return od, self.ekf.is_timed_out(stamp_ns)
+
+    def _visual_odometry(self, frame: RgbdFrame, skip: bool) -> tuple[VoResult | None, float]:
+        """VO between ``frame`` and the last frame VO ran on, fused as the pair's mean twist
+        over every frame it spans; (result or None when skipped or off, ms)."""
+        if self._vo is None:
+            return None, math.nan
+        if skip and self._vo_prev_ns is not None:
+            self.counts["vo_skipped_behind"] += 1
+            self._vo_skipped.append(frame.stamp_ns)
+            return None, math.nan
+        t0 = time.perf_counter()
+        res = self._vo.process(frame)
+        prev, self._vo_prev_ns = self._vo_prev_ns, frame.stamp_ns
+        if prev is not None:
+            dt = (frame.stamp_ns - prev) / NS_PER_S
+            d = res.delta_base
+            ok = res.success and dt > 0 and (d is not None or not self.options.planar)
+            if not ok:
+                # (vo.force_3dof off on a ground robot: no planar motion for the EKF)
+                self.counts[f"vo_failures_{res.reason if not res.success else 'not_planar'}"] += 1
+            elif res.fallback:
+                self.counts["vo_fallbacks"] += 1  # the features failed, depth ICP tracked
+            elif self.ekf is not None and d is not None and "vo0" in self.inputs:
+                # Spread over its span when it spans skipped or dropped frames; a pair a few
+                # ms longer than a frame period (camera jitter) is one twist at its end.
+                gap = dt > GAP_PERIODS / self.options.camera_rate_hz
+                step = 1.0 / self.ekf_cfg.frequency if self._vo_skipped or gap else None
+                out = self.ekf.process_span(
+                    "vo0",
+                    spanning_motion_twists(
+                        self._vo_skipped, frame.stamp_ns, d, res.covariance, dt, step
+                    ),
+                )
+                if out and out[0].reason == "span_rejected":
+                    self.counts["vo_spans_rejected"] += 1
+        self._vo_skipped.clear()
+        return res, 1e3 * (time.perf_counter() - t0)
+
+
+# --- offline: a source's streams in time order ----------------------------------------------
+
+
+def options_for(src: Source, use_vo: bool = True, force_3dof: bool = False,
+                camera_rate_hz: float = 30.0) -> FrontEndOptions:  # fmt: skip
+    """What ``src`` offers the front end. A source with neither wheels nor odometry messages is
+    a handheld camera unless ``force_3dof`` says it rides on a ground robot."""
+    wheels, odo, imu = src.wheels(), src.odometry(), src.imu()
+    rgb = np.asarray(src.stream_stamps().get("rgb", ()), np.int64)
+    interval = float(np.median(np.diff(rgb))) / NS_PER_S if len(rgb) > 1 else 0.0
+    has_wheels = wheels is not None and len(wheels.stamps_ns) >= 2
+    kind = ""
+    if odo is not None and len(odo.stamps_ns) >= 2:
+        kind = "twist" if odo.twist is not None else "pose"
+    if has_wheels and kind:
+        log.info("%s: wheel encoders and odometry messages: fusing the wheels only", src.path)
+    return FrontEndOptions(
+        wheels=has_wheels,
+        odometry=kind,
+        imu=imu is not None and len(imu.stamps_ns) > 0,
+        vo=use_vo and src.intrinsics() is not None,
+        planar=has_wheels or bool(kind) or force_3dof,
+        frame_interval_s=interval,
+        camera_rate_hz=camera_rate_hz,
+    )
+
+
+def odom_origin(src: Source) -> Pose2:
+    """Where the odom frame sits in the world: the source's base_link ground truth at its first
+    wheel reading (else odometry message, else frame), or the origin without ground truth."""
+    gt = src.groundtruth()
+    if gt is None or gt.frame != "base_link" or len(gt.stamps_ns) == 0:
+        return Pose2(0.0, 0.0, 0.0)
+    wheels, odo = src.wheels(), src.odometry()
+    firsts = [s.stamps_ns for s in (wheels, odo) if s is not None and len(s.stamps_ns)]
+    firsts.append(np.asarray(src.stream_stamps().get("rgb", gt.stamps_ns[:1])))
+    t = np.asarray(firsts[0][:1], np.int64)
+    gx, gy, gyaw, _ = interpolate_poses(gt.stamps_ns, gt.x, gt.y, gt.yaw, t)
+    return Pose2(float(gx[0]), float(gy[0]), float(gyaw[0]))
+
+
+def _odometry_messages(src: Source, kind: str, fallback_variance: float) -> list[OdometryMessage]:
+    """A source's odometry stream as EKF messages: twists (with their covariance) or poses. An
+    all-zero covariance (many drivers leave it unset) is replaced by ``fallback_variance``."""
+    odo = src.odometry()
+    if odo is None or not kind:
+        return []
+    n = len(odo.stamps_ns)
+
+    def covariances(c: np.ndarray | None) -> np.ndarray:
+        out = np.zeros((n, 3, 3)) if c is None else np.array(c, dtype=np.float64).reshape(n, 3, 3)
+        unset = ~np.any(out != 0, axis=(1, 2))
+        out[unset] = np.eye(3) * fallback_variance
+        return out
+
+    if kind == "twist":
+        assert odo.twist is not None
+        tw, cov = np.asarray(odo.twist, np.float64), covariances(odo.twist_covariance)
+        return [
+            TwistInput(int(t), float(v[0]), float(v[1]), float(v[2]), c)
+            for t, v, c in zip(odo.stamps_ns, tw, cov, strict=True)
+        ]
+    cov = covariances(odo.pose_covariance)
+    return [
+        PoseInput(int(t), Pose2(float(x), float(y), float(a)), c)
+        for t, x, y, a, c in zip(odo.stamps_ns, odo.x, odo.y, odo.yaw, cov, strict=True)
+    ]
+
+
+def replay(
+    src: Source, fe: FrontEnd, progress: Callable[[int, int], None] | None = None
+) -> Iterator[FrontEndStep]:
+    """``src``'s streams through ``fe`` in time order: before each frame every wheel reading,
+    odometry message and IMU sample stamped at or before it (ties: the frame last, as
+    :func:`slam.ekf.fuse` orders a message at an output's stamp before the output)."""
+    opts = fe.options
+    stamps: list[np.ndarray] = []
+    feed: list[Callable[[int], None]] = []
+    wheels = src.wheels() if opts.wheels else None
+    if wheels is not None:
+        w = wheels
+        stamps.append(np.asarray(w.stamps_ns, np.int64))
+        feed.append(
+            lambda i: fe.wheels(WheelTicks(int(w.stamps_ns[i]), int(w.left[i]), int(w.right[i])))
+        )
+    if opts.odometry and not opts.wheels:
+        msgs = _odometry_messages(src, opts.odometry, fe.ekf_cfg.odom0_default_variance)
+        stamps.append(np.array([m.stamp_ns for m in msgs], np.int64))
+        feed.append(lambda i: fe.odometry(msgs[i]))
+    imu = src.imu() if opts.imu else None
+    if imu is not None:
+        g = imu
+        stamps.append(np.asarray(g.stamps_ns, np.int64))
+        feed.append(lambda i: fe.imu(ImuSample(int(g.stamps_ns[i]), float(g.gyro_z[i]))))
+    # One time-ordered merge of every non-frame message (stable: ties keep the order above).
+    all_t = np.concatenate(stamps) if stamps else np.zeros(0, np.int64)
+    which = np.concatenate([np.full(len(s), k) for k, s in enumerate(stamps)]) if stamps else all_t
+    index = np.concatenate([np.arange(len(s)) for s in stamps]) if stamps else all_t
+    order = np.argsort(all_t, kind="stable")
+    all_t, which, index = all_t[order], which[order], index[order]
+    n = len(src.stream_stamps().get("rgb", ()))
+    k = 0
+    for j, frame in enumerate(src.frames()):
+        end = int(np.searchsorted(all_t, frame.stamp_ns, side="right"))
+        for m in range(k, end):
+            feed[which[m]](int(index[m]))
+        k = max(k, end)
+        yield fe.frame(frame)
+        if progress is not None:
+            progress(j + 1, n)
+
+
+__all__ = [
+    "odom_origin",
+    "FrontEnd",
+    "FrontEndOptions",
+    "FrontEndStep",
+    "options_for",
+    "pose_only_odom0",
+    "replay",
+]

@@ -1,0 +1,106 @@
+"""One front end: a recording replayed through the live run's front-end thread and through the
+offline path (:func:`slam.front_end.replay`, what `odometry`, `map` and `localize` drive) gives
+the same poses."""
+
+from __future__ import annotations
+
+import queue
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from rgbdnav.cli import app
+from rgbdnav.live_run import LiveOptions, LiveRun
+from sensors.source import open_source
+from sensors.types import WheelTicks
+from slam.front_end import FrontEnd, options_for, replay
+from slam.geometry import wrap_angle
+
+REPO = Path(__file__).resolve().parents[2]
+HOUSE = REPO / "scenes" / "house.yaml"
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("rec") / "house"
+    result = runner.invoke(app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45",
+                                 "--seed", "3", "--quiet"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_live_front_end_thread_and_offline_replay_give_the_same_poses(
+    recording: Path, tmp_path: Path
+) -> None:
+    # The live run as on the robot (its profiles, optical-flow VO, pose before VO), with a
+    # board (not opened here) and the recording for a camera. VO is not skipped: the whole
+    # recording is queued at once, which would otherwise look like a front end far behind.
+    live = LiveRun(LiveOptions(out=tmp_path / "live", camera=str(recording), board="/dev/null",
+                               drive="idle",
+                               overrides=["live.frame_queue_size=100",
+                                          "live.skip_vo_when_behind=false"]))  # fmt: skip
+    cfg = live.cfg
+    with open_source(recording) as src:
+        frames = list(src.frames())
+        wheels = src.wheels()
+        assert wheels is not None
+        # 1. Live: every wheel reading arrives before the first frame is taken, so every VO
+        #    motion reaches the EKF late and is fused by re-filtering its history.
+        for t, left, right in zip(wheels.stamps_ns, wheels.left, wheels.right, strict=True):
+            live.ticks_q.put(WheelTicks(int(t), int(left), int(right)))
+        for f in frames:
+            live.frame_q.put_nowait(f)
+        live.frame_q.put(None)
+        live._front_end_loop()
+        live.odom_track.close()
+        online = live.odom_track.load()
+        assert isinstance(live.scan_q.get_nowait(), tuple)  # scans went to the mapper
+        # 2. Offline: the source's streams in time order (the live robot has no gyro).
+        opts = replace(options_for(src, camera_rate_hz=cfg.camera.rate), imu=False,
+                       pose_before_vo=cfg.live.pose_before_vo)  # fmt: skip
+        fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
+        steps = [s for s in replay(src, fe) if s.odom is not None]
+    offline = np.array([(s.stamp_ns, s.odom.pose.x, s.odom.pose.y, s.odom.pose.yaw)
+                        for s in steps if s.odom is not None])  # fmt: skip
+    assert len(online) == len(offline) >= 40
+    np.testing.assert_array_equal(online[:, 0], offline[:, 0])
+    assert np.abs(online[:, 1:3] - offline[:, 1:3]).max() <= 1e-3  # [m]
+    assert np.abs(wrap_angle(online[:, 3] - offline[:, 3])).max() <= 1e-4  # [rad]
+    # The poses moved with the robot (a front end stuck at the origin would also agree).
+    assert np.hypot(*(offline[-1, 1:3] - offline[0, 1:3])) > 0.2
+    assert live.ekf_stats.sensors["vo0"]["refiltered"] > 10  # the live path did re-filter
+    with pytest.raises(queue.Empty):
+        live.ticks_q.get_nowait()
+
+
+def test_without_wheels_or_odom_the_vo_carries_the_ekf_of_a_ground_robot(recording: Path) -> None:
+    from slam.front_end import odom_origin
+    from slam.geometry import oplus
+    from slam.metrics import drift_report
+
+    cfg = LiveRun(LiveOptions(out=recording.parent / "unused", camera=str(recording),
+                              board="none")).cfg  # fmt: skip
+    with open_source(recording) as src:
+        opts = replace(options_for(src, camera_rate_hz=cfg.camera.rate), wheels=False, imu=False)
+        fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
+        assert fe.inputs == ("vo0",) and fe.vo_carries
+        steps = list(replay(src, fe))
+        start = odom_origin(src)
+        truth = src.groundtruth()
+    assert truth is not None
+    # The filter starts at the first frame (the odom origin), not at the first VO pair's end.
+    assert all(s.odom is not None and s.scan is not None for s in steps)
+    first = steps[0].odom
+    assert first is not None and (first.pose.x, first.pose.y, first.pose.yaw) == (0.0, 0.0, 0.0)
+    p = np.array([oplus([start.x, start.y, start.yaw],
+                        [s.odom.pose.x, s.odom.pose.y, s.odom.pose.yaw])
+                  for s in steps if s.odom is not None])  # fmt: skip
+    t = np.array([s.stamp_ns for s in steps], np.int64)
+    rep = drift_report(t, (p[:, 0], p[:, 1], p[:, 2]), truth.stamps_ns,
+                       (truth.x, truth.y, truth.yaw)).as_dict()  # fmt: skip
+    assert rep["path_length_m"] > 0.3
+    assert rep["final_position_error_m"] < 0.03 and rep["ate_rmse_m"] < 0.03

@@ -1,0 +1,109 @@
+"""FrontEnd kernels of the inputs: wheel readings one at a time as the whole log at once, and
+odometry messages (nav_msgs/Odometry) with a twist or with a pose only."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from sensors.config import RobotConfig
+from sensors.types import CameraIntrinsics, Pose2, RgbdFrame, WheelTicks
+from slam.config import DepthToScanConfig, EkfConfig, VoConfig
+from slam.diff_drive import WheelErrorModel
+from slam.ekf import PoseInput, TwistInput, fuse, wheel_twist_inputs
+from slam.front_end import FrontEnd, FrontEndOptions, pose_only_odom0, vo_for_interval
+from slam.geometry import between
+
+ROBOT = RobotConfig()
+INTR = CameraIntrinsics(4, 3, 5.0, 5.0, 2.0, 1.5)
+DT_NS = 8_000_000  # [ns] encoder readings at 125 Hz
+
+
+def _blank(stamp_ns: int) -> RgbdFrame:
+    return RgbdFrame(stamp_ns, np.zeros((3, 4, 3), np.uint8), np.ones((3, 4), np.float32), INTR)
+
+
+def _front_end(**kw: object) -> FrontEnd:
+    opts = FrontEndOptions(vo=False, scan=False, **kw)  # type: ignore[arg-type]
+    return FrontEnd(ROBOT, EkfConfig(), VoConfig(), DepthToScanConfig(), opts)
+
+
+def test_wheel_readings_one_at_a_time_give_the_poses_of_the_whole_log_fused_at_once() -> None:
+    rng = np.random.default_rng(4)
+    n = 400
+    stamps = np.cumsum(rng.integers(DT_NS // 2, 2 * DT_NS, n)).astype(np.int64)
+    stamps[200:] += 300_000_000  # a reading 0.3 s late: spread over its span
+    left = np.cumsum(rng.integers(0, 3, n))
+    right = np.cumsum(rng.integers(0, 4, n))
+    fe = _front_end(wheels=True)
+    outs = stamps[10::37] + 1
+    poses = []
+    k = 0
+    for t_out in outs:
+        while k < n and stamps[k] <= t_out:
+            fe.wheels(WheelTicks(int(stamps[k]), int(left[k]), int(right[k])))
+            k += 1
+        od = fe.frame(_blank(int(t_out))).odom
+        assert od is not None
+        poses.append((od.pose.x, od.pose.y, od.pose.yaw))
+    ref = fuse({"odom0": wheel_twist_inputs(stamps, left, right, ROBOT,
+                                            WheelErrorModel.from_robot(ROBOT),
+                                            max_interval_s=1 / 30)},
+               fe.ekf_cfg, output_stamps_ns=outs)  # fmt: skip
+    got = np.array(poses)
+    np.testing.assert_allclose(got[:, :2], np.column_stack([ref.x, ref.y]), atol=1e-9)
+    np.testing.assert_allclose(got[:, 2], ref.yaw, atol=1e-9)
+    assert np.hypot(*got[-1, :2]) > 0.5  # it drove
+    assert not fe.wheels(WheelTicks(int(stamps[k - 1]), 0, 0))  # a repeated reading: refused
+    assert fe.counts["wheel_readings_repeated"] == 1
+
+
+@pytest.mark.parametrize("kind", ["twist", "pose"])
+def test_odometry_messages_with_a_twist_or_only_a_pose_carry_the_filter_round_a_circle(
+    kind: str,
+) -> None:
+    v, w = 0.2, 0.4  # [m/s], [rad/s]: a circle of radius 0.5 m
+    fe = _front_end(odometry=kind)
+    assert fe.inputs == ("odom0",)
+    t = np.arange(1, 301) * 20_000_000  # [ns] 50 Hz for 6 s
+    for s in t:
+        a = w * s / 1e9
+        if kind == "twist":
+            fe.odometry(TwistInput(int(s), v, 0.0, w, np.diag([1e-4, 1e-4, 1e-4])))
+        else:
+            pose = Pose2(v / w * math.sin(a), v / w * (1 - math.cos(a)), a)
+            fe.odometry(PoseInput(int(s), pose, np.diag([1e-4, 1e-4, 1e-4])))
+    od = fe.frame(_blank(int(t[-1]))).odom
+    assert od is not None
+
+    def truth(s: int) -> Pose2:
+        a = w * s / 1e9
+        return Pose2(v / w * math.sin(a), v / w * (1 - math.cos(a)), a)
+
+    # The filter starts at its first measurement: the first twist, or the first pose
+    # difference (the second pose).
+    want = between(truth(int(t[0] if kind == "twist" else t[1])), truth(int(t[-1])))
+    assert math.hypot(od.pose.x - want.x, od.pose.y - want.y) < 0.01
+    assert abs(math.remainder(od.pose.yaw - want.yaw, math.tau)) < 0.01
+
+
+def test_a_pose_only_odom_is_differenced_into_the_velocities_the_config_asks_for() -> None:
+    cfg = pose_only_odom0(EkfConfig())
+    names = ("x", "y", "yaw")
+    from slam.config import STATE_NAMES
+
+    assert cfg.odom0_differential
+    assert [cfg.odom0_config[STATE_NAMES.index(n)] for n in names] == [True, True, True]
+    assert not any(cfg.odom0_config[STATE_NAMES.index(n)] for n in ("vx", "vy", "vyaw"))
+
+
+def test_vo_sanity_limits_grow_for_frames_further_apart_than_the_camera_rate() -> None:
+    vo = VoConfig()
+    assert vo_for_interval(vo, 1 / 30, 30.0) == vo
+    far = vo_for_interval(vo, 0.67, 30.0)
+    assert far.max_translation == pytest.approx(vo.max_translation * 20.1)
+    assert far.max_rotation == pytest.approx(math.pi)
+    assert replace(far, max_translation=vo.max_translation, max_rotation=vo.max_rotation) == vo
