@@ -111,15 +111,20 @@ def run_sim(world_path: Path, frames: int | None, seed: int = 0) -> dict[str, di
     x, y, yaw = traj.interpolate(t_cam)
     renderer = KinectRenderer(world, CameraConfig(), robot, sim, noise_seed=seed)
     rng = np.random.default_rng(seed)
-    vos = {m: VisualOdometry(renderer.intrinsics, replace(VoConfig(), **kw), robot)  # type: ignore[arg-type]
-           for m, kw in METHODS.items()}  # fmt: skip
+    vos = {
+        m: VisualOdometry(renderer.intrinsics, replace(VoConfig(), **kw), robot)  # type: ignore[arg-type]
+        for m, kw in METHODS.items()
+    }
     pose = {m: np.array([x[0], y[0], yaw[0]]) for m in METHODS}
     sq = dict.fromkeys(METHODS, 0.0)
     cpu: dict[str, list[float]] = {m: [] for m in METHODS}
     reasons: dict[str, Counter[str]] = {m: Counter() for m in METHODS}
     for i in range(n):
-        frame = RgbdFrame(int(t_cam[i]), *renderer.render(float(x[i]), float(y[i]), float(yaw[i]), rng),
-                          renderer.intrinsics)  # fmt: skip
+        frame = RgbdFrame(
+            int(t_cam[i]),
+            *renderer.render(float(x[i]), float(y[i]), float(yaw[i]), rng),
+            renderer.intrinsics,
+        )
         for m, vo in vos.items():
             c0 = time.process_time()
             res = vo.process(frame)
@@ -137,13 +142,17 @@ def run_sim(world_path: Path, frames: int | None, seed: int = 0) -> dict[str, di
     for m, vo in vos.items():
         end = float(np.hypot(pose[m][0] - x[-1], pose[m][1] - y[-1]))
         out[m] = {
-            "frames": n, "length_m": length, "drift_per_10m": 10 * end / length,
+            "frames": n,
+            "length_m": length,
+            "drift_per_10m": 10 * end / length,
             "rms_m": math.sqrt(sq[m] / max(n - 1, 1)),
             "yaw_err_deg": math.degrees(abs(wrap_angle(pose[m][2] - yaw[-1]))),
-            "failed": sum(reasons[m].values()), "reasons": dict(reasons[m]),
-            "fallbacks": vo.stats["fallback_used"], "cpu_ms": float(np.median(cpu[m][1:])),
+            "failed": sum(reasons[m].values()),
+            "reasons": dict(reasons[m]),
+            "fallbacks": vo.stats["fallback_used"],
+            "cpu_ms": float(np.median(cpu[m][1:])),
             "cpu_p90": float(np.percentile(cpu[m][1:], 90)),
-        }  # fmt: skip
+        }
     return out
 
 
@@ -154,11 +163,14 @@ def main() -> None:
     ap.add_argument("--blank-frames", type=int, default=0, help="0: the whole blank route")
     args = ap.parse_args()
     load_start = os.getloadavg()
-    rows = ["| method | cabinet: pairs < 5 cm | cabinet: median t err [cm] | cabinet: failed / "
-            "wrong but accepted | cabinet: CPU ms/pair | Open3D seq: median / max diff [mm] | "
-            "house: drift per 10 m | house: RMS [m] | house: failed (fallbacks) | house: CPU "
-            "ms/frame | blank: drift per 10 m | blank: RMS [m] | blank: failed (fallbacks) | "
-            "blank: CPU ms/frame |", "|" + " --- |" * 14]  # fmt: skip
+    rows = [
+        "| method | cabinet: pairs < 5 cm | cabinet: median t err [cm] | cabinet: failed / "
+        "wrong but accepted | cabinet: CPU ms/pair | Open3D seq: median / max diff [mm] | "
+        "house: drift per 10 m | house: RMS [m] | house: failed (fallbacks) | house: CPU "
+        "ms/frame | blank: drift per 10 m | blank: RMS [m] | blank: failed (fallbacks) | "
+        "blank: CPU ms/frame |",
+        "|" + " --- |" * 14,
+    ]
     real = CABINET.exists()
     cab = load_cabinet() if real else None
     seq = open3d_sequence() if real else None
@@ -174,12 +186,20 @@ def main() -> None:
             c = run_pairs(cab[0], list(cab[1]), cfg)
             s = run_pairs(seq[0], seq[1], cfg)
             fb = f" ({c['fallbacks']} fallbacks)" if c["fallbacks"] else ""
-            cols = [f"{c['success']:.0f} %", f"{c['t_med_cm']:.2f}",
-                    f"{c['failed']} / {c['bad']}{fb}", f"{c['cpu_ms']:.0f}",
-                    f"{s['t_med_mm']:.1f} / {s['t_max_mm']:.1f}"]  # fmt: skip
+            cols = [
+                f"{c['success']:.0f} %",
+                f"{c['t_med_cm']:.2f}",
+                f"{c['failed']} / {c['bad']}{fb}",
+                f"{c['cpu_ms']:.0f}",
+                f"{s['t_med_mm']:.1f} / {s['t_max_mm']:.1f}",
+            ]
         for r in (house[m], blank[m]):
-            cols += [f"{100 * r['drift_per_10m']:.1f} cm", f"{r['rms_m']:.3f}",
-                     f"{r['failed']} ({r['fallbacks']})", f"{r['cpu_ms']:.0f}"]  # fmt: skip
+            cols += [
+                f"{100 * r['drift_per_10m']:.1f} cm",
+                f"{r['rms_m']:.3f}",
+                f"{r['failed']} ({r['fallbacks']})",
+                f"{r['cpu_ms']:.0f}",
+            ]
         rows.append(f"| {m} | " + " | ".join(cols) + " |")
         reasons.append(
             f"{m}: house {house[m]['reasons'] or 'none'}, blank {blank[m]['reasons'] or 'none'}"

@@ -73,8 +73,10 @@ def main() -> None:
     ours = float(np.median([time_ours(args.steps) for _ in range(args.repeats)]))
     theirs = float(np.median([time_filterpy(args.steps) for _ in range(args.repeats)]))
     print(f"300-step run: max |x - x_filterpy| = {dx:.2e}, max |P - P_filterpy| = {dp:.2e}")
-    print(f"predict + update cycle: slam.ekf {ours:.1f} us, filterpy EKF {theirs:.1f} us "
-          f"(ratio {theirs / ours:.2f}; median of {args.repeats} runs of {args.steps} cycles)")  # fmt: skip
+    print(
+        f"predict + update cycle: slam.ekf {ours:.1f} us, filterpy EKF {theirs:.1f} us "
+        f"(ratio {theirs / ours:.2f}; median of {args.repeats} runs of {args.steps} cycles)"
+    )
     assert math.isfinite(dx) and math.isfinite(dp)
 
 

@@ -83,8 +83,9 @@ def _yes(ok: bool) -> str:
     return "met" if ok else "**not met**"
 
 
-def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float,
-                load: str = "?", sets: str = "") -> str:
+def report_live(
+    s: dict[str, Any], rec: dict[str, Any], duration_s: float, load: str = "?", sets: str = ""
+) -> str:
     c, lat, st = s["counts"], s["latency_ms"] or {}, s.get("stage_ms_median", {})
     sim = s.get("sim_robot", {})
     live_slam, rec_slam = s.get("slam_vs_groundtruth", {}), rec.get("slam_vs_groundtruth", {})
@@ -97,9 +98,15 @@ def report_live(s: dict[str, Any], rec: dict[str, Any], duration_s: float,
     driver = "nav stack" if nav else "direct"
     skipped = sum(v for k, v in c.items() if k.startswith("waypoints_skipped"))
     recoveries = sum(v for k, v in nav.items() if k.startswith("nav_behavior_"))
-    nav_row = (f"{nav.get('nav_plans', 0)} ({nav.get('nav_plan_failures', 0)}) / "
-               f"{nav.get('nav_plan_ms_median')} / {nav.get('nav_map_builds', 0)} / "
-               f"{nav.get('nav_map_build_ms_median')} / {recoveries}") if nav else "-"
+    nav_row = (
+        (
+            f"{nav.get('nav_plans', 0)} ({nav.get('nav_plan_failures', 0)}) / "
+            f"{nav.get('nav_plan_ms_median')} / {nav.get('nav_map_builds', 0)} / "
+            f"{nav.get('nav_map_build_ms_median')} / {recoveries}"
+        )
+        if nav
+        else "-"
+    )
     tl = s.get("rss_mb_timeline") or []
     at60 = next((m for t, m in tl if t >= 60), None)
     rss_row = f"{at60} / {tl[-1][1] if tl else None}"
@@ -233,20 +240,36 @@ def drill_checks(s: dict[str, Any], cycles: int, bundle_ok: bool) -> list[tuple[
     ate = slam.get("ate_rmse_aligned_m")
     drills = [c.get(f"drill_{a}", 0) for a in ("unplug_board", "replug_board", "stall_camera")]
     return [
-        ("drills run: unplug / replug / camera stall (scheduled: "
-         f"{cycles} each)", " / ".join(map(str, drills)), drills == [cycles] * 3),
-        ("board: failed commands / reconnects (one per unplug)",
-         f"{c.get('board_command_errors', 0)} / {c.get('board_recovered', 0)}",
-         c.get("board_recovered", 0) == cycles and c.get("board_command_errors", 0) >= cycles),
-        ("camera stalls noticed, mapping paused and resumed (one per stall)",
-         f"{c.get('camera_stalls', 0)}", c.get("camera_stalls", 0) == cycles),
-        ("frames the simulated camera held back", f"{s['sim_robot'].get('stalled_frames')}",
-         (s["sim_robot"].get("stalled_frames") or 0) > 0),
-        ("route driving: laps / waypoints reached",
-         f"{c.get('route_laps', 0)} / {c.get('waypoints_reached', 0)}",
-         c.get("waypoints_reached", 0) > 0),
-        ("SLAM ATE vs truth, aligned / from the start pose (the map held: aligned < 0.1 m)",
-         f"{ate} / {slam.get('ate_rmse_m')} m", ate is not None and ate < 0.1),
+        (
+            f"drills run: unplug / replug / camera stall (scheduled: {cycles} each)",
+            " / ".join(map(str, drills)),
+            drills == [cycles] * 3,
+        ),
+        (
+            "board: failed commands / reconnects (one per unplug)",
+            f"{c.get('board_command_errors', 0)} / {c.get('board_recovered', 0)}",
+            c.get("board_recovered", 0) == cycles and c.get("board_command_errors", 0) >= cycles,
+        ),
+        (
+            "camera stalls noticed, mapping paused and resumed (one per stall)",
+            f"{c.get('camera_stalls', 0)}",
+            c.get("camera_stalls", 0) == cycles,
+        ),
+        (
+            "frames the simulated camera held back",
+            f"{s['sim_robot'].get('stalled_frames')}",
+            (s["sim_robot"].get("stalled_frames") or 0) > 0,
+        ),
+        (
+            "route driving: laps / waypoints reached",
+            f"{c.get('route_laps', 0)} / {c.get('waypoints_reached', 0)}",
+            c.get("waypoints_reached", 0) > 0,
+        ),
+        (
+            "SLAM ATE vs truth, aligned / from the start pose (the map held: aligned < 0.1 m)",
+            f"{ate} / {slam.get('ate_rmse_m')} m",
+            ate is not None and ate < 0.1,
+        ),
         ("map bundle after the run loads", "yes" if bundle_ok else "no", bundle_ok),
         ("errors", "; ".join(s["errors"]) or "none", not s["errors"]),
     ]
@@ -287,8 +310,12 @@ def main() -> None:
     ap.add_argument("--set", dest="overrides", action="append", default=[],
                     help="config override for the live run and a recorded run made here "
                          "(section.key=value; repeatable)")  # fmt: skip
-    ap.add_argument("--drill-minutes", type=float, default=None,
-                    help="long fault drills: board unplugged and camera stalled every minute")
+    ap.add_argument(
+        "--drill-minutes",
+        type=float,
+        default=None,
+        help="long fault drills: board unplugged and camera stalled every minute",
+    )
     args = ap.parse_args()
     extra = [a for o in args.overrides for a in ("--set", o)]
     if args.drill_minutes:
@@ -305,22 +332,36 @@ def main() -> None:
             print(f"map bundle does not load: {err}")
             bundle_ok = False
         checks = drill_checks(s, cycles, bundle_ok)
-        publish(report_drills(s, args.drill_minutes, checks, f"{load0} / {_loadavg()}"),
-                args.out, "live-drills")
+        publish(
+            report_drills(s, args.drill_minutes, checks, f"{load0} / {_loadavg()}"),
+            args.out,
+            "live-drills",
+        )
         sys.exit(0 if all(ok for _, _, ok in checks) else 1)
     if args.soak_minutes:
         load0 = _loadavg()
         s = live_run(REPO / "runs" / "bench_live_soak", args.soak_minutes * 60,
                      ["--repeat-route", *extra])  # fmt: skip
-        publish(report_soak(s, args.soak_minutes, args.warmup, f"{load0} / {_loadavg()}"),
-                args.out, "live-soak")
+        publish(
+            report_soak(s, args.soak_minutes, args.warmup, f"{load0} / {_loadavg()}"),
+            args.out,
+            "live-soak",
+        )
         return
     load0 = _loadavg()
     s = live_run(REPO / "runs" / "bench_live", args.duration, extra)
     load = f"{load0} / {_loadavg()} (1-min load average)"
-    publish(report_live(s, recorded_run(args.recorded, extra), args.duration, load,
-                        "".join(f" --set {o}" for o in args.overrides)), args.out,
-            "live")
+    publish(
+        report_live(
+            s,
+            recorded_run(args.recorded, extra),
+            args.duration,
+            load,
+            "".join(f" --set {o}" for o in args.overrides),
+        ),
+        args.out,
+        "live",
+    )
 
 
 if __name__ == "__main__":

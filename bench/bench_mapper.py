@@ -163,12 +163,19 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
     scans = list(src.scans())[:: spec.every]
     if spec.range_noise_m > 0:  # a perturbation far below any sensor's noise: the map must hold
         rng = np.random.default_rng(spec.noise_seed)
-        scans = [dataclasses.replace(s, ranges=np.asarray(s.ranges, np.float64)
-                                     + rng.normal(0.0, spec.range_noise_m, len(s.ranges)))
-                 for s in scans]  # fmt: skip
+        scans = [
+            dataclasses.replace(
+                s,
+                ranges=np.asarray(s.ranges, np.float64)
+                + rng.normal(0.0, spec.range_noise_m, len(s.ranges)),
+            )
+            for s in scans
+        ]
     if spec.float32_ranges:
-        scans = [dataclasses.replace(s, ranges=np.asarray(s.ranges, np.float32).astype(np.float64))
-                 for s in scans]  # fmt: skip
+        scans = [
+            dataclasses.replace(s, ranges=np.asarray(s.ranges, np.float32).astype(np.float64))
+            for s in scans
+        ]
     stream = src.laser_poses()
     assert stream is not None
     stamps = stream.stamps_ns[:: spec.every]

@@ -42,8 +42,12 @@ def core_types() -> list[str]:
         if line.startswith("flags"):
             flags = set(line.split(":", 1)[1].split())
             break
-    kinds = [("Prescott", "sse3"), ("Sandybridge", "avx"), ("Haswell", "avx2"),
-             ("SkylakeX", "avx512f")]  # fmt: skip
+    kinds = [
+        ("Prescott", "sse3"),
+        ("Sandybridge", "avx"),
+        ("Haswell", "avx2"),
+        ("SkylakeX", "avx512f"),
+    ]
     return [name for name, flag in kinds if flag in flags or (flag == "sse3" and "pni" in flags)]
 
 

@@ -183,7 +183,9 @@ def bench_scenario(args: argparse.Namespace) -> None:
         if m == "floorplan":
             d = REPO / "runs" / "nav_scenario_maps" / "floorplan"
             d.mkdir(parents=True, exist_ok=True)
-            maps.append(("floor plan", floor_plan_map(load_scenario(args.scenario), d / "map.yaml")))
+            maps.append(
+                ("floor plan", floor_plan_map(load_scenario(args.scenario), d / "map.yaml"))
+            )
         else:
             maps.append((str(m), Path(m)))
     rows, notes = [], []
@@ -205,9 +207,11 @@ def bench_scenario(args: argparse.Namespace) -> None:
                 f"{summary['localization'].get('settles', 0)} |"
             )
             for f in sc["failures"]:
-                notes.append(f"- {label}, {mode}: goal ({f['goal'][0]:.2f}, {f['goal'][1]:.2f}) "
-                             f"{f['status']}, true error {f['final_error_m']} m: "
-                             f"{f['reason'] or '-'}")
+                notes.append(
+                    f"- {label}, {mode}: goal ({f['goal'][0]:.2f}, {f['goal'][1]:.2f}) "
+                    f"{f['status']}, true error {f['final_error_m']} m: "
+                    f"{f['reason'] or '-'}"
+                )
     table = "\n".join(rows)
     failures = "\n".join(notes) or "- none"
     body = f"""## Navigation scenario (issue #8 target)
@@ -251,13 +255,22 @@ def main() -> None:
     ap.add_argument("--boxes", type=int, default=40, help="furniture boxes")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, help="markdown file to update (docs/benchmarks.md)")
-    ap.add_argument("--scenario", type=Path,
-                    help="run this scenario instead (scenes/scenarios/nav_house.yaml)")
-    ap.add_argument("--map", nargs="+", default=["runs/demo/map", "floorplan"],
-                    help="maps of the scenario's world: paths, or 'floorplan' (built from the "
-                    "world); default: make demo's runs/demo/map and floorplan")
-    ap.add_argument("--localization", choices=("both", "groundtruth", "localizer"),
-                    default="both", help="localisation mode(s) of the scenario")
+    ap.add_argument(
+        "--scenario", type=Path, help="run this scenario instead (scenes/scenarios/nav_house.yaml)"
+    )
+    ap.add_argument(
+        "--map",
+        nargs="+",
+        default=["runs/demo/map", "floorplan"],
+        help="maps of the scenario's world: paths, or 'floorplan' (built from the "
+        "world); default: make demo's runs/demo/map and floorplan",
+    )
+    ap.add_argument(
+        "--localization",
+        choices=("both", "groundtruth", "localizer"),
+        default="both",
+        help="localisation mode(s) of the scenario",
+    )
     ap.add_argument("--goals", type=int, help="goals of the scenario (default: the file's)")
     args = ap.parse_args()
     if args.scenario is not None:
@@ -281,6 +294,7 @@ def main() -> None:
         ends = np.array([start, goal])
         r, col = geo.world_to_cell(ends[:, 0], ends[:, 1])
         return cost if (c[r, col] > 0).any() else c  # a box on an end: plan on the plain map
+
     short = pairs_in(cost, geo, rng, args.pairs, *SHORT_PAIR_DISTANCE)
     # 2. Planners.
     rows = {

@@ -308,8 +308,13 @@ def bench_open3d_sequence(cfg: VoConfig, tuning: VoTuning) -> dict[str, float]:
 
 
 def bench_sim(
-    frames: int, world: Path, start_s: float = 0.0, seed: int = 0, tuning: VoTuning | None = None,
-    cfg: VoConfig | None = None, repeats: int = 3,
+    frames: int,
+    world: Path,
+    start_s: float = 0.0,
+    seed: int = 0,
+    tuning: VoTuning | None = None,
+    cfg: VoConfig | None = None,
+    repeats: int = 3,
 ) -> dict[str, float]:
     """VO-only planar drift on a rendered house segment (frame-to-frame, chained in base_link).
     The frames are rendered first, then VO runs ``repeats`` times over them (the same poses each
@@ -430,8 +435,11 @@ def main() -> None:
     ap.add_argument("--world", type=Path, default=REPO / "scenes" / "house.yaml")
     ap.add_argument("--only", default="", help="comma-separated variant indices to run")
     ap.add_argument("--per-pair", action="store_true", help="print per-pair errors")
-    ap.add_argument("--cor-types", action="store_true",
-                    help="only compare vo.cor_type features / optical_flow (own section)")
+    ap.add_argument(
+        "--cor-types",
+        action="store_true",
+        help="only compare vo.cor_type features / optical_flow (own section)",
+    )
     args = ap.parse_args()
     if args.cor_types:
         bench_cor_types(args.sim_frames, args.world, args.out)

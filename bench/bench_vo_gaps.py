@@ -86,10 +86,16 @@ def vo_inputs(rec: Recording, cfg, skip: np.ndarray, spread: bool) -> list[Twist
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("source", type=Path, nargs="?", default=REPO / "scenes" / "house.yaml",
-                    help="a recording, or a world (its cached rendering, made if missing)")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "source",
+        type=Path,
+        nargs="?",
+        default=REPO / "scenes" / "house.yaml",
+        help="a recording, or a world (its cached rendering, made if missing)",
+    )
     ap.add_argument("--skip", type=float, default=0.15, help="share of frames VO skips")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, help="markdown file to update (docs/benchmarks.md)")

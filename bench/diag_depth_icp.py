@@ -29,14 +29,16 @@ from slam.geometry import wrap_angle  # noqa: E402
 from slam.visual_odometry import VisualOdometry  # noqa: E402
 
 VARIANTS: dict[str, dict[str, float]] = {
-    "KISS-ICP alone (10 cm voxels)": dict(icp_voxel_size=0.1, icp_refine_iterations=0,
-                                          icp_max_deviation=0.0),
+    "KISS-ICP alone (10 cm voxels)": dict(
+        icp_voxel_size=0.1, icp_refine_iterations=0, icp_max_deviation=0.0
+    ),
     "+ point-to-plane polish": dict(icp_voxel_size=0.1, icp_max_deviation=0.0),
     "+ polish, 3 cm deviation check": dict(icp_voxel_size=0.1),
     "+ polish, 3 cm deviation check, 5 cm voxels (default)": {},
-    "10 cm voxels, 6 polish steps, 3 cm deviation check": dict(icp_voxel_size=0.1,
-                                                               icp_refine_iterations=6),
-}  # fmt: skip
+    "10 cm voxels, 6 polish steps, 3 cm deviation check": dict(
+        icp_voxel_size=0.1, icp_refine_iterations=6
+    ),
+}
 
 
 def main() -> None:
@@ -54,9 +56,10 @@ def main() -> None:
     x, y, yaw = traj.interpolate(t_cam)
     renderer = KinectRenderer(world, CameraConfig(), robot, sim, noise_seed=0)
     rng = np.random.default_rng(0)
-    vos = {k: VisualOdometry(renderer.intrinsics,
-                             replace(VoConfig(), method="depth_icp", **kw), robot)  # type: ignore[arg-type]
-           for k, kw in VARIANTS.items()}  # fmt: skip
+    vos = {
+        k: VisualOdometry(renderer.intrinsics, replace(VoConfig(), method="depth_icp", **kw), robot)  # type: ignore[arg-type]
+        for k, kw in VARIANTS.items()
+    }
     rec: dict[str, list[tuple[float, ...]]] = {k: [] for k in VARIANTS}
     for i in range(args.frames):
         rgb, depth = renderer.render(float(x[i]), float(y[i]), float(yaw[i]), rng)
@@ -81,12 +84,14 @@ def main() -> None:
         ok = a[:, 0] == 1
         e, sig = a[ok, 1:4], a[ok, 4:7]
         exy = np.hypot(e[:, 0], e[:, 1]) * 1000
-        print(f"{k}: accepted {ok.sum()} / {len(a)}, lost {np.hypot(a[~ok, 1], a[~ok, 2]).sum():.3f} m "
-              f"and {math.degrees(np.abs(a[~ok, 3]).sum()):.1f} deg; error median / p90 / max "
-              f"{np.percentile(exy, 50):.1f} / {np.percentile(exy, 90):.1f} / {exy.max():.1f} mm; "
-              f"summed error x {e[:, 0].sum():.4f} m, y {e[:, 1].sum():.4f} m, yaw "
-              f"{math.degrees(e[:, 2].sum()):.2f} deg; mean (error / sigma)^2 x, y, yaw "
-              f"{np.round(np.mean((e / sig) ** 2, axis=0), 1)}")  # fmt: skip
+        print(
+            f"{k}: accepted {ok.sum()} / {len(a)}, lost {np.hypot(a[~ok, 1], a[~ok, 2]).sum():.3f} m "
+            f"and {math.degrees(np.abs(a[~ok, 3]).sum()):.1f} deg; error median / p90 / max "
+            f"{np.percentile(exy, 50):.1f} / {np.percentile(exy, 90):.1f} / {exy.max():.1f} mm; "
+            f"summed error x {e[:, 0].sum():.4f} m, y {e[:, 1].sum():.4f} m, yaw "
+            f"{math.degrees(e[:, 2].sum()):.2f} deg; mean (error / sigma)^2 x, y, yaw "
+            f"{np.round(np.mean((e / sig) ** 2, axis=0), 1)}"
+        )
 
 
 if __name__ == "__main__":

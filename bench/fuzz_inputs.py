@@ -38,8 +38,23 @@ from slam.occupancy_grid import GridGeometry, OccupancyGrid  # noqa: E402
 OUTCOMES = ("ok", "counted skip", "clean error", "traceback", "hang")
 SECTION = "fuzz_inputs"
 MAX_EXAMPLES = 3  # tracebacks and hangs quoted per reader
-SPECIALS = [b"\x00", b"\xff\xfe", b"1e30", b"nan", b".nan", b"-.inf", b"&a [*a, *a]", b"*a",
-            b"9" * 40, b"[" * 200, b"\n" * 3, b"-", b"0", b"1e12", b"{a: 1, a: 2}"]  # fmt: skip
+SPECIALS = [
+    b"\x00",
+    b"\xff\xfe",
+    b"1e30",
+    b"nan",
+    b".nan",
+    b"-.inf",
+    b"&a [*a, *a]",
+    b"*a",
+    b"9" * 40,
+    b"[" * 200,
+    b"\n" * 3,
+    b"-",
+    b"0",
+    b"1e12",
+    b"{a: 1, a: 2}",
+]
 
 
 class _Hang(Exception):
@@ -121,28 +136,46 @@ def _graph_json(data: bytes, tmp: Path) -> str:
 
 def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
     """Reader name -> (reader, the valid input it mutates)."""
-    config = (b"ekf:\n  frequency: 30.0\n  sensor_timeout: 0.1\ncamera:\n  fx: 525.0\n"
-              b"  width: 640\nmapper: {resolution: 0.05, minimum_travel_distance: 0.5}\n"
-              b"live: {checkpoint_period: 30.0}\n")  # fmt: skip
+    config = (
+        b"ekf:\n  frequency: 30.0\n  sensor_timeout: 0.1\ncamera:\n  fx: 525.0\n"
+        b"  width: 640\nmapper: {resolution: 0.05, minimum_travel_distance: 0.5}\n"
+        b"live: {checkpoint_period: 30.0}\n"
+    )
     tum = b"# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.5 1.5 -2 0 0 0 0.7071 0.7071\n"
     ranges = " ".join(["1.5"] * 181)
-    carmen = b"".join(f"FLASER 181 {ranges} 1 2 0.5 0.1 0.2 0.3 {t} host {t + 0.01}\n".encode()
-                      for t in (1.0, 1.2, 1.4))  # fmt: skip
+    carmen = b"".join(
+        f"FLASER 181 {ranges} 1 2 0.5 0.1 0.2 0.3 {t} host {t + 0.01}\n".encode()
+        for t in (1.0, 1.2, 1.4)
+    )
     png = cv2.imencode(".png", np.arange(48, dtype=np.uint8).reshape(4, 4, 3))[1].tobytes()
     jpg = cv2.imencode(".jpg", np.arange(48, dtype=np.uint8).reshape(4, 4, 3))[1].tobytes()
     pgm = b"P5\n4 3\n255\n" + bytes([0, 254, 205, 0] * 3)
     (tmp / "map.pgm").write_bytes(pgm)
-    map_yaml = (b"image: map.pgm\nmode: trinary\nresolution: 0.05\norigin: [-1.0, -0.5, 0.0]\n"
-                b"negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n")  # fmt: skip
+    map_yaml = (
+        b"image: map.pgm\nmode: trinary\nresolution: 0.05\norigin: [-1.0, -0.5, 0.0]\n"
+        b"negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
     geom = GridGeometry(0.1, -1.0, -0.5, 20, 10)
     grid = OccupancyGrid.from_occupancy_values(geom, np.zeros(geom.shape, np.int8))
     scans = tuple(LaserScan(10 + i, -1.0, 0.5, np.ones(3, np.float32), 0.1, 5.0) for i in range(3))
     poses = np.array([[0.1 * i, 0.0, 0.0] for i in range(3)])
     info = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     edges = tuple(GraphEdge("odometry", i, i + 1, (0.1, 0.0, 0.0), info) for i in range(2))
-    save_bundle(MapBundle(grid, np.arange(3, dtype=np.int64), np.arange(3) + 10, poses, poses,
-                          edges, scans, {"resolution": 0.1}, "fuzz", "2026-01-01T00:00:00+00:00"),
-                tmp / "b")  # fmt: skip
+    save_bundle(
+        MapBundle(
+            grid,
+            np.arange(3, dtype=np.int64),
+            np.arange(3) + 10,
+            poses,
+            poses,
+            edges,
+            scans,
+            {"resolution": 0.1},
+            "fuzz",
+            "2026-01-01T00:00:00+00:00",
+        ),
+        tmp / "b",
+    )
     graph = (tmp / "b" / "graph.json").read_bytes()
     return {
         "config file (YAML)": (_config, config),
@@ -158,8 +191,9 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
     }
 
 
-def run_one(reader: Callable[[bytes, Path], str], data: bytes, tmp: Path, timeout_s: float
-            ) -> tuple[str, str | None]:  # fmt: skip
+def run_one(
+    reader: Callable[[bytes, Path], str], data: bytes, tmp: Path, timeout_s: float
+) -> tuple[str, str | None]:
     """(outcome, the exception for a traceback or hang)."""
     signal.setitimer(signal.ITIMER_REAL, timeout_s)
     try:
@@ -186,7 +220,9 @@ def main() -> int:
         raise _Hang
 
     signal.signal(signal.SIGALRM, on_alarm)
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # OpenCV's own stderr lines for each bad image: the outcome is counted
+    cv2.utils.logging.setLogLevel(
+        cv2.utils.logging.LOG_LEVEL_SILENT
+    )  # OpenCV's own stderr lines for each bad image: the outcome is counted
     rng = random.Random(args.seed)
     rows, problems, total = [], [], Counter()
     t0 = time.perf_counter()
@@ -206,9 +242,11 @@ def main() -> int:
                 if why is not None and sum(1 for p in problems if p[0] == name) < MAX_EXAMPLES:
                     problems.append((name, why, data[:60]))
             total.update(counts)
-            rows.append(f"| {name} | {args.count} | "
-                        + " | ".join(str(counts[o]) for o in OUTCOMES)
-                        + f" | {1e3 * slowest:.0f} |")  # fmt: skip
+            rows.append(
+                f"| {name} | {args.count} | "
+                + " | ".join(str(counts[o]) for o in OUTCOMES)
+                + f" | {1e3 * slowest:.0f} |"
+            )
     wall = time.perf_counter() - t0
     n = args.count * len(rows)
     lines = [

@@ -35,16 +35,23 @@ from slam.metrics import interpolate_poses  # noqa: E402
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("run", type=Path, help="an rgbdnav map run directory of a recording")
-    ap.add_argument("--set", dest="variants", action="append", default=[],
-                    help="one variant: comma-separated KEY=VALUE overrides (repeatable)")
+    ap.add_argument(
+        "--set",
+        dest="variants",
+        action="append",
+        default=[],
+        help="one variant: comma-separated KEY=VALUE overrides (repeatable)",
+    )
     args = ap.parse_args()
     summary_path, fused_path = args.run / "summary.json", args.run / "odom.tum"
     if not summary_path.is_file() or not fused_path.is_file():
-        sys.exit(f"{args.run}: not an rgbdnav map run of a recording (needs summary.json and "
-                 "odom.tum)")
+        sys.exit(
+            f"{args.run}: not an rgbdnav map run of a recording (needs summary.json and odom.tum)"
+        )
     src = open_source(Path(json.loads(summary_path.read_text())["source"]), {})
     # 1. Scans once (the depth -> scan settings are not swept), odometry at their stamps.
     _, _, cfg = source_config(src, [], [])

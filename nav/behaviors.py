@@ -151,8 +151,6 @@ def next_waypoint(statuses: Sequence[str], n: int, stop_on_failure: bool) -> int
     return k
 
 
-
-
 # --- progress checking ------------------------------------------------------------------------
 
 

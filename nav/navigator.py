@@ -60,8 +60,15 @@ SETTLE_TIME_FACTOR = 2.0  # [-] a settle spin's time allowance: this x its nomin
 MAX_ACTIONS_PER_TICK = 64  # instant actions (clear costmap, immediate plans) chained in one tick
 
 OutcomeStatus = Literal["reached", "failed", "refused"]
-OutcomeCode = Literal["reached", "no_path", "timeout", "max_replans", "goal_blocked",
-                      "recoveries_exhausted", "cancelled"]  # fmt: skip
+OutcomeCode = Literal[
+    "reached",
+    "no_path",
+    "timeout",
+    "max_replans",
+    "goal_blocked",
+    "recoveries_exhausted",
+    "cancelled",
+]
 
 
 class NavSections(Protocol):
@@ -82,8 +89,13 @@ class NavSections(Protocol):
 class Planning(Protocol):
     """Where plans are made: at once (:class:`ImmediatePlanning`) or on a planner thread."""
 
-    def request(self, costs: np.ndarray, geometry: GridGeometry, start: tuple[float, float],
-                goal: tuple[float, float]) -> int: ...  # fmt: skip
+    def request(
+        self,
+        costs: np.ndarray,
+        geometry: GridGeometry,
+        start: tuple[float, float],
+        goal: tuple[float, float],
+    ) -> int: ...
     def poll(self, ticket: int) -> PlanResult | None: ...
 
 
@@ -112,8 +124,13 @@ class ImmediatePlanning:
         self._answer: tuple[int, PlanResult] | None = None
         self.plan_ms: deque[float] = deque(maxlen=1000)  # recent planning times
 
-    def request(self, costs: np.ndarray, geometry: GridGeometry, start: tuple[float, float],
-                goal: tuple[float, float]) -> int:  # fmt: skip
+    def request(
+        self,
+        costs: np.ndarray,
+        geometry: GridGeometry,
+        start: tuple[float, float],
+        goal: tuple[float, float],
+    ) -> int:
         self._ticket += 1
         t0 = time.perf_counter()
         self._answer = (self._ticket, self.planner.plan(costs, geometry, start, goal))
@@ -180,8 +197,11 @@ def settle_spins(angle: float, speed: float) -> list[Behavior]:
     """A settle turn of ``angle`` [rad] at ``speed`` [rad/s] as Spin behaviours (each < pi)."""
     n = math.ceil(angle / SETTLE_SEGMENT_RAD)
     seg = angle / n
-    return [Behavior("spin", target=seg, speed=speed,
-                     time_allowance=SETTLE_TIME_FACTOR * seg / speed + 1.0)] * n  # fmt: skip
+    return [
+        Behavior(
+            "spin", target=seg, speed=speed, time_allowance=SETTLE_TIME_FACTOR * seg / speed + 1.0
+        )
+    ] * n
 
 
 # The action queue: what runs before following resumes. Each kind is a small record.
@@ -231,15 +251,21 @@ class Navigator:
     estimate (x, y, yaw) in the costmap's frame. ``moving``: the caller's wheels still turn
     though the smoothed command is zero (a stop waits for them)."""
 
-    def __init__(self, cfg: NavSections, costmap: Costmap, planning: Planning | None = None,
-                 corrector: PoseCorrector | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cfg: NavSections,
+        costmap: Costmap,
+        planning: Planning | None = None,
+        corrector: PoseCorrector | None = None,
+    ) -> None:
         self.cfg = cfg
         self.costmap = costmap  # the caller may swap in a new one (live: a new static layer)
         self.planning = planning or ImmediatePlanning(GridPlanner(cfg.planner))
         self.corrector = corrector
         self.smoother = VelocitySmoother(cfg.smoother)
-        self.progress = ProgressChecker(cfg.navigate.required_movement_radius,
-                                        cfg.navigate.movement_time_allowance)  # fmt: skip
+        self.progress = ProgressChecker(
+            cfg.navigate.required_movement_radius, cfg.navigate.movement_time_allowance
+        )
         self.inscribed = inscribed_radius(cfg.costmap)  # [m]
         self.ctrl_ns = round(NS_PER_S / cfg.follower.controller_frequency)
         f = cfg.navigate.replan_frequency
@@ -359,8 +385,12 @@ class Navigator:
         if (now_ns - g.start_ns) / NS_PER_S > nav.goal_timeout:
             self._finish(now_ns, "failed", "timeout", f"timeout after {nav.goal_timeout:g} s")
             return False
-        if (self.corrector is not None and self.settle_max > 0 and nav.settle_on_gated_scans > 0
-                and self.corrector.settle_due(nav.settle_on_gated_scans)):  # fmt: skip
+        if (
+            self.corrector is not None
+            and self.settle_max > 0
+            and nav.settle_on_gated_scans > 0
+            and self.corrector.settle_due(nav.settle_on_gated_scans)
+        ):
             # The localiser's estimate and its scans disagree: a wide look decides before the
             # robot drives on, on a pose that may be drifting; then plan again from there.
             self._queue_settle()
@@ -377,17 +407,25 @@ class Navigator:
             pc = self.progress
             self.counts["no_progress"] += 1
             self._anchor = (pose.copy(), now_ns)
-            return self._replan(now_ns, f"no progress: moved less than "
-                                f"{pc.required_movement_radius} m in "
-                                f"{pc.movement_time_allowance:g} s", "stuck")  # fmt: skip
+            return self._replan(
+                now_ns,
+                f"no progress: moved less than "
+                f"{pc.required_movement_radius} m in "
+                f"{pc.movement_time_allowance:g} s",
+                "stuck",
+            )
         if now_ns < self._next_ctrl_ns - self.ctrl_ns // 2:
             return True
         self._next_ctrl_ns = max(self._next_ctrl_ns + self.ctrl_ns, now_ns - self.ctrl_ns)
-        cmd = compute_velocity(Pose2(*(float(v) for v in pose)), self.path, self.velocity,
-                               self.cfg.follower,
-                               cost_fn=lambda x, y: float(self.costmap.cost_at(x, y)),
-                               is_free=self._arc_free_fn(pose),
-                               inscribed_radius_m=self.inscribed)  # fmt: skip
+        cmd = compute_velocity(
+            Pose2(*(float(v) for v in pose)),
+            self.path,
+            self.velocity,
+            self.cfg.follower,
+            cost_fn=lambda x, y: float(self.costmap.cost_at(x, y)),
+            is_free=self._arc_free_fn(pose),
+            inscribed_radius_m=self.inscribed,
+        )
         self.controller_cycles += 1
         if cmd.status == "goal_reached":
             self._cmd = (0.0, 0.0)
@@ -417,8 +455,11 @@ class Navigator:
                 self._on_plan_counts(res)
                 if res.success:
                     self._adopt(res)
-        if (self._periodic is None and self.replan_ns is not None
-                and now_ns - self._planned_ns >= self.replan_ns):  # fmt: skip
+        if (
+            self._periodic is None
+            and self.replan_ns is not None
+            and now_ns - self._planned_ns >= self.replan_ns
+        ):
             self._planned_ns = now_ns
             self._periodic = self._request(pose)
             res = self.planning.poll(self._periodic)
@@ -454,8 +495,12 @@ class Navigator:
             return False
         if int(self.costmap.cost_at(*g.xy)) in (INSCRIBED, LETHAL):
             # Every plan would end there, so replanning cannot help.
-            self._finish(now_ns, "failed", "goal_blocked", f"the camera sees an obstacle within "
-                         f"the robot radius of the goal ({why})")  # fmt: skip
+            self._finish(
+                now_ns,
+                "failed",
+                "goal_blocked",
+                f"the camera sees an obstacle within the robot radius of the goal ({why})",
+            )
             return False
         g.replans += 1
         self.counts["replans"] += 1
@@ -493,8 +538,7 @@ class Navigator:
                     self.costmap.reset_obstacles()
                     self._actions.popleft()
                     return None
-            twist = behavior_twist(b, a.start, pose, (now_ns - a.t0_ns) / NS_PER_S,
-                                   self._free)  # fmt: skip
+            twist = behavior_twist(b, a.start, pose, (now_ns - a.t0_ns) / NS_PER_S, self._free)
             if twist is not None:
                 return *twist, f"behavior:{b.name}"
             self._actions.popleft()
@@ -524,15 +568,20 @@ class Navigator:
         g = self._goal
         assert g is not None
         self.counts["plans"] += 1
-        return self.planning.request(self.costmap.master().copy(), self.costmap.geometry,
-                                     (float(pose[0]), float(pose[1])), g.xy)  # fmt: skip
+        return self.planning.request(
+            self.costmap.master().copy(),
+            self.costmap.geometry,
+            (float(pose[0]), float(pose[1])),
+            g.xy,
+        )
 
     def _on_plan_counts(self, res: PlanResult) -> None:
         if not res.success:
             self.counts["plan_failures"] += 1
 
-    def _plan_action(self, a: _Plan, now_ns: int, pose: np.ndarray
-                     ) -> tuple[float, float, str] | None:  # fmt: skip
+    def _plan_action(
+        self, a: _Plan, now_ns: int, pose: np.ndarray
+    ) -> tuple[float, float, str] | None:
         """Ask for a plan, wait for it (at rest), then follow it or go on with the recoveries."""
         g = self._goal
         if g is None:
@@ -579,8 +628,9 @@ class Navigator:
                 )
             return None
         # Nav2: a failing planner runs the recovery round, one behaviour per failure.
-        self._actions.extendleft([_Plan(a.kind, a.why, a.round + 1),
-                                  _Run(round_[a.round], "recovery"), _Stop()])  # fmt: skip
+        self._actions.extendleft(
+            [_Plan(a.kind, a.why, a.round + 1), _Run(round_[a.round], "recovery"), _Stop()]
+        )
         return None
 
     def _adopt(self, plan: PlanResult) -> None:
@@ -610,13 +660,24 @@ class Navigator:
             return lambda x, y: int(self.costmap.cost_at(x, y)) < LETHAL
         return self._free
 
-    def _finish(self, now_ns: int, status: OutcomeStatus, code: OutcomeCode,
-                reason: str) -> Outcome:  # fmt: skip
+    def _finish(
+        self, now_ns: int, status: OutcomeStatus, code: OutcomeCode, reason: str
+    ) -> Outcome:
         g = self._goal
         assert g is not None
-        self.outcome = Outcome(g.xy, status, code, reason, g.replans, tuple(g.recoveries),
-                               tuple(g.settles), g.first_plan, g.start_ns, now_ns,
-                               self._pose)  # fmt: skip
+        self.outcome = Outcome(
+            g.xy,
+            status,
+            code,
+            reason,
+            g.replans,
+            tuple(g.recoveries),
+            tuple(g.settles),
+            g.first_plan,
+            g.start_ns,
+            now_ns,
+            self._pose,
+        )
         self.counts[f"goals_{status}"] += 1
         self._goal, self.path, self._periodic = None, None, None
         self._actions.clear()

@@ -309,7 +309,6 @@ def _trace(pred: np.ndarray, start: int, goal: int) -> np.ndarray:
     return np.array(nodes[::-1], dtype=np.int64)
 
 
-
 # --- smoothing and poses ----------------------------------------------------------------------
 
 

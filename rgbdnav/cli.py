@@ -297,8 +297,9 @@ def map_(
     cfg = load_config(config or [], set_ or [])
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("mapping", quiet) as progress:
-        outputs = run_map(recording, out, config or [], set_ or [], progress, continue_, rrd,
-                          viewer, force_3dof)  # fmt: skip
+        outputs = run_map(
+            recording, out, config or [], set_ or [], progress, continue_, rrd, viewer, force_3dof
+        )
     _echo_source(source, recording)
     _echo_outputs(outputs)
 
@@ -336,9 +337,18 @@ def localize(
     cfg = load_config(config or [], set_ or [])
     recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("localising", quiet) as progress:
-        outputs, summary = run_localize(recording, map_, out, config or [], set_ or [],
-                                        initial_pose, progress, rrd, viewer,
-                                        force_3dof)  # fmt: skip
+        outputs, summary = run_localize(
+            recording,
+            map_,
+            out,
+            config or [],
+            set_ or [],
+            initial_pose,
+            progress,
+            rrd,
+            viewer,
+            force_3dof,
+        )
     _echo_source(source, recording)
     typer.echo(f"result      {describe(summary)}")
     _echo_outputs(outputs)
@@ -361,8 +371,11 @@ def navigate(
     ] = None,
     localization: Annotated[
         str | None,
-        typer.Option("--localization", help="localizer (scan-to-map + wheel odometry, the "
-                     "default) or groundtruth (the true simulated pose)."),
+        typer.Option(
+            "--localization",
+            help="localizer (scan-to-map + wheel odometry, the "
+            "default) or groundtruth (the true simulated pose).",
+        ),
     ] = None,
     goal_timeout: Annotated[
         float | None,
@@ -426,14 +439,19 @@ def live(
     ] = None,
     duration: Annotated[
         float | None,
-        typer.Option(help="Stop after this many seconds, counted from the first camera frame "
-                          "(default: Ctrl-C)."),
+        typer.Option(
+            help="Stop after this many seconds, counted from the first camera frame "
+            "(default: Ctrl-C)."
+        ),
     ] = None,
     drive: Annotated[
-        str, typer.Option(help="route: drive the route/goals on the estimated pose (auto; "
-                               "through the nav stack, or straight at each waypoint with --set "
-                               "live.route_driver=direct); teleop: keyboard (manual; Tab "
-                               "switches to auto); idle: stay.")
+        str,
+        typer.Option(
+            help="route: drive the route/goals on the estimated pose (auto; "
+            "through the nav stack, or straight at each waypoint with --set "
+            "live.route_driver=direct); teleop: keyboard (manual; Tab "
+            "switches to auto); idle: stay."
+        ),
     ] = "route",
     goal: Annotated[
         list[str] | None,
@@ -443,8 +461,10 @@ def live(
     viewer: ViewerOpt = False,
     drill: Annotated[
         list[str] | None,
-        typer.Option(help="Fault drill for the simulated robot, ACTION@SECONDS[:ARG]: "
-                          "unplug_board@5, replug_board@8, stall_camera@10:2."),
+        typer.Option(
+            help="Fault drill for the simulated robot, ACTION@SECONDS[:ARG]: "
+            "unplug_board@5, replug_board@8, stall_camera@10:2."
+        ),
     ] = None,
     repeat_route: Annotated[
         bool, typer.Option(help="Drive the route again and again (soak tests).")
@@ -452,9 +472,11 @@ def live(
     seed: Annotated[int, typer.Option(help="Seed of the simulated robot.")] = 0,
     record: Annotated[
         Path | None,
-        typer.Option(help="Also write what the robot saw (camera frames, encoder readings; the "
-                          "simulator's truth) as an rgbdnav recording in this folder, for "
-                          "`rgbdnav map` / `odometry` later."),
+        typer.Option(
+            help="Also write what the robot saw (camera frames, encoder readings; the "
+            "simulator's truth) as an rgbdnav recording in this folder, for "
+            "`rgbdnav map` / `odometry` later."
+        ),
     ] = None,
     initial_pose: Annotated[
         tuple[float, float, float] | None,
@@ -462,7 +484,7 @@ def live(
             "--initial-pose",
             metavar="X Y YAW",
             help="With --map: start tracking here (map frame, m m rad), as RViz's 2D Pose "
-                 "Estimate; without it the robot relocalises globally, which needs it to move.",
+            "Estimate; without it the robot relocalises globally, which needs it to move.",
         ),
     ] = None,
     config: ConfigOpt = None,
@@ -492,17 +514,21 @@ def live(
     outputs, summary = run_live(opts)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
     c = summary["counts"]
-    typer.echo(f"live        {summary['mode']} for {summary['wall_s']:.1f} s: "
-               f"{c.get('frames_processed', 0)} frames processed, "
-               f"{c.get('frames_dropped_front_end', 0)} dropped in the front end, "
-               f"latency p50 {lat['p50']} ms / p99 {lat['p99']} ms")
+    typer.echo(
+        f"live        {summary['mode']} for {summary['wall_s']:.1f} s: "
+        f"{c.get('frames_processed', 0)} frames processed, "
+        f"{c.get('frames_dropped_front_end', 0)} dropped in the front end, "
+        f"latency p50 {lat['p50']} ms / p99 {lat['p99']} ms"
+    )
     slam = summary.get("slam_vs_groundtruth")
     if slam:
         typer.echo(f"accuracy    ATE {slam.get('ate_rmse_m')} m against the simulator's truth")
     rec = summary.get("recording")
     if rec and "error" not in rec:
-        typer.echo(f"recorded    {rec['frames']} frames ({rec['frames_dropped']} left out: the "
-                   f"writer fell behind), {rec['wheel_readings']} encoder readings")
+        typer.echo(
+            f"recorded    {rec['frames']} frames ({rec['frames_dropped']} left out: the "
+            f"writer fell behind), {rec['wheel_readings']} encoder readings"
+        )
     _echo_outputs(outputs)
 
 

@@ -89,8 +89,10 @@ class LiveConfig:
         1, unit="s", ge=0, le=26, doc="WATCH: board stops the motors without commands (0 = off)"
     )
     collision_stop_distance: float = param(
-        0.12, unit="m", ge=0.0, doc="collision monitor: no forward motion with a point this far "
-        "ahead of the footprint"
+        0.12,
+        unit="m",
+        ge=0.0,
+        doc="collision monitor: no forward motion with a point this far ahead of the footprint",
     )
     collision_slowdown_distance: float = param(
         0.4, unit="m", ge=0.0, doc="collision monitor: slow down with a point this far ahead"
@@ -102,8 +104,11 @@ class LiveConfig:
         0.05, unit="m", ge=0.0, doc="collision monitor: boxes this much wider than the footprint"
     )
     obstacle_memory: float = param(
-        5.0, unit="s", gt=0.0, doc="collision monitor: scans kept (carried by odometry); the "
-        "Kinect is blind nearer than 0.45 m and beside its 58 deg view"
+        5.0,
+        unit="s",
+        gt=0.0,
+        doc="collision monitor: scans kept (carried by odometry); the "
+        "Kinect is blind nearer than 0.45 m and beside its 58 deg view",
     )
     blocked_timeout: float = param(
         5.0, unit="s", gt=0.0, doc="direct driver: a waypoint blocked this long is skipped"
@@ -112,8 +117,9 @@ class LiveConfig:
         0.6, unit="s", gt=0.0, doc="manual mode stops when no key came for this long (key_timeout)"
     )
     route_driver: Literal["nav", "direct"] = param(
-        "nav", doc="auto mode: nav = waypoints as goals for costmap, planner, RPP, behaviours and "
-        "smoother; direct = steer straight at each waypoint (no planner)"
+        "nav",
+        doc="auto mode: nav = waypoints as goals for costmap, planner, RPP, behaviours and "
+        "smoother; direct = steer straight at each waypoint (no planner)",
     )
     waypoint_timeout: float = param(
         60.0, unit="s", gt=0.0, doc="nav driver: a waypoint not reached in this long is skipped"
@@ -122,31 +128,45 @@ class LiveConfig:
         1.0, unit="s", gt=0.0, doc="nav driver: plan again from the estimate this often"
     )
     nav_map_period: float = param(
-        1.0, unit="s", gt=0.0, doc="nav driver: the costmap's static layer is rebuilt from the "
-        "mapper's keyframes this often (in a background thread)"
+        1.0,
+        unit="s",
+        gt=0.0,
+        doc="nav driver: the costmap's static layer is rebuilt from the "
+        "mapper's keyframes this often (in a background thread)",
     )
     nav_map_margin: float = param(
         2.0, unit="m", ge=0.0, doc="nav driver: costmap = start, route and robot grown by this"
     )
     mapper_rate: float = param(
-        10.0, unit="Hz", ge=0.0, doc="scans handed to the mapper or localiser at most this often "
+        10.0,
+        unit="Hz",
+        ge=0.0,
+        doc="scans handed to the mapper or localiser at most this often "
         "(0 = every frame): a third of the mapper's CPU at 30 Hz, and each scan the mapper "
-        "tracks stays in its memory (~350 B)"
+        "tracks stays in its memory (~350 B)",
     )
     malloc_arena_max: int = param(
-        2, ge=0, doc="glibc malloc arenas at most (0 = glibc default, 8 per core): per-thread "
-        "arenas keep freed memory and RSS creeps in long runs"
+        2,
+        ge=0,
+        doc="glibc malloc arenas at most (0 = glibc default, 8 per core): per-thread "
+        "arenas keep freed memory and RSS creeps in long runs",
     )
     malloc_mmap_threshold: int = param(
-        1048576, unit="B", ge=0, doc="glibc: blocks this large are mmap'ed and returned on free "
-        "(0 = glibc's dynamic threshold, which grows to 32 MB and lets RSS creep)"
+        1048576,
+        unit="B",
+        ge=0,
+        doc="glibc: blocks this large are mmap'ed and returned on free "
+        "(0 = glibc's dynamic threshold, which grows to 32 MB and lets RSS creep)",
     )
     stats_reservoir: int = param(
         20000, ge=100, doc="latency samples kept for the percentiles (uniform reservoir sample)"
     )
     track_decimation: float = param(
-        0.05, unit="m", ge=0.0, doc="trajectory kept in memory for drawing: a point per this "
-        "much travel (the full trajectories are streamed to the run directory)"
+        0.05,
+        unit="m",
+        ge=0.0,
+        doc="trajectory kept in memory for drawing: a point per this "
+        "much travel (the full trajectories are streamed to the run directory)",
     )
 
 
@@ -182,8 +202,9 @@ def config_to_dict(cfg: Config) -> dict[str, dict[str, Any]]:
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
-    data = read_yaml(path, ConfigError, "config file",
-                     "{source}: line {line} is not valid YAML ({problem})")  # fmt: skip
+    data = read_yaml(
+        path, ConfigError, "config file", "{source}: line {line} is not valid YAML ({problem})"
+    )
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -263,6 +284,9 @@ def write_config(cfg: Config, path: Path) -> None:
 def source_options(cfg: Config, strict: bool = False) -> SourceOptions:
     """What adapters need from the configuration (rosbag topics, robot, camera)."""
     return SourceOptions(
-        topics=section_to_dict(cfg.topics), robot=cfg.robot, camera=cfg.camera, strict=strict,
+        topics=section_to_dict(cfg.topics),
+        robot=cfg.robot,
+        camera=cfg.camera,
+        strict=strict,
         sync=cfg.sync,
     )

@@ -93,8 +93,9 @@ def live_nav_config(cfg: Config) -> Config:
                        max_velocity=(min(sm.max_velocity[0], v), 0.0, min(sm.max_velocity[2], w)),
                        min_velocity=(max(sm.min_velocity[0], -v), 0.0,
                                      max(sm.min_velocity[2], -w)))  # fmt: skip
-    navigate = replace(cfg.navigate, goal_timeout=lc.waypoint_timeout,
-                       replan_frequency=1.0 / lc.replan_period)  # fmt: skip
+    navigate = replace(
+        cfg.navigate, goal_timeout=lc.waypoint_timeout, replan_frequency=1.0 / lc.replan_period
+    )
     return replace(cfg, follower=follower, smoother=smoother, navigate=navigate)
 
 
@@ -107,15 +108,21 @@ class ThreadPlanning:
         self.plan_ms: deque[float] = deque(maxlen=1000)  # recent planning times
         self._lock = threading.Lock()
         self._ticket = 0
-        self._request: tuple[int, np.ndarray, GridGeometry, tuple[float, float],
-                             tuple[float, float]] | None = None  # fmt: skip
+        self._request: (
+            tuple[int, np.ndarray, GridGeometry, tuple[float, float], tuple[float, float]] | None
+        ) = None
         self._answer: tuple[int, PlanResult] | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="live-nav-plan", daemon=True)
 
-    def request(self, costs: np.ndarray, geometry: GridGeometry, start: tuple[float, float],
-                goal: tuple[float, float]) -> int:  # fmt: skip
+    def request(
+        self,
+        costs: np.ndarray,
+        geometry: GridGeometry,
+        start: tuple[float, float],
+        goal: tuple[float, float],
+    ) -> int:
         with self._lock:
             self._ticket += 1
             self._request = (self._ticket, costs, geometry, start, goal)
@@ -208,8 +215,9 @@ class LiveNavigator:
     @property
     def counts(self) -> Counter[str]:
         """The waypoint and map-building counts, and the navigator's (``nav_`` + its name)."""
-        nav = Counter({f"nav_{k}": v for k, v in self.nav.counts.items()
-                       if not k.startswith("goals_")})  # fmt: skip
+        nav = Counter(
+            {f"nav_{k}": v for k, v in self.nav.counts.items() if not k.startswith("goals_")}
+        )
         return self._counts + nav
 
     @property
@@ -379,8 +387,11 @@ class LiveNavigator:
         if out.status == "reached":
             self._counts["waypoints_reached"] += 1
         else:
-            kind = {"timeout": "timeout", "no_path": "no_plan",
-                    "recoveries_exhausted": "no_plan"}.get(out.code, "failed")  # fmt: skip
+            kind = {
+                "timeout": "timeout",
+                "no_path": "no_plan",
+                "recoveries_exhausted": "no_plan",
+            }.get(out.code, "failed")
             self._counts[f"waypoints_skipped_{kind}"] += 1
             log.warning("waypoint %d (%.2f, %.2f) skipped: %s", self.i, *out.goal, out.reason)
         self.i += 1
@@ -408,5 +419,11 @@ class LiveNavigator:
         return out
 
 
-__all__ = ["LiveNavigator", "MapSnapshot", "ThreadPlanning", "live_nav_config", "nav_geometry",
-           "near_edge"]  # fmt: skip
+__all__ = [
+    "LiveNavigator",
+    "MapSnapshot",
+    "ThreadPlanning",
+    "live_nav_config",
+    "nav_geometry",
+    "near_edge",
+]

@@ -361,9 +361,11 @@ class LiveRun:
         :class:`slam.front_end.FrontEnd` the offline commands drive); its scan and pose go to
         the mapper, the collision monitor and the navigator."""
         cfg = self.cfg
-        opts = FrontEndOptions(wheels=self.opts.board != "none",
-                               pose_before_vo=cfg.live.pose_before_vo,
-                               camera_rate_hz=cfg.camera.rate)  # fmt: skip
+        opts = FrontEndOptions(
+            wheels=self.opts.board != "none",
+            pose_before_vo=cfg.live.pose_before_vo,
+            camera_rate_hz=cfg.camera.rate,
+        )
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
         self.front_end = fe
         last_mapped_ns = -(2**62)  # [ns] stamp of the last scan handed to the mapper
@@ -399,8 +401,9 @@ class LiveRun:
             wheels_ms = 1e3 * (time.perf_counter() - t_a)
             # b. VO (skipped when frames wait: the next VO pair spans both), the pose at the
             #    frame's stamp and the scan: latency ends here.
-            step = fe.frame(frame, skip_vo=cfg.live.skip_vo_when_behind
-                            and not self.frame_q.empty())  # fmt: skip
+            step = fe.frame(
+                frame, skip_vo=cfg.live.skip_vo_when_behind and not self.frame_q.empty()
+            )
             if math.isfinite(step.vo_ms):
                 self.stage_ms["vo"].add(step.vo_ms)
             if step.odom is None or step.scan is None:
@@ -460,8 +463,11 @@ class LiveRun:
                 if self.map_track.count == 0:
                     # The first checkpoint comes soon after mapping starts, not a whole period
                     # later: a crash in the first minute still leaves a bundle.
-                    self._last_checkpoint = (time.monotonic() - cfg.live.checkpoint_period
-                                             + cfg.live.first_checkpoint_after)  # fmt: skip
+                    self._last_checkpoint = (
+                        time.monotonic()
+                        - cfg.live.checkpoint_period
+                        + cfg.live.first_checkpoint_after
+                    )
             with self.shared.lock:
                 self.shared.map_to_odom = np.asarray(m2o, dtype=np.float64)
                 self.shared.tracking = tracking
@@ -471,8 +477,10 @@ class LiveRun:
                 pts = transform_points(np.asarray(pose), scan_points(scan))
                 self.vis.scan(scan.stamp_ns, pts)
                 self.vis.pose(scan.stamp_ns, np.asarray(pose), self.map_track.thinned())
-            if (self.mapper is not None
-                    and time.monotonic() - self._last_checkpoint >= cfg.live.checkpoint_period):
+            if (
+                self.mapper is not None
+                and time.monotonic() - self._last_checkpoint >= cfg.live.checkpoint_period
+            ):
                 self.checkpoint(final=False)  # fmt: skip
 
     def _hand_map_to_navigator(self) -> None:
@@ -484,8 +492,9 @@ class LiveRun:
         if now - self._last_snapshot < self.cfg.live.nav_map_period:
             return
         self._last_snapshot = now
-        self.navigator.set_map(MapSnapshot(self.mapper.graph.poses(),
-                                           tuple(k.scan for k in self.mapper.keyframes)))
+        self.navigator.set_map(
+            MapSnapshot(self.mapper.graph.poses(), tuple(k.scan for k in self.mapper.keyframes))
+        )
 
     def _controller_loop(self) -> None:
         """Velocity commands at live.control_rate: the teleop keys in manual mode, the route in
@@ -622,8 +631,10 @@ class LiveRun:
                      time.perf_counter() - t0)  # fmt: skip
             g = grid.geometry
             occ = grid.occupied_mask(self.cfg.mapper.occupied_thresh)
-            self.vis.occupied(int(result.scan_stamps_ns[-1]) if len(result.scan_stamps_ns) else 0,
-                              occupied_cells_xy(occ, (g.origin_x, g.origin_y), g.resolution))
+            self.vis.occupied(
+                int(result.scan_stamps_ns[-1]) if len(result.scan_stamps_ns) else 0,
+                occupied_cells_xy(occ, (g.origin_x, g.origin_y), g.resolution),
+            )
             return path
 
     def _final_checkpoint(self) -> Path | None:
@@ -846,35 +857,55 @@ class LiveRun:
             "board": self.opts.board,
             "world": str(self.opts.world) if self.opts.world else None,
             "mode": "localization" if self.localizer is not None else "mapping",
-            "initial_pose": (self.initial_pose.tolist() if self.initial_pose is not None
-                             else "simulator start" if self.localizer is not None
-                             and self.sim is not None else None),  # fmt: skip
+            "initial_pose": (
+                self.initial_pose.tolist()
+                if self.initial_pose is not None
+                else "simulator start"
+                if self.localizer is not None and self.sim is not None
+                else None
+            ),  # fmt: skip
             "drive": self.opts.drive,
             "config_files": [str(p) for p in self.config_files],
             "wall_s": round(wall, 3),
             "counts": self.counts.as_dict(),
-            "latency_ms": ({"p50": round(lat.percentile(50), 2),
-                            "p99": round(lat.percentile(99), 2),
-                            "max": round(lat.max, 2),
-                            "samples": lat.count, "kept": min(lat.count, lat.capacity)}
-                           if len(lat) >= MIN_LATENCIES else None),  # fmt: skip
+            "latency_ms": (
+                {
+                    "p50": round(lat.percentile(50), 2),
+                    "p99": round(lat.percentile(99), 2),
+                    "max": round(lat.max, 2),
+                    "samples": lat.count,
+                    "kept": min(lat.count, lat.capacity),
+                }
+                if len(lat) >= MIN_LATENCIES
+                else None
+            ),  # fmt: skip
             "camera_to_host_ms_p50": round(self.arrival_ms.percentile(50), 2)
-            if self.arrival_ms.count else None,
-            "stage_ms_median": {k: round(v.percentile(50), 2) for k, v in self.stage_ms.items()
-                                if v.count},  # fmt: skip
+            if self.arrival_ms.count
+            else None,
+            "stage_ms_median": {
+                k: round(v.percentile(50), 2) for k, v in self.stage_ms.items() if v.count
+            },  # fmt: skip
             "cpu": {
-                "host_cpu_s": round(cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime,
-                                    2),
-                "host_cpu_percent": round(100 * (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime
-                                                 - cpu0.ru_stime) / max(wall, 1e-9), 1),
+                "host_cpu_s": round(
+                    cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime, 2
+                ),
+                "host_cpu_percent": round(
+                    100
+                    * (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime)
+                    / max(wall, 1e-9),
+                    1,
+                ),
                 "sim_robot_cpu_s": round(kids.ru_utime + kids.ru_stime, 2),
             },  # fmt: skip
-            "peak_rss_mb": {"host": round(cpu1.ru_maxrss / 1024, 1),
-                            "sim_robot": round(kids.ru_maxrss / 1024, 1)},  # fmt: skip
+            "peak_rss_mb": {
+                "host": round(cpu1.ru_maxrss / 1024, 1),
+                "sim_robot": round(kids.ru_maxrss / 1024, 1),
+            },  # fmt: skip
             "rss_mb_timeline": self.rss_timeline.points,
             "mapper": mapper_counts,  # what the mapper holds: it grows with scans and keyframes
             "board_polls_per_s": round(self.poller.stats().polls / max(wall, 1e-9), 1)
-            if self.poller is not None else None,
+            if self.poller is not None
+            else None,
             "visualization": {"drawn": self.vis.drawn, "dropped": self.vis.dropped},
             "errors": self.errors,
         }
@@ -912,8 +943,11 @@ class LiveRun:
                 if len(a) >= 2:
                     ref = (truth[:, 1], truth[:, 2], truth[:, 3])
                     summary[f"{name}_vs_groundtruth"] = drift_summary(
-                        a[:, 0].astype(np.int64), (a[:, 1], a[:, 2], a[:, 3]),
-                        truth[:, 0].astype(np.int64), ref)  # fmt: skip
+                        a[:, 0].astype(np.int64),
+                        (a[:, 1], a[:, 2], a[:, 3]),
+                        truth[:, 0].astype(np.int64),
+                        ref,
+                    )
         paths = []
         if len(truth):
             paths.append(("ground truth", truth[:, 1], truth[:, 2]))
@@ -926,8 +960,11 @@ class LiveRun:
             kw: dict[str, Any] = {}
             if grid is not None:
                 g = grid.geometry
-                kw = {"occupied": grid.occupied_mask(self.cfg.mapper.occupied_thresh),
-                      "origin": (g.origin_x, g.origin_y), "resolution": g.resolution}
+                kw = {
+                    "occupied": grid.occupied_mask(self.cfg.mapper.occupied_thresh),
+                    "origin": (g.origin_x, g.origin_y),
+                    "resolution": g.resolution,
+                }
             plot_trajectories(run.file("map.png"), paths, "live run", **kw)
             outputs["picture"] = run.file("map.png")
         outputs["summary"] = run.write_summary(summary)
@@ -935,9 +972,9 @@ class LiveRun:
         return outputs
 
 
-def run_live(opts: LiveOptions,
-             progress: Callable[[float, float], None] | None = None) -> tuple[dict[str, Path],
-                                                                              dict[str, Any]]:
+def run_live(
+    opts: LiveOptions, progress: Callable[[float, float], None] | None = None
+) -> tuple[dict[str, Path], dict[str, Any]]:
     """Run live until the duration, the end of the route, or SIGINT/SIGTERM."""
     live = LiveRun(opts)
     outputs = live.execute(progress)

@@ -246,8 +246,7 @@ def run_localize(
             summary["initial_pose"] = {"pose": init.tolist(), "cell": model.cell_class(init[:2])}
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
-        stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs,
-                                           force_3dof)  # fmt: skip
+        stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs, force_3dof)
         # 2. Localise every scan.
         loc = Localizer(model, cfg.localizer, init)
         results: list[LocalizationResult] = []
@@ -319,8 +318,15 @@ def run_localize(
                           occupied=model.occupied, origin=(g.origin_x, g.origin_y),
                           resolution=g.resolution)  # fmt: skip
         outputs["picture"] = run.file("map.png")
-        _visualize(vis, stamps, poses, scans_map, model.occupied, loaded.grid,
-                   gt if gt is not None and gt.frame == frame == "base_link" else None)
+        _visualize(
+            vis,
+            stamps,
+            poses,
+            scans_map,
+            model.occupied,
+            loaded.grid,
+            gt if gt is not None and gt.frame == frame == "base_link" else None,
+        )
         if rrd is not None:
             outputs["rerun recording"] = rrd
         summary["source_skipped"] = dict(src.skipped)  # bad records, by reason

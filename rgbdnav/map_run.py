@@ -81,8 +81,7 @@ def run_map(
         else:
             mapper = Mapper(mapper_cfg)
         summary["config_files"] = [str(p) for p in config_files]
-        stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs,
-                                           force_3dof)  # fmt: skip
+        stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs, force_3dof)
         t_map = time.perf_counter()
         first_ns = last_ns = None
         for k, (scan, odom) in enumerate(stream):

@@ -51,15 +51,15 @@ class _Panel:
         w, h = PANEL_PX
         cv2.rectangle(self.img, (self.x0, self.y0), (self.x0 + w, self.y0 + h), BLACK, 1)
         for y in np.linspace(self.lo, self.hi, TICKS):
-            (_, v), = self.px(np.array([self.t0]), np.array([y]))
+            ((_, v),) = self.px(np.array([self.t0]), np.array([y]))
             cv2.line(self.img, (self.x0, int(v)), (self.x0 + w, int(v)), LIGHT, 1)
             cv2.putText(self.img, f"{y:+.2f}", (self.x0 - 62, int(v) + 4), FONT, 0.4, BLACK, 1,
                         cv2.LINE_AA)  # fmt: skip
         if self.lo < 0.0 < self.hi:
-            (_, v), = self.px(np.array([self.t0]), np.array([0.0]))
+            ((_, v),) = self.px(np.array([self.t0]), np.array([0.0]))
             cv2.line(self.img, (self.x0, int(v)), (self.x0 + w, int(v)), GRAY, 1)
         for t in np.linspace(self.t0, self.t1, 6):
-            (u, _), = self.px(np.array([t]), np.array([self.lo]))
+            ((u, _),) = self.px(np.array([t]), np.array([self.lo]))
             cv2.putText(self.img, f"{t:.0f}", (int(u) - 8, self.y0 + h + 16), FONT, 0.4, BLACK, 1,
                         cv2.LINE_AA)  # fmt: skip
         cv2.putText(self.img, f"{title} [{unit}]", (self.x0, self.y0 - 10), FONT, 0.55, BLACK, 1,
@@ -74,7 +74,7 @@ class _Panel:
 
     def limit(self, value: float, label: str) -> None:
         w, _ = PANEL_PX
-        (_, v), = self.px(np.array([self.t0]), np.array([value]))
+        ((_, v),) = self.px(np.array([self.t0]), np.array([value]))
         for u in range(self.x0, self.x0 + w, 2 * DASH_PX):
             cv2.line(self.img, (u, int(v)), (min(u + DASH_PX, self.x0 + w), int(v)), RED, 1)
         cv2.putText(self.img, f"{label} {value:+.2f}", (self.x0 + 6, int(v) - 4), FONT, 0.4, RED,

@@ -203,8 +203,9 @@ class _Sim:
         self.reseeds = 0
         self.fresh_scan = False  # a scan was localised since the navigator last asked
         self._settle_scans0 = 0
-        self.navigator = Navigator(replace(cfg, navigate=nav), costmap,
-                                   corrector=self if localizer is not None else None)  # fmt: skip
+        self.navigator = Navigator(
+            replace(cfg, navigate=nav), costmap, corrector=self if localizer is not None else None
+        )
         self.keepout_dist: np.ndarray | None = None
         self.keepout_geometry = None if keepout is None else keepout.geometry
         if keepout is not None:
@@ -319,8 +320,9 @@ class _Sim:
         return result.reason
 
     # 3c. One smoother period: sense, decide, move, check against the world.
-    def step(self, goal: int, status: str | None = None,
-             hold: tuple[float, float] | None = None) -> None:  # fmt: skip
+    def step(
+        self, goal: int, status: str | None = None, hold: tuple[float, float] | None = None
+    ) -> None:
         """``status`` labels the step in commands.csv (default: the navigator's); ``hold``
         commands that twist instead of the navigator's decision."""
         w0 = time.perf_counter()
@@ -384,9 +386,12 @@ class _Sim:
         while nav.active:
             if self.localizer is not None:
                 if (self.t_ns - self.last_fix_ns) / NS_PER_S > self.nav.relocalize_timeout:
-                    nav.cancel(self.t_ns, f"no believable localiser answer for "
-                               f"{self.nav.relocalize_timeout:g} s (last status "
-                               f"{self.log.loc_status[-1]})")  # fmt: skip
+                    nav.cancel(
+                        self.t_ns,
+                        f"no believable localiser answer for "
+                        f"{self.nav.relocalize_timeout:g} s (last status "
+                        f"{self.log.loc_status[-1]})",
+                    )
                     break
                 if not self.localized:
                     # Never drive on a pose the localiser does not vouch for: turn in place
@@ -396,9 +401,13 @@ class _Sim:
             self.step(k)
         result = nav.outcome
         assert result is not None
-        outcome: dict[str, Any] = {"goal": list(goal), "status": result.status,
-                                   "reason": result.reason, "replans": result.replans,
-                                   "recoveries": list(result.recoveries)}  # fmt: skip
+        outcome: dict[str, Any] = {
+            "goal": list(goal),
+            "status": result.status,
+            "reason": result.reason,
+            "replans": result.replans,
+            "recoveries": list(result.recoveries),
+        }
         if result.settles:
             outcome["settles"] = list(result.settles)
         if result.first_plan is not None:
@@ -723,5 +732,14 @@ def describe(summary: dict[str, Any]) -> str:
             f"({summary['localization']['mode']} localisation)")  # fmt: skip
 
 
-__all__ = ["LOCALIZATION_MODES", "clearance_map", "commands_csv", "describe", "goal_problem",
-           "navigate_settings", "parse_goal_args", "pose_errors", "run_navigate"]  # fmt: skip
+__all__ = [
+    "LOCALIZATION_MODES",
+    "clearance_map",
+    "commands_csv",
+    "describe",
+    "goal_problem",
+    "navigate_settings",
+    "parse_goal_args",
+    "pose_errors",
+    "run_navigate",
+]

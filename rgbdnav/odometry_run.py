@@ -155,8 +155,11 @@ def _wheel_odometry(
         log.warning(
             "%s: %d encoder reading(s) jumped off and back (dropped), %d step(s) faster than "
             "%.0fx the wheel speed limit (taken as no motion)",
-            src.describe(), clean.glitches_dropped, clean.jumps_zeroed, GLITCH_SPEED_FACTOR,
-        )  # fmt: skip
+            src.describe(),
+            clean.glitches_dropped,
+            clean.jumps_zeroed,
+            GLITCH_SPEED_FACTOR,
+        )
     x, y, yaw = integrate_ticks(left, right, cfg.robot, start)
     ds, dtheta = wheel_increments(left, right, cfg.robot)
     cov = propagate_covariance(

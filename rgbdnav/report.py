@@ -33,10 +33,13 @@ def plot_trajectories(
 ) -> None:
     """Top view: optional occupancy background (row 0 at the bottom) and labelled x/y paths."""
     # A path without a finite point (every frame of a source unusable) is listed, not drawn.
-    finite = [np.isfinite(np.asarray(x, float)) & np.isfinite(np.asarray(y, float))
-              for _, x, y in paths]  # fmt: skip
-    paths = [(label, np.asarray(x, float)[ok], np.asarray(y, float)[ok])
-             for (label, x, y), ok in zip(paths, finite, strict=True)]  # fmt: skip
+    finite = [
+        np.isfinite(np.asarray(x, float)) & np.isfinite(np.asarray(y, float)) for _, x, y in paths
+    ]
+    paths = [
+        (label, np.asarray(x, float)[ok], np.asarray(y, float)[ok])
+        for (label, x, y), ok in zip(paths, finite, strict=True)
+    ]
     pts = [np.column_stack([x, y]) for _, x, y in paths if len(x)]
     if pts:
         lo = np.min([p.min(axis=0) for p in pts], axis=0)

@@ -48,9 +48,14 @@ def source_config(
 
 
 def scan_stream(
-    src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
-    outputs: dict[str, Path], force_3dof: bool = False,
-) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
+    src: Source,
+    source_path: Path,
+    cfg: Config,
+    run: RunDir,
+    summary: dict,
+    outputs: dict[str, Path],
+    force_3dof: bool = False,
+) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:
     """(scan, odometry pose) pairs, their count, and the frame the poses are of."""
     if isinstance(src, CarmenSource):
         odo = src.laser_poses()
@@ -74,9 +79,14 @@ def _with_poses(
 
 
 def _rgbd_stream(
-    src: Source, source_path: Path, cfg: Config, run: RunDir, summary: dict,
-    outputs: dict[str, Path], force_3dof: bool,
-) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:  # fmt: skip
+    src: Source,
+    source_path: Path,
+    cfg: Config,
+    run: RunDir,
+    summary: dict,
+    outputs: dict[str, Path],
+    force_3dof: bool,
+) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:
     opts = options_for(src, True, force_3dof, cfg.camera.rate)
     if not opts.planar:
         raise SensorError(f"{source_path}: {HANDHELD}")
@@ -99,17 +109,24 @@ def _rgbd_stream(
             poses.append(odom)
             yield step.scan, odom
         a = np.array(poses, np.float64).reshape(-1, 3)
-        write_tum_trajectory(run.file("odom.tum"), np.array(stamps, np.int64), a[:, 0], a[:, 1],
-                             a[:, 2])  # fmt: skip
+        write_tum_trajectory(
+            run.file("odom.tum"), np.array(stamps, np.int64), a[:, 0], a[:, 1], a[:, 2]
+        )
         gt = src.groundtruth()
         if gt is not None and gt.frame == "base_link" and len(a):
             summary["odometry_vs_groundtruth"] = drift_report(
-                np.array(stamps, np.int64), (a[:, 0], a[:, 1], a[:, 2]), gt.stamps_ns,
-                (gt.x, gt.y, gt.yaw)).as_dict()  # fmt: skip
+                np.array(stamps, np.int64),
+                (a[:, 0], a[:, 1], a[:, 2]),
+                gt.stamps_ns,
+                (gt.x, gt.y, gt.yaw),
+            ).as_dict()
         assert fe.ekf is not None
-        summary["front_end"] = {"inputs": list(fe.inputs), "ekf": fe.ekf.stats,
-                                "frames_timed_out": timed_out,
-                                "counts": dict(sorted(fe.counts.items()))}  # fmt: skip
+        summary["front_end"] = {
+            "inputs": list(fe.inputs),
+            "ekf": fe.ekf.stats,
+            "frames_timed_out": timed_out,
+            "counts": dict(sorted(fe.counts.items())),
+        }
 
     return gen(), n, "base_link"
 

@@ -53,8 +53,9 @@ class Visualizer(Protocol):
 
     def scan(self, stamp_ns: int, points_map: np.ndarray) -> None: ...
 
-    def pose(self, stamp_ns: int, pose: np.ndarray, trajectory: np.ndarray | None = None) -> None:
-        ...
+    def pose(
+        self, stamp_ns: int, pose: np.ndarray, trajectory: np.ndarray | None = None
+    ) -> None: ...
 
     def truth(self, stamp_ns: int, trajectory: np.ndarray) -> None: ...
 
@@ -152,8 +153,10 @@ class RerunVisualizer:
         self._rec.log("world/robot/pose", self._rr.Arrows3D(origins=[[x, y, 0.0]], vectors=vec,
                                                             colors=PATH_COLOUR))  # fmt: skip
         if trajectory is not None and len(trajectory) > 1:
-            self._rec.log("world/robot/trajectory",
-                          self._rr.LineStrips3D([_xyz(trajectory)], colors=PATH_COLOUR))
+            self._rec.log(
+                "world/robot/trajectory",
+                self._rr.LineStrips3D([_xyz(trajectory)], colors=PATH_COLOUR),
+            )
 
     def truth(self, stamp_ns: int, trajectory: np.ndarray) -> None:
         self._at(stamp_ns)

@@ -24,8 +24,10 @@ def read_bounded(
         if not stat.S_ISREG(st.st_mode):
             raise error(f"{path}: cannot read {what} (not a regular file)")
         if st.st_size > max_bytes:
-            raise error(f"{path}: cannot read {what} ({st.st_size} bytes, more than the "
-                        f"{max_bytes} allowed)")  # fmt: skip
+            raise error(
+                f"{path}: cannot read {what} ({st.st_size} bytes, more than the "
+                f"{max_bytes} allowed)"
+            )
         with open(path, "rb") as f:
             data = f.read(max_bytes + 1)
     except OSError as err:

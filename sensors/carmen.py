@@ -360,8 +360,13 @@ def read_carmen_log(
     unordered = np.count_nonzero(ok & ~keep)
     if len(good) > 1 and ok[0] and unordered > MAX_UNORDERED_FRACTION * len(good):
         stamps, stamp_source = _fallback_stamps(lasers, good, lines, stamps)
-        log.warning("%s: the ipc timestamps of %d of %d scans do not advance: using %s stamps",
-                    path, unordered, len(good), stamp_source.split("_")[0])  # fmt: skip
+        log.warning(
+            "%s: the ipc timestamps of %d of %d scans do not advance: using %s stamps",
+            path,
+            unordered,
+            len(good),
+            stamp_source.split("_")[0],
+        )
         keep, duplicate = first_time_increase(stamps)
     keep &= ok
     # The scan each dropped one failed to follow: the last kept before it.
@@ -409,8 +414,12 @@ def _drop_pose_spikes(
     grid up 20x): skipped and counted as ``pose_jump``. Vectorised over the log."""
     if len(kept) < 3:
         return kept
-    poses = np.array([_row(values, i)[-6:] if lasers[i].kind == "FLASER"
-                      else _row(values, i)[-10:-4] for i, _ in kept])  # fmt: skip
+    poses = np.array(
+        [
+            _row(values, i)[-6:] if lasers[i].kind == "FLASER" else _row(values, i)[-10:-4]
+            for i, _ in kept
+        ]
+    )
     t_s = np.array([t for _, t in kept], dtype=np.int64) / NS_PER_S
     spike = np.zeros(len(kept), bool)
     for xy in (poses[:, 0:2], poses[:, 3:5]):  # laser pose, odometry pose
@@ -420,9 +429,12 @@ def _drop_pose_spikes(
         skip = np.hypot(*(xy[2:] - xy[:-2]).T) <= limit[:-1] + limit[1:]
         spike[1:-1] |= bad[:-1] & bad[1:] & skip
     for k in np.flatnonzero(spike):
-        problems.add(lasers[kept[k][0]].line, "pose_jump",
-                     f"{lasers[kept[k][0]].kind} pose jumps more than {MAX_POSE_SPEED:g} m/s "
-                     "away from both neighbouring scans")  # fmt: skip
+        problems.add(
+            lasers[kept[k][0]].line,
+            "pose_jump",
+            f"{lasers[kept[k][0]].kind} pose jumps more than {MAX_POSE_SPEED:g} m/s "
+            "away from both neighbouring scans",
+        )
     return [kv for kv, s in zip(kept, spike, strict=True) if not s]
 
 

@@ -248,8 +248,10 @@ class TopicsConfig:
         # An empty name matched no topic and silently dropped the role (VO off for rgb).
         for f in dataclasses.fields(self):
             if not str(getattr(self, f.name)).strip():
-                return (f"{f.name}: empty topic name (leave it out to use the default, which "
-                        "falls back to the bag's unique topic of the right type)")  # fmt: skip
+                return (
+                    f"{f.name}: empty topic name (leave it out to use the default, which "
+                    "falls back to the bag's unique topic of the right type)"
+                )
         return None
 
 
@@ -300,8 +302,11 @@ class SimConfig:
     slip_correlation_time: float = param(0.5, unit="s", gt=0.0, doc="slip is an AR(1) process")
     backlash: float = param(0.02, unit="rad", ge=0.0, doc="gear backlash per wheel")
     blocked_wheel_slip: float = param(
-        0.2, ge=0.0, le=1.0, doc="live robot blocked by an obstacle: fraction of the refused wheel "
-        "travel the encoders still count (0 = motors stall, 1 = wheels spin freely)"
+        0.2,
+        ge=0.0,
+        le=1.0,
+        doc="live robot blocked by an obstacle: fraction of the refused wheel "
+        "travel the encoders still count (0 = motors stall, 1 = wheels spin freely)",
     )
     gyro_enabled: bool = param(True)
     gyro_bias: float = param(0.002, unit="rad/s")

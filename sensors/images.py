@@ -47,8 +47,9 @@ def read_image(file: Path, size: tuple[int, int], depth: bool) -> np.ndarray:
     w, h = size
     declared = declared_size(data)
     if declared is not None and declared != (w, h):  # before decoding what it claims
-        raise ImageError(f"{file}: image is {declared[0]}x{declared[1]}, camera is {w}x{h}",
-                         "wrong_size")  # fmt: skip
+        raise ImageError(
+            f"{file}: image is {declared[0]}x{declared[1]}, camera is {w}x{h}", "wrong_size"
+        )
     image = decode_image(data, file, _Unreadable)
     if image.shape[:2] != (h, w):
         raise ImageError(
@@ -131,8 +132,10 @@ def decode_image(
         raise error(f"{name}: corrupt PNG ({problem})")
     size = declared_size(data)
     if size is not None and size[0] * size[1] > max_pixels:
-        raise error(f"{name}: image declares {size[0]}x{size[1]} pixels, more than the "
-                    f"{max_pixels} read here")  # fmt: skip
+        raise error(
+            f"{name}: image declares {size[0]}x{size[1]} pixels, more than the "
+            f"{max_pixels} read here"
+        )
     try:
         image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as err:

@@ -610,8 +610,14 @@ class RosbagSource(SourceBase):
             return cls.open(p)
         topics = RosbagTopics(**options.topics) if options.topics else None
         # Intrinsics from the user's camera config only stand in when the bag has no CameraInfo.
-        return cls.open(p, topics, strict=options.strict, robot=options.robot,
-                        camera=options.camera, sync=options.sync)  # fmt: skip
+        return cls.open(
+            p,
+            topics,
+            strict=options.strict,
+            robot=options.robot,
+            camera=options.camera,
+            sync=options.sync,
+        )
 
     @classmethod
     def open(
@@ -790,19 +796,33 @@ class RosbagSource(SourceBase):
             def pose(m: Any) -> tuple[float, ...]:
                 p, q = m.pose.pose.position, m.pose.pose.orientation
                 lin, ang = m.twist.twist.linear, m.twist.twist.angular
-                return (float(p.x), float(p.y), float(q.x), float(q.y), float(q.z), float(q.w),
-                        float(lin.x), float(lin.y), float(ang.z),
-                        *np.asarray(m.pose.covariance, np.float64)[PLANAR_COV],
-                        *np.asarray(m.twist.covariance, np.float64)[PLANAR_COV])  # fmt: skip
+                return (
+                    float(p.x),
+                    float(p.y),
+                    float(q.x),
+                    float(q.y),
+                    float(q.z),
+                    float(q.w),
+                    float(lin.x),
+                    float(lin.y),
+                    float(ang.z),
+                    *np.asarray(m.pose.covariance, np.float64)[PLANAR_COV],
+                    *np.asarray(m.twist.covariance, np.float64)[PLANAR_COV],
+                )
 
             stamps, v = self._read_stamped("odom", pose)
             v = v.reshape(-1, 27)
             yaw = yaw_from_quaternion(v[:, 2:6]) if len(v) else np.zeros(0)
             self._cache["odom"] = PoseStream(
-                stamps, v[:, 0].copy(), v[:, 1].copy(), yaw, frame="base_link",
-                twist=v[:, 6:9].copy(), pose_covariance=v[:, 9:18].reshape(-1, 3, 3).copy(),
+                stamps,
+                v[:, 0].copy(),
+                v[:, 1].copy(),
+                yaw,
+                frame="base_link",
+                twist=v[:, 6:9].copy(),
+                pose_covariance=v[:, 9:18].reshape(-1, 3, 3).copy(),
                 twist_covariance=v[:, 18:27].reshape(-1, 3, 3).copy(),
-            )  # fmt: skip
+            )
         stream: PoseStream = self._cache["odom"]
         return stream
 

@@ -128,9 +128,11 @@ def check_poses(table: StampedText, data: np.ndarray) -> None:
     naming its line (a 1e30 m pose would otherwise be scored as a huge but valid error)."""
     far = np.flatnonzero(np.abs(data[:, :3]).max(axis=1, initial=0.0) > MAX_COORDINATE_M)
     if far.size:
-        raise SensorError(f"{table.path}:{table.lines[far[0]]}: position "
-                          f"{data[far[0], :3].tolist()} is farther than {MAX_COORDINATE_M:g} m "
-                          "from the origin")  # fmt: skip
+        raise SensorError(
+            f"{table.path}:{table.lines[far[0]]}: position "
+            f"{data[far[0], :3].tolist()} is farther than {MAX_COORDINATE_M:g} m "
+            "from the origin"
+        )
     zero = np.flatnonzero(np.linalg.norm(data[:, 3:7], axis=1) < MIN_QUATERNION_NORM)
     if zero.size:
         raise SensorError(f"{table.path}:{table.lines[zero[0]]}: quaternion has zero length")
@@ -178,8 +180,10 @@ def write_tum_poses(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: 
         raise ValueError("stamps_ns and poses must have the same length")
     quat = Rotation.from_matrix(poses[:, :3, :3]).as_quat() if len(poses) else np.zeros((0, 4))
     rows = np.concatenate([poses[:, :3, 3], quat], axis=1)
-    text = "".join(format_stamp(int(t)) + " " + " ".join(repr(float(v)) for v in r) + "\n"
-                   for t, r in zip(stamps_ns, rows, strict=True))  # fmt: skip
+    text = "".join(
+        format_stamp(int(t)) + " " + " ".join(repr(float(v)) for v in r) + "\n"
+        for t, r in zip(stamps_ns, rows, strict=True)
+    )
     atomic_write_text(path, "# timestamp tx ty tz qx qy qz qw\n" + text)
 
 

@@ -292,8 +292,10 @@ class TumFolderSource(SourceBase):
             note = "stamps synthesised at 30 Hz"
             if gt is not None and gt_file is not None and len(gt[0]) <= last:
                 # Said, not silent: the user gave stamps that do not cover the frames.
-                note += (f" because {gt_file.name} has {len(gt[0])} rows and the frames go "
-                         f"to index {last}")  # fmt: skip
+                note += (
+                    f" because {gt_file.name} has {len(gt[0])} rows and the frames go "
+                    f"to index {last}"
+                )
                 log.warning("%s: %s", self.root, note)
         note += " (rgb.txt/depth.txt list frame indices)"
         return _Index(times[k_rgb], rgb.files), _Index(times[k_depth], depth.files), note
@@ -340,8 +342,9 @@ class TumFolderSource(SourceBase):
         """(width, height) of the first decodable colour image; the Kinect's without one."""
         for i in self.rgb_index[:10]:
             try:
-                image = read_bounded(self.root / self._rgb.files[int(i)], MAX_IMAGE_FILE_BYTES,
-                                     SensorError, "image")  # fmt: skip
+                image = read_bounded(
+                    self.root / self._rgb.files[int(i)], MAX_IMAGE_FILE_BYTES, SensorError, "image"
+                )
                 size = declared_size(image) or decode_image(image, "", SensorError).shape[1::-1]
             except SensorError:
                 continue

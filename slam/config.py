@@ -106,10 +106,12 @@ class EkfConfig:
         1e-8, unit="(rad/s)^2/s", ge=0.0, doc="random walk of the gyro z bias"
     )
     odom0_default_variance: float = param(
-        1e-3, unit="(m/s)^2, (rad/s)^2 or m^2, rad^2", gt=0.0,
+        1e-3,
+        unit="(m/s)^2, (rad/s)^2 or m^2, rad^2",
+        gt=0.0,
         doc="odometry messages (nav_msgs/Odometry) whose covariance is all zero, as many "
         "drivers leave it: this variance on each fused variable instead",
-    )  # fmt: skip
+    )
     odom0_vy_variance: float = param(
         1e-4, unit="(m/s)^2", gt=0.0, doc="variance of the non-holonomic vy = 0 measurement"
     )

@@ -64,8 +64,9 @@ def orthonormalised(t: np.ndarray) -> np.ndarray:
     return out
 
 
-def depth_to_points(depth_m: np.ndarray, intr: CameraIntrinsics, min_depth: float,
-                    max_depth: float, stride: int = 1) -> np.ndarray:  # fmt: skip
+def depth_to_points(
+    depth_m: np.ndarray, intr: CameraIntrinsics, min_depth: float, max_depth: float, stride: int = 1
+) -> np.ndarray:
     """(N, 3) float64 optical-frame points of the pixels on a ``stride`` grid with a depth in
     [min_depth, max_depth] (0 and NaN are no return)."""
     d = depth_m[::stride, ::stride].astype(np.float64)
@@ -75,8 +76,9 @@ def depth_to_points(depth_m: np.ndarray, intr: CameraIntrinsics, min_depth: floa
     return np.column_stack([(u[ok] - intr.cx) / intr.fx * z, (v[ok] - intr.cy) / intr.fy * z, z])
 
 
-def organised_normals(depth_m: np.ndarray, intr: CameraIntrinsics, min_depth: float,
-                      max_depth: float, stride: int) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def organised_normals(
+    depth_m: np.ndarray, intr: CameraIntrinsics, min_depth: float, max_depth: float, stride: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Points and unit normals of the organised cloud on ``stride`` x ``stride`` pixel blocks.
 
     Each block's depth is the mean of its in-range pixels (blocks with less than
@@ -120,9 +122,15 @@ def point_to_plane_information(p: np.ndarray, n: np.ndarray, scale_m: float) -> 
     return j.T @ j
 
 
-def point_to_plane_refine(t_prev_curr: np.ndarray, curr: np.ndarray, prev: np.ndarray,
-                          prev_normals: np.ndarray, prev_tree: cKDTree, max_dist: float,
-                          iterations: int) -> np.ndarray:  # fmt: skip
+def point_to_plane_refine(
+    t_prev_curr: np.ndarray,
+    curr: np.ndarray,
+    prev: np.ndarray,
+    prev_normals: np.ndarray,
+    prev_tree: cKDTree,
+    max_dist: float,
+    iterations: int,
+) -> np.ndarray:
     """Gauss-Newton on the point-to-plane residuals ``r = n . (T p - q)`` of the current check
     points against the previous frame's, nearest partners within ``max_dist`` re-found every
     step, Huber weights at ``max_dist / 3``; ``T <- exp(d) T`` (:func:`point_to_plane_information`'s
@@ -164,9 +172,14 @@ def weakest_direction_support(normals: np.ndarray) -> float:
     return float(np.mean(np.abs(normals @ e) > ICP_SUPPORT_COS))
 
 
-def icp_check(t_prev_curr: np.ndarray, curr: np.ndarray, prev: np.ndarray,
-              prev_normals: np.ndarray, prev_tree: cKDTree, max_dist: float
-              ) -> tuple[int, float, np.ndarray, float]:  # fmt: skip
+def icp_check(
+    t_prev_curr: np.ndarray,
+    curr: np.ndarray,
+    prev: np.ndarray,
+    prev_normals: np.ndarray,
+    prev_tree: cKDTree,
+    max_dist: float,
+) -> tuple[int, float, np.ndarray, float]:
     """Correspondences of the current check points ``curr`` moved by ``t_prev_curr`` with the
     previous frame's (``prev``, its normals, its k-d tree) within ``max_dist``.
 
@@ -204,8 +217,12 @@ class DepthIcpOdometry:
     ``T_odom_cam`` as VisualOdometry's. ``reset`` forgets the map (the next frame starts anew).
     """
 
-    def __init__(self, intrinsics: CameraIntrinsics, cfg: VoConfig | None = None,
-                 robot: RobotConfig | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        intrinsics: CameraIntrinsics,
+        cfg: VoConfig | None = None,
+        robot: RobotConfig | None = None,
+    ) -> None:
         try:  # optional and heavy: imported where used
             from kiss_icp.config import KISSConfig
         except ImportError as err:  # pragma: no cover - a dependency of the package
@@ -221,9 +238,11 @@ class DepthIcpOdometry:
             # One thread: TBB's parallel reductions sum in a varying order (one input, one
             # answer), and the VO's second thread is busy with ORB when it falls back.
             registration={"max_num_threads": 1},
-            adaptive_threshold={"initial_threshold": c.icp_initial_threshold,
-                                "min_motion_th": c.icp_min_motion},
-        )  # fmt: skip
+            adaptive_threshold={
+                "initial_threshold": c.icp_initial_threshold,
+                "min_motion_th": c.icp_min_motion,
+            },
+        )
         self.T_odom_cam = np.eye(4)
         self.reset()
 
@@ -245,10 +264,12 @@ class DepthIcpOdometry:
         t0 = time.perf_counter()
         c, planar = self.cfg, self.t_base_opt is not None
         # 1. Depth -> optical-frame points; the check grid with normals.
-        pts = depth_to_points(frame.depth_m, self.intrinsics, c.min_depth, c.max_depth,
-                              c.icp_pixel_stride)  # fmt: skip
-        chk, nrm = organised_normals(frame.depth_m, self.intrinsics, c.min_depth, c.max_depth,
-                                     c.icp_check_stride)  # fmt: skip
+        pts = depth_to_points(
+            frame.depth_m, self.intrinsics, c.min_depth, c.max_depth, c.icp_pixel_stride
+        )
+        chk, nrm = organised_normals(
+            frame.depth_m, self.intrinsics, c.min_depth, c.max_depth, c.icp_check_stride
+        )
         # 2. KISS-ICP's voxelisation: the fine cloud for the map, the coarse one for ICP.
         fine = voxel_down_sample(pts, c.icp_voxel_size * 0.5) if len(pts) else pts
         source = voxel_down_sample(fine, c.icp_voxel_size * 1.5) if len(fine) else fine
@@ -263,13 +284,17 @@ class DepthIcpOdometry:
         sigma = self._threshold.get_threshold()
         guess = orthonormalised(self._pose @ self._delta)
         pose = self._registration.align_points_to_map(
-            points=source, voxel_map=self._map, initial_guess=guess,
-            max_correspondance_distance=3 * sigma, kernel=sigma,
-        )  # fmt: skip
+            points=source,
+            voxel_map=self._map,
+            initial_guess=guess,
+            max_correspondance_distance=3 * sigma,
+            kernel=sigma,
+        )
         t_pc = inverse(self._pose) @ pose
         if c.icp_refine_iterations > 0:  # point-to-plane polish against the previous frame
-            t_pc = point_to_plane_refine(t_pc, chk, *prev, c.icp_check_distance,
-                                         c.icp_refine_iterations)  # fmt: skip
+            t_pc = point_to_plane_refine(
+                t_pc, chk, *prev, c.icp_check_distance, c.icp_refine_iterations
+            )
             pose = orthonormalised(self._pose @ t_pc)
         # 4. Checks against the previous frame: overlap, constraint, motion limits.
         matched, lam, cov_wv, _ = icp_check(t_pc, chk, *prev, max_dist=c.icp_check_distance)
@@ -288,8 +313,13 @@ class DepthIcpOdometry:
         ):
             reason = "implausible_motion"  # a jump off the constant velocity: a wrong minimum
         if reason is not None:
-            log.debug("depth ICP rejected a frame: %s (overlap %d/%d, constraint %.4f)",
-                      reason, matched, len(chk), lam)  # fmt: skip
+            log.debug(
+                "depth ICP rejected a frame: %s (overlap %d/%d, constraint %.4f)",
+                reason,
+                matched,
+                len(chk),
+                lam,
+            )
             self.reset()  # a rejected frame starts the map anew, as a lost VO takes a keyframe
             self._prev = (chk, nrm, cKDTree(chk))
             self._map.update(fine, self._pose)

@@ -83,8 +83,10 @@ def reject_encoder_glitches(
     if len(t) < 2:
         return EncoderCleanup(t, counts[:, 0], counts[:, 1], 0, 0)
     dt_s = np.maximum(np.diff(t), 0) / NS_PER_S
-    limit = (GLITCH_SPEED_FACTOR * robot.max_wheel_speed * dt_s / robot.metres_per_tick
-             + GLITCH_SLACK_TICKS)[:, None]  # [ticks] per interval  # fmt: skip
+    limit = (
+        GLITCH_SPEED_FACTOR * robot.max_wheel_speed * dt_s / robot.metres_per_tick
+        + GLITCH_SLACK_TICKS
+    )[:, None]  # [ticks] per interval
     step = np.diff(counts, axis=0)
     bad = np.asarray((np.abs(step) > limit).any(axis=1))
     # 1. Spikes: interval i and i+1 both implausible, their sum plausible -> reading i+1 off.
@@ -97,8 +99,10 @@ def reject_encoder_glitches(
     # 2. Steps that stayed: no motion over that interval, the counts after it shifted back.
     step = np.diff(counts, axis=0)
     dt_s = np.maximum(np.diff(t), 0) / NS_PER_S
-    limit = (GLITCH_SPEED_FACTOR * robot.max_wheel_speed * dt_s / robot.metres_per_tick
-             + GLITCH_SLACK_TICKS)[:, None]  # fmt: skip
+    limit = (
+        GLITCH_SPEED_FACTOR * robot.max_wheel_speed * dt_s / robot.metres_per_tick
+        + GLITCH_SLACK_TICKS
+    )[:, None]
     jump = (np.abs(step) > limit).any(axis=1)
     step[jump] = 0
     counts = counts[0] + np.vstack([np.zeros((1, 2), np.int64), np.cumsum(step, axis=0)])

@@ -315,8 +315,9 @@ def wheel_twist_inputs(
     # Causal window mean of |travel| per interval (cumulative sums: no loop over intervals).
     ends = stamps[1:]
     idx = np.arange(len(ends))
-    first = np.minimum(np.searchsorted(ends, ends - int(variance_window_s * NS_PER_S),
-                                       side="right"), idx)  # always the interval itself
+    first = np.minimum(
+        np.searchsorted(ends, ends - int(variance_window_s * NS_PER_S), side="right"), idx
+    )  # always the interval itself
     count = idx + 1 - first
 
     def window_mean(d: np.ndarray) -> np.ndarray:

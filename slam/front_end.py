@@ -130,8 +130,9 @@ class FrontEnd:
         # A reading or VO pair that came after a gap is fused spread over its span
         # (slam.ekf.interval_twists): its pieces are older than messages of other sensors in
         # that span, so the filter re-filters from its history rather than drop them.
-        ekf = replace(ekf, smooth_lagged_data=True,
-                      history_length=max(ekf.history_length, MIN_HISTORY_S))  # fmt: skip
+        ekf = replace(
+            ekf, smooth_lagged_data=True, history_length=max(ekf.history_length, MIN_HISTORY_S)
+        )
         self.ekf_cfg = ekf
         self.ekf = PlanarEkf(ekf, ekf.imu0_angular_velocity_variance) if options.planar else None
         self.model = WheelErrorModel.from_robot(robot)
@@ -281,8 +282,9 @@ class FrontEnd:
 # --- offline: a source's streams in time order ----------------------------------------------
 
 
-def options_for(src: Source, use_vo: bool = True, force_3dof: bool = False,
-                camera_rate_hz: float = 30.0) -> FrontEndOptions:  # fmt: skip
+def options_for(
+    src: Source, use_vo: bool = True, force_3dof: bool = False, camera_rate_hz: float = 30.0
+) -> FrontEndOptions:
     """What ``src`` offers the front end. A source with neither wheels nor odometry messages is
     a handheld camera unless ``force_3dof`` says it rides on a ground robot."""
     wheels, odo, imu = src.wheels(), src.odometry(), src.imu()

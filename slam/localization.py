@@ -575,8 +575,11 @@ class _Hypothesis:
         odometry puts them, is no rival."""
         if self.mean_score < ratio * best.mean_score:
             return False
-        return self.evidence is None or best.evidence is None or (
-            self.evidence >= ratio * best.evidence)
+        return (
+            self.evidence is None
+            or best.evidence is None
+            or (self.evidence >= ratio * best.evidence)
+        )
 
 
 @dataclass
@@ -759,8 +762,9 @@ class Localizer:
         if conf < cfg.lost_score or not match.ok or gated:
             self._low_since = stamp if self._low_since is None else self._low_since
             self._low_scans += 1
-            if ((stamp - self._low_since) * 1e-9 >= cfg.lost_time
-                    and self._low_scans >= cfg.lost_min_scans):
+            if (
+                stamp - self._low_since
+            ) * 1e-9 >= cfg.lost_time and self._low_scans >= cfg.lost_min_scans:
                 why = (f"confidence {conf:.2f} below lost_score {cfg.lost_score} or matches "
                        f"rejected for {cfg.lost_time} s ({self._low_scans} scans)")  # fmt: skip
                 sigma = position_sigma(self._cov)
@@ -1032,9 +1036,12 @@ class Localizer:
         #     many scans, and a kidnapping is rare. It still had to fit this scan (min_score)
         #     and agree with its odometry; only a place that fits clearly better replaces it.
         held = next((h for h in hyps if h.tracked), None)
-        if (held is not None and held.agreed
-                and held.mean_score >= cfg.global_localization_min_score
-                and held.rivals(best, cfg.relocalization_ambiguity_ratio)):
+        if (
+            held is not None
+            and held.agreed
+            and held.mean_score >= cfg.global_localization_min_score
+            and held.rivals(best, cfg.relocalization_ambiguity_ratio)
+        ):
             return self._accept(stamp, odom, pts, held, f"relocalised: the pose tracked before "
                                 f"the kidnap check holds (mean score {held.mean_score:.2f}, "
                                 f"best elsewhere {best.mean_score:.2f})")  # fmt: skip
@@ -1050,8 +1057,7 @@ class Localizer:
                                 f"hypotheses score within {cfg.relocalization_ambiguity_ratio} "
                                 f"of the best ({best.mean_score:.2f})", 0.0)  # fmt: skip
         weak = best.evidence is not None and best.evidence < cfg.global_localization_min_score
-        if (best.unique < n_needed or best.mean_score < cfg.global_localization_min_score
-                or weak):
+        if best.unique < n_needed or best.mean_score < cfg.global_localization_min_score or weak:
             return self._result(stamp, odom, f"relocalising: {len(hyps)} hypotheses, best "
                                 f"unique on {best.unique}/{n_needed} scans (one counts per "
                                 f"{cfg.relocalization_update_min_d} m or "

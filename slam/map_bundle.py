@@ -204,8 +204,10 @@ def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, i
     if width < 1 or height < 1:
         raise MapError(f"{name}: PGM size {width}x{height} is empty")
     if width * height > MAX_IMAGE_PIXELS:
-        raise MapError(f"{name}: PGM declares {width}x{height} pixels, more than the "
-                       f"{MAX_IMAGE_PIXELS} read here")  # fmt: skip
+        raise MapError(
+            f"{name}: PGM declares {width}x{height} pixels, more than the "
+            f"{MAX_IMAGE_PIXELS} read here"
+        )
     if not 0 < maxval <= _MAX_8BIT:
         raise MapError(f"{name}: PGM maxval {maxval} unsupported; need an 8-bit image (1..255)")
     body = data[m.end() :]

@@ -147,10 +147,14 @@ class LoopStats:
     outvoted: int = 0  # accepted when they came, removed by the vote (in ``rejected``)
 
     def as_dict(self) -> dict[str, object]:
-        return {"proposed": self.proposed, "accepted": self.accepted,
-                "rejected": sum(self.rejected.values()),
-                "rejected_by_reason": {k: v for k, v in self.rejected.items() if v},
-                "readmitted": self.readmitted, "outvoted": self.outvoted}  # fmt: skip
+        return {
+            "proposed": self.proposed,
+            "accepted": self.accepted,
+            "rejected": sum(self.rejected.values()),
+            "rejected_by_reason": {k: v for k, v in self.rejected.items() if v},
+            "readmitted": self.readmitted,
+            "outvoted": self.outvoted,
+        }
 
 
 @dataclass(frozen=True)
@@ -273,8 +277,10 @@ class Mapper:
         waited = (scan.stamp_ns - self._ref_stamp) * 1e-9 >= self.config.minimum_time_interval
         # The time gate bounds the keyframe rate of a fast sensor; it never lets keyframes drift
         # further apart than twice the travel thresholds (a sparse log: one scan a metre).
-        far = (math.hypot(delta[0], delta[1]) >= 2 * self.config.minimum_travel_distance
-               or abs(delta[2]) >= 2 * self.config.minimum_travel_heading)  # fmt: skip
+        far = (
+            math.hypot(delta[0], delta[1]) >= 2 * self.config.minimum_travel_distance
+            or abs(delta[2]) >= 2 * self.config.minimum_travel_heading
+        )
         is_keyframe = (moved or turned) and (waited or far)
         # 3. Track the scan against the local map.
         kf = self._make_keyframe(scan, odom)
@@ -674,8 +680,10 @@ class Mapper:
         every correct closure after it is then rejected as inconsistent: without a vote the map
         is decided by that one early call, which tiny numeric differences flip (issue #12)."""
         held, self._held = self._held, []
-        held_ids = {self.graph.add_edge(h.j, h.k, h.delta, h.covariance, kind="loop", robust=True):
-                    h for h in held}  # fmt: skip
+        held_ids = {
+            self.graph.add_edge(h.j, h.k, h.delta, h.covariance, kind="loop", robust=True): h
+            for h in held
+        }
         out = self.graph.robust_edge_outliers(self.config.loop_closure_max_chi2)
         for eid in sorted(out):
             e = self.graph.remove_edge(eid)

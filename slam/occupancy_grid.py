@@ -122,8 +122,11 @@ class GridGeometry:
         if not resolution > 0.0:
             raise MapError(f"grid resolution must be positive, got {resolution}")
         # The size first, in floats: a 1e300 m extent or a 0.2 mm cell must not reach floor().
-        check_grid_size((xmax - xmin + 2 * margin) / resolution + 2,
-                        (ymax - ymin + 2 * margin) / resolution + 2, resolution)  # fmt: skip
+        check_grid_size(
+            (xmax - xmin + 2 * margin) / resolution + 2,
+            (ymax - ymin + 2 * margin) / resolution + 2,
+            resolution,
+        )
         ox = math.floor((xmin - margin) / resolution) * resolution
         oy = math.floor((ymin - margin) / resolution) * resolution
         width = max(1, math.floor((xmax + margin - ox) / resolution) + 1)

@@ -1238,8 +1238,9 @@ class VisualOdometry:
                  keyframes: bool = True) -> None:  # fmt: skip
         self.cfg = cfg or VoConfig()
         if self.cfg.method not in ("orb_pnp", "depth_icp"):
-            raise ConfigError(f"vo.method: {self.cfg.method!r} is not implemented "
-                              "(use 'orb_pnp' or 'depth_icp')")  # fmt: skip
+            raise ConfigError(
+                f"vo.method: {self.cfg.method!r} is not implemented (use 'orb_pnp' or 'depth_icp')"
+            )
         # Geometry-only odometry: the whole job (vo.method) or the fallback (vo.fallback).
         self._icp = None
         if self.cfg.method == "depth_icp" or self.cfg.fallback == "depth_icp":

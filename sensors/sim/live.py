@@ -216,7 +216,8 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
         per_pos = metres * (1.0 + slip)  # [m per encoder position] left, right
         travel = (now - prev) * per_pos  # [m] left, right
         pose, enc_l, enc_r, outcome = blocked_step(
-            np.array([x, y, yaw]), travel[0], travel[1], track, is_free, sim.blocked_wheel_slip)
+            np.array([x, y, yaw]), travel[0], travel[1], track, is_free, sim.blocked_wheel_slip
+        )
         x, y, yaw = (float(v) for v in pose)
         if outcome != "free":
             # The encoders count only what the stalled wheels turned: hold the rest back.

@@ -46,9 +46,12 @@ def cast_scan(
 
 
 def depth_range_sigma(
-    ranges: np.ndarray, focal_px: float, baseline_m: float, disparity_sigma_px: float,
+    ranges: np.ndarray,
+    focal_px: float,
+    baseline_m: float,
+    disparity_sigma_px: float,
     subpixel: int,
-) -> np.ndarray:  # fmt: skip
+) -> np.ndarray:
     """Kinect v1 range noise [m]: disparity noise and 1/``subpixel``-px quantisation through
     z = f b / d give sigma_z = z^2 sigma_d / (f b), sigma_d^2 = sigma_n^2 + (1/subpixel)^2 / 12."""
     sigma_d = math.sqrt(disparity_sigma_px**2 + (1.0 / subpixel) ** 2 / 12.0)  # [px]

@@ -129,11 +129,13 @@ def _vec(d: Mapping[str, Any], key: str, n: int, where: str) -> tuple[float, ...
         or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
         or not all(math.isfinite(x) for x in v)
     ):
-        raise WorldError(f"{where}.{key}: expected a list of {n} numbers (finite), "
-                         f"got {short_repr(v)}")  # fmt: skip
+        raise WorldError(
+            f"{where}.{key}: expected a list of {n} numbers (finite), got {short_repr(v)}"
+        )
     if any(abs(x) > MAX_WORLD_COORDINATE for x in v[:2]):
-        raise WorldError(f"{where}.{key}: {list(v)} is farther than {MAX_WORLD_COORDINATE:g} m "
-                         "from the origin")  # fmt: skip
+        raise WorldError(
+            f"{where}.{key}: {list(v)} is farther than {MAX_WORLD_COORDINATE:g} m from the origin"
+        )
     return tuple(float(x) for x in v)
 
 
@@ -258,8 +260,9 @@ def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
     plan = floor_plan(world)  # a robot that starts inside a wall would be stuck from frame 0
     r, c = plan.cell_of(np.array([start[:2]]))[0]
     if 0 <= r < plan.occupied.shape[0] and 0 <= c < plan.occupied.shape[1] and plan.occupied[r, c]:
-        raise WorldError(f"{source}: start ({start[0]:g}, {start[1]:g}) is inside a wall or "
-                         "furniture")  # fmt: skip
+        raise WorldError(
+            f"{source}: start ({start[0]:g}, {start[1]:g}) is inside a wall or furniture"
+        )
     return world
 
 

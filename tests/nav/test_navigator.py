@@ -131,8 +131,9 @@ def test_no_progress_clears_the_costmap_backs_up_and_replans_then_the_goal_is_re
     # drives on once the wheels grip.
     nav = Navigator(Sections(), two_rooms())
     nav.set_goal((1.5, 2.2), 0)
-    pose, _, statuses = drive(nav, np.array([0.5, 0.8, 0.0]), 60.0,
-                              stalled=lambda t: t < 12 * 10**9)  # fmt: skip
+    pose, _, statuses = drive(
+        nav, np.array([0.5, 0.8, 0.0]), 60.0, stalled=lambda t: t < 12 * 10**9
+    )
     out = outcome_of(nav)
     assert out.status == "reached"
     assert out.replans == 1 and out.recoveries == ("clear_costmap", "backup")
@@ -196,7 +197,10 @@ def test_a_cancelled_goal_fails_with_the_callers_reason() -> None:
     drive(nav, np.array([1.0, 1.0, 0.0]), 1.0)
     out = nav.cancel(10**9, "localiser lost")
     assert out is not None and (out.status, out.code, out.reason) == (
-        "failed", "cancelled", "localiser lost")  # fmt: skip
+        "failed",
+        "cancelled",
+        "localiser lost",
+    )
     assert not nav.busy and nav.cancel(2 * 10**9, "again") is None
 
 
@@ -220,8 +224,7 @@ class Corrector:
 
 
 def test_a_goal_settle_turns_in_place_before_the_goal_is_reached() -> None:
-    navigate = NavigateConfig(goal_settle_spin=6.0, goal_settle_attempts=1,
-                              settle_on_gated_scans=3)  # fmt: skip
+    navigate = NavigateConfig(goal_settle_spin=6.0, goal_settle_attempts=1, settle_on_gated_scans=3)
     corrector = Corrector(due_at=20)  # while driving: one settle on the way, then at the goal
     nav = Navigator(Sections(navigate=navigate), two_rooms(), corrector=corrector)
     nav.set_goal((1.5, 2.0), 0)

@@ -453,4 +453,5 @@ def test_the_csr_weights_follow_a_patched_costmap() -> None:
     assert graph is not None
     assert np.array_equal(graph.weights, planner._base.T)
     assert again.cost == pytest.approx(
-        reference_cost(cost, (10, 1), (10, 18), planner.config), rel=1e-9)
+        reference_cost(cost, (10, 1), (10, 18), planner.config), rel=1e-9
+    )

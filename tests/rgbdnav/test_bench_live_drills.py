@@ -31,15 +31,22 @@ def test_the_schedule_fits_whole_cycles_into_the_run() -> None:
     drills = args[1::2]
     assert args[::2] == ["--drill"] * 6
     stall = bench_live.DRILL_STALL_S
-    assert drills == ["unplug_board@10", "replug_board@25", f"stall_camera@40:{stall}",
-                      "unplug_board@70", "replug_board@85", f"stall_camera@100:{stall}"]
+    assert drills == [
+        "unplug_board@10",
+        "replug_board@25",
+        f"stall_camera@40:{stall}",
+        "unplug_board@70",
+        "replug_board@85",
+        f"stall_camera@100:{stall}",
+    ]
 
 
 def test_a_run_that_recovered_from_every_drill_passes_every_check() -> None:
     checks = bench_live.drill_checks(GOOD, CYCLES, bundle_ok=True)
     assert all(ok for _, _, ok in checks), [c for c in checks if not c[2]]
     assert "**FAIL**" not in bench_live.report_drills(
-        {**GOOD, "latency_ms": {"p50": 20, "p99": 50}}, 2, checks, "0.1 / 0.2")
+        {**GOOD, "latency_ms": {"p50": 20, "p99": 50}}, 2, checks, "0.1 / 0.2"
+    )
 
 
 @pytest.mark.parametrize(
@@ -65,6 +72,7 @@ def test_each_kind_of_failure_fails_its_check(path: tuple, value: object, failin
 def test_a_bundle_that_does_not_load_fails_the_run() -> None:
     failed = [n for n, _, ok in bench_live.drill_checks(GOOD, CYCLES, bundle_ok=False) if not ok]
     assert failed == ["map bundle after the run loads"]
-    report = bench_live.report_drills({**GOOD, "latency_ms": None}, 2,
-                                      bench_live.drill_checks(GOOD, CYCLES, False), "?")
+    report = bench_live.report_drills(
+        {**GOOD, "latency_ms": None}, 2, bench_live.drill_checks(GOOD, CYCLES, False), "?"
+    )
     assert "| map bundle after the run loads | no | **FAIL** |" in report

@@ -203,8 +203,9 @@ def test_odometry_refuses_a_source_without_wheels_whose_frames_vo_cannot_track(
         for k in range(2):
             writer.add_frame(RgbdFrame(k * 33_000_000, np.zeros((3, 4, 3), np.uint8),
                                        np.ones((3, 4), np.float32), intr))  # fmt: skip
-    result = runner.invoke(app, ["odometry", str(tmp_path / "rec"), "--out", str(tmp_path / "o"),
-                                 *extra])  # fmt: skip
+    result = runner.invoke(
+        app, ["odometry", str(tmp_path / "rec"), "--out", str(tmp_path / "o"), *extra]
+    )
     assert result.exit_code == 1
     assert message in result.output
 

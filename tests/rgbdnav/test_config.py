@@ -229,8 +229,13 @@ def test_a_config_that_is_not_utf8_is_a_config_error_naming_the_byte(tmp_path: P
         load_config([path])
 
 
-@pytest.mark.parametrize("text", ["[" * 5000 + "]" * 5000, "a:\n" + "".join(
-    " " * i + "b:\n" for i in range(1, 200)) + " " * 200 + "1\n"])  # fmt: skip
+@pytest.mark.parametrize(
+    "text",
+    [
+        "[" * 5000 + "]" * 5000,
+        "a:\n" + "".join(" " * i + "b:\n" for i in range(1, 200)) + " " * 200 + "1\n",
+    ],
+)
 def test_deeply_nested_yaml_is_an_error_not_a_recursion_error(tmp_path: Path, text: str) -> None:
     path = tmp_path / "deep.yaml"
     path.write_text(text)

@@ -27,8 +27,9 @@ runner = CliRunner()
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("rec") / "house"
-    result = runner.invoke(app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45",
-                                 "--seed", "3", "--quiet"])  # fmt: skip
+    result = runner.invoke(
+        app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45", "--seed", "3", "--quiet"]
+    )
     assert result.exit_code == 0, result.output
     return out
 
@@ -39,10 +40,15 @@ def test_live_front_end_thread_and_offline_replay_give_the_same_poses(
     # The live run as on the robot (its profiles, optical-flow VO, pose before VO), with a
     # board (not opened here) and the recording for a camera. VO is not skipped: the whole
     # recording is queued at once, which would otherwise look like a front end far behind.
-    live = LiveRun(LiveOptions(out=tmp_path / "live", camera=str(recording), board="/dev/null",
-                               drive="idle",
-                               overrides=["live.frame_queue_size=100",
-                                          "live.skip_vo_when_behind=false"]))  # fmt: skip
+    live = LiveRun(
+        LiveOptions(
+            out=tmp_path / "live",
+            camera=str(recording),
+            board="/dev/null",
+            drive="idle",
+            overrides=["live.frame_queue_size=100", "live.skip_vo_when_behind=false"],
+        )
+    )
     cfg = live.cfg
     with open_source(recording) as src:
         frames = list(src.frames())
@@ -60,12 +66,20 @@ def test_live_front_end_thread_and_offline_replay_give_the_same_poses(
         online = live.odom_track.load()
         assert isinstance(live.scan_q.get_nowait(), tuple)  # scans went to the mapper
         # 2. Offline: the source's streams in time order (the live robot has no gyro).
-        opts = replace(options_for(src, camera_rate_hz=cfg.camera.rate), imu=False,
-                       pose_before_vo=cfg.live.pose_before_vo)  # fmt: skip
+        opts = replace(
+            options_for(src, camera_rate_hz=cfg.camera.rate),
+            imu=False,
+            pose_before_vo=cfg.live.pose_before_vo,
+        )
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
         steps = [s for s in replay(src, fe) if s.odom is not None]
-    offline = np.array([(s.stamp_ns, s.odom.pose.x, s.odom.pose.y, s.odom.pose.yaw)
-                        for s in steps if s.odom is not None])  # fmt: skip
+    offline = np.array(
+        [
+            (s.stamp_ns, s.odom.pose.x, s.odom.pose.y, s.odom.pose.yaw)
+            for s in steps
+            if s.odom is not None
+        ]
+    )
     assert len(online) == len(offline) >= 40
     np.testing.assert_array_equal(online[:, 0], offline[:, 0])
     assert np.abs(online[:, 1:3] - offline[:, 1:3]).max() <= 1e-3  # [m]
@@ -82,8 +96,9 @@ def test_without_wheels_or_odom_the_vo_carries_the_ekf_of_a_ground_robot(recordi
     from slam.geometry import oplus
     from slam.metrics import drift_report
 
-    cfg = LiveRun(LiveOptions(out=recording.parent / "unused", camera=str(recording),
-                              board="none")).cfg  # fmt: skip
+    cfg = LiveRun(
+        LiveOptions(out=recording.parent / "unused", camera=str(recording), board="none")
+    ).cfg
     with open_source(recording) as src:
         opts = replace(options_for(src, camera_rate_hz=cfg.camera.rate), wheels=False, imu=False)
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
@@ -96,11 +111,16 @@ def test_without_wheels_or_odom_the_vo_carries_the_ekf_of_a_ground_robot(recordi
     assert all(s.odom is not None and s.scan is not None for s in steps)
     first = steps[0].odom
     assert first is not None and (first.pose.x, first.pose.y, first.pose.yaw) == (0.0, 0.0, 0.0)
-    p = np.array([oplus([start.x, start.y, start.yaw],
-                        [s.odom.pose.x, s.odom.pose.y, s.odom.pose.yaw])
-                  for s in steps if s.odom is not None])  # fmt: skip
+    p = np.array(
+        [
+            oplus([start.x, start.y, start.yaw], [s.odom.pose.x, s.odom.pose.y, s.odom.pose.yaw])
+            for s in steps
+            if s.odom is not None
+        ]
+    )
     t = np.array([s.stamp_ns for s in steps], np.int64)
-    rep = drift_report(t, (p[:, 0], p[:, 1], p[:, 2]), truth.stamps_ns,
-                       (truth.x, truth.y, truth.yaw)).as_dict()  # fmt: skip
+    rep = drift_report(
+        t, (p[:, 0], p[:, 1], p[:, 2]), truth.stamps_ns, (truth.x, truth.y, truth.yaw)
+    ).as_dict()
     assert rep["path_length_m"] > 0.3
     assert rep["final_position_error_m"] < 0.03 and rep["ate_rmse_m"] < 0.03

@@ -155,9 +155,12 @@ def test_ctrl_c_ends_the_run_cleanly_without_a_traceback_from_any_process(tmp_pa
     out = tmp_path / "ctrl_c"
     proc = subprocess.Popen(
         [str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "-q"],
-        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
         start_new_session=True,  # its own process group, as a terminal's foreground job
-    )  # fmt: skip
+    )
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not (out / "trajectory.tum").exists():
         time.sleep(0.5)
@@ -300,8 +303,15 @@ def test_a_short_run_on_devices_slower_to_start_than_its_duration_still_maps_and
 
     monkeypatch.setattr(SimRobot, "start", slow_start)
     t0 = time.monotonic()
-    s = _live(tmp_path / "live", "--duration", "2.5", "--set", "live.checkpoint_period=30",
-              "--set", "live.first_checkpoint_after=0.5")  # fmt: skip
+    s = _live(
+        tmp_path / "live",
+        "--duration",
+        "2.5",
+        "--set",
+        "live.checkpoint_period=30",
+        "--set",
+        "live.first_checkpoint_after=0.5",
+    )
     assert time.monotonic() - t0 >= 3.0 + 2.5
     assert s["counts"]["frames_received"] > 0 and s["counts"]["scans_mapped"] > 0
     assert s["counts"]["checkpoints"] >= 2  # the early one and the final one

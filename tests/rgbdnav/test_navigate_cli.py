@@ -94,8 +94,15 @@ def test_two_goals_are_reached_around_a_box_missing_from_the_map(
     assert summary["collisions"]["min_clearance_m"] >= ROBOT_RADIUS
     assert summary["localization"]["mode"] == "groundtruth"
     assert summary["localization"]["position_error_m"]["max"] == 0.0
-    for name in ("trajectory.tum", "estimated.tum", "commands.csv", "summary.json", "map.png",
-                 "velocity.png", "config.yaml"):
+    for name in (
+        "trajectory.tum",
+        "estimated.tum",
+        "commands.csv",
+        "summary.json",
+        "map.png",
+        "velocity.png",
+        "config.yaml",
+    ):
         assert (tmp_path / name).is_file(), name
     _, xyz, _ = load_tum_trajectory(tmp_path / "trajectory.tum")
     x, y = xyz[:, 0], xyz[:, 1]
@@ -251,8 +258,11 @@ def test_a_door_blocked_by_an_unmapped_box_fails_after_clearing_recoveries(
     bare = dict(ROOM, walls=[*ROOM["walls"], wall], wall_thickness=0.01)
     save_plan = floor_plan(world_from_dict(bare))
     save_map_yaml(_grid(save_plan, np.where(save_plan.occupied, 100, 0)), tmp_path / "map.yaml")
-    world = dict(ROOM, walls=[*ROOM["walls"], wall],
-                 furniture=[{"name": "box", "center": [3.0, 2.0], "size": [0.5, 1.2, 0.8]}])
+    world = dict(
+        ROOM,
+        walls=[*ROOM["walls"], wall],
+        furniture=[{"name": "box", "center": [3.0, 2.0], "size": [0.5, 1.2, 0.8]}],
+    )
     (tmp_path / "world.yaml").write_text(yaml.safe_dump(world))
     scene = {"map": tmp_path / "map.yaml", "world": tmp_path / "world.yaml"}
     code, output, summary = _navigate(scene, tmp_path / "run", "--localization", "groundtruth",
@@ -296,8 +306,12 @@ def _jumpy_localizer(jump_from: int, jump_to: int) -> type:
             r = super().update(scan, odom_pose)
             Jumpy.calls += 1
             if jump_from <= Jumpy.calls <= jump_to:
-                return dataclasses.replace(r, status="tracking", reason="matched (icp)",
-                                           map_to_odom=r.map_to_odom + [3.0, 0.0, 0.0])
+                return dataclasses.replace(
+                    r,
+                    status="tracking",
+                    reason="matched (icp)",
+                    map_to_odom=r.map_to_odom + [3.0, 0.0, 0.0],
+                )
             return r
 
     return Jumpy

@@ -81,20 +81,33 @@ class _Bag:
         data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
         h, w = pixels.shape[:2]
         return self.store.types["sensor_msgs/msg/Image"](
-            header=self.header(t, "camera_rgb_optical_frame"), height=h, width=w,
-            encoding=encoding, is_bigendian=0, step=data.size // h, data=data,
-        )  # fmt: skip
+            header=self.header(t, "camera_rgb_optical_frame"),
+            height=h,
+            width=w,
+            encoding=encoding,
+            is_bigendian=0,
+            step=data.size // h,
+            data=data,
+        )
 
     def camera_info(self, t: int, k: Any) -> Any:
         T = self.store.types
         kk = np.array([k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0])
         return T["sensor_msgs/msg/CameraInfo"](
-            header=self.header(t, "camera_rgb_optical_frame"), height=k.height, width=k.width,
-            distortion_model="plumb_bob", d=np.zeros(5), k=kk, r=np.eye(3).reshape(-1),
-            p=np.zeros(12), binning_x=0, binning_y=0,
-            roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                      do_rectify=False),
-        )  # fmt: skip
+            header=self.header(t, "camera_rgb_optical_frame"),
+            height=k.height,
+            width=k.width,
+            distortion_model="plumb_bob",
+            d=np.zeros(5),
+            k=kk,
+            r=np.eye(3).reshape(-1),
+            p=np.zeros(12),
+            binning_x=0,
+            binning_y=0,
+            roi=T["sensor_msgs/msg/RegionOfInterest"](
+                x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+            ),
+        )
 
     def odometry(self, t: int, pose: np.ndarray, twist: np.ndarray) -> Any:
         """nav_msgs/Odometry as a base driver publishes it: pose and twist with covariance."""
@@ -106,15 +119,17 @@ class _Bag:
                 x=0.0, y=0.0, z=math.sin(pose[2] / 2), w=math.cos(pose[2] / 2)
             ),
         )
-        tw = T["geometry_msgs/msg/Twist"](linear=vec(x=twist[0], y=0.0, z=0.0),
-                                          angular=vec(x=0.0, y=0.0, z=twist[1]))  # fmt: skip
+        tw = T["geometry_msgs/msg/Twist"](
+            linear=vec(x=twist[0], y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=twist[1])
+        )
         pose_cov = np.diag([1e-4, 1e-4, 1e6, 1e6, 1e6, 1e-3]).reshape(-1)
         twist_cov = np.diag([4e-4, 1e-4, 1e6, 1e6, 1e6, 4e-3]).reshape(-1)
         return T["nav_msgs/msg/Odometry"](
-            header=self.header(t, "odom"), child_frame_id="base_link",
+            header=self.header(t, "odom"),
+            child_frame_id="base_link",
             pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=pose_cov),
             twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=tw, covariance=twist_cov),
-        )  # fmt: skip
+        )
 
     def imu(self, t: int, gyro_z: float) -> Any:
         T = self.store.types
@@ -122,11 +137,12 @@ class _Bag:
         return T["sensor_msgs/msg/Imu"](
             header=self.header(t, "imu"),
             orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-            orientation_covariance=np.zeros(9), angular_velocity=vec(x=0.0, y=0.0, z=gyro_z),
+            orientation_covariance=np.zeros(9),
+            angular_velocity=vec(x=0.0, y=0.0, z=gyro_z),
             angular_velocity_covariance=np.zeros(9),
             linear_acceleration=vec(x=0.0, y=0.0, z=9.81),
             linear_acceleration_covariance=np.zeros(9),
-        )  # fmt: skip
+        )
 
 
 def _bag_from_recording(recording: Path, bag_path: Path) -> None:
@@ -150,17 +166,23 @@ def _bag_from_recording(recording: Path, bag_path: Path) -> None:
         bag = _Bag(writer)
         for f in src.frames():
             t = f.stamp_ns
-            bag.write("/camera/rgb/camera_info", "sensor_msgs/msg/CameraInfo", t,
-                      bag.camera_info(t, k))  # fmt: skip
-            bag.write("/camera/rgb/image_color", "sensor_msgs/msg/Image", t,
-                      bag.image(t, "rgb8", f.rgb))  # fmt: skip
+            bag.write(
+                "/camera/rgb/camera_info", "sensor_msgs/msg/CameraInfo", t, bag.camera_info(t, k)
+            )
+            bag.write(
+                "/camera/rgb/image_color", "sensor_msgs/msg/Image", t, bag.image(t, "rgb8", f.rgb)
+            )
             depth_mm = np.round(np.nan_to_num(f.depth_m) * 1000).astype(np.uint16)
-            bag.write("/camera/depth/image", "sensor_msgs/msg/Image", t,
-                      bag.image(t, "16UC1", depth_mm))  # fmt: skip
+            bag.write(
+                "/camera/depth/image", "sensor_msgs/msg/Image", t, bag.image(t, "16UC1", depth_mm)
+            )
         for i, t in enumerate(wheels.stamps_ns):
-            bag.write("/odom", "nav_msgs/msg/Odometry", int(t),
-                      bag.odometry(int(t), np.array([x[i], y[i], yaw[i]]),
-                                   np.array([v[i], w[i]])))  # fmt: skip
+            bag.write(
+                "/odom",
+                "nav_msgs/msg/Odometry",
+                int(t),
+                bag.odometry(int(t), np.array([x[i], y[i], yaw[i]]), np.array([v[i], w[i]])),
+            )
         for t, g in zip(imu.stamps_ns, imu.gyro_z, strict=True):
             bag.write("/imu/data", "sensor_msgs/msg/Imu", int(t), bag.imu(int(t), float(g)))
     src.close()
@@ -168,8 +190,9 @@ def _bag_from_recording(recording: Path, bag_path: Path) -> None:
 
 def test_a_ros2_bag_with_only_odom_rgbd_and_imu_maps(tmp_path: Path) -> None:
     rec = tmp_path / "rec"
-    result = runner.invoke(app, ["simulate", str(HOUSE), "--out", str(rec), "--frames", "90",
-                                 "--seed", "2", "--quiet"])  # fmt: skip
+    result = runner.invoke(
+        app, ["simulate", str(HOUSE), "--out", str(rec), "--frames", "90", "--seed", "2", "--quiet"]
+    )
     assert result.exit_code == 0, result.output
     bag = tmp_path / "odom_only_bag"
     _bag_from_recording(rec, bag)
@@ -186,8 +209,12 @@ def test_a_ros2_bag_with_only_odom_rgbd_and_imu_maps(tmp_path: Path) -> None:
     stamps, xyz, quat = load_tum_trajectory(out / "trajectory.tum")
     truth = open_source(rec).groundtruth()
     assert truth is not None
-    rep = drift_report(stamps, (xyz[:, 0], xyz[:, 1], yaw_from_quaternion(quat)),
-                       truth.stamps_ns, (truth.x, truth.y, truth.yaw)).as_dict()  # fmt: skip
+    rep = drift_report(
+        stamps,
+        (xyz[:, 0], xyz[:, 1], yaw_from_quaternion(quat)),
+        truth.stamps_ns,
+        (truth.x, truth.y, truth.yaw),
+    ).as_dict()
     assert rep["matched"] >= 80 and rep["path_length_m"] > 0.8
     assert rep["ate_rmse_aligned_m"] < 0.03
     bundle = load_bundle(out / "map")

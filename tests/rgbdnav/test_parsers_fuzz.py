@@ -83,11 +83,37 @@ def test_a_mutated_config_file_loads_or_is_a_config_error(tmp_path: Path, data: 
 
 OVERRIDE_VALUES = st.one_of(
     st.text(max_size=30),
-    st.sampled_from([".nan", ".inf", "-.inf", "1e12", "1e400", "1" + "0" * 400, "[1, 2", "~",
-                     "&a [*a]", "{a: 1, a: 2}", "0x1F", "1_000", "yes", "!!binary AAAA"]),
-)  # fmt: skip
-KEYS = st.sampled_from(["ekf.frequency", "camera.fx", "camera.width", "mapper.resolution",
-                        "topics.rgb", "ekf.odom0_config", "nope.nope", "ekf"])  # fmt: skip
+    st.sampled_from(
+        [
+            ".nan",
+            ".inf",
+            "-.inf",
+            "1e12",
+            "1e400",
+            "1" + "0" * 400,
+            "[1, 2",
+            "~",
+            "&a [*a]",
+            "{a: 1, a: 2}",
+            "0x1F",
+            "1_000",
+            "yes",
+            "!!binary AAAA",
+        ]
+    ),
+)
+KEYS = st.sampled_from(
+    [
+        "ekf.frequency",
+        "camera.fx",
+        "camera.width",
+        "mapper.resolution",
+        "topics.rgb",
+        "ekf.odom0_config",
+        "nope.nope",
+        "ekf",
+    ]
+)
 
 
 @examples(80)
@@ -128,8 +154,7 @@ def test_a_stamp_is_an_int64_in_range_or_a_value_error(text: str) -> None:
 
 
 TUM = (
-    b"# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.5 1.5 -2 0 0 0 0.7071 0.7071\n"
-    b"3.0 2 0 0 0 0 1 0\n"
+    b"# t x y z qx qy qz qw\n1.0 0 0 0 0 0 0 1\n2.5 1.5 -2 0 0 0 0.7071 0.7071\n3.0 2 0 0 0 0 1 0\n"
 )
 
 
@@ -196,10 +221,12 @@ PGM = b"P5\n4 3\n255\n" + bytes([0, 254, 205, 0] * 3)
 
 
 @examples(60)
-@given(st.one_of(
-    st.tuples(mutations(MAP_YAML, YAML_ALPHABET + b"/abcdefgimnop"), st.just(PGM)),
-    st.tuples(st.just(MAP_YAML), mutations(PGM, b"P5 \n0123456789\x00\xff")),
-))  # fmt: skip
+@given(
+    st.one_of(
+        st.tuples(mutations(MAP_YAML, YAML_ALPHABET + b"/abcdefgimnop"), st.just(PGM)),
+        st.tuples(st.just(MAP_YAML), mutations(PGM, b"P5 \n0123456789\x00\xff")),
+    )
+)
 def test_a_mutated_nav2_map_loads_or_is_a_map_error(
     tmp_path: Path, files: tuple[bytes, bytes]
 ) -> None:

@@ -64,8 +64,17 @@ def test_an_rrd_holds_the_documented_entity_paths(tmp_path: Path) -> None:
     vis.costmap(0, np.ones((3, 2)))
     vis.close()
     data = rrd.read_bytes()
-    for path in ("world/map", "world/robot/pose", "world/robot/trajectory", "world/robot/scan",
-                 "world/truth", "world/plan", "world/costmap", "camera/rgb", "camera/depth"):
+    for path in (
+        "world/map",
+        "world/robot/pose",
+        "world/robot/trajectory",
+        "world/robot/scan",
+        "world/truth",
+        "world/plan",
+        "world/costmap",
+        "camera/rgb",
+        "camera/depth",
+    ):
         assert path.encode() in data, path
 
 

@@ -238,13 +238,17 @@ def test_a_stamp_beyond_int64_nanoseconds_is_a_counted_skip(tmp_path):
 def test_a_scan_whose_pose_is_a_kilometre_off_between_agreeing_neighbours_is_a_counted_skip(
     tmp_path,
 ):
-    lines = [flaser([1.0] * 181, 10 + 0.2 * k, pose=(0.1 * k, 0.0, 0.0), odom=(0.1 * k, 0, 0))
-             for k in range(6)]  # fmt: skip
+    lines = [
+        flaser([1.0] * 181, 10 + 0.2 * k, pose=(0.1 * k, 0.0, 0.0), odom=(0.1 * k, 0, 0))
+        for k in range(6)
+    ]
     lines[3] = flaser([1.0] * 181, 10.6, pose=(1000.0, 0.0, 0.0), odom=(0.3, 0.0, 0.0))
     log = read_carmen_log(write_log(tmp_path / "a.clf", lines))
     assert log.skipped == {"pose_jump": 1} and len(log.scans) == 5
     assert np.abs(log.laser_pose.x).max() < 1.0
     # A robot that really moved on (every later pose agrees) keeps all its scans.
-    moved = [flaser([1.0] * 181, 10 + 0.2 * k, pose=(0.1 * k + (50 if k > 2 else 0), 0, 0))
-             for k in range(6)]  # fmt: skip
+    moved = [
+        flaser([1.0] * 181, 10 + 0.2 * k, pose=(0.1 * k + (50 if k > 2 else 0), 0, 0))
+        for k in range(6)
+    ]
     assert read_carmen_log(write_log(tmp_path / "b.clf", moved)).skipped == {}

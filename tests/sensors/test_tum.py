@@ -79,10 +79,13 @@ def test_a_stamp_a_digit_string_long_enough_to_stall_int_is_refused_at_once(tmp_
         load_tum_trajectory(path)
 
 
-@pytest.mark.parametrize(("row", "match"), [
-    ("1e30 0 0 0 0 0 1", r"position \[1e\+30, 0\.0, 0\.0\] is farther than 1e\+08 m"),
-    ("0 0 0 0 0 0 0", "quaternion has zero length"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("row", "match"),
+    [
+        ("1e30 0 0 0 0 0 1", r"position \[1e\+30, 0\.0, 0\.0\] is farther than 1e\+08 m"),
+        ("0 0 0 0 0 0 0", "quaternion has zero length"),
+    ],
+)
 def test_a_pose_no_robot_can_have_is_an_error_naming_the_line(tmp_path, row, match):
     path = tmp_path / "traj.txt"
     path.write_text(f"1.0 0 0 0 0 0 0 1\n2.0 {row}\n")

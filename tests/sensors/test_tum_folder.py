@@ -243,9 +243,7 @@ def test_yaml_with_non_positive_focal_length_is_an_error_naming_the_yaml(tmp_pat
         TumFolderSource(tmp_path / "seq")
 
 
-def test_an_unparseable_camera_yaml_is_said_not_silently_replaced_by_the_preset(
-    tmp_path, caplog
-):
+def test_an_unparseable_camera_yaml_is_said_not_silently_replaced_by_the_preset(tmp_path, caplog):
     root = tmp_path / "rgbd_dataset_freiburg2_desk"
     write_tum_folder(root, yaml_text="fx: 520.9\nfy: [521.0\ncx: 325.1\n")
     with caplog.at_level(logging.WARNING):
@@ -258,8 +256,9 @@ def test_non_finite_intrinsics_are_an_error_naming_the_yaml(tmp_path):
     write_tum_folder(tmp_path / "seq", yaml_text="fx: .nan\nfy: 10\ncx: 3.5\ncy: 2.5\n")
     with pytest.raises(SensorError, match=r"intrinsics from camera\.yaml are not finite"):
         TumFolderSource(tmp_path / "seq")
-    write_tum_folder(tmp_path / "seq2", yaml_text="fx: 1\nfy: 1\ncx: 1\ncy: 1\nwidth: .inf\n"
-                     "height: 4\n")  # fmt: skip
+    write_tum_folder(
+        tmp_path / "seq2", yaml_text="fx: 1\nfy: 1\ncx: 1\ncy: 1\nwidth: .inf\nheight: 4\n"
+    )
     with pytest.raises(SensorError, match=r"intrinsics from camera\.yaml are not finite"):
         TumFolderSource(tmp_path / "seq2")
 

@@ -23,8 +23,9 @@ ICP = replace(VoConfig(), method="depth_icp", force_3dof=False)
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "kinect"
 
 
-def render_depth(t_w_c: np.ndarray, planes: tuple = ROOM, noise_m: float = 0.0,
-                 seed: int = 0) -> np.ndarray:  # fmt: skip
+def render_depth(
+    t_w_c: np.ndarray, planes: tuple = ROOM, noise_m: float = 0.0, seed: int = 0
+) -> np.ndarray:
     """Depth [m] of the nearest plane along every pixel's ray from camera pose ``t_w_c``; 0 where
     no plane is hit; ``noise_m`` times z^2 Gaussian noise (Kinect-like)."""
     v, u = np.mgrid[0 : INTR.height, 0 : INTR.width]
@@ -65,8 +66,10 @@ def test_known_motion_on_a_synthetic_room_is_recovered_within_a_millimetre() -> 
 
 def test_kinect_like_noise_leaves_the_motion_within_a_centimetre() -> None:
     vo = VisualOdometry(INTR, ICP)
-    results = [vo.process(frame(render_depth(t, noise_m=0.0028, seed=i)))
-               for i, t in enumerate(MOTIONS[:3])]  # fmt: skip
+    results = [
+        vo.process(frame(render_depth(t, noise_m=0.0028, seed=i)))
+        for i, t in enumerate(MOTIONS[:3])
+    ]
     for i, res in enumerate(results[1:], start=1):
         truth = inverse(MOTIONS[i - 1]) @ MOTIONS[i]
         assert res.success, (i, res.reason)

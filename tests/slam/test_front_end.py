@@ -49,10 +49,15 @@ def test_wheel_readings_one_at_a_time_give_the_poses_of_the_whole_log_fused_at_o
         od = fe.frame(_blank(int(t_out))).odom
         assert od is not None
         poses.append((od.pose.x, od.pose.y, od.pose.yaw))
-    ref = fuse({"odom0": wheel_twist_inputs(stamps, left, right, ROBOT,
-                                            WheelErrorModel.from_robot(ROBOT),
-                                            max_interval_s=1 / 30)},
-               fe.ekf_cfg, output_stamps_ns=outs)  # fmt: skip
+    ref = fuse(
+        {
+            "odom0": wheel_twist_inputs(
+                stamps, left, right, ROBOT, WheelErrorModel.from_robot(ROBOT), max_interval_s=1 / 30
+            )
+        },
+        fe.ekf_cfg,
+        output_stamps_ns=outs,
+    )
     got = np.array(poses)
     np.testing.assert_allclose(got[:, :2], np.column_stack([ref.x, ref.y]), atol=1e-9)
     np.testing.assert_allclose(got[:, 2], ref.yaw, atol=1e-9)

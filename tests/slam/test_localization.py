@@ -638,7 +638,9 @@ def test_with_dead_reckoning_failing_matches_keep_tracking_until_the_covariance_
     first_lost = statuses.index("lost")
     n_low = round(cfg.lost_time * 1e9 / SCAN_PERIOD_NS)  # lost here without dead reckoning
     assert first_lost > 4 + n_low
-    assert all("dead reckoning, position sigma" in r.reason for r in results[4 + n_low:first_lost])
+    assert all(
+        "dead reckoning, position sigma" in r.reason for r in results[4 + n_low : first_lost]
+    )
     sigmas = [position_sigma(r.covariance) for r in results[4 + n_low : first_lost]]
     assert sigmas == sorted(sigmas) and sigmas[-1] < 0.5
     assert "below lost_score" in results[first_lost].reason

@@ -70,7 +70,6 @@ def test_rgbd_kidnapping_is_declared_lost_at_once_and_recovered_with_no_confiden
 def test_a_map_with_solid_walls_still_gives_icp_its_normals(scene) -> None:  # type: ignore[no-untyped-def]
     cfg, traj, _, scanner = scene
 
-
     # A CAD-style floor plan: 0.12 m walls filled solid. ICP takes its reference from the wall
     # faces; from the solid cells it found no line-like neighbourhood and every match fell back
     # to the correlative lattice with no covariance (odometry alone).

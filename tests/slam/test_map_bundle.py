@@ -263,8 +263,9 @@ def test_bad_map_yaml_is_a_map_error_naming_the_problem(tmp_path, old, new, matc
 
 def _plain_map(tmp_path: Path, folder: Path, image: str) -> Path:
     yaml_path = tmp_path / "plain.yaml"
-    yaml_path.write_text((folder / "map.yaml").read_text().replace("image: map.pgm",
-                                                                  f"image: {image}"))  # fmt: skip
+    yaml_path.write_text(
+        (folder / "map.yaml").read_text().replace("image: map.pgm", f"image: {image}")
+    )
     return yaml_path
 
 
@@ -366,11 +367,18 @@ def test_graph_json_problems_are_map_errors(tmp_path):
         load_bundle(folder)
 
 
-@pytest.mark.parametrize(("key", "value", "match"), [
-    ("occupied_thresh", "high", r"config\.occupied_thresh must be a number in \(0, 1\), got 'hi"),
-    ("free_thresh", float("nan"), r"config\.free_thresh must be a number in \(0, 1\), got nan"),
-    ("free_thresh", 0.9, r"free_thresh \(0\.9\) must be below occupied_thresh \(0\.65\)"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("key", "value", "match"),
+    [
+        (
+            "occupied_thresh",
+            "high",
+            r"config\.occupied_thresh must be a number in \(0, 1\), got 'hi",
+        ),
+        ("free_thresh", float("nan"), r"config\.free_thresh must be a number in \(0, 1\), got nan"),
+        ("free_thresh", 0.9, r"free_thresh \(0\.9\) must be below occupied_thresh \(0\.65\)"),
+    ],
+)
 def test_a_stored_config_value_that_is_not_a_threshold_is_a_map_error(tmp_path, key, value, match):
     folder = saved(tmp_path)
     graph = folder / "graph.json"

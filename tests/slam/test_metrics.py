@@ -46,6 +46,9 @@ def test_a_drift_summary_of_tracks_that_do_not_overlap_says_so_instead_of_raisin
     t_ref = np.array([0, 10**9, 2 * 10**9], dtype=np.int64)
     ref = (np.zeros(3), np.zeros(3), np.zeros(3))
     s = drift_summary(np.array([5 * 10**9], dtype=np.int64), (np.zeros(1),) * 3, t_ref, ref)
-    assert s == {"matched": 0, "not_compared": "estimate and reference do not overlap in time",
-                 "estimate_poses": 1}  # fmt: skip
+    assert s == {
+        "matched": 0,
+        "not_compared": "estimate and reference do not overlap in time",
+        "estimate_poses": 1,
+    }
     assert drift_summary(t_ref, ref, t_ref, ref)["matched"] == 3

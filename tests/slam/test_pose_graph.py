@@ -198,8 +198,10 @@ def square_with_wrong_majority_check(wrong_first: bool) -> tuple[PoseGraph, list
     wrong = -1
     if wrong_first:
         wrong = graph.add_edge(8, 0, delta, LOOP_COV, "loop", robust=True)
-    good = [graph.add_edge(i, j, relative(TRUTH[i], TRUTH[j]), LOOP_COV, "loop", robust=True)
-            for i, j in pairs]  # fmt: skip
+    good = [
+        graph.add_edge(i, j, relative(TRUTH[i], TRUTH[j]), LOOP_COV, "loop", robust=True)
+        for i, j in pairs
+    ]
     if not wrong_first:
         wrong = graph.add_edge(8, 0, delta, LOOP_COV, "loop", robust=True)
     graph.update(extra_iterations=30)

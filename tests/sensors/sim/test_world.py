@@ -186,19 +186,36 @@ def test_negative_furniture_size_is_rejected():
         world_from_dict(data)
 
 
-@pytest.mark.parametrize(("edit", "match"), [
-    (lambda d: d["walls"][0].update({"from": [float("nan"), 0]}),
-     r"walls\[0\]\.from: expected a list of 2 numbers \(finite\), got \[nan, 0\]"),
-    (lambda d: d["walls"][0].update({"to": [float("inf"), 0]}), r"walls\[0\]\.to: expected"),
-    (lambda d: d["walls"][0].update({"to": [1e9, 0]}), r"walls\[0\]\.to: .* farther than 1000 m"),
-    (lambda d: d["walls"][0].update({"thickness": -0.1}),
-     r"walls\[0\]\.thickness: must be > 0, got -0\.1"),
-    (lambda d: d["walls"][0].update({"texture_scale": 0}), r"texture_scale: must be > 0, got 0"),
-    (lambda d: d.update({"floor": {"texture": "wood", "scale": 0}}),
-     r"floor\.scale: must be > 0"),
-    (lambda d: d.update({"start": [2.5, 2.0, 0.0]}),
-     r"start \(2\.5, 2\) is inside a wall or furniture"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (
+            lambda d: d["walls"][0].update({"from": [float("nan"), 0]}),
+            r"walls\[0\]\.from: expected a list of 2 numbers \(finite\), got \[nan, 0\]",
+        ),
+        (lambda d: d["walls"][0].update({"to": [float("inf"), 0]}), r"walls\[0\]\.to: expected"),
+        (
+            lambda d: d["walls"][0].update({"to": [1e9, 0]}),
+            r"walls\[0\]\.to: .* farther than 1000 m",
+        ),
+        (
+            lambda d: d["walls"][0].update({"thickness": -0.1}),
+            r"walls\[0\]\.thickness: must be > 0, got -0\.1",
+        ),
+        (
+            lambda d: d["walls"][0].update({"texture_scale": 0}),
+            r"texture_scale: must be > 0, got 0",
+        ),
+        (
+            lambda d: d.update({"floor": {"texture": "wood", "scale": 0}}),
+            r"floor\.scale: must be > 0",
+        ),
+        (
+            lambda d: d.update({"start": [2.5, 2.0, 0.0]}),
+            r"start \(2\.5, 2\) is inside a wall or furniture",
+        ),
+    ],
+)
 def test_a_world_no_simulator_can_build_is_rejected_naming_the_entry(edit, match):
     data = _minimal()
     edit(data)
