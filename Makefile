@@ -48,6 +48,7 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check sensors slam nav rgbdnav tests bench
+	$(VENV)/bin/ruff format --check sensors slam nav rgbdnav tests bench
 	$(VENV)/bin/mypy sensors slam nav rgbdnav
 
 clean:
