@@ -89,6 +89,8 @@ def organised_normals(
     block centres, (N, 3) normals facing the camera."""
     h, w = depth_m.shape[:2]
     hb, wb = h // stride, w // stride
+    if hb < 3 or wb < 3:  # no block with four neighbours: no normal
+        return np.zeros((0, 3)), np.zeros((0, 3))
     d = depth_m[: hb * stride, : wb * stride].astype(np.float32)
     ok = np.isfinite(d) & (d >= max(min_depth, 1e-6)) & (d <= max_depth)
     size = (wb, hb)

@@ -12,7 +12,7 @@ import pytest
 
 from sensors.types import CameraIntrinsics, RgbdFrame
 from slam.config import VoConfig
-from slam.depth_icp import orthonormalised, weakest_direction_support
+from slam.depth_icp import DepthIcpOdometry, orthonormalised, weakest_direction_support
 from slam.visual_odometry import VisualOdometry, inverse, rotation_angle, se3_exp
 
 INTR = CameraIntrinsics(640, 480, 525.0, 525.0, 319.5, 239.5, 1000.0)
@@ -192,3 +192,11 @@ def test_tum_cabinet_fallback_keeps_the_feature_vo_score() -> None:
                 err.append(ok)
         scores.append(float(np.mean(err)))
     assert scores[1] >= scores[0] >= 0.85
+
+
+def test_an_image_smaller_than_three_check_blocks_has_too_few_points_not_an_error():
+    intr = CameraIntrinsics(4, 3, 5.0, 5.0, 2.0, 1.5)
+    odo = DepthIcpOdometry(intr, VoConfig())
+    frame = RgbdFrame(0, np.zeros((3, 4, 3), np.uint8), np.ones((3, 4), np.float32), intr)
+    res = odo.process(frame)
+    assert not res.success and res.reason == "too_few_points"
