@@ -25,12 +25,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from rgbdnav.map_run import _score_against_truth, build_grid  # noqa: E402
+from rgbdnav.map_run import _score_against_truth  # noqa: E402
 from rgbdnav.scan_stream import source_config  # noqa: E402
 from sensors.source import open_source  # noqa: E402
 from sensors.tum import load_tum_trajectory, yaw_from_quaternion  # noqa: E402
 from slam.depth_to_scan import DepthToScan  # noqa: E402
-from slam.mapper import Mapper  # noqa: E402
+from slam.mapper import Mapper, build_grid  # noqa: E402
 from slam.metrics import interpolate_poses  # noqa: E402
 
 
@@ -76,7 +76,7 @@ def main() -> None:
         result = mapper.finish()
         wall = time.perf_counter() - t0
         summary: dict = {}
-        _score_against_truth(result, build_grid(result, vcfg), src.groundtruth(), scene, vcfg,
+        _score_against_truth(result, build_grid(result, vcfg.mapper), src.groundtruth(), scene, vcfg,
                              summary)  # fmt: skip
         ate, iou = summary["slam_vs_groundtruth"], summary.get("grid_vs_floor_plan", {})
         loops = result.counts["loop_closures"]

@@ -330,7 +330,8 @@ def localize(
     """Localise against a saved map (no mapping): trajectory, per-scan status and confidence."""
     _setup_logging(verbose)
     from rgbdnav.config import load_config
-    from rgbdnav.localize_run import describe, load_map, run_localize
+    from rgbdnav.localize_run import describe, run_localize
+    from slam.map_bundle import load_map
 
     if _is_world(source):
         load_map(map_)  # refuse a bad map before spending minutes rendering the world

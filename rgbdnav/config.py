@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
 
 from nav.config import (
@@ -290,3 +291,11 @@ def source_options(cfg: Config, strict: bool = False) -> SourceOptions:
         strict=strict,
         sync=cfg.sync,
     )
+
+
+def initial_pose_array(values: Sequence[float]) -> np.ndarray:
+    """``--initial-pose X Y YAW`` as a (3,) array, or a one-line error."""
+    init = np.asarray(values, dtype=np.float64)
+    if init.shape != (3,) or not np.all(np.isfinite(init)):
+        raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got {list(values)}")
+    return init

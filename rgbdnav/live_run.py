@@ -51,16 +51,19 @@ import yaml
 
 from nav.collision_monitor import ObstacleMemory, limit_twist
 from nav.teleop import TeleopState, teleop_key
-from rgbdnav.config import Config, load_config, section_to_dict, source_options
+from rgbdnav.config import (
+    Config,
+    initial_pose_array,
+    load_config,
+    section_to_dict,
+    source_options,
+)
 from rgbdnav.live_nav import LiveNavigator, MapSnapshot
 from rgbdnav.live_record import LiveRecorder
 from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
-from rgbdnav.localize_run import initial_pose_array
-from rgbdnav.map_run import build_grid, make_bundle
-from rgbdnav.navigate_run import NAVIGATE_PROFILE
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
-from rgbdnav.scan_stream import RGBD_PROFILE
+from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE
 from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, occupied_cells_xy
 from sensors.eddie import BoardError, EddieBoard, OdometryPoller
 from sensors.source import Source, open_source
@@ -69,7 +72,7 @@ from sensors.types import ConfigError, RgbdFrame, RgbdNavError, SensorError, Whe
 from slam.front_end import FrontEnd, FrontEndOptions
 from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
-from slam.mapper import Mapper
+from slam.mapper import Mapper, build_grid, make_bundle
 from slam.metrics import drift_summary
 from slam.scan_matching import scan_points, transform_points
 
@@ -621,9 +624,11 @@ class LiveRun:
             result = self.mapper.finish(batch_optimise=final)
             if not result.keyframes:
                 return None
-            grid = build_grid(result, self.cfg)
+            grid = build_grid(result, self.cfg.mapper)
             path = self.run.file("map")
-            save_bundle(make_bundle(result, grid, self.cfg, f"live {self.opts.camera}"), path)
+            save_bundle(
+                make_bundle(result, grid, self.cfg.mapper, f"live {self.opts.camera}"), path
+            )
             self._last_checkpoint = time.monotonic()
             self.counts.inc("checkpoints")
             self.last_result, self.last_grid = result, grid
@@ -665,8 +670,8 @@ class LiveRun:
         tame_malloc(cfg.live.malloc_arena_max, cfg.live.malloc_mmap_threshold)
         outputs = {"config": self.run.write_config(cfg)}
         if opts.map_bundle is not None:
-            from rgbdnav.localize_run import load_map
             from slam.localization import Localizer, MapModel
+            from slam.map_bundle import load_map
 
             loaded = load_map(opts.map_bundle)
             self._loaded_map = loaded

@@ -30,13 +30,12 @@ import logging
 import resource
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from rgbdnav.config import load_config, source_options
+from rgbdnav.config import initial_pose_array, load_config, source_options
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import scan_stream, source_config
@@ -50,10 +49,10 @@ from rgbdnav.visualize import (
 from sensors.atomic import atomic_write_text
 from sensors.source import PoseStream, open_source
 from sensors.tum import write_tum_trajectory
-from sensors.types import ConfigError, MapError, SensorError
+from sensors.types import SensorError
 from slam.geometry import wrap_angle
 from slam.localization import LocalizationResult, Localizer, MapModel
-from slam.map_bundle import load_bundle, load_map_yaml
+from slam.map_bundle import LoadedMap, load_map
 from slam.metrics import interpolate_poses
 from slam.occupancy_grid import OccupancyGrid
 from slam.scan_matching import scan_points, transform_points
@@ -61,11 +60,6 @@ from slam.scan_matching import scan_points, transform_points
 log = logging.getLogger(__name__)
 
 CSV_HEADER = ("stamp_s", "x_m", "y_m", "yaw_rad", "confidence", "status", "reason")
-# A plain map.yaml is already thresholded into nav_msgs percentages (100 occupied, 0 free,
-# -1 unknown; "scale" maps in between), so its cells are classified like map_server's own
-# defaults rather than by the thresholds that made the pixels.
-NAV2_OCCUPIED_THRESH = 0.65  # [probability] value >= 65 % is occupied
-NAV2_FREE_THRESH = 0.25  # [probability] value < 25 % is free
 EPISODES_LISTED = 50  # lost episodes / relocalisations itemised in summary.json (all are counted)
 WRONG_POSITION_M = 0.2  # [m] a tracked pose this far from ground truth counts as wrong
 WRONG_HEADING_RAD = np.radians(5.0)  # [rad] likewise for heading
@@ -75,43 +69,7 @@ NS_PER_S = 1_000_000_000
 # 1. The map ----------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, eq=False)
-class LoadedMap:
-    grid: OccupancyGrid
-    occupied_thresh: float  # [probability] classifying the grid's cells for localisation
-    free_thresh: float  # [probability]
-    kind: str  # "bundle" | "map.yaml"
-    path: Path
-
-
-def load_map(path: Path) -> LoadedMap:
-    """A map bundle folder or a Nav2 map.yaml; :class:`MapError` for anything else."""
-    if path.is_dir():
-        bundle = load_bundle(path)
-        loaded = LoadedMap(bundle.grid, bundle.occupied_thresh, bundle.free_thresh, "bundle",
-                           path)  # fmt: skip
-    elif path.is_file() and path.suffix.lower() in (".yaml", ".yml"):
-        loaded = LoadedMap(load_map_yaml(path), NAV2_OCCUPIED_THRESH, NAV2_FREE_THRESH,
-                           "map.yaml", path)  # fmt: skip
-    elif path.is_file():
-        raise MapError(f"{path}: not a map: give a map bundle folder or its map.yaml")
-    else:
-        raise MapError(f"{path}: no such map (a map bundle folder or a map.yaml)")
-    if not 0.0 < loaded.free_thresh < loaded.occupied_thresh < 1.0:
-        raise MapError(f"{path}: need 0 < free_thresh ({loaded.free_thresh}) < occupied_thresh "
-                       f"({loaded.occupied_thresh}) < 1")  # fmt: skip
-    return loaded
-
-
 # 2. Pure summaries of a run ------------------------------------------------------------------
-
-
-def initial_pose_array(values: Sequence[float]) -> np.ndarray:
-    """``--initial-pose X Y YAW`` as a (3,) array, or a one-line error."""
-    init = np.asarray(values, dtype=np.float64)
-    if init.shape != (3,) or not np.all(np.isfinite(init)):
-        raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got {list(values)}")
-    return init
 
 
 def has_pose(result: LocalizationResult) -> bool:

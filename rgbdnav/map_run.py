@@ -12,9 +12,8 @@ import math
 import resource
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -35,15 +34,14 @@ from sensors.sim.world import FloorPlan, floor_plan, world_from_dict
 from sensors.source import PoseStream, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
-from slam.map_bundle import GraphEdge, MapBundle, load_bundle, save_bundle
-from slam.mapper import Mapper, MapperResult
+from slam.map_bundle import load_bundle, save_bundle
+from slam.mapper import Mapper, MapperResult, build_grid, make_bundle
 from slam.metrics import align_se2, drift_summary, interpolate_poses
-from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
+from slam.occupancy_grid import GridGeometry, OccupancyGrid
 from slam.scan_matching import scan_points, transform_points
 
 log = logging.getLogger(__name__)
 
-GRID_MARGIN_M = 1.0  # [m] around the mapped area
 IOU_TOLERANCE_CELLS = 1  # a mapped wall within one cell of the true one counts
 
 
@@ -101,8 +99,8 @@ def run_map(
         outputs["trajectory"] = run.file("trajectory.tum")
         # 2. Occupancy grid from the optimised keyframes, and the bundle.
         t_grid = time.perf_counter()
-        grid = build_grid(result, cfg)
-        bundle = make_bundle(result, grid, cfg, str(source_path))
+        grid = build_grid(result, cfg.mapper)
+        bundle = make_bundle(result, grid, cfg.mapper, str(source_path))
         save_bundle(bundle, run.file("map"))
         outputs["map bundle"] = run.file("map")
         grid_s = time.perf_counter() - t_grid
@@ -156,37 +154,6 @@ def _visualize(vis: Visualizer, result: MapperResult, occupied: np.ndarray, g: G
     if len(result.scan_stamps_ns):
         p = result.scan_poses
         vis.pose(int(result.scan_stamps_ns[-1]), p[-1], p[:, :2])
-
-
-def build_grid(result: MapperResult, cfg: Config) -> OccupancyGrid:
-    scans = [k.scan for k in result.keyframes]
-    mc = cfg.mapper
-    bounds = bounds_of_scans(result.poses, scans, mc.max_laser_range)
-    geom = GridGeometry.from_bounds(*bounds, resolution=mc.resolution, margin=GRID_MARGIN_M)
-    return integrate_scans(geom, result.poses, scans, mc)
-
-
-def make_bundle(result: MapperResult, grid: OccupancyGrid, cfg: Config, source: str) -> MapBundle:
-    edges = tuple(_graph_edge(e) for e in result.edges)
-    kfs = result.keyframes
-    return MapBundle(
-        grid=grid,
-        keyframe_ids=np.array([k.id for k in kfs], dtype=np.int64),
-        keyframe_stamps_ns=np.array([k.stamp_ns for k in kfs], dtype=np.int64),
-        keyframe_poses=np.asarray(result.poses, dtype=np.float64).reshape(-1, 3),
-        keyframe_odom_poses=np.array([k.odom_pose for k in kfs], dtype=np.float64).reshape(-1, 3),
-        edges=edges,
-        scans=tuple(k.scan for k in kfs),
-        config=asdict(cfg.mapper),
-        source=source,
-    )
-
-
-def _graph_edge(e: dict[str, Any]) -> GraphEdge:
-    dx, dy, dyaw = (float(v) for v in e["delta"])
-    info = tuple(tuple(float(v) for v in row) for row in e["information"])
-    return GraphEdge(kind=str(e["kind"]), from_id=int(e["from"]), to_id=int(e["to"]),
-                     delta=(dx, dy, dyaw), information=info)  # fmt: skip
 
 
 def occupancy_iou(

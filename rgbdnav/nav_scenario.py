@@ -39,13 +39,12 @@ import yaml
 
 from nav.costmap import inscribed_radius
 from rgbdnav.config import load_config
-from rgbdnav.localize_run import load_map
 from rgbdnav.run_dir import RunDir
 from sensors.atomic import atomic_write_text
 from sensors.safe_yaml import read_yaml
 from sensors.sim.world import FloorPlan, floor_plan, world_from_dict
 from sensors.types import ConfigError
-from slam.map_bundle import save_map_yaml
+from slam.map_bundle import load_map, save_map_yaml
 from slam.occupancy_grid import GridGeometry, OccupancyGrid
 
 KEEPOUT_OCCUPANCY = 100  # nav_msgs value of a keepout cell in the mask

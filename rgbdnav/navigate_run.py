@@ -74,12 +74,11 @@ from nav.config import NavigateConfig
 from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap
 from nav.navigator import MAX_STOP_S, Navigator
 from rgbdnav.config import Config, load_config
-from rgbdnav.localize_run import LoadedMap, load_map
 from rgbdnav.nav_charts import velocity_chart
 from rgbdnav.nav_drive import EmulatedDrive, WheelOdometry
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
-from rgbdnav.scan_stream import RGBD_PROFILE
+from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE
 from rgbdnav.visualize import Visualizer, log_run, make_visualizer, occupied_cells_xy
 from sensors.atomic import atomic_write_text
 from sensors.sim.scan import cast_scan, depth_range_sigma
@@ -88,13 +87,12 @@ from sensors.tum import write_tum_trajectory
 from sensors.types import NS_PER_S, ConfigError, LaserScan, MapError, Pose2
 from slam.geometry import oplus, path_length, wrap_angle
 from slam.localization import Localizer, MapModel
-from slam.map_bundle import load_map_yaml
+from slam.map_bundle import LoadedMap, load_map, load_map_yaml
 from slam.occupancy_grid import OccupancyGrid
 
 log = logging.getLogger(__name__)
 
 LOCALIZATION_MODES: tuple[str, ...] = ("groundtruth", "localizer")
-NAVIGATE_PROFILE = RGBD_PROFILE.with_name("navigate.yaml")  # localising on the robot's wheels
 SCAN_COLUMNS_PER_BEAM = 2  # [px] image columns per simulated scan beam (640 px -> 320 beams)
 CSV_HEADER = ("t_s", "goal", "status", "cmd_v_mps", "cmd_w_radps", "smoothed_v_mps",
               "smoothed_w_radps", "gospd_left", "gospd_right")  # fmt: skip

@@ -27,6 +27,7 @@ from slam.metrics import drift_report
 log = logging.getLogger(__name__)
 
 RGBD_PROFILE = Path(__file__).resolve().parents[1] / "config" / "profiles" / "rgbd_mapping.yaml"
+NAVIGATE_PROFILE = RGBD_PROFILE.with_name("navigate.yaml")  # localising on the robot's wheels
 HANDHELD = (
     "a handheld camera (no wheel encoders and no /odom): a 2-D map needs a ground robot; pass "
     "--force-3dof if the camera rides on one"

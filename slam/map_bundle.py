@@ -627,8 +627,47 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
                      graph["edges"], scans, config, graph["source"], graph["created"])  # fmt: skip
 
 
+# A plain map.yaml is already thresholded into nav_msgs percentages (100 occupied, 0 free,
+# -1 unknown; "scale" maps in between), so its cells are classified like map_server's own
+# defaults rather than by the thresholds that made the pixels.
+NAV2_OCCUPIED_THRESH = 0.65  # [probability] value >= 65 % is occupied
+NAV2_FREE_THRESH = 0.25  # [probability] value < 25 % is free
+
+
+@dataclass(frozen=True, eq=False)
+class LoadedMap:
+    grid: OccupancyGrid
+    occupied_thresh: float  # [probability] classifying the grid's cells for localisation
+    free_thresh: float  # [probability]
+    kind: str  # "bundle" | "map.yaml"
+    path: Path
+
+
+def load_map(path: Path) -> LoadedMap:
+    """A map bundle folder or a Nav2 map.yaml; :class:`MapError` for anything else."""
+    if path.is_dir():
+        bundle = load_bundle(path)
+        loaded = LoadedMap(bundle.grid, bundle.occupied_thresh, bundle.free_thresh, "bundle",
+                           path)  # fmt: skip
+    elif path.is_file() and path.suffix.lower() in (".yaml", ".yml"):
+        loaded = LoadedMap(load_map_yaml(path), NAV2_OCCUPIED_THRESH, NAV2_FREE_THRESH,
+                           "map.yaml", path)  # fmt: skip
+    elif path.is_file():
+        raise MapError(f"{path}: not a map: give a map bundle folder or its map.yaml")
+    else:
+        raise MapError(f"{path}: no such map (a map bundle folder or a map.yaml)")
+    if not 0.0 < loaded.free_thresh < loaded.occupied_thresh < 1.0:
+        raise MapError(f"{path}: need 0 < free_thresh ({loaded.free_thresh}) < occupied_thresh "
+                       f"({loaded.occupied_thresh}) < 1")  # fmt: skip
+    return loaded
+
+
 __all__ = [
+    "NAV2_FREE_THRESH",
+    "NAV2_OCCUPIED_THRESH",
     "GRAPH_JSON",
+    "LoadedMap",
+    "load_map",
     "GRID_NPZ",
     "MAP_PGM",
     "MAP_YAML",

@@ -33,7 +33,7 @@ import logging
 import math
 import time
 from collections import Counter, defaultdict
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -43,7 +43,8 @@ from slam.config import LocalizerConfig, MapperConfig
 from slam.ekf import pose_update
 from slam.geometry import ominus, oplus, wrap_angle
 from slam.localization import Localizer, MapModel
-from slam.map_bundle import MapBundle
+from slam.map_bundle import GraphEdge, MapBundle
+from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
 from slam.pose_graph import Edge, EdgeKind, PoseGraph
 from slam.scan_matching import (
     LikelihoodField,
@@ -69,6 +70,7 @@ ODOM_MIN_SIGMA = (0.01, 0.005)  # [m, rad] floor of an odometry edge's sigmas
 LOOP_MIN_SIGMA = (0.02, 0.01)  # [m, rad] floor of a loop closure's sigmas
 UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
+GRID_MARGIN_M = 1.0  # [m] unknown border around the mapped area in the built grid
 REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
 
 
@@ -772,6 +774,44 @@ class Mapper:
         )
 
 
+def build_grid(result: MapperResult, config: MapperConfig) -> OccupancyGrid:
+    """The occupancy grid of the keyframe scans at their optimised poses."""
+    scans = [k.scan for k in result.keyframes]
+    bounds = bounds_of_scans(result.poses, scans, config.max_laser_range)
+    geom = GridGeometry.from_bounds(*bounds, resolution=config.resolution, margin=GRID_MARGIN_M)
+    return integrate_scans(geom, result.poses, scans, config)
+
+
+def make_bundle(
+    result: MapperResult, grid: OccupancyGrid, config: MapperConfig, source: str
+) -> MapBundle:
+    """The map bundle (grid, keyframes, graph, scans, config) of a mapping result."""
+    kfs = result.keyframes
+    return MapBundle(
+        grid=grid,
+        keyframe_ids=np.array([k.id for k in kfs], dtype=np.int64),
+        keyframe_stamps_ns=np.array([k.stamp_ns for k in kfs], dtype=np.int64),
+        keyframe_poses=np.asarray(result.poses, dtype=np.float64).reshape(-1, 3),
+        keyframe_odom_poses=np.array([k.odom_pose for k in kfs], dtype=np.float64).reshape(-1, 3),
+        edges=tuple(_graph_edge(e) for e in result.edges),
+        scans=tuple(k.scan for k in kfs),
+        config=asdict(config),
+        source=source,
+    )
+
+
+def _graph_edge(e: dict[str, Any]) -> GraphEdge:
+    dx, dy, dyaw = (float(v) for v in e["delta"])
+    info = tuple(tuple(float(v) for v in row) for row in e["information"])
+    return GraphEdge(
+        kind=str(e["kind"]),
+        from_id=int(e["from"]),
+        to_id=int(e["to"]),
+        delta=(dx, dy, dyaw),
+        information=info,
+    )
+
+
 def _relative_delta(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """b - a with the yaw difference wrapped (for linear blending of nearby poses)."""
     d = b - a
@@ -792,4 +832,13 @@ def _response(fld: LikelihoodField, points: np.ndarray, pose: np.ndarray) -> flo
     return float(fld.lookup(transform_points(pose, points)).mean())
 
 
-__all__ = ["Keyframe", "Mapper", "MapperResult", "odometry_covariance", "oplus", "ominus"]
+__all__ = [
+    "Keyframe",
+    "Mapper",
+    "MapperResult",
+    "build_grid",
+    "make_bundle",
+    "odometry_covariance",
+    "oplus",
+    "ominus",
+]

@@ -233,7 +233,7 @@ def test_teleop_keys_drive_the_robot_and_tab_hands_over_to_the_route(tmp_path: P
 def test_live_localisation_loads_the_navigate_profile_as_navigate_does(tmp_path: Path) -> None:
     # Localising (--map) on the robot's own wheels: the navigate profile's localiser settings
     # (match gate, no kidnap check), yours on top; mapping keeps the RGB-D profile alone.
-    from rgbdnav.navigate_run import NAVIGATE_PROFILE
+    from rgbdnav.scan_stream import NAVIGATE_PROFILE
 
     bundle = tmp_path / "map"  # only loaded once the run starts
     loc = LiveRun(LiveOptions(out=tmp_path / "loc", world=WORLD, map_bundle=bundle))
