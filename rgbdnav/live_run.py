@@ -868,7 +868,7 @@ class LiveRun:
                 else "simulator start"
                 if self.localizer is not None and self.sim is not None
                 else None
-            ),  # fmt: skip
+            ),
             "drive": self.opts.drive,
             "config_files": [str(p) for p in self.config_files],
             "wall_s": round(wall, 3),
@@ -883,13 +883,13 @@ class LiveRun:
                 }
                 if len(lat) >= MIN_LATENCIES
                 else None
-            ),  # fmt: skip
+            ),
             "camera_to_host_ms_p50": round(self.arrival_ms.percentile(50), 2)
             if self.arrival_ms.count
             else None,
             "stage_ms_median": {
                 k: round(v.percentile(50), 2) for k, v in self.stage_ms.items() if v.count
-            },  # fmt: skip
+            },
             "cpu": {
                 "host_cpu_s": round(
                     cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime, 2
@@ -905,7 +905,7 @@ class LiveRun:
             "peak_rss_mb": {
                 "host": round(cpu1.ru_maxrss / 1024, 1),
                 "sim_robot": round(kids.ru_maxrss / 1024, 1),
-            },  # fmt: skip
+            },
             "rss_mb_timeline": self.rss_timeline.points,
             "mapper": mapper_counts,  # what the mapper holds: it grows with scans and keyframes
             "board_polls_per_s": round(self.poller.stats().polls / max(wall, 1e-9), 1)

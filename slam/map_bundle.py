@@ -647,18 +647,20 @@ def load_map(path: Path) -> LoadedMap:
     """A map bundle folder or a Nav2 map.yaml; :class:`MapError` for anything else."""
     if path.is_dir():
         bundle = load_bundle(path)
-        loaded = LoadedMap(bundle.grid, bundle.occupied_thresh, bundle.free_thresh, "bundle",
-                           path)  # fmt: skip
+        loaded = LoadedMap(bundle.grid, bundle.occupied_thresh, bundle.free_thresh, "bundle", path)
     elif path.is_file() and path.suffix.lower() in (".yaml", ".yml"):
-        loaded = LoadedMap(load_map_yaml(path), NAV2_OCCUPIED_THRESH, NAV2_FREE_THRESH,
-                           "map.yaml", path)  # fmt: skip
+        loaded = LoadedMap(
+            load_map_yaml(path), NAV2_OCCUPIED_THRESH, NAV2_FREE_THRESH, "map.yaml", path
+        )
     elif path.is_file():
         raise MapError(f"{path}: not a map: give a map bundle folder or its map.yaml")
     else:
         raise MapError(f"{path}: no such map (a map bundle folder or a map.yaml)")
     if not 0.0 < loaded.free_thresh < loaded.occupied_thresh < 1.0:
-        raise MapError(f"{path}: need 0 < free_thresh ({loaded.free_thresh}) < occupied_thresh "
-                       f"({loaded.occupied_thresh}) < 1")  # fmt: skip
+        raise MapError(
+            f"{path}: need 0 < free_thresh ({loaded.free_thresh}) < occupied_thresh "
+            f"({loaded.occupied_thresh}) < 1"
+        )
     return loaded
 
 
