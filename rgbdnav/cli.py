@@ -260,8 +260,8 @@ def odometry(
 ) -> None:
     """Wheel, visual and fused (EKF) odometry of a source, with drift against ground truth."""
     _setup_logging(verbose)
+    from rgbdnav.commands.odometry import run_odometry
     from rgbdnav.config import load_config
-    from rgbdnav.odometry_run import run_odometry
 
     cfg = load_config(config or [], set_ or [])
     recording = _recording_for(source, cfg, seed, quiet)
@@ -291,8 +291,8 @@ def map_(
 ) -> None:
     """Pose-graph SLAM: trajectory, occupancy grid and a map bundle (Nav2 PGM/YAML + graph)."""
     _setup_logging(verbose)
+    from rgbdnav.commands.map import run_map
     from rgbdnav.config import load_config
-    from rgbdnav.map_run import run_map
 
     cfg = load_config(config or [], set_ or [])
     recording = _recording_for(source, cfg, seed, quiet)
@@ -329,8 +329,8 @@ def localize(
 ) -> None:
     """Localise against a saved map (no mapping): trajectory, per-scan status and confidence."""
     _setup_logging(verbose)
+    from rgbdnav.commands.localize import describe, run_localize
     from rgbdnav.config import load_config
-    from rgbdnav.localize_run import describe, run_localize
     from slam.map_bundle import load_map
 
     if _is_world(source):
@@ -404,7 +404,7 @@ def navigate(
     settings (nav.config.NavigateConfig).
     """
     _setup_logging(verbose)
-    from rgbdnav.navigate_run import describe, parse_goal_args, run_navigate
+    from rgbdnav.commands.navigate import describe, parse_goal_args, run_navigate
 
     goal = parse_goal_args(ctx.args)
     with _Progress("navigating", quiet) as progress:
@@ -495,7 +495,7 @@ def live(
 ) -> None:
     """The live run on the robot (or the simulated robot): map, or localise with --map."""
     _setup_logging(verbose)
-    from rgbdnav.live_run import Drill, LiveOptions, run_live
+    from rgbdnav.live.run import Drill, LiveOptions, run_live
     from sensors.types import ConfigError
 
     goals = []
@@ -547,7 +547,7 @@ def board(
     set_: SetOpt = None,
 ) -> None:
     """Check an Eddie control board: firmware, battery, encoders, round-trip time."""
-    from rgbdnav.board_check import check_board
+    from rgbdnav.commands.board import check_board
     from rgbdnav.config import load_config
 
     cfg = load_config(config or [], set_ or [])
@@ -601,7 +601,7 @@ def eval_(
     """Score a trajectory against a reference: ATE and RPE (TUM RGB-D benchmark / evo method),
     or against reference relations (Kümmerle et al. 2009)."""
     _setup_logging(verbose)
-    from rgbdnav.eval_run import (
+    from rgbdnav.commands.eval import (
         format_relations_report,
         format_report,
         run_eval,

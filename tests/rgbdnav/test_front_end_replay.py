@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.live_run import LiveOptions, LiveRun
+from rgbdnav.live.run import LiveOptions, LiveRun
 from sensors.source import open_source
 from sensors.types import WheelTicks
 from slam.front_end import FrontEnd, options_for, replay

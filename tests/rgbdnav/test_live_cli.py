@@ -17,7 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.live_run import Drill, LiveOptions, LiveRun, route_command
+from rgbdnav.live.run import Drill, LiveOptions, LiveRun, route_command
 from sensors.types import ConfigError, MapError
 from slam.map_bundle import load_bundle
 
@@ -249,7 +249,7 @@ def test_live_localisation_loads_the_navigate_profile_as_navigate_does(tmp_path:
 
 def test_live_runs_optical_flow_vo_unless_told_otherwise(tmp_path: Path) -> None:
     from rgbdnav.config import load_config
-    from rgbdnav.live_run import LIVE_PROFILE
+    from rgbdnav.live.run import LIVE_PROFILE
 
     assert load_config([], []).vo.cor_type == "features"  # offline default: ORB matching
     live = LiveRun(LiveOptions(out=tmp_path / "a", world=WORLD))

@@ -1,5 +1,5 @@
-"""The live run's nav-driven auto mode (rgbdnav.live_nav) and its bounded bookkeeping
-(rgbdnav.live_stats), on hand-built maps and a perfect unicycle: no simulator process."""
+"""The live run's nav-driven auto mode (rgbdnav.live.nav) and its bounded bookkeeping
+(rgbdnav.live.stats), on hand-built maps and a perfect unicycle: no simulator process."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from rgbdnav.config import Config
-from rgbdnav.live_nav import LiveNavigator, MapSnapshot, near_edge
-from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, tame_malloc
+from rgbdnav.live.nav import LiveNavigator, MapSnapshot, near_edge
+from rgbdnav.live.stats import Reservoir, Timeline, TrackWriter, tame_malloc
 from sensors.types import LaserScan
 from slam.occupancy_grid import GridGeometry, OccupancyGrid
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdnav.live_record import LiveRecorder
+from rgbdnav.live.record import LiveRecorder
 from sensors.types import CameraIntrinsics, RgbdFrame, WheelTicks
 
 K = CameraIntrinsics(width=8, height=6, fx=5.0, fy=5.0, cx=3.5, cy=2.5)
@@ -44,7 +44,7 @@ def test_a_frame_the_writer_refuses_stops_the_recording_and_leaves_no_folder(
 def test_frames_the_writer_cannot_take_in_time_are_left_out_and_counted(
     tmp_path: Path, monkeypatch
 ) -> None:
-    import rgbdnav.live_record as lr
+    import rgbdnav.live.record as lr
 
     monkeypatch.setattr(lr, "FRAME_QUEUE_SIZE", 1)
     rec = LiveRecorder(tmp_path / "rec", {"robot": {}})

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from rgbdnav.nav_scenario import (
+from rgbdnav.commands.nav_scenario import (
     draw_goals,
     floor_plan_map,
     goal_candidates,

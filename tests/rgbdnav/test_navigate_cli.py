@@ -16,8 +16,8 @@ from typer.testing import CliRunner
 
 from nav.navigator import past_escape
 from rgbdnav.cli import app
-from rgbdnav.nav_charts import accelerations
-from rgbdnav.navigate_run import parse_goal_args
+from rgbdnav.commands.nav_charts import accelerations
+from rgbdnav.commands.navigate import parse_goal_args
 from sensors.sim.scan import cast_scan, depth_range_sigma
 from sensors.sim.world import FloorPlan, floor_plan, load_world, world_from_dict
 from sensors.tum import load_tum_trajectory
@@ -322,7 +322,7 @@ def test_the_navigator_believes_what_the_localiser_tracks(
 ) -> None:
     # Whether a far answer is a jump to take is the localiser's call (localizer.match_gate,
     # tested in tests/slam): the navigator does not second-guess a "tracking" answer.
-    import rgbdnav.navigate_run as navigate_run
+    import rgbdnav.commands.navigate as navigate_run
 
     monkeypatch.setattr(navigate_run, "Localizer", _jumpy_localizer(8, 10_000))
     code, output, summary = _navigate(scene, tmp_path, "--goal-timeout", "3",
@@ -338,7 +338,7 @@ def test_a_lost_localiser_is_put_back_on_odometry_with_its_last_covariance(
 ) -> None:
     import dataclasses
 
-    import rgbdnav.navigate_run as navigate_run
+    import rgbdnav.commands.navigate as navigate_run
     from slam.localization import Localizer
 
     seeds: list[np.ndarray | None] = []
@@ -405,7 +405,7 @@ def test_a_goal_settle_turns_in_place_and_drives_on_to_the_corrected_goal(
     # The estimate is 0.3 m ahead of the truth when the goal checker (0.1 m) says "reached".
     # With the navigate profile's settle the robot turns in place, the wide match puts the
     # estimate back on the truth, and the next control cycle drives the last 0.3 m.
-    import rgbdnav.navigate_run as navigate_run
+    import rgbdnav.commands.navigate as navigate_run
 
     monkeypatch.setattr(navigate_run, "Localizer", _biased_localizer(0.3))
     spin = "6.0" if settle else "0.0"
@@ -433,7 +433,7 @@ def test_a_run_of_gated_matches_while_driving_settles_then_replans(
 ) -> None:
     # navigate.settle_on_gated_scans (15 in the navigate profile): a localiser whose matches the
     # gate has held back that long disagrees with its scans; the robot settles on the way.
-    import rgbdnav.navigate_run as navigate_run
+    import rgbdnav.commands.navigate as navigate_run
     from slam.localization import Localizer
 
     class Contested(Localizer):

@@ -35,7 +35,7 @@ Each simulation step, in simulated time (never wall time):
    walls all round outweigh one piece of furniture.
 3. At ``smoother.smoothing_frequency`` the smoothed command goes to the wheels as a ``GOSPD``
    line through the Eddie board emulator; the true pose follows the wheels with diameter/track
-   errors and slip, and wheel odometry integrates the encoder counts (:mod:`rgbdnav.nav_drive`).
+   errors and slip, and wheel odometry integrates the encoder counts (:mod:`sensors.sim.nav_drive`).
 
 A goal in a wall, a keepout zone, outside the map or unreachable is refused with a reason;
 after every goal (reached or not) the robot is brought to rest, then the waypoint task (a pause)
@@ -73,14 +73,14 @@ from nav.behaviors import Behavior, next_waypoint, wait_at_waypoint, waypoints
 from nav.config import NavigateConfig
 from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap
 from nav.navigator import MAX_STOP_S, Navigator
+from rgbdnav.commands.nav_charts import velocity_chart
 from rgbdnav.config import Config, load_config
-from rgbdnav.nav_charts import velocity_chart
-from rgbdnav.nav_drive import EmulatedDrive, WheelOdometry
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE
 from rgbdnav.visualize import Visualizer, log_run, make_visualizer, occupied_cells_xy
 from sensors.atomic import atomic_write_text
+from sensors.sim.nav_drive import EmulatedDrive, WheelOdometry
 from sensors.sim.scan import cast_scan, depth_range_sigma
 from sensors.sim.world import FloorPlan, floor_plan, load_world
 from sensors.tum import write_tum_trajectory

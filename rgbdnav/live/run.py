@@ -15,7 +15,7 @@ Threads, each with its own bounded queue, so a slow consumer can only lose its o
 5. **controller** at ``live.control_rate``: drives the route/goals (``--drive route``) on the
    estimated pose, or holds still (``--drive idle``); GOSPD through the driver. With
    ``live.route_driver: nav`` (the default) the waypoints are goals for the navigation stack
-   (:mod:`rgbdnav.live_nav`: costmap from the live map and depth scans, planner, regulated pure
+   (:mod:`rgbdnav.live.nav`: costmap from the live map and depth scans, planner, regulated pure
    pursuit, behaviours, velocity smoother); ``direct`` steers straight at them. The collision
    monitor has the last word either way.
 6. **visualiser**: rerun on its own thread; dropped first when the machine falls behind.
@@ -58,9 +58,9 @@ from rgbdnav.config import (
     section_to_dict,
     source_options,
 )
-from rgbdnav.live_nav import LiveNavigator, MapSnapshot
-from rgbdnav.live_record import LiveRecorder
-from rgbdnav.live_stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
+from rgbdnav.live.nav import LiveNavigator, MapSnapshot
+from rgbdnav.live.record import LiveRecorder
+from rgbdnav.live.stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE

@@ -1,0 +1,1 @@
+"""The live run: front-end, mapper and navigator threads on a camera and a motor board."""
