@@ -645,8 +645,8 @@ class LoadedMap:
 
 def load_map(path: Path) -> LoadedMap:
     """A map bundle folder or a Nav2 map.yaml; :class:`MapError` for anything else."""
-    if path.is_dir():
-        bundle = load_bundle(path)
+    if path.is_dir() or interrupted_replacement(path) is not None:
+        bundle = load_bundle(path)  # also a bundle a save left between its two renames
         loaded = LoadedMap(bundle.grid, bundle.occupied_thresh, bundle.free_thresh, "bundle", path)
     elif path.is_file() and path.suffix.lower() in (".yaml", ".yml"):
         loaded = LoadedMap(

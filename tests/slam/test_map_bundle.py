@@ -177,6 +177,11 @@ def test_a_save_killed_between_its_two_renames_still_loads_the_old_bundle(tmp_pa
     monkeypatch.setattr(atomic.os, "replace", real)
     assert not target.exists()
     assert len(load_bundle(target).scans) == 2  # the moved-aside bundle, with a warning
+    loaded = mb.load_map(target)  # what `localize --map` and `live --map` call
+    assert (
+        loaded.kind == "bundle"
+        and loaded.grid.log_odds.shape == load_bundle(target).grid.log_odds.shape
+    )
     save_bundle(make_bundle(3), target)  # and the next save puts one in place again
     assert len(load_bundle(target).scans) == 3
     assert [p.name for p in tmp_path.iterdir()] == ["b"]  # the moved-aside one is gone
