@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -11,6 +12,8 @@ from typing import Any
 
 from rgbdnav.config import Config, write_config
 from sensors.atomic import atomic_write_text
+
+log = logging.getLogger(__name__)
 
 
 def _jsonable(value: Any) -> Any:
@@ -31,11 +34,20 @@ def _jsonable(value: Any) -> Any:
 
 
 class RunDir:
-    """``config.yaml`` (resolved config), ``summary.json``, ``trajectory.tum`` and pictures."""
+    """``config.yaml`` (resolved config), ``summary.json``, ``trajectory.tum`` and pictures.
+
+    ``summary.json`` is written last and marks a finished run. A run into a folder that holds
+    an earlier one removes that summary first, so a re-run killed part-way leaves a folder
+    without one (incomplete) rather than the old summary describing a mix of new and old files.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.path.mkdir(parents=True, exist_ok=True)
+        stale = self.file("summary.json")
+        if stale.is_file():
+            log.info("%s: replacing the earlier run in this folder", self.path)
+            stale.unlink()
 
     def file(self, name: str) -> Path:
         return self.path / name
