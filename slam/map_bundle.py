@@ -623,6 +623,12 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
     if not free < occupied:
         raise MapError(f"{where}: free_thresh ({free}) must be below occupied_thresh ({occupied})")
     grid = _bundle_grid(folder, occupied, free)
+    made_at = config.get("resolution")
+    if isinstance(made_at, (int, float)) and not isinstance(made_at, bool):
+        if not math.isclose(made_at, grid.geometry.resolution, rel_tol=1e-6):
+            raise MapError(f"{folder / MAP_YAML}: resolution {grid.geometry.resolution:g} m "
+                           f"disagrees with {made_at:g} m the map was built at ({GRAPH_JSON}); "
+                           f"the scans would not fit the grid")  # fmt: skip
     return MapBundle(grid, graph["ids"], graph["stamps"], graph["poses"], graph["odom"],
                      graph["edges"], scans, config, graph["source"], graph["created"])  # fmt: skip
 

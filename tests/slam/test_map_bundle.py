@@ -442,3 +442,18 @@ def test_grid_npz_is_optional(tmp_path):
     (folder / "grid.npz").unlink()
     grid = load_bundle(folder).grid
     np.testing.assert_array_equal(grid.trinary(), corner_grid().trinary())
+
+
+def test_a_bundle_whose_map_yaml_resolution_was_edited_is_refused(tmp_path):
+    # The scans and graph were made at the mapper's resolution; a map.yaml saying otherwise
+    # would scale the grid under them silently (#16).
+    target = tmp_path / "b"
+    bundle = make_bundle(3)
+    save_bundle(bundle, target)
+    made_at = bundle.grid.geometry.resolution
+    yaml_path = target / "map.yaml"
+    text = yaml_path.read_text()
+    assert f"resolution: {made_at!r}" in text
+    yaml_path.write_text(text.replace(f"resolution: {made_at!r}", f"resolution: {made_at * 5!r}"))
+    with pytest.raises(MapError, match="disagrees with"):
+        load_bundle(target)
