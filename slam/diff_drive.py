@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from sensors.config import RobotConfig, build_section, param
-from sensors.types import NS_PER_S, Pose2
+from sensors.types import NS_PER_S, Pose2, WheelTicks
 
 ORIGIN = Pose2(0.0, 0.0, 0.0)
 
@@ -107,6 +107,58 @@ def reject_encoder_glitches(
     step[jump] = 0
     counts = counts[0] + np.vstack([np.zeros((1, 2), np.int64), np.cumsum(step, axis=0)])
     return EncoderCleanup(t, counts[:, 0], counts[:, 1], int(len(spike)), int(jump.sum()))
+
+
+class EncoderGate:
+    """:func:`reject_encoder_glitches` for readings as they arrive (the live run, the front end).
+
+    A reading whose step from the last accepted one is implausible is held: if the next one
+    agrees with the last accepted reading, the held one was a spike and is dropped; if it agrees
+    with the held one, the counters jumped and stayed (a reset), taken as no motion over that
+    interval from then on. Normal readings pass with no delay; a suspect one waits one reading.
+    """
+
+    def __init__(self, robot: RobotConfig) -> None:
+        self.robot = robot
+        self.glitches_dropped = 0
+        self.jumps_zeroed = 0
+        self._last: WheelTicks | None = None  # the last accepted reading, offset applied
+        self._held: WheelTicks | None = None  # a suspect raw reading
+        self._offset = (0, 0)  # raw - accepted counts, from the resets so far
+
+    def _plausible(self, a: WheelTicks, b: WheelTicks) -> bool:
+        dt_s = max(b.stamp_ns - a.stamp_ns, 0) / NS_PER_S
+        limit = (
+            GLITCH_SPEED_FACTOR * self.robot.max_wheel_speed * dt_s / self.robot.metres_per_tick
+            + GLITCH_SLACK_TICKS
+        )
+        return abs(b.left - a.left) <= limit and abs(b.right - a.right) <= limit
+
+    def _shifted(self, t: WheelTicks) -> WheelTicks:
+        return WheelTicks(t.stamp_ns, t.left - self._offset[0], t.right - self._offset[1])
+
+    def push(self, raw: WheelTicks) -> list[WheelTicks]:
+        """The readings (offset applied) that ``raw`` releases, oldest first."""
+        t = self._shifted(raw)
+        if self._last is None or self._plausible(self._last, t):
+            if self._held is not None:
+                self.glitches_dropped += 1  # off and back: a spike
+                self._held = None
+            self._last = t
+            return [t]
+        if self._held is None:
+            self._held = raw
+            return []
+        if self._plausible(self._held, raw):  # it stayed: a counter jump, not motion
+            held = self._held
+            self._offset = (held.left - self._last.left, held.right - self._last.right)
+            self.jumps_zeroed += 1
+            self._held = None
+            self._last = self._shifted(raw)
+            return [self._shifted(held), self._last]
+        self.glitches_dropped += 1  # neither agrees: drop the older suspect, hold this one
+        self._held = raw
+        return []
 
 
 def wheel_twist(

@@ -33,7 +33,7 @@ from sensors.source import Source
 from sensors.types import NS_PER_S, ImuSample, LaserScan, Odometry2D, Pose2, RgbdFrame, WheelTicks
 from slam.config import STATE_NAMES, DepthToScanConfig, EkfConfig, VoConfig
 from slam.depth_to_scan import DepthToScan
-from slam.diff_drive import WheelErrorModel
+from slam.diff_drive import EncoderGate, WheelErrorModel
 from slam.ekf import (
     WHEEL_VARIANCE_WINDOW_S,
     EkfError,
@@ -146,6 +146,8 @@ class FrontEnd:
             )
         self.counts: Counter[str] = Counter()
         self._recent: deque[WheelTicks] = deque()
+        self._gate = EncoderGate(robot)
+        self._last_wheel_ns: int | None = None
         self._window_ns = int(WHEEL_VARIANCE_WINDOW_S * NS_PER_S)
         self._vo: VisualOdometry | None = None
         self._d2s: DepthToScan | None = None
@@ -168,9 +170,18 @@ class FrontEnd:
         """One encoder reading: the twist of the interval it ends, its variance from the travel
         over the last WHEEL_VARIANCE_WINDOW_S (as :func:`wheel_twist_inputs` over the whole
         log). False: a repeated or older reading, which says nothing new (counted)."""
-        if self._recent and t.stamp_ns <= self._recent[-1].stamp_ns:
+        if self._last_wheel_ns is not None and t.stamp_ns <= self._last_wheel_ns:
             self.counts["wheel_readings_repeated"] += 1
             return False
+        self._last_wheel_ns = t.stamp_ns
+        released = self._gate.push(t)  # implausible jumps out (a suspect waits one reading)
+        self.counts["wheel_readings_dropped_glitch"] = self._gate.glitches_dropped
+        self.counts["wheel_jumps_taken_as_no_motion"] = self._gate.jumps_zeroed
+        for reading in released:
+            self._wheel_step(reading)
+        return True
+
+    def _wheel_step(self, t: WheelTicks) -> None:
         self._recent.append(t)
         while len(self._recent) > 2 and self._recent[1].stamp_ns <= t.stamp_ns - self._window_ns:
             self._recent.popleft()
@@ -189,7 +200,6 @@ class FrontEnd:
                     max_interval_s=1.0 / self.ekf_cfg.frequency,
                 ),
             )
-        return True
 
     def odometry(self, msg: OdometryMessage) -> None:
         """One odometry message (nav_msgs/Odometry twist, or pose when it has no twist)."""

@@ -12,7 +12,7 @@ import pytest
 from sensors.config import RobotConfig
 from sensors.types import CameraIntrinsics, Pose2, RgbdFrame, WheelTicks
 from slam.config import DepthToScanConfig, EkfConfig, VoConfig
-from slam.diff_drive import WheelErrorModel
+from slam.diff_drive import WheelErrorModel, reject_encoder_glitches
 from slam.ekf import PoseInput, TwistInput, fuse, wheel_twist_inputs
 from slam.front_end import FrontEnd, FrontEndOptions, pose_only_odom0, vo_for_interval
 from slam.geometry import between
@@ -64,6 +64,46 @@ def test_wheel_readings_one_at_a_time_give_the_poses_of_the_whole_log_fused_at_o
     assert np.hypot(*got[-1, :2]) > 0.5  # it drove
     assert not fe.wheels(WheelTicks(int(stamps[k - 1]), 0, 0))  # a repeated reading: refused
     assert fe.counts["wheel_readings_repeated"] == 1
+
+
+def test_a_glitched_or_reset_encoder_reading_is_gated_online_as_the_offline_cleanup_does() -> None:
+    # One reading a million ticks off and back (a spike), then the counters jumping and staying
+    # (a board reset): the live path must not drive 300 km either (#16). The online gate must
+    # release exactly the readings the batch cleanup keeps.
+    rng = np.random.default_rng(7)
+    n = 400
+    stamps = np.cumsum(rng.integers(DT_NS // 2, 2 * DT_NS, n)).astype(np.int64)
+    left = np.cumsum(rng.integers(0, 3, n))
+    right = np.cumsum(rng.integers(0, 4, n))
+    left[150] += 1_000_000  # spike
+    left[300:] -= 40_000  # reset that stays
+    right[300:] -= 55_000
+    fe = _front_end(wheels=True)
+    for k in range(n):
+        fe.wheels(WheelTicks(int(stamps[k]), int(left[k]), int(right[k])))
+    od = fe.frame(_blank(int(stamps[-1]) + 1)).odom
+    assert od is not None
+    assert fe.counts["wheel_readings_dropped_glitch"] == 1
+    assert fe.counts["wheel_jumps_taken_as_no_motion"] == 1
+    clean = reject_encoder_glitches(stamps, left, right, ROBOT)
+    assert (clean.glitches_dropped, clean.jumps_zeroed) == (1, 1)
+    ref = fuse(
+        {
+            "odom0": wheel_twist_inputs(
+                clean.stamps_ns,
+                clean.left,
+                clean.right,
+                ROBOT,
+                WheelErrorModel.from_robot(ROBOT),
+                max_interval_s=1 / 30,
+            )
+        },
+        fe.ekf_cfg,
+        output_stamps_ns=np.array([stamps[-1] + 1]),
+    )
+    got = [od.pose.x, od.pose.y, od.pose.yaw]
+    np.testing.assert_allclose(got, [ref.x[0], ref.y[0], ref.yaw[0]], atol=1e-9)
+    assert np.hypot(od.pose.x, od.pose.y) < 5.0  # the robot drove about a metre, not 300 km
 
 
 @pytest.mark.parametrize("kind", ["twist", "pose"])
