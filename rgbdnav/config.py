@@ -229,7 +229,7 @@ def _merge_layer(
             raise ConfigError(
                 f"{source}: {section}: expected a mapping of keys, got {short_repr(values)}"
             )
-        out[section].update(values)
+        out[section] = _deep_merge(out[section], values)
         # Validate now so the error names the file that introduced the bad value.
         try:
             build_section(SECTIONS[section], out[section], section)
@@ -238,12 +238,24 @@ def _merge_layer(
     return out
 
 
+def _deep_merge(base: Mapping[str, Any], layer: Mapping[str, Any]) -> dict[str, Any]:
+    """``layer`` over ``base``; nested sections (``vo.advanced``) merge key by key."""
+    out = dict(base)
+    for key, value in layer.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
 def _shown(text: str) -> str:
     return text if len(text) <= SHOWN_OVERRIDE_CHARS else text[:SHOWN_OVERRIDE_CHARS] + "..."
 
 
 def parse_override(text: str) -> tuple[str, str, Any]:
-    """``"ekf.frequency=30"`` -> ("ekf", "frequency", 30); the value is parsed as YAML."""
+    """``"ekf.frequency=30"`` -> ("ekf", "frequency", 30); the value is parsed as YAML. A nested
+    key (``vo.advanced.fast_threshold=10``) keeps its dots in the name."""
     key, sep, raw = text.partition("=")
     section, dot, name = key.strip().partition(".")
     if not sep or not dot or not section or not name:
@@ -270,6 +282,9 @@ def load_config(
         merged = _merge_layer(merged, _read_yaml(path), str(path))
     for text in overrides:
         section, name, value = parse_override(text)
+        for part in reversed(name.split(".")[1:]):
+            value = {part: value}
+        name = name.split(".")[0]
         merged = _merge_layer(merged, {section: {name: value}}, f"--set {_shown(text)}")
     return Config(**{s: build_section(SECTIONS[s], merged[s], s) for s in SECTIONS})
 

@@ -44,11 +44,19 @@ def _summary(obj: Any) -> str:
     return doc.splitlines()[0] if doc else ""
 
 
-def render_section_lines(name: str, obj: Any) -> list[str]:
-    """``name:`` followed by one commented ``key: value`` line per field of dataclass ``obj``."""
-    lines = [f"{name}:"]
+def render_section_lines(
+    name: str, obj: Any, indent: str = "", meta: Mapping[str, Any] | None = None
+) -> list[str]:
+    """``name:`` followed by one commented ``key: value`` line per field of dataclass ``obj``
+    (a nested section, e.g. ``vo.advanced``, as an indented block under its commented name)."""
+    head = f"{indent}{name}:"
+    lines = [f"{head.ljust(COMMENT_COLUMN - 1)} {_comment(meta)}" if meta else head]
     for f in dataclasses.fields(obj):
-        entry = f"  {f.name}: {_yaml_scalar(getattr(obj, f.name))}"
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            lines += render_section_lines(f.name, value, indent + "  ", f.metadata)
+            continue
+        entry = f"{indent}  {f.name}: {_yaml_scalar(value)}"
         lines.append(f"{entry.ljust(COMMENT_COLUMN - 1)} {_comment(f.metadata)}")
     return lines
 

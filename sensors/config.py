@@ -81,6 +81,8 @@ def _check_scalar(value: Any, tp: Any, path: str) -> Any:
 
 
 def _coerce(value: Any, tp: Any, path: str) -> Any:
+    if dataclasses.is_dataclass(tp):  # a nested section, e.g. vo.advanced
+        return value if isinstance(value, tp) else build_section(tp, value, path)
     origin = typing.get_origin(tp)
     if origin is Literal:
         choices = typing.get_args(tp)
@@ -161,6 +163,8 @@ def section_to_dict(obj: Any) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            v = section_to_dict(v)
         out[f.name] = list(v) if isinstance(v, tuple) else v
     return out
 

@@ -9,7 +9,7 @@ shipped defaults.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 from sensors.config import param
@@ -155,6 +155,118 @@ class EkfConfig:
 
 
 @dataclass(frozen=True)
+class VoTuning:
+    """The ORB + PnP pipeline's inner constants (``vo.advanced``); measurements behind each
+    default: docs/design/vo_tuning.md."""
+
+    grid_rows: int = param(6, unit="cells", ge=1, doc="feature bucketing grid rows")
+    grid_cols: int = param(8, unit="cells", ge=1, doc="feature bucketing grid columns")
+    detect_factor: float = param(
+        1.2, ge=1.0, doc="detect this many times max_features, then bucket"
+    )
+    clahe_clip: float = param(0.0, ge=0.0, doc="CLAHE contrast limit before detection (0 = off)")
+    clahe_tiles: int = param(8, ge=1, doc="CLAHE tiles per image side")
+    depth_as_mask: bool = param(
+        True, doc="detect only on in-range depth (RTAB-Map Vis/DepthAsMask)"
+    )
+    depth_margin_px: int = param(
+        4, unit="px", ge=0, doc="depth mask grown into holes so keypoints at depth edges stay"
+    )
+    unmasked_share: float = param(
+        0.9,
+        gt=0.0,
+        le=1.0,
+        doc="detect unmasked if the depth mask covers this share of the image and keypoints",
+    )
+    fast_threshold: int = param(5, unit="8-bit levels", ge=1, doc="ORB's FAST threshold")
+    orb_levels: int = param(6, ge=1, doc="ORB pyramid levels (OpenCV default 8)")
+    orb_scale: float = param(1.2, gt=1.0, doc="ORB pyramid scale factor")
+    orb_split_level: int = param(
+        2, ge=0, doc="ORB levels [0, n) and [n, L) detected in two threads (0 = one call)"
+    )
+    cross_check: bool = param(False, doc="keep mutual best matches only")
+    knn: int = param(2, ge=1, doc="candidates kept per feature for the guided search")
+    level_window: int = param(
+        0, unit="levels", ge=-1, doc="match only across this many pyramid levels (-1 = all)"
+    )
+    guided_radius_px: float = param(
+        20.0, unit="px", gt=0.0, doc="guided search window around the PnP projection"
+    )
+    guided_max_hamming: int = param(
+        64, unit="bits", ge=0, doc="descriptor distance accepted in the guided search"
+    )
+    second_radius_px: float = param(
+        6.0, unit="px", ge=0.0, doc="2nd guided search around the refined pose (0 = none)"
+    )
+    second_max_hamming: int = param(
+        64, unit="bits", ge=0, doc="descriptor distance accepted in the 2nd search"
+    )
+    min_pnp_inliers: int = param(6, ge=3, doc="RANSAC inliers a hypothesis needs to be verified")
+    pnp_method: Literal["rigid", "magsac", "ransac", "ap3p", "prosac"] = param(
+        "rigid", doc="rigid: seeded 3-point rigid RANSAC; others: cv2.solvePnPRansac flavours"
+    )
+    ransac_seed: int = param(0, ge=0, doc="seed of the rigid hypotheses' sampler (repeatable runs)")
+    rigid_samples: int = param(3000, ge=1, doc="3-point samples drawn for the rigid hypotheses")
+    rigid_tol_m: float = param(
+        0.03, unit="m", ge=0.0, doc="pairwise-distance consistency of a sample, plus ..."
+    )
+    rigid_tol_z2: float = param(
+        0.01, unit="1/m", ge=0.0, doc="... this times z^2 per point (depth noise grows as z^2)"
+    )
+    rigid_min_span_m: float = param(
+        0.1, unit="m", ge=0.0, doc="shortest side of a sample triangle (conditioning)"
+    )
+    rigid_refits: int = param(4, ge=0, doc="best hypotheses refitted on their inliers (LO-RANSAC)")
+    rigid_max_hypotheses: int = param(64, ge=1, doc="consistent samples solved and scored at most")
+    verify_hypotheses: int = param(
+        3, ge=1, doc="distinct hypotheses verified by guided search + refinement"
+    )
+    distinct_m: float = param(
+        0.05, unit="m", ge=0.0, doc="hypotheses closer than this in translation are one"
+    )
+    close_call: float = param(
+        0.9, gt=0.0, le=1.0, doc="candidates within this share of the best go to the 2nd search"
+    )
+    verify_ratio: float = param(
+        0.7, gt=0.0, le=1.0, doc="verify only hypotheses with this share of the best's inliers"
+    )
+    ransac_confidence: float = param(0.999, gt=0.0, lt=1.0, doc="OpenCV PnP methods only")
+    refine: Literal["none", "lm", "rgbd"] = param("rgbd", doc="pose refinement after PnP")
+    refine_iterations: int = param(4, ge=0, doc="Gauss-Newton steps of the refinement")
+    second_iterations: int = param(2, ge=0, doc="Gauss-Newton steps after the 2nd guided search")
+    converged: float = param(1e-4, unit="rad | m", gt=0.0, doc="Gauss-Newton stops below this step")
+    pixel_sigma: float = param(
+        1.0, unit="px", gt=0.0, doc="keypoint localisation noise at pyramid level 0"
+    )
+    disparity_sigma: float = param(
+        0.5, unit="px", gt=0.0, doc="virtual right-column noise (depth incl. registration)"
+    )
+    huber_px: float = param(2.0, unit="sigma", gt=0.0, doc="Huber threshold of the refinement")
+    min_inlier_ratio: float = param(
+        0.1, ge=0.0, le=1.0, doc="inliers / matches below this: too_few_inliers"
+    )
+    keyframe_inliers: int = param(
+        40, ge=0, doc="new keyframe below this many inliers, besides the ratio test"
+    )
+    prior_radius_px: float = param(
+        0.0, unit="px", ge=0.0, doc="look for a match first near the predicted point (0 = off)"
+    )
+    prior_seed: bool = param(
+        True, doc="while the prior holds, the last pose seeds the refinement instead of RANSAC"
+    )
+    prior_max_error_px: float = param(
+        7.5, unit="px", ge=0.0, doc="the prior holds after a frame it predicted within this"
+    )
+    prior_min_inlier_ratio: float = param(
+        0.5, ge=0.0, le=1.0, doc="refined inliers / window matches below this: match globally"
+    )
+    min_sigma_m: float = param(0.002, unit="m", ge=0.0, doc="covariance floor per translation axis")
+    min_sigma_rad: float = param(
+        0.002, unit="rad", ge=0.0, doc="covariance floor per rotation axis"
+    )
+
+
+@dataclass(frozen=True)
 class VoConfig:
     """RGB-D visual odometry (names after RTAB-Map's Vis/* and Odom/* parameters)."""
 
@@ -261,6 +373,11 @@ class VoConfig:
         ge=0.0,
         doc="depth_icp: smallest point-to-plane information eigenvalue per point "
         "(within 60 deg of it), else degenerate (a blank wall and the floor: none)",
+    )
+
+    advanced: VoTuning = field(
+        default_factory=VoTuning,
+        metadata={"doc": "the ORB + PnP pipeline's inner constants (vo.advanced.*)"},
     )
 
     def validate(self) -> str | None:

@@ -37,7 +37,6 @@ from sensors.types import CameraIntrinsics, ConfigError, RgbdFrame
 from slam.config import VoConfig
 from slam.visual_odometry import (
     VoResult,
-    VoTuning,
     _fail,
     base_from_optical,
     inverse,
@@ -230,7 +229,7 @@ class DepthIcpOdometry:
         except ImportError as err:  # pragma: no cover - a dependency of the package
             raise ConfigError("vo.method depth_icp needs the kiss-icp package") from err
         self.cfg = cfg or VoConfig()
-        self._tuning = VoTuning()  # its covariance floors
+        self._tuning = self.cfg.advanced  # its covariance floors
         self.intrinsics = intrinsics
         self.t_base_opt = base_from_optical(robot or RobotConfig()) if self.cfg.force_3dof else None
         c = self.cfg

@@ -76,7 +76,7 @@ from scipy.spatial import cKDTree
 from sensors.config import RobotConfig
 from sensors.extrinsics import optical_in_base_4x4
 from sensors.types import CameraIntrinsics, ConfigError, Pose2, RgbdFrame
-from slam.config import VoConfig
+from slam.config import VoConfig, VoTuning
 
 log = logging.getLogger(__name__)
 
@@ -97,94 +97,6 @@ Reason = Literal[
     "too_few_points",  # depth_icp: too little in-range depth
     "degenerate",  # depth_icp: the geometry leaves a motion unconstrained (a blank wall)
 ]
-
-
-@dataclass(frozen=True)
-class VoTuning:
-    """Constants of the ORB + PnP pipeline that are not (yet) in :class:`VoConfig`."""
-
-    grid_rows: int = 6  # feature bucketing grid (cells)
-    grid_cols: int = 8
-    detect_factor: float = 1.2  # detect this many times max_features, then bucket. With the
-    # other defaults, TUM cabinet mean over 10 draws / house route VO-only drift: 1.5 costs ORB
-    # time for keypoints the bucketing drops; 1.2 98.2 % / 1.27 cm, 2.3 cm per 10 m; 1.0
-    # 98.2 % / 1.29 cm, 5.2 cm per 10 m, and no bucketing left (one ORB call, before the split)
-    clahe_clip: float = 0.0  # CLAHE contrast limit before detection (0 = off; it hurt on TUM)
-    clahe_tiles: int = 8  # CLAHE tiles per image side
-    depth_as_mask: bool = True  # detect only on in-range depth (RTAB-Map Vis/DepthAsMask); off,
-    # ORB spends its budget on texture without depth (in the simulator, near floor: VO lost)
-    depth_margin_px: int = 4  # [px] the depth mask grown by this into holes (no return, not
-    # out of range) so keypoints at depth edges stay, 2D-only. TUM cabinet, mean over draws:
-    # 0 px 96.1 %, 4 px 97.1 %, 8 px 98.2 %; house route EKF ATE 0.154 / 0.153 / 0.191 m
-    unmasked_share: float = 0.9  # detect unmasked (then drop keypoints off the mask) if the
-    # mask covers this share of the image and this share of the keypoints land on it. (After a
-    # failed try, going straight to the mask for the next 30 frames saved 0.8 ms per house
-    # frame but raised the office's VO-only ATE from 0.18 to 0.29 m: kept as is)
-    fast_threshold: int = 5  # [8-bit levels] ORB's FAST threshold (OpenCV default 20)
-    orb_levels: int = 6  # OpenCV default 8. With level_window 0 and knn 2, TUM cabinet mean over
-    # 10 draws: 6 levels 100 % / 1.17 cm, 8 levels 98.9 % / 1.29 cm (and a larger pyramid)
-    orb_scale: float = 1.2
-    orb_split_level: int = 2  # ORB levels [0, 2) and [2, L) as two calls in two threads: TUM
-    # cabinet 3.0 + 2.3 ms CPU against 5.6 ms for one call, so about 55 % of its wall time when
-    # the second core is free (0 = one call). Levels 0-3 identical to one call's; 4-5 differ by
-    # OpenCV's size rounding. All defaults, 10 draws: split 100 % / 1.28 cm, one call 98.2 % /
-    # 1.27 cm
-    cross_check: bool = False  # keep mutual best matches only (cost a 2nd matching, hurt here)
-    knn: int = 2  # candidates kept per feature for the guided (projection) search (with
-    # level_window 0, TUM cabinet over 10 draws: 3 -> 98.9 % / 1.22 cm, 2 -> 98.9 % / 1.29 cm,
-    # one argmin pass less)
-    level_window: int = 0  # [levels] match only across this many pyramid levels (-1 = all). TUM
-    # cabinet, mean over 10 draws (8 levels, knn 3): 1 -> 97.1 % / 1.29 cm, 0 -> 98.9 % /
-    # 1.22 cm at half the descriptor comparisons; house route VO-only drift 11.5 -> 8.6 cm/10 m
-    guided_radius_px: float = 20.0  # [px] guided search window around the PnP projection
-    guided_max_hamming: int = 64  # [bits] descriptor distance accepted in the guided search
-    second_radius_px: float = 6.0  # [px] 2nd guided search around the refined pose (0 = none)
-    second_max_hamming: int = 64  # [bits] descriptor distance accepted in the 2nd search
-    min_pnp_inliers: int = 6  # RANSAC inliers a hypothesis needs to be verified (the guided
-    # search turns 6-7 ratio-test inliers into 70+ on the hard TUM pairs; 8 lost them)
-    # "rigid": rigid_ransac; the others are cv2.solvePnPRansac flavours, which OpenCV seeds
-    # identically on every call (the old AP3P default: 86 % mean success over draws on TUM)
-    pnp_method: Literal["rigid", "magsac", "ransac", "ap3p", "prosac"] = "rigid"
-    ransac_seed: int = 0  # seed of the rigid hypotheses' sampler (explicit: runs are repeatable)
-    rigid_samples: int = 3000  # [-] 3-point samples drawn for the rigid hypotheses
-    rigid_tol_m: float = 0.03  # [m] pairwise-distance consistency of a sample, plus ...
-    rigid_tol_z2: float = 0.01  # [1/m] ... this times z^2 per point (Kinect depth noise ~ z^2)
-    rigid_min_span_m: float = 0.1  # [m] shortest side of a sample triangle (conditioning)
-    rigid_refits: int = 4  # best hypotheses refitted on their inliers (LO-RANSAC) before the pick
-    rigid_max_hypotheses: int = 64  # [-] consistent samples solved and scored at most
-    verify_hypotheses: int = 3  # distinct hypotheses verified by guided search + refinement
-    distinct_m: float = 0.05  # [m] hypotheses closer than this in translation are one
-    close_call: float = 0.9  # refined candidates within this share of the best go on to the
-    # second search, which then decides
-    verify_ratio: float = 0.7  # verify only hypotheses with this share of the best's inliers
-    ransac_confidence: float = 0.999  # OpenCV PnP methods only
-    refine: Literal["none", "lm", "rgbd"] = "rgbd"
-    refine_iterations: int = 4  # Gauss-Newton steps (converges in 3-4 from the PnP seed)
-    second_iterations: int = 2  # Gauss-Newton steps after the second guided search
-    converged: float = 1e-4  # [rad | m] Gauss-Newton stops below this step
-    pixel_sigma: float = 1.0  # [px] keypoint localisation noise at pyramid level 0
-    disparity_sigma: float = 0.5  # [px] virtual right-column noise (depth incl. registration)
-    huber_px: float = 2.0  # [sigma] Huber threshold of the refinement
-    min_inlier_ratio: float = 0.1  # inliers / matches below this -> too_few_inliers
-    keyframe_inliers: int = 40  # new keyframe below this many inliers, besides the ratio test:
-    # guided matches keep the inlier ratio near 1 while the overlap shrinks. Full house route
-    # (3970 frames) VO-only ATE: 0 (ratio only) 0.203 m, 17 frames lost; 40: 0.156 m, 2 lost
-    # (before this change 0.170 m, 4 lost). First 300 frames, VO-only drift: 0 -> 11.9 cm/10 m,
-    # 40 -> 2.4, 60 -> 6.6, 100 -> 3.8
-    prior_radius_px: float = 0.0  # [px] window around a keyframe point's projection by the last
-    # frame's pose in which VisualOdometry looks for its match first (0 = always global). Off:
-    # with 15 px the full house route (3970 frames) was 98 % prior-tracked at 34 % less CPU per
-    # frame, but its VO-only ATE rose from 0.156 to 0.293 m (the first 300 frames: unchanged)
-    prior_seed: bool = True  # while the prior holds (``prior_max_error_px``), the last frame's
-    # pose seeds the refinement in place of RANSAC: the global k-NN candidates and the guided
-    # search stay (the window search's best-in-window matches are what cost it accuracy)
-    prior_max_error_px: float = 7.5  # [px] the prior path is tried after a frame whose global
-    # estimate the prediction matched within this (the cabinet keyframes, 0.15 m apart, miss by
-    # 30-140 px: there it would only cost; at 30 Hz it holds on nearly every frame)
-    prior_min_inlier_ratio: float = 0.5  # refined inliers / window matches below this: the
-    # prior does not hold, match globally
-    min_sigma_m: float = 0.002  # [m] covariance floor per translation axis
-    min_sigma_rad: float = 0.002  # [rad] covariance floor per rotation axis
 
 
 @dataclass(frozen=True, eq=False)
@@ -1040,7 +952,7 @@ def estimate_motion(
     base_link, :func:`base_from_optical`) is given.
     """
     cfg = params or VoConfig(force_3dof=False)
-    tun = tuning or VoTuning()
+    tun = tuning or cfg.advanced
     t0 = time.perf_counter()
     if cfg.method != "orb_pnp":
         # Open3D RGB-D odometry measured 39 % / 8.7 cm on TUM cabinet (16 wrong poses accepted)
@@ -1251,7 +1163,7 @@ class VisualOdometry:
         self._last_frame: RgbdFrame | None = None  # the fallback starts from it
         # Per-run counts: feature failures the fallback bridged, and those it could not.
         self.stats: dict[str, int] = {"fallback_used": 0, "fallback_failed": 0}
-        self.tuning = tuning or VoTuning()
+        self.tuning = tuning or self.cfg.advanced
         self.k = camera_matrix(intrinsics)
         self.keyframes = keyframes
         self.t_base_opt = base_from_optical(robot or RobotConfig()) if self.cfg.force_3dof else None

@@ -331,3 +331,25 @@ def test_non_string_keys_are_reported_as_unknown_keys() -> None:
     keys: dict[Any, Any] = {1: 2.0, "nope": 3.0}  # YAML allows non-string keys
     with pytest.raises(ConfigError, match=r"scene: ekf\.1: unknown key"):
         load_config(base={"ekf": keys})
+
+
+def test_vo_advanced_is_a_nested_section_reachable_from_files_and_set(tmp_path: Path) -> None:
+    # Issue #10: the ORB + PnP pipeline's constants (VoTuning) are config, not code.
+    from slam.visual_odometry import VisualOdometry
+
+    f = tmp_path / "vo.yaml"
+    f.write_text("vo:\n  advanced:\n    knn: 3\n    pnp_method: magsac\n")
+    cfg = load_config([f], ["vo.advanced.fast_threshold=10", "vo.advanced.knn=4"])
+    adv = cfg.vo.advanced
+    assert (adv.fast_threshold, adv.knn, adv.pnp_method) == (10, 4, "magsac")  # merged by key
+    assert adv.orb_levels == 6  # untouched keys keep their defaults
+    from sensors.types import CameraIntrinsics
+
+    vo = VisualOdometry(CameraIntrinsics(640, 480, 525.0, 525.0, 319.5, 239.5), cfg.vo)
+    assert vo.tuning.fast_threshold == 10  # it reaches the pipeline
+    with pytest.raises(ConfigError, match=r"vo\.advanced\.fast_treshold: unknown key"):
+        load_config([], ["vo.advanced.fast_treshold=10"])
+    with pytest.raises(ConfigError, match=r"vo\.advanced\.knn"):
+        load_config([], ["vo.advanced.knn=0"])
+    with pytest.raises(ConfigError, match=r"vo\.advanced: expected a mapping"):
+        load_config([], ["vo.advanced=3"])
