@@ -2,41 +2,20 @@
 
 Layers, combined in Nav2's order into the master grid by :meth:`Costmap.master`:
 
-1. **Static** (``StaticLayer``): the map's nav_msgs values through ``interpretValue``: unknown ->
-   ``NO_INFORMATION`` (or ``FREE`` when ``track_unknown_space`` is false), occupancy >=
-   ``lethal_cost_threshold`` -> ``LETHAL``, else ``FREE`` (trinary) or scaled. It *overwrites*
-   the master (``updateWithTrueOverwrite``).
-2. **Obstacle** (``ObstacleLayer``): live scans. Each scan first clears the cells its beams cross
-   between ``raytrace_min_range`` and ``raytrace_max_range``, then marks return end points between
-   ``obstacle_min_range`` and ``obstacle_max_range`` as ``LETHAL`` (clearing before marking, so an
-   end point wins). Combined with ``updateWithMax``: the layer's ``NO_INFORMATION`` cells are
-   skipped and its ``FREE`` never lowers a static wall, so ray clearing removes only what the
-   obstacle layer itself marked (and turns unknown static cells the laser has seen into free).
-   ``inf_is_valid`` (our default true, Nav2's false) lets no-return beams clear too, which is what
-   makes an obstacle that walked away disappear when nothing lies behind it within range.
-3. **Inflation** (``InflationLayer``): Euclidean distance ``d`` [m] between cell centres to the
-   nearest ``LETHAL`` cell (and unknown cells when ``inflate_around_unknown``);
-   ``computeCost``: ``LETHAL`` at d = 0, ``INSCRIBED`` for d <= inscribed radius
-   (robot_radius + footprint_padding), ``int((INSCRIBED - 1) * exp(-k (d - r_inscribed)))``
-   for d <= ``inflation_radius``, untouched beyond. A cell's cost becomes the max of its old
-   value and the inflated cost, except an unknown cell, which takes the inflated cost only when
-   it is >= ``INSCRIBED`` (or > ``FREE`` with ``inflate_unknown``).
-4. **Keepout filter** (``KeepoutFilter``, applied after inflation like Nav2's costmap filters;
-   with ``inflate_keepout`` (the default) also combined *before* inflation, so the zone is
-   inflated like an obstacle and the whole footprint stays out -- with Nav2's order only the
-   robot centre does, and a pure pursuit arc that cuts a zone's corner blocks the robot there):
-   mask values 0..100 become ``round(v * LETHAL / 100)`` (100 = keepout =
-   ``LETHAL``), unknown mask cells are skipped; a mask cell raises the master cost, and replaces
-   ``NO_INFORMATION``. The mask is resampled by world coordinates of the costmap cell centres, so
-   a mask with its own origin and resolution in the shared map frame lands on the right cells.
+1. **Static**: the map's nav_msgs values through ``interpretValue`` (unknown, lethal, free or
+   scaled); it overwrites the master.
+2. **Obstacle**: live scans clear the cells their beams cross, then mark return end points
+   ``LETHAL``; combined with ``updateWithMax``, so clearing removes only what this layer marked.
+   ``inf_is_valid`` (our default true) lets no-return beams clear too.
+3. **Inflation**: Nav2's ``computeCost`` over the Euclidean distance to the nearest lethal cell
+   (``INSCRIBED`` inside the inscribed radius, exponential decay to ``inflation_radius``).
+4. **Keepout filter**: mask values 0..100 scaled to costs, resampled by world coordinates; with
+   ``inflate_keepout`` also combined before inflation so the whole footprint stays out.
 
-Deviations, on purpose: a non-overlapping keepout mask is refused with :class:`MapError` (Nav2
-silently does nothing); ``inflation_radius`` is compared in metres (Nav2 rounds it up to whole
-cells with ``ceil``, so 0.55 m at 5 cm reaches 12 cells because 0.55 / 0.05 = 11.000000000000002);
-``cost_at`` outside the map is ``LETHAL`` (pyrobosim's out-of-bounds-is-occupied). The costmap is
-global (sized by the static map or a given geometry); ``rolling_window`` is not handled here.
-
-Arrays follow :mod:`slam.occupancy_grid`: ``(height, width)``, row 0 = lowest y.
+Deliberate deviations from Nav2 (a non-overlapping keepout mask is an error, the inflation
+radius compared in metres, out-of-map cost ``LETHAL``) and the exact rules of each layer:
+docs/design/costmap.md. Arrays follow :mod:`slam.occupancy_grid`: ``(height, width)``, row 0 =
+lowest y.
 """
 
 from __future__ import annotations

@@ -1,47 +1,24 @@
 """Global path planning on a Nav2 costmap: cost-aware grid search, smoothing, straight lines.
 
 Costmap semantics (nav2_costmap_2d): a ``(H, W)`` uint8 array, row 0 = lowest y, on a
-:class:`slam.occupancy_grid.GridGeometry`; ``FREE_SPACE`` 0 .. ``INSCRIBED_INFLATED_OBSTACLE`` 253,
-``LETHAL_OBSTACLE`` 254, ``NO_INFORMATION`` 255.
+:class:`slam.occupancy_grid.GridGeometry`; ``FREE_SPACE`` 0 .. ``INSCRIBED_INFLATED_OBSTACLE``
+253, ``LETHAL_OBSTACLE`` 254, ``NO_INFORMATION`` 255.
 
 Planning (:meth:`GridPlanner.plan`), NavFn / global_planner style:
 
-1. A cell is impassable when its cost is ``>= lethal_cost`` (unknown counts as passable with cost
-   ``lethal_cost - 1`` when ``allow_unknown``, like NavFn's ``COST_OBS - 1``). A start in an
-   impassable cell that is not a wall (the inscribed band, or unknown space without
-   ``allow_unknown``) is not refused (NavFn's ``clearRobotCell``): the search may leave it through
-   the non-lethal impassable cells around it (:func:`escape_region`, entered at cost
-   ``lethal_cost - 1``) but never re-enter them from passable space. A start on a wall is refused.
-2. Entering cell ``v`` costs ``(neutral_cost + cost_factor * cost[v]) * |step|`` with ``|step|``
-   1 or sqrt(2) on the 8-connected grid. A diagonal step is refused when either of the two
-   cells it cuts past is impassable, so paths never squeeze between diagonal obstacle cells.
-3. Search: Dijkstra, or A* with the admissible, consistent heuristic
-   ``h(v) = neutral_cost * octile(v, goal)`` (every step costs at least ``neutral_cost * |step|``).
-   A* settles about half the cells for the same path cost, but among the many equal-cost grid
-   paths it keeps other ones than Dijkstra (the default, as NavFn's). Both run in C through
-   :func:`scipy.sparse.csgraph.dijkstra` on a CSR graph whose topology and weight buffer are
-   cached per grid shape; the edge weights are computed with array slices and cached per costmap
-   content (a plan on an unchanged costmap reuses them). A* is Dijkstra on the reduced weights
-   ``w(u, v) - h(u) + h(v)`` (>= 0 by consistency), which settles cells in A* order; the
-   reduction is the one per-plan pass over the edges. scipy cannot stop at the goal, so early
-   termination is emulated with its ``limit``: the first pass is bounded by
-   :data:`FIRST_LIMIT_RATIO` times a lower bound of the goal's cost and each pass that misses the
-   goal grows the bound by :data:`LIMIT_GROWTH`, until the goal is settled or no edge leaves the
-   settled region (unreachable); after :data:`MAX_LIMITED_PASSES` misses one unbounded pass
-   settles everything reachable. Chosen by
-   measurement on the bench map (400x400 cells, start and goal 10+ m apart): the plain heapq
-   Dijkstra of the tests, stopping at the goal, takes 1.4-2.7 s per plan, this 25-50 ms.
-4. Goal tolerance (NavFn): if the goal cell is unreachable (or impassable but not a wall),
-   plan to the reachable cell nearest the goal within ``tolerance``, the cheaper one on ties.
-   A goal on a wall (LETHAL_OBSTACLE) or, without ``allow_unknown``, in unknown space is refused.
-5. Smoothing (nav2_smoother SimpleSmoother): gradient steps
-   ``p_i += w_data (q_i - p_i) + w_smooth (p_{i-1} + p_{i+1} - 2 p_i)`` on all interior points at
-   once; a point whose update would put it, or the midpoints of its two segments, in an
-   impassable cell stays where it was. Segments that still clip an impassable cell get the raw
-   grid points back around them (:func:`repair_path`); the result is resampled to one point per
-   ``resolution`` with yaw along the path and the goal yaw (if given) on the last pose.
+1. cells at or above ``lethal_cost`` are impassable (unknown passable with ``allow_unknown``);
+   a start inside the inflated band may leave it (NavFn's ``clearRobotCell``), one on a wall
+   is refused;
+2. entering a cell costs ``(neutral_cost + cost_factor * cost) * |step|`` on the 8-connected
+   grid, no diagonal squeezing past obstacle cells;
+3. Dijkstra (default) or A* run in C through :func:`scipy.sparse.csgraph.dijkstra`, with
+   cached graph topology and edge weights and early termination emulated by growing limits;
+4. NavFn's goal tolerance: the reachable cell nearest an unreachable goal;
+5. nav2_smoother's SimpleSmoother, repaired where it would clip an obstacle, resampled to one
+   point per cell with yaw along the path.
 
-Failures are results (``success=False`` with a reason), never exceptions.
+Failures are results (``success=False`` with a reason), never exceptions. The details and the
+measurements behind the search's design: docs/design/planner.md.
 """
 
 from __future__ import annotations

@@ -1,39 +1,19 @@
 """Depth image -> planar LaserScan, tilt-compensated through the camera extrinsics.
 
-depthimage_to_laserscan keeps the nearest return per image column over a band of rows and
-reports it in the (tilted) camera frame; pointcloud_to_laserscan keeps the points whose height
-lies in [min_height, max_height] and bins them by bearing. We do the second on the depth image
-directly, with everything that does not depend on the depth precomputed once per camera:
+Like pointcloud_to_laserscan (points whose height lies in [min_height, max_height], binned by
+bearing, nearest return per beam), but on the depth image directly: everything that does not
+depend on depth is precomputed once per camera, so a pixel's height test and range are one
+precomputed depth interval and one multiply, and its beam is fixed. A frame is then a gather,
+an interval test and one ``np.minimum.reduceat`` over pixels sorted by beam. A camera whose
+optical centre is not above the scan origin takes an exact general path.
 
-1. every pixel (u, v) in the row band gets its ray ``D`` in base_link, scaled so that the optical
-   z component is 1; a pixel with depth z then sits at ``p = t + z D`` (t: optical centre);
-2. a point's height above the floor ``t_z + z D_z`` and, when the optical centre is above the
-   scan origin, its horizontal range ``z |D_xy|`` are linear in z, so "inside the height band and
-   within [range_min, range_max]" is one precomputed depth interval [z_lo, z_hi] per pixel,
-   and the bearing ``atan2(D_y, D_x)`` -- hence the beam -- is fixed per pixel;
-3. pixels are stored sorted by beam, so a frame is: gather, interval test, multiply, and one
-   ``np.minimum.reduceat`` over contiguous beams (on house.yaml frames only ~5 % faster in
-   median than ``np.minimum.at``, kept as the reference kernel
-   :func:`nearest_per_beam_reference`; see bench/bench_depth_to_scan.py). The near-cluster
-   mean (``return_averaging_window``) works on the same groups: two more ``reduceat``.
+Beams span the horizontal bearings of the row band's pixel rays; beam k is at ``angle_min +
+k * inc`` with REP-117 semantics (+inf for no return); ``angle_increment`` <= 0 derives inc
+from the intrinsics (1 / fx, about one beam per column). ``output_frame`` "base_link" measures
+ranges from the base_link origin, a "camera*" frame from the optical centre's floor projection;
+range is always horizontal distance.
 
-When the optical centre is *not* above the scan origin (a camera mounted off the axle, scan in
-base_link) bearing and range depend on z; that frame takes the general path: the height interval
-picks the points, then exact ``hypot``/``atan2`` and ``np.minimum.at`` on those points only.
-
-Scan geometry. The beams span the horizontal bearings of every pixel ray in the row band
-(for an untilted camera: the horizontal field of view). Beam k is at ``angle_min + k * inc`` and
-collects the points with bearing within half an increment of it; its range is the nearest one
-(REP-117: +inf when the beam has no return). ``cfg.angle_increment`` sets inc; a value <= 0
-(only reachable by building the config in code, the YAML loader requires > 0) derives it from
-the intrinsics: 1 / fx, the angular pitch of the centre column, which is the coarsest across the
-image, so no beam falls between two columns (about one beam per column, like
-depthimage_to_laserscan, but uniform in angle).
-
-Frames. ``output_frame`` "base_link" (or "base_footprint", the same plane here) measures ranges
-from the base_link origin; any name starting with "camera" (camera_link, camera_depth_frame)
-measures them from the optical centre's floor projection, axes parallel to base_link. Range is
-always horizontal distance, never distance along the tilted ray.
+The derivation, the frames and the kernel measurements: docs/design/depth_to_scan.md.
 """
 
 from __future__ import annotations

@@ -1,80 +1,26 @@
 """Localisation-only mode: track the pose against a saved map, relocalise globally when lost.
 
 The map is never modified. :class:`MapModel` derives from an :class:`OccupancyGrid` (ours or any
-Nav2 map) what matching needs; :class:`Localizer` is a thin stateful shell over the pure kernels
-below. Per scan (:meth:`Localizer.update`):
+Nav2 map) what matching needs; :class:`Localizer` is a thin stateful shell over pure kernels.
+Per scan (:meth:`Localizer.update`):
 
-1. **Predict** the map pose from the last estimate and the odometry increment since the last
-   scan (``x' = x (+) u``), growing the covariance with AMCL's diff-drive noise (``alpha1..4``).
-2. **Match** the scan against the map: point-to-line ICP from the prediction; when ICP does not
-   hold (no convergence, a step outside half the search window, or a score below ``min_score``)
-   an exact correlative search over ``linear_search_window`` x ``angular_search_window`` around
-   the prediction, refined by ICP.
-3. **Fuse** prediction and match in a Kalman update (Joseph form, wrapped yaw residual): along a
-   featureless corridor ICP's covariance is large in one direction and odometry carries it.
-   The match covariance gets ``match_sigma_floor`` / ``match_sigma_floor_yaw`` in quadrature.
-   **Gate** (``match_gate`` > 0, for a robot whose odometry is better than the scans are
-   reliable: a narrow depth camera facing one moved piece of furniture matches it confidently
-   0.3 m / 15 deg off, scan after scan): a match whose Mahalanobis distance from the prediction
-   (``P + R``) exceeds the gate is not fused but held as a jump hypothesis, propagated by
-   odometry. The estimate jumps to it only after ``jump_confirm_scans`` consecutive gated
-   matches agree with it *and* the recent scans from before them, stacked by odometry, fit it
-   clearly better (``relocalization_ambiguity_ratio``) than the prediction; with
-   ``jump_confirm_scans`` 0 never -- either way the prediction's covariance grows while matches
-   are gated, until the gate admits them as ordinary fixes (the filter, not a rule, decides).
-4. **Confidence** is the mean likelihood ``exp(-d^2 / 2 sigma_hit^2)`` of the scan points at the
-   fused pose (``d`` to the nearest occupied cell), in [0, 1]. Below ``lost_score`` (or with
-   matches rejected or gated) for ``lost_time`` the status becomes ``"lost"`` and the following
-   scans relocalise globally -- unless ``dead_reckoning_max_sigma`` > 0: then the localiser
-   keeps predicting from odometry ("tracking", covariance growing) until the position sigma
-   reaches it, as AMCL does with healthy odometry.
-   **Kidnap check**: a confidence that falls below ``kidnap_check_ratio`` x the median of the
-   last ``kidnap_check_scans`` runs the global search on that scan (once per drop); a place
-   that fits clearly better declares ``"lost"`` at once, and relocalisation starts from those
-   hypotheses plus the tracked pose, which wins ties (the prior is on its side). A 1.45 m jump
-   along a corridor-like route used to keep "tracking" 1.3 m off at confidence 0.5.
-5. ``map_to_odom = pose (+) odom^-1`` so the odom frame stays continuous and the map frame jumps.
+1. **predict** from the last estimate and the odometry increment (AMCL's ``alpha1..4`` noise);
+2. **match**: point-to-line ICP from the prediction, else an exact correlative search in the
+   search window refined by ICP;
+3. **fuse** prediction and match in a Kalman update; a match far outside the prediction is
+   gated and held as a jump hypothesis until consecutive scans confirm it;
+4. **confidence** from the scan's likelihood at the fused pose; low for ``lost_time`` means
+   "lost" (unless dead reckoning is allowed), and a sudden drop runs a kidnap check;
+5. ``map_to_odom = pose (+) odom^-1``: the odom frame stays continuous, the map frame jumps.
 
-**Wide match** (:meth:`Localizer.match_recent`, the navigator's goal settle): the last scans,
-stacked by odometry (e.g. those of a turn in place), matched once from the estimate and fused
-past the gate -- a view all round, where one moved piece of furniture weighs little.
-:attr:`Localizer.gated_streak` says how many matches in a row the gate has held back.
+**Global relocalisation** (no initial pose, or lost): :func:`global_search`, an exact
+multi-resolution branch-and-bound over the free cells and a full turn, gives a few distinct
+hypotheses; each is refined, propagated by odometry and accepted only after consecutive
+agreeing matches on scans taken after real motion, and only when no rival scores within
+``relocalization_ambiguity_ratio`` (a symmetric map stays "relocalising" rather than guess).
 
-**Global relocalisation** (no initial pose, or lost): :func:`global_search` is an exact
-multi-resolution branch-and-bound over every free cell of a coarse field (``global_search_
-resolution``, smear ``global_search_sigma``) and a full turn at ``global_search_angular_
-resolution``; it keeps every lattice pose scoring at least ``global_search_candidate_ratio``
-times the best, and non-maximum suppression leaves a few distinct hypotheses. The search runs
-from a high threshold (0.95 x a beam-descent leaf's score) down to that floor and stops as soon
-as the leaves above the threshold already give ``global_search_max_hypotheses`` picks (greedy
-suppression takes leaves best first, so lower leaves could not change them): the same answer,
-2-4x fewer blocks scored on cluttered maps. Each candidate is refined on the fine field
-(correlative + ICP), then propagated by odometry and re-matched on the following scans; a
-hypothesis is accepted after ``relocalization_verification_scans`` consecutive matches that agree
-with its prediction and score at least ``global_localization_min_score`` (a scan counts only once
-odometry has moved ``relocalization_update_min_d`` or turned ``relocalization_update_min_a`` since
-the last counted one, as AMCL's ``update_min_d`` / ``update_min_a``: a robot standing or turning
-slowly on the spot sees the same view again, which is no new evidence -- a 1.2 m hexagonal room
-was accepted into a corner of another building on three such views), and only when no other
-verified hypothesis scores within ``relocalization_ambiguity_ratio`` of it (a symmetric map stays
-``"relocalising"`` with a reason instead of guessing). For narrow scans (a 60 deg depth camera
-sees a wall or a corner that fits many places) three more safeguards apply:
-
-- hypotheses are also scored on the scans of the last ``relocalization_history_m`` of odometry
-  travel stacked by odometry (a wider view); they are ranked by the lower of the two scores, and
-  a rival must be within the ambiguity ratio on both;
-- while ambiguous, the current scan is searched again every ``relocalization_verification_scans``
-  scans and its places join the hypotheses (at most twice ``global_search_max_hypotheses``): the
-  true place may have ranked below the cut on the first scan;
-- a leader that is left alone because its rivals died is checked by one more search before it
-  is accepted.
-
-Memory of the global field: it is not padded by the search window (the whole map) but by the
-scan's reach (``laser_max_range``) plus one top-level block, and its pyramid levels are uint8
-(likelihood x 255); a 60 m x 60 m map at 0.1 m with 30 m reach is ~1.2 M cells x 6 levels ~ 7 MB.
-
-Poses are those of the scan frame (the laser for laser logs, ``base_link`` for depth->scan
-scans) in ``map``; odometry is given for the same frame.
+Poses are those of the scan frame in ``map``; odometry is given for the same frame. The full
+rules (gate, kidnap check, narrow-scan safeguards, memory): docs/design/localization.md.
 """
 
 from __future__ import annotations

@@ -2,29 +2,22 @@
 
 Per scan (:meth:`Mapper.add_scan`), like slam_toolbox's ``addScan``:
 
-1. Reject bad input (non-finite odometry, time going backwards) with a counted reason.
-2. Predict the pose from the last keyframe's optimised pose and the odometry since then.
-3. Not moved ``minimum_travel_distance`` / turned ``minimum_travel_heading`` (or too soon after
-   the last keyframe)? Then the scan is only remembered with its odometry offset from the last
-   keyframe, so the final trajectory has one pose per scan.
-4. Otherwise it becomes a keyframe: match it against the local map of the last
-   ``scan_buffer_size`` keyframes (correlative search + point-to-line ICP,
-   :mod:`slam.scan_matching`); a good match gives a ``scan`` edge, a poor one an ``odometry``
-   edge; iSAM2 updates.
-   **Revisits** (``revisit_distance`` > 0, the live profile): a keyframe due within that
-   distance (and ``revisit_heading``) of an older keyframe whose pose the graph already ties to
-   the anchor's (``REVISIT_MAX_PATH_M`` through the chain and one loop closure) is not added:
-   tracking re-anchors on the older keyframe and matches against the keyframes nearest it, and
-   the next new keyframe hangs off it. A robot driving its route again and again stops growing
-   the graph once the first lap has closed (a place reached only around a loop is first tied
-   to the map by a new keyframe's loop closure).
-5. Loop closure: older keyframes (outside the recent chain) within a covariance-gated radius
-   are matched in a window as wide as the relative uncertainty; a closure is verified by its
-   response, ICP inliers and, after optimising under the robust kernel, its chi-square residual;
-   a closure that leaves the graph inconsistent is removed again.
+1. reject bad input (non-finite odometry, time going backwards) with a counted reason;
+2. predict the pose from the last keyframe's optimised pose and the odometry since then;
+3. a scan that has not moved ``minimum_travel_distance`` / turned ``minimum_travel_heading`` is
+   only remembered with its odometry offset, so the trajectory has one pose per scan;
+4. a keyframe is matched against the local map of the last ``scan_buffer_size`` keyframes
+   (:mod:`slam.scan_matching`) and added with a scan or odometry edge; iSAM2 updates. With
+   ``revisit_distance`` > 0 (the live profile) a robot driving its route again re-anchors on
+   older keyframes instead of growing the graph;
+5. loop closures: older keyframes within a covariance-gated radius are matched in a window as
+   wide as the relative uncertainty and verified (response, ICP inliers, chi-square residual
+   under the robust kernel); nearly ambiguous or inconsistent ones are held, and a final
+   robust vote (GNC) over all closures decides which stay.
 
 The poses are those of the scan frame (the laser for laser logs, ``base_link`` for depth->scan
-scans) in the ``map`` frame; odometry is given for the same frame.
+scans) in the ``map`` frame; odometry is given for the same frame. Design notes and the
+measurements behind the decisions: docs/design/mapper.md and docs/benchmarks.md.
 """
 
 from __future__ import annotations

@@ -1,29 +1,15 @@
 """Log-odds occupancy grid built from 2D laser scans (OctoMap / ROS semantics).
 
-Conventions
------------
-* Arrays are ``(height, width)``; **row 0 is the lowest y** (math convention, like
-  ``nav_msgs/OccupancyGrid.data``). Only the PGM writer/reader in :mod:`slam.map_bundle` flips.
-* Cell ``(row, col)`` covers ``[origin_x + col*res, origin_x + (col+1)*res) x
-  [origin_y + row*res, ...)``; ``origin`` is the world position of the lower-left corner of
-  cell (0, 0), exactly Nav2's map.yaml ``origin``.
-* Unknown is explicit: :class:`OccupancyGrid` keeps an ``observed`` mask beside the log-odds, so a
-  cell whose hits and misses cancel (log-odds 0) is still told apart from one never seen. Never
-  observed cells have log-odds exactly 0 (probability 0.5).
+Conventions: arrays are ``(height, width)`` with **row 0 the lowest y** (like
+``nav_msgs/OccupancyGrid.data``; only the PGM writer/reader in :mod:`slam.map_bundle` flips);
+``origin`` is the world position of the lower-left corner of cell (0, 0), exactly Nav2's
+map.yaml ``origin``; unknown is explicit (an ``observed`` mask beside the log-odds).
 
-The update (:func:`integrate_scans`) per scan, as in OctoMap's ``insertPointCloud``:
-
-1. Every cell a beam crosses, from the laser cell up to (excluding) its end cell, gets
-   ``logit(prob_miss)``; no-return beams (+inf, or longer than the usable range) clear up to
-   ``min(range_max, max_laser_range)`` and mark no hit; NaN and too-short beams are ignored.
-2. End cells of beams with a valid return get ``logit(prob_hit)``; a cell that is both an end
-   cell and crossed by another beam of the same scan counts as a hit only (endpoint wins).
-3. Each cell is updated at most once per scan, then clamped to
-   ``[logit(clamping_thres_min), logit(clamping_thres_max)]``.
-
-Rays are rasterised in C by ``cv2.polylines`` (4-connected Bresenham from the laser's cell to the
-end cell, one call per scan over all beams) into a uint8 mask covering only the scan's bounding box;
-the masked log-odds update is applied to that region of interest in place.
+The update (:func:`integrate_scans`) per scan, as OctoMap's ``insertPointCloud``: cells a beam
+crosses get ``logit(prob_miss)`` (no-return beams clear up to the usable range), end cells get
+``logit(prob_hit)`` (endpoint wins within a scan), each cell is updated at most once per scan
+and clamped. Rays are rasterised in C by ``cv2.polylines`` into a mask over the scan's bounding
+box. Details: docs/design/occupancy_grid.md.
 """
 
 from __future__ import annotations

@@ -1,60 +1,23 @@
 """RGB-D visual odometry: frame-to-frame (or frame-to-keyframe) camera motion with a success flag.
 
-Default pipeline (``method="orb_pnp"``), one step per line as in :func:`motion_from_features`:
+Default pipeline (``method="orb_pnp"``, :func:`motion_from_features`):
 
-1. ORB features on a grid (best responses per cell) so matches spread over the image; the
-   lower and the upper pyramid levels are detected at once in two threads;
-2. previous keypoints back-projected with their depth (3D, previous optical frame);
-3. Hamming k-NN within +-``level_window`` pyramid levels (0: the same level) and Lowe's ratio
-   test (``cor_nndr``);
-4. rigid RANSAC on 3D(prev) <-> 3D(curr) (:func:`rigid_ransac`): seeded 3-point samples, those
-   that break the distance check of a rigid motion dropped unsolved, Kabsch on the rest at once,
-   a truncated reprojection (MSAC) score, the best refitted on their inliers (LO-RANSAC); a few
-   distinct hypotheses are kept, since a repeated structure can outscore the true motion on the
-   ratio-test matches. The sampler is seeded by ``VoTuning.ransac_seed``: one input, one answer;
-5. for each hypothesis, a guided search (every previous point's descriptor candidates near its
-   projection) and a Gauss-Newton refinement on a joint reprojection + depth error ("RGB-D
-   stereo" residuals, as ORB-SLAM2 does for RGB-D): for every match with depth in the current
-   frame, besides ``(u, v)`` we predict a virtual right-image column ``u_r = u - bf / z`` with
-   ``bf = fx * KINECT_BASELINE``; a Kinect's depth noise is constant in disparity, so the three
-   residuals share one pixel noise model; Huber weights, inliers re-selected by a chi-square
-   gate. The most inliers wins; close calls go through a second, narrower guided search and
-   refinement, which also polishes the winner. (Refining only the hypotheses the best's
-   refined motion does not already explain halved the refinements on the house at the same
-   accuracy, but doubled the office's VO-only ATE: the runner-ups' refinements find better
-   optima there);
-6. acceptance tests (inliers, inlier ratio, motion magnitude) -> ``success=False`` + reason
-   otherwise, never a silent garbage pose.
+1. ORB features bucketed on a grid, pyramid halves detected in two threads;
+2. previous keypoints back-projected with their depth;
+3. Hamming k-NN within ``level_window`` pyramid levels and Lowe's ratio test (``cor_nndr``);
+4. seeded rigid 3-point RANSAC (:func:`rigid_ransac`, LO-RANSAC refits), keeping a few distinct
+   hypotheses, since a repeated structure can outscore the true motion;
+5. per hypothesis a guided search and a Gauss-Newton refinement on reprojection + virtual
+   stereo (depth as disparity) residuals, as ORB-SLAM2 does for RGB-D; the most inliers wins;
+6. acceptance tests -> ``success=False`` with a reason, never a silent garbage pose.
 
-:class:`VisualOdometry` seeds step 5 with the last frame's pose while that pose predicts the
-frames well (``VoTuning.prior_seed``, as ORB-SLAM tracks with its motion model): RANSAC (step 4)
-runs only when the seed's refined inliers fall short. It can also try steps 3-5 around the
-prior (:func:`motion_from_prior`: a window search around the predicted projections replaces the
-global k-NN too; off by default) and run the global steps only when that fails.
-
-Optical flow (``VoConfig.cor_type="optical_flow"``, RTAB-Map's Vis/CorType 1): ORB runs only on
-keyframes; in between, the keyframe's points with depth are tracked frame to frame by pyramidal
-Lucas-Kanade (:func:`motion_from_flow`) and the motion comes from step 5's refinement started
-at the last frame's pose. Tracks the refinement rejects are dropped; when too few survive, the
-frame goes through the ORB steps above and becomes the next keyframe. Measured in
-docs/benchmarks.md: a third of the time per frame, at some cost in VO-only accuracy.
-
-Depth ICP (``VoConfig.method="depth_icp"``; :mod:`slam.depth_icp`): KISS-ICP on the depth cloud,
-geometry only, for rooms where colour features fail. With ``VoConfig.fallback="depth_icp"`` a
-frame the features lose gets depth ICP's motion from the last frame instead (``VoResult.fallback``,
-counted in ``VisualOdometry.stats``). Measured in docs/design/kiss_icp_and_filterpy.md.
-
-Covariance: the Gauss-Newton normal matrix ``H = J^T W J`` of step 5 at the solution, scaled by
-the a-posteriori variance of unit weight ``s^2 = sum(w r^2) / (m - 6)``: ``cov = s^2 H^-1``,
-over the left perturbation ``T_true = exp(d) T`` of ``T_curr_prev``, re-expressed for the camera
-motion ``T_prev_curr`` and ordered ``(x, y, z, roll, pitch, yaw)`` (ROS pose covariance order).
-It is a lower bound (it ignores correlated errors such as depth calibration) and is floored by
-``VoTuning.min_sigma_*``.
-
-Planar mode (``force_3dof``, RTAB-Map Reg/Force3DoF): the camera motion is moved to base_link
-through the camera extrinsics, ``T_base = A T_opt A^-1`` with ``A = T_base_optical``, and
-projected to ``(dx, dy, dyaw)``; the 6x6 covariance is propagated through the adjoint of ``A``
-and the same projection (3x3 over x, y, yaw).
+:class:`VisualOdometry` seeds step 5 with the last frame's pose while it predicts well (as
+ORB-SLAM's motion model). Optical flow (``cor_type="optical_flow"``) tracks keyframe points by
+Lucas-Kanade between ORB keyframes. With ``fallback="depth_icp"`` a frame the features lose gets
+KISS-ICP's motion on the depth cloud (:mod:`slam.depth_icp`). The covariance is the refinement's
+``s^2 H^-1``, floored by ``vo.advanced.min_sigma_*``; planar mode (``force_3dof``) moves it to
+base_link as (x, y, yaw). The inner constants are ``vo.advanced`` (docs/design/vo_tuning.md);
+the full derivation: docs/design/visual_odometry.md.
 """
 
 from __future__ import annotations
