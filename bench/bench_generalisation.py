@@ -152,6 +152,42 @@ def run_localisation(case: Case, reference: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def run_sharpness(case: Case, reference: dict[str, Any]) -> dict[str, Any]:
+    """Is the mapper right to move good odometry? Each set of poses (the log's corrected ones,
+    the reference map's) builds a grid from the same scans; its sharpness is the mean distance
+    of the scans' end points to the nearest occupied cell (lower: walls line up better) and
+    the number of occupied cells (fewer: thinner walls)."""
+    import cv2
+
+    from slam.config import MapperConfig
+    from slam.occupancy_grid import GridGeometry, bounds_of_scans, integrate_scans, scan_end_points
+
+    _src, scans, logged, _odom = load_case(case)
+    kept = np.asarray(reference["kept"])
+    mapped = [scans[k] for k in kept]
+    mc = MapperConfig()
+    out: dict[str, Any] = {}
+    for name, poses in (("corrected", logged[kept]), ("mapper", np.asarray(reference["poses"]))):
+        geom = GridGeometry.from_bounds(
+            *bounds_of_scans(poses, mapped, mc.max_laser_range),
+            resolution=mc.resolution,
+            margin=1.0,
+        )
+        occupied = integrate_scans(geom, poses, mapped, mc).occupied_mask(mc.occupied_thresh)
+        free = (~occupied).astype(np.uint8)
+        dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * geom.resolution
+        pairs = zip(poses, mapped, strict=True)
+        ends = np.concatenate([scan_end_points(p, s, mc.max_laser_range) for p, s in pairs])
+        col = np.floor((ends[:, 0] - geom.origin_x) / geom.resolution).astype(np.int64)
+        row = np.floor((ends[:, 1] - geom.origin_y) / geom.resolution).astype(np.int64)
+        inside = (col >= 0) & (row >= 0) & (col < geom.width) & (row < geom.height)
+        out[name] = {
+            "end_point_m": float(dist[row[inside], col[inside]].mean()),
+            "occupied": int(occupied.sum()),
+        }
+    return out
+
+
 def in_fresh_process(fn: Any, *args: Any) -> dict[str, Any]:
     with mp.get_context("spawn").Pool(1) as pool:
         return pool.apply(fn, args)
@@ -238,8 +274,30 @@ def report(results: dict[str, dict[str, Any]], cases: list[Case], seeds: tuple[i
             f"| {r['first_fix_scan']} | **{r['pos_median']:.3f}** / {r['pos_p95']:.3f} "
             f"| {r['yaw_median']:.2f} | {r['wrong']} | {r['wall_s']:.1f} |"
         )
+    sharp = [
+        "",
+        "### Is the mapper right to move good odometry?",
+        "",
+        "The reference map moves the logs' corrected poses (themselves SLAM output) by the "
+        "column above. A grid built from each set of poses with the same scans: mean distance "
+        "of the scans' end points to the nearest occupied cell (lower: the walls line up) and "
+        "occupied cells (fewer: thinner walls).",
+        "",
+        "| log | stamps | corrected poses: end point to wall [m] / occupied cells | reference "
+        "map: end point to wall [m] / occupied cells |",
+        "| --- | --- | --- | --- |",
+    ]
+    for case in cases:
+        r = results.get("sharp|" + key(case))
+        if case.seed is not None or r is None:
+            continue
+        a, b = r["corrected"], r["mapper"]
+        sharp.append(
+            f"| {case.log} | {results[key(case)]['stamp_source']} | {a['end_point_m']:.4f} / "
+            f"{a['occupied']} | **{b['end_point_m']:.4f}** / {b['occupied']} |"
+        )
     return "## Generalisation: Radish logs, seeds and stamps (issue #12)\n\n" + "\n".join(
-        head + rows + loc
+        head + rows + loc + sharp
     )
 
 
@@ -265,10 +323,11 @@ def main() -> None:
         for c in cases
         if c.seed == seeds[0]
     ]
+    jobs += [("sharp|" + key(c), run_sharpness, (c, key(c))) for c in cases if c.seed is None]
     for name, fn, fn_args in jobs:
         if name in results:
             continue
-        if fn is run_localisation:  # the reference map's result goes in, not its cache key
+        if fn is not run_case:  # the reference map's result goes in, not its cache key
             fn_args = (fn_args[0], results[fn_args[1]])
         t0 = time.perf_counter()
         results[name] = in_fresh_process(fn, *fn_args)

@@ -241,6 +241,12 @@ def _scan_rays(pose_xyyaw: np.ndarray, scan: LaserScan, max_laser_range: float) 
     return _Rays(origin, ends, is_hit[used])
 
 
+def scan_end_points(pose_xyyaw: np.ndarray, scan: LaserScan, max_laser_range: float) -> np.ndarray:
+    """(K, 2) [m] map-frame end points of ``scan``'s valid returns from ``pose_xyyaw``."""
+    rays = _scan_rays(np.asarray(pose_xyyaw, dtype=np.float64), scan, max_laser_range)
+    return rays.ends[rays.is_hit]
+
+
 def bounds_of_scans(
     poses_xyyaw: np.ndarray, scans: Sequence[LaserScan], max_range: float
 ) -> tuple[float, float, float, float]:
@@ -366,6 +372,7 @@ __all__ = [
     "GridGeometry",
     "OccupancyGrid",
     "bounds_of_scans",
+    "scan_end_points",
     "check_grid_size",
     "integrate_scans",
     "logit",
