@@ -102,8 +102,12 @@ def quaternion_rpy(roll: float, pitch: float, yaw: float) -> tuple[float, float,
     cr, sr = math.cos(roll / 2), math.sin(roll / 2)
     cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
     cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)  # fmt: skip
+    return (
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+        cr * cp * cy + sr * sp * sy,
+    )
 
 
 def _latched_qos() -> list[Any]:
@@ -119,8 +123,19 @@ def _latched_qos() -> list[Any]:
     )
 
     zero = QosTime(0, 0)
-    return [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
-                zero, zero, QosLiveliness.AUTOMATIC, zero, False)]  # fmt: skip
+    return [
+        Qos(
+            QosHistory.KEEP_LAST,
+            1,
+            QosReliability.RELIABLE,
+            QosDurability.TRANSIENT_LOCAL,
+            zero,
+            zero,
+            QosLiveliness.AUTOMATIC,
+            zero,
+            False,
+        )
+    ]
 
 
 class _Messages:
@@ -133,8 +148,9 @@ class _Messages:
         self.t = self.store.types
 
     def stamp(self, ns: int) -> Any:
-        return self.t["builtin_interfaces/msg/Time"](sec=int(ns) // NS_PER_S,
-                                                      nanosec=int(ns) % NS_PER_S)  # fmt: skip
+        return self.t["builtin_interfaces/msg/Time"](
+            sec=int(ns) // NS_PER_S, nanosec=int(ns) % NS_PER_S
+        )
 
     def header(self, ns: int, frame: str) -> Any:
         return self.t["std_msgs/msg/Header"](stamp=self.stamp(ns), frame_id=frame)
@@ -149,8 +165,9 @@ class _Messages:
     def quaternion(self, q: Sequence[float]) -> Any:
         return self.t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])
 
-    def transform(self, ns: int, parent: str, child: str, xyz: Sequence[float],
-                  quat: Sequence[float]) -> Any:  # fmt: skip
+    def transform(
+        self, ns: int, parent: str, child: str, xyz: Sequence[float], quat: Sequence[float]
+    ) -> Any:
         t = self.t
         return t["geometry_msgs/msg/TransformStamped"](
             header=self.header(ns, parent),
@@ -175,41 +192,55 @@ class _Messages:
         t = self.t
         h, w = g.values.shape
         info = t["nav_msgs/msg/MapMetaData"](
-            map_load_time=self.stamp(g.stamp_ns), resolution=float(g.resolution),
-            width=w, height=h, origin=self.pose(g.origin_xy[0], g.origin_xy[1], 0.0),
-        )  # fmt: skip
+            map_load_time=self.stamp(g.stamp_ns),
+            resolution=float(g.resolution),
+            width=w,
+            height=h,
+            origin=self.pose(g.origin_xy[0], g.origin_xy[1], 0.0),
+        )
         data = np.ascontiguousarray(g.values, dtype=np.int8).reshape(-1)
-        return t["nav_msgs/msg/OccupancyGrid"](header=self.header(g.stamp_ns, g.frame), info=info,
-                                               data=data)  # fmt: skip
+        return t["nav_msgs/msg/OccupancyGrid"](
+            header=self.header(g.stamp_ns, g.frame), info=info, data=data
+        )
 
     def scan(self, s: LaserScan, frame: str) -> Any:
         n = len(s.ranges)
         return self.t["sensor_msgs/msg/LaserScan"](
-            header=self.header(s.stamp_ns, frame), angle_min=float(s.angle_min),
+            header=self.header(s.stamp_ns, frame),
+            angle_min=float(s.angle_min),
             angle_max=float(s.angle_min + s.angle_increment * (n - 1)),
-            angle_increment=float(s.angle_increment), time_increment=0.0, scan_time=0.0,
-            range_min=float(s.range_min), range_max=float(s.range_max),
-            ranges=np.asarray(s.ranges, dtype=np.float32), intensities=np.zeros(0, np.float32),
-        )  # fmt: skip
+            angle_increment=float(s.angle_increment),
+            time_increment=0.0,
+            scan_time=0.0,
+            range_min=float(s.range_min),
+            range_max=float(s.range_max),
+            ranges=np.asarray(s.ranges, dtype=np.float32),
+            intensities=np.zeros(0, np.float32),
+        )
 
     def odometry(self, ns: int, parent: str, child: str, p: np.ndarray, v: np.ndarray) -> Any:
         t = self.t
         vec = t["geometry_msgs/msg/Vector3"]
         zeros = np.zeros(36, dtype=np.float64)  # covariance not recorded by the run
-        twist = t["geometry_msgs/msg/Twist"](linear=vec(x=float(v[0]), y=0.0, z=0.0),
-                                             angular=vec(x=0.0, y=0.0, z=float(v[1])))  # fmt: skip
+        twist = t["geometry_msgs/msg/Twist"](
+            linear=vec(x=float(v[0]), y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=float(v[1]))
+        )
         return t["nav_msgs/msg/Odometry"](
-            header=self.header(ns, parent), child_frame_id=child,
+            header=self.header(ns, parent),
+            child_frame_id=child,
             pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=self.pose(*p), covariance=zeros),
             twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=zeros.copy()),
-        )  # fmt: skip
+        )
 
     def path(self, track: PlanarTrack) -> Any:
         stamped = self.t["geometry_msgs/msg/PoseStamped"]
-        poses = [stamped(header=self.header(ns, track.parent), pose=self.pose(*p))
-                 for ns, p in zip(track.stamps_ns.tolist(), track.poses, strict=True)]  # fmt: skip
-        return self.t["nav_msgs/msg/Path"](header=self.header(int(track.stamps_ns[0]),
-                                                              track.parent), poses=poses)  # fmt: skip
+        poses = [
+            stamped(header=self.header(ns, track.parent), pose=self.pose(*p))
+            for ns, p in zip(track.stamps_ns.tolist(), track.poses, strict=True)
+        ]
+        return self.t["nav_msgs/msg/Path"](
+            header=self.header(int(track.stamps_ns[0]), track.parent), poses=poses
+        )
 
     def compressed_image(self, ns: int, frame: str, file: Path) -> Any:
         fmt = "jpeg" if file.suffix.lower() in (".jpg", ".jpeg") else "png"
@@ -217,20 +248,30 @@ class _Messages:
             data = np.frombuffer(file.read_bytes(), dtype=np.uint8)
         except OSError as err:
             raise SensorError(f"{file}: cannot read image: {err.strerror or err}") from err
-        return self.t["sensor_msgs/msg/CompressedImage"](header=self.header(ns, frame),
-                                                         format=fmt, data=data)  # fmt: skip
+        return self.t["sensor_msgs/msg/CompressedImage"](
+            header=self.header(ns, frame), format=fmt, data=data
+        )
 
     def camera_info(self, ns: int, frame: str, k: CameraIntrinsics) -> Any:
         t = self.t
-        roi = t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                    do_rectify=False)  # fmt: skip
+        roi = t["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        )
         kk = np.array([k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1], dtype=np.float64)
         pp = np.array([k.fx, 0, k.cx, 0, 0, k.fy, k.cy, 0, 0, 0, 1, 0], dtype=np.float64)
         return t["sensor_msgs/msg/CameraInfo"](
-            header=self.header(ns, frame), height=k.height, width=k.width,
-            distortion_model="plumb_bob", d=np.zeros(5, dtype=np.float64), k=kk,
-            r=np.eye(3, dtype=np.float64).reshape(-1), p=pp, binning_x=0, binning_y=0, roi=roi,
-        )  # fmt: skip
+            header=self.header(ns, frame),
+            height=k.height,
+            width=k.width,
+            distortion_model="plumb_bob",
+            d=np.zeros(5, dtype=np.float64),
+            k=kk,
+            r=np.eye(3, dtype=np.float64).reshape(-1),
+            p=pp,
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+        )
 
 
 def _records(content: BagContent, m: _Messages) -> dict[tuple[str, str], list[tuple[int, Any]]]:
@@ -245,8 +286,7 @@ def _records(content: BagContent, m: _Messages) -> dict[tuple[str, str], list[tu
         out[(TF_TOPIC, tf_type)] = [(ns, m.tf(tf_by_stamp[ns])) for ns in sorted(tf_by_stamp)]
     if content.static:
         ns = content.static_stamp_ns
-        msg = m.tf([m.transform(ns, s.parent, s.child, s.xyz, s.quat_xyzw)
-                    for s in content.static])  # fmt: skip
+        msg = m.tf([m.transform(ns, s.parent, s.child, s.xyz, s.quat_xyzw) for s in content.static])
         out[(TF_STATIC_TOPIC, "tf2_msgs/msg/TFMessage")] = [(ns, msg)]
     if content.grid is not None:
         g = content.grid
@@ -292,9 +332,12 @@ def write_mcap_bag(content: BagContent, path: Path) -> dict[str, int]:
         with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
             for (topic, msgtype), msgs in records.items():
                 latched = topic in LATCHED_TOPICS or msgtype == "nav_msgs/msg/Path"
-                conn = writer.add_connection(topic, msgtype, typestore=m.store,
-                                             offered_qos_profiles=_latched_qos() if latched
-                                             else ())  # fmt: skip
+                conn = writer.add_connection(
+                    topic,
+                    msgtype,
+                    typestore=m.store,
+                    offered_qos_profiles=_latched_qos() if latched else (),
+                )
                 for ns, msg in msgs:
                     writer.write(conn, ns, m.store.serialize_cdr(msg, msgtype))
                 counts[topic] = len(msgs)

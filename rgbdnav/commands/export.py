@@ -74,12 +74,12 @@ LAYOUTS = {
     "map": RunLayout(("trajectory.tum",), ("odom.tum",), ("trajectory.tum",), True),
     "live": RunLayout(
         ("trajectory.tum",), ("odom.tum",), ("trajectory_optimised.tum", "trajectory.tum"), True
-    ),  # fmt: skip
+    ),
     "localize": RunLayout(("trajectory.tum",), ("odom.tum",), ("trajectory.tum",), False),
     "navigate": RunLayout(("estimated.tum",), (), ("estimated.tum",), False),
     "odometry": RunLayout(
         (), ("fused.tum", "trajectory.tum"), ("fused.tum", "trajectory.tum"), False
-    ),  # fmt: skip
+    ),
 }
 
 
@@ -130,8 +130,10 @@ def _chain(
     else:
         map_odom = np.zeros((len(t), 3))
     odom = oplus(_inverse(map_odom), map_base.poses)
-    return (PlanarTrack(MAP_FRAME, ODOM_FRAME, t, map_odom),
-            PlanarTrack(ODOM_FRAME, BASE_FRAME, t, odom))  # fmt: skip
+    return (
+        PlanarTrack(MAP_FRAME, ODOM_FRAME, t, map_odom),
+        PlanarTrack(ODOM_FRAME, BASE_FRAME, t, odom),
+    )
 
 
 def _twist(track: PlanarTrack) -> np.ndarray:
@@ -150,11 +152,16 @@ def _static(cfg: Any, has_camera: bool) -> list[StaticTransform]:
     out = [StaticTransform(BASE_FRAME, LASER_FRAME, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))]
     if has_camera:
         out += [
-            StaticTransform(BASE_FRAME, CAMERA_FRAME, (r.camera_x, r.camera_y, r.camera_height),
-                            quaternion_rpy(r.camera_roll, r.camera_pitch, 0.0)),
-            StaticTransform(CAMERA_FRAME, OPTICAL_FRAME, (0.0, 0.0, 0.0),
-                            quaternion_rpy(*OPTICAL_RPY)),
-        ]  # fmt: skip
+            StaticTransform(
+                BASE_FRAME,
+                CAMERA_FRAME,
+                (r.camera_x, r.camera_y, r.camera_height),
+                quaternion_rpy(r.camera_roll, r.camera_pitch, 0.0),
+            ),
+            StaticTransform(
+                CAMERA_FRAME, OPTICAL_FRAME, (0.0, 0.0, 0.0), quaternion_rpy(*OPTICAL_RPY)
+            ),
+        ]
     return out
 
 
@@ -192,8 +199,10 @@ def run_content(run: Path, images: bool = True) -> tuple[BagContent, dict[str, A
     command = summary.get("command")
     layout = LAYOUTS.get(command) if isinstance(command, str) else None
     if layout is None:
-        raise SensorError(f"{run}: nothing to export from a {command or 'unknown'} run; "
-                          f"export runs of {', '.join(LAYOUTS)}")  # fmt: skip
+        raise SensorError(
+            f"{run}: nothing to export from a {command or 'unknown'} run; "
+            f"export runs of {', '.join(LAYOUTS)}"
+        )
     cfg = load_config([run / "config.yaml"] if (run / "config.yaml").is_file() else [])
     map_base = _track(run, layout.map_track, MAP_FRAME, BASE_FRAME)
     odom_base = _track(run, layout.odom_track, ODOM_FRAME, BASE_FRAME)
@@ -257,14 +266,14 @@ def run_export(run: Path, to: str, out: Path | None, images: bool = True) -> dic
     if out.exists() and not (out / "metadata.yaml").is_file():
         raise SensorError(f"{out}: exists and is not a rosbag2 folder; not overwriting it")
     content, about = run_content(run, images)
+    # rosbags' Writer creates the bag folder and names the .mcap after it: write OUT.name inside
+    # a staging folder beside OUT, then rename it into place.
     staging = make_staging_dir(out)
-    staging.rmdir()  # rosbags' Writer creates the folder itself; the unique name stays ours
     try:
-        counts = write_mcap_bag(content, staging)
-        commit_staging_dir(staging, out)
-    except BaseException:
+        counts = write_mcap_bag(content, staging / out.name)
+        commit_staging_dir(staging / out.name, out)
+    finally:
         shutil.rmtree(staging, ignore_errors=True)
-        raise
     return {"out": out, "counts": counts, **about}
 
 
