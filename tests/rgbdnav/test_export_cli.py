@@ -281,3 +281,34 @@ def test_export_will_not_overwrite_a_folder_that_is_not_a_bag(
     assert (precious / "notes.txt").read_text() == "keep me"
     res = _cli("export", laser_run, "--to", "bag", "--out", tmp_path / "x")
     assert res.exit_code == 1 and "unknown format" in res.output
+
+
+def test_a_localize_run_carries_the_map_it_localised_in(laser_run: Path, tmp_path: Path) -> None:
+    _, poses = _trajectory(laser_run / "trajectory.tum")
+    run = tmp_path / "loc"
+    x, y, yaw = (str(v) for v in poses[0])
+    res = _cli(
+        "localize",
+        laser_run.parent / "room.clf",
+        "--map",
+        laser_run / "map",
+        "--initial-pose",
+        x,
+        y,
+        yaw,
+        "--out",
+        run,
+        "-q",
+    )
+    assert res.exit_code == 0, res.output
+    assert _cli("export", run, "--to", "mcap", "-q").exit_code == 0
+    msgs = _read(run / "rosbag2")
+    assert set(msgs) == {"/tf", "/tf_static", "/map", "/odom", "/trajectory"}  # no scans kept
+    stamps, loc = _trajectory(run / "trajectory.tum")
+    t, composed, _ = _chain(msgs["/tf"])
+    assert np.array_equal(t, stamps)
+    _same_poses(composed, loc)
+    bundle = load_bundle(laser_run / "map")
+    ((_, grid),) = msgs["/map"]
+    expected = bundle.grid.trinary(bundle.occupied_thresh, bundle.free_thresh)
+    assert np.array_equal(np.asarray(grid.data).reshape(expected.shape), expected)
