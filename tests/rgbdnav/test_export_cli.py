@@ -312,3 +312,39 @@ def test_a_localize_run_carries_the_map_it_localised_in(laser_run: Path, tmp_pat
     ((_, grid),) = msgs["/map"]
     expected = bundle.grid.trinary(bundle.occupied_thresh, bundle.free_thresh)
     assert np.array_equal(np.asarray(grid.data).reshape(expected.shape), expected)
+
+
+def test_a_live_run_with_its_recording_exports_images_and_the_optimised_path(
+    tmp_path: Path,
+) -> None:
+    run = tmp_path / "live"
+    res = _cli(
+        "live",
+        "--out",
+        run,
+        "--sim-world",
+        REPO / "scenes" / "house.yaml",
+        "-q",
+        "--duration",
+        "5",
+        "--record",
+        run / "recording",
+    )
+    assert res.exit_code == 0, res.output
+    assert _cli("export", run, "--to", "mcap", "-q").exit_code == 0
+    msgs = _read(run / "rosbag2")
+    stamps, poses = _trajectory(run / "trajectory.tum")
+    t, composed, _ = _chain(msgs["/tf"])
+    assert np.array_equal(t, stamps)
+    _same_poses(composed, poses)
+    opt_stamps, opt = _trajectory(run / "trajectory_optimised.tum")
+    ((_, path),) = msgs["/trajectory"]
+    assert [_ns(p.header.stamp) for p in path.poses] == opt_stamps.tolist()
+    path_xy = np.array([[p.pose.position.x, p.pose.position.y] for p in path.poses])
+    assert np.abs(path_xy - opt[:, :2]).max() < TOL_M
+    images = msgs["/camera/color/image_raw/compressed"]
+    index = (run / "recording" / "rgb.txt").read_text().splitlines()
+    recorded = len([ln for ln in index if ln and not ln.startswith("#")])
+    assert 0 < len(images) <= recorded
+    assert all(stamps[0] <= ns <= stamps[-1] for ns, _ in images)
+    assert len(msgs["/scan"]) == len(load_bundle(run / "map").keyframe_ids)
