@@ -348,3 +348,22 @@ def test_a_live_run_with_its_recording_exports_images_and_the_optimised_path(
     assert 0 < len(images) <= recorded
     assert all(stamps[0] <= ns <= stamps[-1] for ns, _ in images)
     assert len(msgs["/scan"]) == len(load_bundle(run / "map").keyframe_ids)
+
+
+def test_foxglove_s_own_mcap_reader_decodes_every_message_in_log_time_order(
+    laser_run: Path, tmp_path: Path
+) -> None:
+    mcap_reader = pytest.importorskip("mcap.reader")  # the dev extra installs it
+    decoder = pytest.importorskip("mcap_ros2.decoder")
+    bag = tmp_path / "bag"
+    assert _cli("export", laser_run, "--to", "mcap", "--out", bag, "-q").exit_code == 0
+    with (bag / "bag.mcap").open("rb") as fh:
+        reader = mcap_reader.make_reader(fh, decoder_factories=[decoder.DecoderFactory()])
+        decoded = list(reader.iter_decoded_messages(log_time_order=True))
+    times = [m.log_time for _, _, m, _ in decoded]
+    assert times == sorted(times)
+    assert {c.topic for _, c, _, _ in decoded} == set(_read(bag))
+    grids = [ros for _, c, _, ros in decoded if c.topic == "/map"]
+    bundle = load_bundle(laser_run / "map")
+    expected = bundle.grid.trinary(bundle.occupied_thresh, bundle.free_thresh)
+    assert np.array_equal(np.asarray(grids[0].data, np.int8).reshape(expected.shape), expected)
