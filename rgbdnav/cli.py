@@ -648,7 +648,7 @@ def export(
     result = run_export(run, to, out, images)
     if not quiet:
         for topic, n in result["counts"].items():
-            typer.echo(f"{topic:<36} {n} messages")
+            typer.echo(f"{topic:<42} {n} messages")
     typer.echo(f"bag         {result['out']}")
 
 

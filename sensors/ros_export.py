@@ -11,7 +11,8 @@ what a ROS 2 robot publishes (REP-105 frames, Nav2 / slam_toolbox names):
   map_server's; ``/scan`` (sensor_msgs/LaserScan); ``/odom`` (nav_msgs/Odometry);
 - a nav_msgs/Path of the trajectory, transient-local so it shows from the start of playback;
 - ``/camera/color/image_raw/compressed`` (the recording's PNG/JPEG bytes as they are, no
-  re-encoding) and ``/camera/color/camera_info``.
+  re-encoding), ``/camera/color/camera_info`` and the registered depth as 16UC1 millimetres on
+  ``/camera/aligned_depth_to_color/image_raw`` (what RViz, Foxglove and our own reader show).
 
 This module only serialises plain arrays (:class:`BagContent`); deciding what a run holds and
 composing the transforms is the caller's job (``rgbdnav.commands.export``).
@@ -37,6 +38,8 @@ SCAN_TOPIC = "/scan"
 ODOM_TOPIC = "/odom"
 IMAGE_TOPIC = "/camera/color/image_raw/compressed"
 CAMERA_INFO_TOPIC = "/camera/color/camera_info"
+DEPTH_TOPIC = "/camera/aligned_depth_to_color/image_raw"  # RealSense's name for registered depth
+MM_PER_M = 1000.0  # [mm/m] 16UC1 depth is in millimetres (REP-118)
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,7 +84,9 @@ class ImageStream:
     stamps_ns: np.ndarray  # (N,) int64 [ns]
     files: Sequence[Path]
     frame: str
-    intrinsics: CameraIntrinsics
+    intrinsics: CameraIntrinsics  # depth_scale: [counts/m] of the depth PNGs
+    depth_stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    depth_files: Sequence[Path] = ()  # 16-bit PNGs registered to colour
 
 
 @dataclass(frozen=True, eq=False)
@@ -252,6 +257,21 @@ class _Messages:
             header=self.header(ns, frame), format=fmt, data=data
         )
 
+    def depth_image(self, ns: int, frame: str, file: Path, k: CameraIntrinsics) -> Any:
+        from sensors.images import read_image
+
+        counts = read_image(file, (k.width, k.height), depth=True)
+        mm = np.rint(counts * (MM_PER_M / k.depth_scale)).clip(0, np.iinfo(np.uint16).max)
+        return self.t["sensor_msgs/msg/Image"](
+            header=self.header(ns, frame),
+            height=k.height,
+            width=k.width,
+            encoding="16UC1",
+            is_bigendian=0,
+            step=2 * k.width,
+            data=mm.astype("<u2").reshape(-1).view(np.uint8),
+        )
+
     def camera_info(self, ns: int, frame: str, k: CameraIntrinsics) -> Any:
         t = self.t
         roi = t["sensor_msgs/msg/RegionOfInterest"](
@@ -312,6 +332,11 @@ def _records(content: BagContent, m: _Messages) -> dict[tuple[str, str], list[tu
         out[(CAMERA_INFO_TOPIC, "sensor_msgs/msg/CameraInfo")] = [
             (ns, m.camera_info(ns, im.frame, im.intrinsics)) for ns in im.stamps_ns.tolist()
         ]
+        if len(im.depth_files):
+            out[(DEPTH_TOPIC, "sensor_msgs/msg/Image")] = [
+                (ns, m.depth_image(ns, im.frame, f, im.intrinsics))
+                for ns, f in zip(im.depth_stamps_ns.tolist(), im.depth_files, strict=True)
+            ]
     return out
 
 

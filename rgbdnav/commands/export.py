@@ -15,7 +15,7 @@ odometry poses give it at keyframes and it is held between them (as slam_toolbox
 it); with no odometry at all it is the identity. Either way ``map -> odom -> base_link``
 reproduces the run's trajectory at every one of its stamps. Scans are the bundle's keyframe
 scans; colour images come from the run's recording (``live --record``) or from the recording
-the run was made from, when it still exists.
+the run was made from, when it still exists, with the registered depth beside them.
 """
 
 from __future__ import annotations
@@ -177,7 +177,7 @@ def _recording_folder(run: Path, summary: dict[str, Any]) -> Path | None:
 
 
 def _images(folder: Path, t0: int, t1: int) -> ImageStream | None:
-    """The recording's colour images stamped within the run's span [t0, t1]."""
+    """The recording's colour and depth images stamped within the run's span [t0, t1]."""
     import yaml
 
     try:
@@ -185,12 +185,16 @@ def _images(folder: Path, t0: int, t1: int) -> ImageStream | None:
     except (OSError, yaml.YAMLError) as err:
         raise SensorError(f"{folder / 'scene.yaml'}: unreadable ({err})") from err
     intrinsics = intrinsics_from_scene(scene or {}, str(folder / "scene.yaml"))
-    table = read_stamped_text(folder / "rgb.txt", ("timestamp", "filename"))
-    keep = (table.stamps_ns >= t0) & (table.stamps_ns <= t1)
-    if not keep.any():
+    streams = []
+    for index in ("rgb.txt", "depth.txt"):
+        table = read_stamped_text(folder / index, ("timestamp", "filename"))
+        keep = (table.stamps_ns >= t0) & (table.stamps_ns <= t1)
+        files = [folder / row[0] for row, k in zip(table.values, keep, strict=True) if k]
+        streams.append((table.stamps_ns[keep], files))
+    (rgb_t, rgb_files), (depth_t, depth_files) = streams
+    if not rgb_files:
         return None
-    files = [folder / row[0] for row, k in zip(table.values, keep, strict=True) if k]
-    return ImageStream(table.stamps_ns[keep], files, OPTICAL_FRAME, intrinsics)
+    return ImageStream(rgb_t, rgb_files, OPTICAL_FRAME, intrinsics, depth_t, depth_files)
 
 
 def run_content(run: Path, images: bool = True) -> tuple[BagContent, dict[str, Any]]:

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
@@ -184,6 +185,12 @@ def test_an_rgbd_map_run_carries_its_images_camera_mount_and_odometry(
     assert images[0][1].format == "png"
     assert bytes(images[0][1].data) == files[0].read_bytes()
     assert [ns for ns, _ in images] == sorted(ns for ns, _ in images)
+    # Depth: registered 16UC1 millimetres, one per recorded depth image.
+    depth = msgs["/camera/aligned_depth_to_color/image_raw"]
+    counts = cv2.imread(str(sorted((source / "depth").glob("*.png"))[0]), cv2.IMREAD_UNCHANGED)
+    mm = np.frombuffer(bytes(depth[0][1].data), "<u2").reshape(480, 640)
+    assert len(depth) == 24 and depth[0][1].encoding == "16UC1"
+    assert np.abs(mm.astype(np.int64) - np.rint(counts / 5.0)).max() == 0  # 5000 counts/m
     info = msgs["/camera/color/camera_info"][0][1]
     assert info.k[0] == pytest.approx(525.0) and info.width == 640
     # The camera mount from the run's config (camera_height set to 0.52 on the command line).
@@ -367,3 +374,19 @@ def test_foxglove_s_own_mcap_reader_decodes_every_message_in_log_time_order(
     bundle = load_bundle(laser_run / "map")
     expected = bundle.grid.trinary(bundle.occupied_thresh, bundle.free_thresh)
     assert np.array_equal(np.asarray(grids[0].data, np.int8).reshape(expected.shape), expected)
+
+
+def test_the_exported_bag_maps_again_like_the_run_it_came_from(
+    rgbd_run: Path, tmp_path: Path
+) -> None:
+    bag = tmp_path / "bag"
+    assert _cli("export", rgbd_run, "--to", "mcap", "--out", bag, "-q").exit_code == 0
+    res = _cli("map", bag, "--out", tmp_path / "again", "-q")  # colour, depth, info, /odom
+    assert res.exit_code == 0, res.output
+    stamps, before = _trajectory(rgbd_run / "trajectory.tum")
+    again_stamps, after = _trajectory(tmp_path / "again" / "trajectory.tum")
+    assert np.array_equal(again_stamps, stamps)
+    # /odom is fused differentially, so the new map frame starts at the first pose: compare
+    # the motion relative to the first pose.
+    rel_before, rel_after = ominus(before[0], before), ominus(after[0], after)
+    assert np.abs(rel_before[:, :2] - rel_after[:, :2]).max() < 0.05
