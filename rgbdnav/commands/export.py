@@ -207,7 +207,6 @@ def run_content(run: Path, images: bool = True) -> tuple[BagContent, dict[str, A
             f"{run}: nothing to export from a {command or 'unknown'} run; "
             f"export runs of {', '.join(LAYOUTS)}"
         )
-    cfg = load_config([run / "config.yaml"] if (run / "config.yaml").is_file() else [])
     map_base = _track(run, layout.map_track, MAP_FRAME, BASE_FRAME)
     odom_base = _track(run, layout.odom_track, ODOM_FRAME, BASE_FRAME)
     main = map_base or odom_base
@@ -215,6 +214,9 @@ def run_content(run: Path, images: bool = True) -> tuple[BagContent, dict[str, A
         wanted = " or ".join(layout.map_track or layout.odom_track)
         raise SensorError(f"{run}: a {command} run without {wanted}: nothing to export")
     path_track = _track(run, layout.path_track, main.parent, BASE_FRAME) or main
+    if not (run / "config.yaml").is_file():
+        log.warning("%s: no config.yaml; /tf_static gets the default robot's camera mount", run)
+    cfg = load_config([run / "config.yaml"] if (run / "config.yaml").is_file() else [])
     t0, t1 = int(main.stamps_ns[0]), int(main.stamps_ns[-1])
     bundle = grid_msg = None
     if layout.bundle:
