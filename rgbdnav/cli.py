@@ -627,6 +627,31 @@ def eval_(
     typer.echo(f"wrote {out / 'summary.json'} and {out / 'ate.png'}")
 
 
+@app.command("export")
+@_known_errors
+def export(
+    run: Annotated[Path, typer.Argument(metavar="RUN_DIR", help="A run folder (map, live, ...).")],
+    to: Annotated[str, typer.Option("--to", help="Output format: mcap (rosbag2 folder).")],
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", "-o", help="Bag folder to write (default RUN_DIR/rosbag2)."),
+    ] = None,
+    images: Annotated[bool, typer.Option(help="Include the run's colour images.")] = True,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """A run as a rosbag2/MCAP folder (/tf, /tf_static, /map, /scan, /odom, Path, images) for
+    Foxglove or `ros2 bag play` into RViz."""
+    _setup_logging(verbose)
+    from rgbdnav.commands.export import run_export
+
+    result = run_export(run, to, out, images)
+    if not quiet:
+        for topic, n in result["counts"].items():
+            typer.echo(f"{topic:<42} {n} messages")
+    typer.echo(f"bag         {result['out']}")
+
+
 def main() -> None:
     try:
         app()
