@@ -536,31 +536,35 @@ def live(
 @app.command()
 @_known_errors
 def board(
-    port: Annotated[str | None, typer.Argument(help="Serial port or pyserial URL.")] = None,
+    port: Annotated[
+        str | None,
+        typer.Argument(
+            help="Device spec: eddie:/dev/ttyUSB0 (or a bare port), "
+            "thunderborg:/dev/i2c-1@0x15[,TACHO_PORT], "
+            "arduino-bridge:/dev/ttyACM0@57600."
+        ),
+    ] = None,
     emulator: Annotated[
-        bool, typer.Option(help="Talk to the built-in board emulator on a pseudo-terminal.")
-    ] = False,
+        str | None,
+        typer.Option(
+            help="Talk to a built-in emulator instead: eddie, thunderborg or arduino-bridge."
+        ),
+    ] = None,
     test_drive: Annotated[
         bool, typer.Option(help="Drive forward at 0.1 m/s for 1 s and measure it. Lift the robot!")
     ] = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """Check an Eddie control board: firmware, battery, encoders, round-trip time."""
+    """Check a motor board: which board, firmware, battery, odometry, round-trip time."""
     from rgbdnav.commands.board import check_board
     from rgbdnav.config import load_config
+    from sensors.boards import open_board
 
     cfg = load_config(config or [], set_ or [])
-    if emulator:
-        from sensors.eddie_emulator import EddieEmulator
-
-        emu = EddieEmulator(cfg.robot)
-        try:
-            report = check_board(emu.serve_pty(), cfg.board, cfg.robot, test_drive)
-        finally:
-            emu.close()
-    else:
-        report = check_board(port or cfg.board.port, cfg.board, cfg.robot, test_drive)
+    spec = f"emulator:{emulator}" if emulator else (port or cfg.board.port)
+    with open_board(spec, cfg) as motor_board:
+        report = check_board(motor_board, spec, test_drive)
     typer.echo(report.text())
 
 

@@ -27,10 +27,12 @@ from nav.config import (
 from sensors.atomic import atomic_write_text
 from sensors.config import (
     BoardConfig,
+    BridgeConfig,
     CameraConfig,
     RobotConfig,
     SimConfig,
     SyncConfig,
+    ThunderBorgConfig,
     TopicsConfig,
     build_section,
     param,
@@ -187,6 +189,8 @@ class Config:
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     navigate: NavigateConfig = field(default_factory=NavigateConfig)
     board: BoardConfig = field(default_factory=BoardConfig)
+    thunderborg: ThunderBorgConfig = field(default_factory=ThunderBorgConfig)
+    arduino_bridge: BridgeConfig = field(default_factory=BridgeConfig)
     topics: TopicsConfig = field(default_factory=TopicsConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     live: LiveConfig = field(default_factory=LiveConfig)

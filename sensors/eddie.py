@@ -93,6 +93,7 @@ except ImportError:  # pragma: no cover - not POSIX
     termios = None  # type: ignore[assignment]
 
 from sensors.config import BoardConfig, RobotConfig
+from sensors.motor_board import MotorBoard
 from sensors.types import NS_PER_S, SensorError, WheelTicks
 
 log = logging.getLogger(__name__)
@@ -328,12 +329,15 @@ def battery_voltage(adc_counts: Sequence[int]) -> float:
 # --- the driver -------------------------------------------------------------------------------
 
 
-class EddieBoard:
+class EddieBoard(MotorBoard):
     """Typed access to the control board over pyserial (a device, ``socket://`` or ``loop://``).
 
     Opening is immediate: a port that cannot be opened raises BoardError. Use as a context
     manager, or call :meth:`close` (which also sends ``STOP 0`` if the watchdog is armed).
+    Implements :class:`sensors.motor_board.MotorBoard`.
     """
+
+    kind = "eddie"
 
     def __init__(
         self,
@@ -542,7 +546,15 @@ class EddieBoard:
 
         Arms the host watchdog: without another call for ``watchdog_timeout`` it sends STOP 0.
         """
-        left, right = wheel_speeds(v, w, self.robot_cfg)
+        return self._go_speed_watched(*wheel_speeds(v, w, self.robot_cfg))
+
+    def set_wheel_speeds(self, left: float, right: float) -> tuple[int, int]:
+        """Wheel speeds [m/s] as GOSPD [positions/s] (both scaled down together above
+        ``robot.max_wheel_speed``); arms the host watchdog as :meth:`set_velocity` does."""
+        v, w = (left + right) / 2, (right - left) / self.robot_cfg.track_width
+        return self.set_velocity(v, w)
+
+    def _go_speed_watched(self, left: int, right: int) -> tuple[int, int]:
         with self._lock:
             self._last_velocity_s = time.monotonic()
             self._watchdog_armed = True  # armed before sending: the GOSPD may arrive anyway
@@ -577,6 +589,29 @@ class EddieBoard:
                     continue
                 self._watchdog_armed = False
                 log.info("no velocity command for %.2f s: motors stopped", timeout)
+
+    def arm_failsafe(self, timeout_s: float) -> str:
+        """The board's kill switch (WATCH, whole seconds, at least 1) for a host that dies; the
+        host watchdog (``board.watchdog_timeout``) stops a host that lives but goes quiet."""
+        seconds = max(1, min(26, math.ceil(timeout_s)))
+        self.watchdog(seconds)
+        return (
+            f"board WATCH {seconds} s (host dead), host watchdog "
+            f"{self.board_cfg.watchdog_timeout:.2f} s (host quiet)"
+        )
+
+    def diagnostics(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "board": "Parallax Eddie",
+            "port": self.url,
+            "late_replies_dropped": self.late_replies_dropped,
+            "connected": self.connected,
+        }
+        try:
+            out["firmware"] = f"VER {self.version():04X}, HWVER {self.hardware_version():04X}"
+        except BoardError as err:
+            out["firmware"] = f"unavailable ({err})"
+        return out
 
     # -- queries -------------------------------------------------------------------------------
 
