@@ -429,7 +429,12 @@ def live(
         str, typer.Option(help="sim, or an OpenNI2 device: openni:// (first) / openni://URI.")
     ] = "sim",
     board: Annotated[
-        str, typer.Option(help="sim, the board's serial port (/dev/ttyUSB0), or none.")
+        str,
+        typer.Option(
+            help="sim, a device spec (eddie:/dev/ttyUSB0, thunderborg:/dev/i2c-1@0x15, "
+            "arduino-bridge:/dev/ttyACM0@57600), emulator:KIND (the simulated robot driven "
+            "through that board emulator), or none."
+        ),
     ] = "sim",
     sim_world: Annotated[
         Path | None, typer.Option("--sim-world", help="World YAML for --camera/--board sim.")

@@ -174,6 +174,11 @@ class ThunderBorgEmulator:
             sign = -1.0 if self.cfg.invert_right else 1.0
             return float(self.travel[left_k]), float(sign * self.travel[1 - left_k])
 
+    def wheel_positions(self) -> tuple[float, float]:
+        """Wheel travel (left, right) in encoder positions of ``robot`` (for the simulator)."""
+        left, right = self.wheel_travel()
+        return left / self.robot.metres_per_tick, right / self.robot.metres_per_tick
+
     # the I2C side
     def write(self, data: list[int]) -> None:
         if not data:
@@ -303,6 +308,12 @@ class BridgeEmulator:
         with self._lock:
             self._advance(self.time_source())
             return float(self.rate[0]), float(self.rate[1])
+
+    def wheel_positions(self) -> tuple[float, float]:
+        """Wheel travel (left, right) [ticks], not floored (for the simulator)."""
+        with self._lock:
+            self._advance(self.time_source())
+            return float(self.counts[0]), float(self.counts[1])
 
     def feed(self, data: bytes) -> bytes:
         out = b""

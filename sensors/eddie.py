@@ -717,7 +717,7 @@ class OdometryPoller:
 
     def __init__(
         self,
-        board: EddieBoard,
+        board: MotorBoard,
         board_cfg: BoardConfig | None = None,
         *,
         callback: Callable[[WheelTicks], None] | None = None,
@@ -726,7 +726,7 @@ class OdometryPoller:
         diagnostics_period_s: float | None = DIAGNOSTICS_PERIOD_S,
     ) -> None:
         self.board = board
-        self.board_cfg = board_cfg or board.board_cfg
+        self.board_cfg = board_cfg or board.board_cfg  # type: ignore[attr-defined]
         self.callback = callback
         self.queue: queue.Queue[WheelTicks] = queue.Queue(maxsize=queue_size)
         self.read_speed_heading = read_speed_heading
@@ -763,7 +763,7 @@ class OdometryPoller:
         with self._stats_lock:
             self._stats = replace(self._stats, **changes)
 
-    def _count_error(self, err: BoardError) -> None:
+    def _count_error(self, err: SensorError) -> None:
         log.debug("poll failed: %s", err)
         with self._stats_lock:
             s = self._stats
@@ -785,7 +785,7 @@ class OdometryPoller:
     def _poll_once(self) -> None:
         try:
             ticks = self.board.ticks()
-        except BoardError as err:
+        except SensorError as err:
             self._count_error(err)
             return
         with self._stats_lock:
@@ -796,17 +796,18 @@ class OdometryPoller:
                 self.callback(ticks)
             except Exception:  # a consumer's bug must not kill odometry
                 log.exception("WheelTicks callback raised")
-        if self.read_speed_heading:
+        if self.read_speed_heading and isinstance(self.board, EddieBoard):
             try:
                 self._update(speeds=self.board.speed(), heading_deg=self.board.heading())
-            except BoardError as err:
+            except SensorError as err:
                 self._count_error(err)
 
     def _poll_diagnostics(self) -> None:
         try:
             self._update(battery_v=self.board.battery_voltage())
-            self._update(ping_mm=self.board.ping())
-        except BoardError as err:
+            if isinstance(self.board, EddieBoard):
+                self._update(ping_mm=self.board.ping())
+        except SensorError as err:
             self._count_error(err)
 
     def _run(self) -> None:

@@ -285,6 +285,10 @@ class EddieEmulator:
             self._advance(self.time_source())
             return self._left.pos, self._right.pos
 
+    def wheel_positions(self) -> tuple[float, float]:
+        """As :meth:`positions`: the name every board emulator gives the simulator."""
+        return self.positions()
+
     def speeds(self) -> tuple[float, float]:
         """Current wheel speeds (left, right) [positions/s]."""
         with self._lock:
