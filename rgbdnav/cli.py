@@ -550,11 +550,12 @@ def board(
         ),
     ] = None,
     emulator: Annotated[
-        str | None,
+        bool,
         typer.Option(
-            help="Talk to a built-in emulator instead: eddie, thunderborg or arduino-bridge."
+            help="Talk to a built-in emulator instead; the argument names which: eddie "
+            "(default), thunderborg or arduino-bridge."
         ),
-    ] = None,
+    ] = False,
     test_drive: Annotated[
         bool, typer.Option(help="Drive forward at 0.1 m/s for 1 s and measure it. Lift the robot!")
     ] = False,
@@ -567,7 +568,7 @@ def board(
     from sensors.boards import open_board
 
     cfg = load_config(config or [], set_ or [])
-    spec = f"emulator:{emulator}" if emulator else (port or cfg.board.port)
+    spec = f"emulator:{port or 'eddie'}" if emulator else (port or cfg.board.port)
     with open_board(spec, cfg) as motor_board:
         report = check_board(motor_board, spec, test_drive)
     typer.echo(report.text())
