@@ -475,6 +475,13 @@ def live(
     repeat_route: Annotated[
         bool, typer.Option(help="Drive the route again and again (soak tests).")
     ] = False,
+    joystick: Annotated[
+        str | None,
+        typer.Option(
+            help="Joystick teleop from this evdev device (/dev/input/eventN; extra "
+            "'joystick'): hold BTN_TL to drive, START switches manual/auto."
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the simulated robot.")] = 0,
     record: Annotated[
         Path | None,
@@ -515,7 +522,7 @@ def live(
                        config_files=config or [], overrides=set_ or [], map_bundle=map_,
                        duration_s=duration, drive=drive, goals=goals, rrd=rrd, viewer=viewer,
                        seed=seed, drills=[Drill.parse(d) for d in drill or []],
-                       repeat_route=repeat_route, record=record,
+                       repeat_route=repeat_route, record=record, joystick=joystick,
                        initial_pose=initial_pose)  # fmt: skip
     outputs, summary = run_live(opts)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}

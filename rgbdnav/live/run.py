@@ -132,6 +132,7 @@ class Drill:
 class LiveOptions:
     out: Path
     camera: str = "sim"  # "sim" or an OpenNI2 target ("openni://", "openni://<uri>", x.oni)
+    joystick: str | None = None  # /dev/input/eventN: evdev joystick teleop (nav.joystick)
     board: str = "sim"  # "sim", a device spec (sensors.motor_board), emulator:KIND, or "none"
     world: Path | None = None  # simulator world (camera or board "sim")
     config_files: Sequence[Path] = ()
@@ -268,6 +269,19 @@ class LiveRun:
         self.route_done = False
         self.keys: queue.Queue[str] = queue.Queue()  # terminal keys (tests put them here)
         self.mode = "manual" if opts.drive == "teleop" else "auto"
+        self.joystick = None
+        if opts.joystick is not None:
+            from nav.joystick import JoystickTeleop
+
+            try:
+                import evdev  # noqa: F401
+            except ImportError:
+                raise ConfigError(
+                    "--joystick needs evdev: pip install 'rgbdnav[joystick]'"
+                ) from None
+
+            # The mode button acts as the Tab key: the controller loop switches.
+            self.joystick = JoystickTeleop(on_toggle=lambda: self.keys.put(MODE_SWITCH_KEY))
         self.recorder: LiveRecorder | None = None
         self.front_end: FrontEnd | None = None
         if opts.record is not None:
@@ -557,7 +571,9 @@ class LiveRun:
                 continue
             v = w = 0.0
             if self.mode == "manual":
-                if time.monotonic() - last_key <= lc.teleop_key_timeout:
+                if self.joystick is not None:
+                    v, w = self.joystick.twist  # (0, 0) unless the deadman is held
+                elif time.monotonic() - last_key <= lc.teleop_key_timeout:
                     v, w = manual_twist
             elif self.navigator is not None:
                 pose = self.shared.pose_in_map()
@@ -615,6 +631,17 @@ class LiveRun:
                 log.info("board answering again")
                 self.counts.inc("board_recovered")
                 failing = False
+
+    def _joystick_loop(self) -> None:
+        """Events from the evdev device into the joystick teleop (a daemon thread: the blocking
+        read ends with the process)."""
+        from nav.joystick import read_device
+
+        assert self.joystick is not None and self.opts.joystick is not None
+        for event in read_device(self.opts.joystick):
+            if self.stop.is_set():
+                return
+            self.joystick.feed(*event)
 
     def _keyboard_loop(self) -> None:
         """Keys from the terminal (cbreak mode: Ctrl-C still interrupts), restored on exit."""
@@ -735,6 +762,8 @@ class LiveRun:
                 ("mapper", self._mapper_loop, ()),
                 ("controller", self._controller_loop, ()),
             ]
+            if self.joystick is not None:
+                specs.append(("joystick", self._joystick_loop, ()))
             if self.opts.drive != "idle" and _interactive():
                 specs.append(("keyboard", self._keyboard_loop, ()))
                 log.info("keys: teleop_twist_keyboard (u i o / j k l / m , .), Tab switches "
