@@ -136,6 +136,7 @@ class ThunderBorgEmulator:
         self.writes = 0
         self._reply = [0] * I2C_MAX_LEN
         self._tacho: _Pty | None = None
+        self.tacho_silent = False  # fault injection: the Arduino stops printing
 
     # model
     def _steady(self, power: np.ndarray) -> np.ndarray:
@@ -225,6 +226,8 @@ class ThunderBorgEmulator:
         circumference = math.pi * self.robot.wheel_diameter
 
         def line() -> bytes:
+            if self.tacho_silent:
+                return b""
             left, right = self.wheel_speeds()
             return b"tacho %.2f %.2f\r\n" % (left / circumference * 60, right / circumference * 60)
 

@@ -788,6 +788,9 @@ class OdometryPoller:
         except SensorError as err:
             self._count_error(err)
             return
+        last = self._stats.last_ticks
+        if last is not None and ticks.stamp_ns == last.stamp_ns:
+            return  # a tacho board between two readings: nothing new
         with self._stats_lock:
             self._stats = replace(self._stats, polls=self._stats.polls + 1, last_ticks=ticks)
         self._push(ticks)

@@ -19,7 +19,8 @@ The loop runs at ``pid_rate`` (> 4 Hz, so it also feeds the board's 250 ms fails
 watchdog zeroes the target when no wheel command came for ``board.watchdog_timeout``; a host
 that dies leaves the board's failsafe to stop the motors. Battery below ``battery_warn`` logs a
 warning (LED orange), below ``battery_stop`` the motors are refused (LED red). LED: blue idle,
-green driving, orange low battery, red stopped for the battery or a dead tacho.
+green driving, orange low battery, red stopped for the battery, magenta tacho lost (no RPM
+for ``rpm_timeout`` while driving closed loop: the motors stop rather than drive blind).
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ LED_COLOURS = {
     "idle": (0, 0, 255),
     "driving": (0, 255, 0),
     "battery_low": (255, 128, 0),
-    "stopped": (255, 0, 0),
+    "battery_stop": (255, 0, 0),
+    "tacho_lost": (255, 0, 255),
 }
 
 
@@ -235,7 +237,7 @@ class ThunderBorgBoard(MotorBoard):
             "tacho_stale": 0,
             "battery_stops": 0,
         }
-        self._battery_warned = False
+        self.battery = "ok"  # ok, battery_low, battery_stop
         self._led: tuple[int, int, int] | None = None
         self._stop = threading.Event()
         self.watchdog = HostWatchdog(
@@ -347,7 +349,6 @@ class ThunderBorgBoard(MotorBoard):
 
     def _pid_loop(self) -> None:
         period = 1.0 / self.cfg.pid_rate
-        circumference = math.pi * self.robot_cfg.wheel_diameter  # [m]
         next_battery = 0.0
         last = time.monotonic()
         while not self._stop.wait(period):
@@ -357,42 +358,42 @@ class ThunderBorgBoard(MotorBoard):
                 if now >= next_battery:
                     next_battery = now + BATTERY_CHECK_S
                     self._check_battery()
-                with self._lock:
-                    target, rpm = self._target, self._rpm
-                stale = (
-                    rpm is None or (time.monotonic_ns() - rpm.stamp_ns) / 1e9 > self.cfg.rpm_timeout
-                )
-                moving = target != (0.0, 0.0)
-                if (
-                    self.state == "stopped"
-                    and self.battery_v is not None
-                    and self.battery_v < self.cfg.battery_stop
-                ):
-                    powers = (0.0, 0.0)
-                elif not moving or (stale and self.cfg.use_pid):
-                    if moving:
-                        self.counts["tacho_stale"] += 1
-                    for pid in self._pids:
-                        pid.reset()
-                    powers = (0.0, 0.0)
-                else:
-                    speeds = []
-                    for k, pid in enumerate(self._pids):
-                        u = target[k]
-                        if self.cfg.use_pid and rpm is not None:
-                            measured = (rpm.left, rpm.right)[k] * circumference / 60.0
-                            u += pid.step(target[k] - measured, dt)
-                        speeds.append(speed_to_power(u, self.cfg))
-                    powers = (speeds[0], speeds[1])
-                self._drive(powers)
-                self._show(
-                    ("driving" if any(powers) else "idle")
-                    if self.state not in ("battery_low", "stopped")
-                    else self.state
-                )
+                self._drive(self._control_step(dt))
             except MotorBoardError as err:
                 self.counts["i2c_errors"] += 1
                 log.warning("ThunderBorg: %s", err)
+
+    def _control_step(self, dt: float) -> tuple[float, float]:
+        """One PID step: motor powers (left, right) for the current target and tacho reading;
+        sets :attr:`state` (idle, driving, battery_low, battery_stop, tacho_lost) and the LED."""
+        with self._lock:
+            target, rpm = self._target, self._rpm
+        moving = target != (0.0, 0.0)
+        stale = rpm is None or (time.monotonic_ns() - rpm.stamp_ns) / 1e9 > self.cfg.rpm_timeout
+        powers = (0.0, 0.0)
+        if self.battery == "battery_stop":
+            state = "battery_stop"
+        elif moving and stale and self.cfg.use_pid:
+            self.counts["tacho_stale"] += 1
+            state = "tacho_lost"  # closed loop without a measurement: do not drive blind
+        elif moving:
+            circumference = math.pi * self.robot_cfg.wheel_diameter  # [m]
+            out = []
+            for k, pid in enumerate(self._pids):
+                u = target[k]
+                if self.cfg.use_pid and rpm is not None:
+                    u += pid.step(target[k] - (rpm.left, rpm.right)[k] * circumference / 60.0, dt)
+                out.append(speed_to_power(u, self.cfg))
+            powers = (out[0], out[1])
+            state = "battery_low" if self.battery == "battery_low" else "driving"
+        else:
+            state = "battery_low" if self.battery == "battery_low" else "idle"
+        if not any(powers):
+            for pid in self._pids:
+                pid.reset()
+        self.state = state
+        self._show(state)
+        return powers
 
     def _drive(self, powers: tuple[float, float]) -> None:
         left_motor = self.cfg.left_motor
@@ -406,17 +407,16 @@ class ThunderBorgBoard(MotorBoard):
         v = self.i2c.battery_voltage()
         self.battery_v = v
         if v < self.cfg.battery_stop:
-            if self.state != "stopped":
+            if self.battery != "battery_stop":
                 self.counts["battery_stops"] += 1
                 log.error("battery %.2f V below %.2f V: motors stopped", v, self.cfg.battery_stop)
-            self.state = "stopped"
+            self.battery = "battery_stop"
         elif v < self.cfg.battery_warn:
-            if not self._battery_warned:
+            if self.battery == "ok":
                 log.warning("battery low: %.2f V (warning at %.2f V)", v, self.cfg.battery_warn)
-                self._battery_warned = True
-            self.state = "battery_low"
+            self.battery = "battery_low"
         else:
-            self.state = "ok"
+            self.battery = "ok"
 
     def _show(self, state: str) -> None:
         colour = LED_COLOURS.get(state, LED_COLOURS["idle"])

@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from sensors.motor_board import MotorBoard, SensorError
-from sensors.types import NS_PER_S
+from sensors.motor_board import MotorBoard
+from sensors.types import NS_PER_S, SensorError
 
 LATENCY_SAMPLES = 50  # odometry reads timed
 TEST_DRIVE_SPEED = 0.1  # [m/s] gentle, so a robot on the floor barely moves

@@ -150,8 +150,27 @@ def test_thunderborg_low_battery_warns_then_stops() -> None:
         assert any(emu.power)
         emu.battery_v = 10.2
         _drive(board, 0.2, 0.2, 1.3)
-        assert board.state == "stopped" and emu.led == (255, 0, 0)
+        assert board.state == "battery_stop" and emu.led == (255, 0, 0)
         assert not any(emu.power)
+    finally:
+        board.close()
+        emu.close()
+
+
+def test_thunderborg_stops_when_the_tacho_goes_silent() -> None:
+    cfg = ThunderBorgConfig(rpm_timeout=0.3)
+    emu = ThunderBorgEmulator(cfg, EASE)
+    board = _tb_board(emu, cfg)
+    try:
+        _drive(board, 0.2, 0.2, 0.6)
+        assert any(emu.power)
+        emu.tacho_silent = True
+        _drive(board, 0.2, 0.2, 0.6)
+        assert board.state == "tacho_lost" and not any(emu.power)
+        assert emu.led == (255, 0, 255) and board.diagnostics()["tacho_stale"] > 0
+        emu.tacho_silent = False
+        _drive(board, 0.2, 0.2, 0.4)
+        assert board.state == "driving" and any(emu.power)
     finally:
         board.close()
         emu.close()
