@@ -8,15 +8,18 @@ from ``[axis_min, axis_max]`` to [-1, 1]; inside ``dead_zone`` the speed is 0, p
 speed rises linearly from 0 at the edge to the maximum at full deflection
 (:func:`nav.teleop.joystick_speed` with ``min_speed`` 0). Without the deadman held the output is
 (0, 0) whatever the sticks say. Defaults: left stick (ABS_Y forward, pushed up is negative;
-ABS_X turn, left is negative), deadman BTN_TL (310), mode BTN_START (315).
+ABS_X turn, left is negative), deadman BTN_TL (310), mode BTN_START (315). ``replay:FILE``
+plays a recorded sequence instead of a device (the joystick's emulator, for demos and tests).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from nav.teleop import JoystickAxis, joystick_speed
+from sensors.config import param
 from sensors.types import ConfigError
 
 EV_KEY, EV_ABS = 1, 3
@@ -24,29 +27,31 @@ EV_KEY, EV_ABS = 1, 3
 
 @dataclass(frozen=True)
 class JoystickConfig:
-    axis_linear: int = 1  # ABS_Y
-    axis_angular: int = 0  # ABS_X
-    invert_linear: bool = True  # stick up reads negative
-    invert_angular: bool = True  # stick left reads negative; w is counter-clockwise positive
-    axis_min: int = -32768
-    axis_max: int = 32767
-    dead_zone: float = 0.1
-    max_linear: float = 0.4  # [m/s]
-    max_angular: float = 1.0  # [rad/s]
-    deadman_button: int | None = 310  # BTN_TL; None: no deadman
-    mode_button: int = 315  # BTN_START
-    axes: tuple[JoystickAxis, JoystickAxis] = field(init=False, repr=False)
+    """Joystick teleop (evdev): axes, dead zone, speeds and buttons."""
+
+    axis_linear: int = param(1, ge=0, doc="EV_ABS code driving forward/back (ABS_Y)")
+    axis_angular: int = param(0, ge=0, doc="EV_ABS code turning (ABS_X)")
+    invert_linear: bool = param(True, doc="stick up reads negative on most pads")
+    invert_angular: bool = param(True, doc="stick left reads negative; w is CCW positive")
+    axis_min: int = param(-32768, doc="raw axis value at full deflection one way")
+    axis_max: int = param(32767, doc="... and the other way")
+    dead_zone: float = param(0.1, ge=0.0, lt=1.0, doc="of full deflection: output 0 inside")
+    max_linear: float = param(0.4, unit="m/s", gt=0.0, doc="at full deflection")
+    max_angular: float = param(1.0, unit="rad/s", gt=0.0, doc="at full deflection")
+    deadman_button: int = param(
+        310, ge=-1, doc="EV_KEY code to hold while driving (BTN_TL); -1: none"
+    )
+    mode_button: int = param(315, ge=0, doc="EV_KEY code toggling manual/auto (BTN_START)")
 
     def __post_init__(self) -> None:
         if self.axis_max <= self.axis_min:
             raise ConfigError(f"joystick axis range [{self.axis_min}, {self.axis_max}] is empty")
-        object.__setattr__(
-            self,
-            "axes",
-            (
-                JoystickAxis(self.dead_zone, 0.0, self.max_linear),
-                JoystickAxis(self.dead_zone, 0.0, self.max_angular),
-            ),
+
+    @property
+    def axes(self) -> tuple[JoystickAxis, JoystickAxis]:
+        return (
+            JoystickAxis(self.dead_zone, 0.0, self.max_linear),
+            JoystickAxis(self.dead_zone, 0.0, self.max_angular),
         )
 
 
@@ -59,7 +64,7 @@ class JoystickTeleop:
         self.cfg = cfg or JoystickConfig()
         self.on_toggle = on_toggle
         self.values = {self.cfg.axis_linear: 0.0, self.cfg.axis_angular: 0.0}  # [-1, 1]
-        self.deadman = self.cfg.deadman_button is None
+        self.deadman = self.cfg.deadman_button < 0  # no deadman: always enabled
         self.toggles = 0
 
     def normalise(self, raw: int) -> float:
@@ -92,8 +97,48 @@ class JoystickTeleop:
         return joystick_speed(fwd, lin) + 0.0, joystick_speed(turn, ang) + 0.0
 
 
+def parse_events(text: str, source: str) -> list[tuple[float, int, int, int]]:
+    """A recorded event file: one ``SECONDS TYPE CODE VALUE`` per line (``#`` comments), the
+    times from the start, non-decreasing. ConfigError naming the line otherwise."""
+    events: list[tuple[float, int, int, int]] = []
+    for n, line in enumerate(text.splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        try:
+            t, ev_type, code, value = line.split()
+            event = (float(t), int(ev_type), int(code), int(value))
+        except ValueError:
+            raise ConfigError(
+                f"{source}:{n}: expected SECONDS TYPE CODE VALUE, got {line!r}"
+            ) from None
+        if events and event[0] < events[-1][0]:
+            raise ConfigError(f"{source}:{n}: time goes backwards")
+        events.append(event)
+    return events
+
+
+def replay(
+    events: list[tuple[float, int, int, int]], sleep: Callable[[float], None] = time.sleep
+) -> Iterator[tuple[int, int, int]]:
+    """A recorded sequence with its timing: the joystick's stand-in for a test or a demo."""
+    start = time.monotonic()
+    for t, ev_type, code, value in events:
+        sleep(max(0.0, start + t - time.monotonic()))
+        yield ev_type, code, value
+
+
 def read_device(path: str) -> Iterator[tuple[int, int, int]]:
-    """(type, code, value) events from ``/dev/input/eventN`` (needs the ``joystick`` extra)."""
+    """(type, code, value) events from ``/dev/input/eventN`` (needs the ``joystick`` extra), or
+    from a recording, ``replay:FILE`` (see :func:`parse_events`)."""
+    if path.startswith("replay:"):
+        name = path.split(":", 1)[1]
+        try:
+            text = open(name, encoding="utf-8").read()
+        except OSError as err:
+            raise ConfigError(f"cannot read joystick recording {name}: {err}") from err
+        yield from replay(parse_events(text, name))
+        return
     try:
         from evdev import InputDevice
     except ImportError:

@@ -24,6 +24,7 @@ from nav.config import (
     PlannerConfig,
     SmootherConfig,
 )
+from nav.joystick import JoystickConfig
 from sensors.atomic import atomic_write_text
 from sensors.config import (
     BoardConfig,
@@ -191,6 +192,7 @@ class Config:
     board: BoardConfig = field(default_factory=BoardConfig)
     thunderborg: ThunderBorgConfig = field(default_factory=ThunderBorgConfig)
     arduino_bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    joystick: JoystickConfig = field(default_factory=JoystickConfig)
     topics: TopicsConfig = field(default_factory=TopicsConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     live: LiveConfig = field(default_factory=LiveConfig)

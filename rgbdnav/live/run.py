@@ -273,15 +273,18 @@ class LiveRun:
         if opts.joystick is not None:
             from nav.joystick import JoystickTeleop
 
-            try:
-                import evdev  # noqa: F401
-            except ImportError:
-                raise ConfigError(
-                    "--joystick needs evdev: pip install 'rgbdnav[joystick]'"
-                ) from None
+            if not opts.joystick.startswith("replay:"):  # a recording needs no evdev
+                try:
+                    import evdev  # noqa: F401
+                except ImportError:
+                    raise ConfigError(
+                        "--joystick needs evdev: pip install 'rgbdnav[joystick]'"
+                    ) from None
 
             # The mode button acts as the Tab key: the controller loop switches.
-            self.joystick = JoystickTeleop(on_toggle=lambda: self.keys.put(MODE_SWITCH_KEY))
+            self.joystick = JoystickTeleop(
+                self.cfg.joystick, on_toggle=lambda: self.keys.put(MODE_SWITCH_KEY)
+            )
         self.recorder: LiveRecorder | None = None
         self.front_end: FrontEnd | None = None
         if opts.record is not None:

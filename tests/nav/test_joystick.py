@@ -36,9 +36,7 @@ def test_dead_zone_ramps_up_from_zero_at_its_edge() -> None:
 
 
 def test_configurable_axes_and_turn_sign() -> None:
-    cfg = JoystickConfig(
-        axis_linear=4, axis_angular=3, axis_min=0, axis_max=255, deadman_button=None
-    )
+    cfg = JoystickConfig(axis_linear=4, axis_angular=3, axis_min=0, axis_max=255, deadman_button=-1)
     joy = JoystickTeleop(cfg)
     v, w = joy.feed_all([(EV_ABS, 3, 0), (EV_ABS, 4, 128), (EV_ABS, ABS_Y, 0), SYN])
     assert v == 0.0 and w == pytest.approx(1.0)  # stick left: turn counter-clockwise
@@ -77,3 +75,18 @@ def test_without_evdev_the_device_reader_says_what_to_install() -> None:
 
     with pytest.raises(ConfigError, match="pip install"):
         next(read_device("/dev/input/event0"))
+
+
+def test_a_recording_replays_with_its_timing_and_bad_lines_are_named(tmp_path) -> None:
+    from nav.joystick import parse_events, read_device
+
+    rec = tmp_path / "drive.events"
+    rec.write_text("# t type code value\n0.0 1 310 1\n0.05 3 1 -32768\n0.1 0 0 0\n")
+    joy = JoystickTeleop()
+    t0 = __import__("time").monotonic()
+    v, _ = joy.feed_all(read_device(f"replay:{rec}"))
+    assert v == pytest.approx(0.4) and __import__("time").monotonic() - t0 >= 0.09
+    with pytest.raises(ConfigError, match="x.events:2: expected SECONDS TYPE CODE VALUE"):
+        parse_events("0 1 310 1\n0 1 310\n", "x.events")
+    with pytest.raises(ConfigError, match="backwards"):
+        parse_events("1 1 310 1\n0 1 310 0\n", "x.events")
