@@ -21,6 +21,7 @@ RST        -- (zero DIST and HEAD)                                --
 VER/HWVER  --                                                     version (4 digits)
 VERB       0 or 1                                                 --
 WATCH      kill-switch time [s] 0..26 (0 = off)                   --
+KILL       kill-switch time [ms] 0..26500 (OPP #8 port only)      --
 PING       --                                                     0..16 ranges (3 digits each)
 ADC        --                                                     8 channels (3 digits, 12-bit)
 IN/OUT     pin mask (32-bit): make pins inputs / outputs          --
@@ -183,6 +184,8 @@ COMMANDS: dict[str, CommandSpec] = {
     "HWVER": CommandSpec(reply=(_unsigned("hardware version", 16),)),
     "VERB": CommandSpec((_unsigned("verbose", 4, hi=1),)),
     "WATCH": CommandSpec((_unsigned("kill-switch time [s]", 8, hi=26),)),
+    # Open Propeller Project #8 firmware only (ddegn/EddieFirmware); Parallax's answers ERROR.
+    "KILL": CommandSpec((_unsigned("kill-switch time [ms]", 16, hi=26500),)),
     "PING": CommandSpec(reply=(_unsigned("range [mm]", 12),), repeated_reply=True),
     "ADC": CommandSpec(reply=tuple(_unsigned(f"adc{i}", 12) for i in range(ADC_CHANNELS))),
     "IN": CommandSpec((_MASK,)),
@@ -591,14 +594,22 @@ class EddieBoard(MotorBoard):
                 log.info("no velocity command for %.2f s: motors stopped", timeout)
 
     def arm_failsafe(self, timeout_s: float) -> str:
-        """The board's kill switch (WATCH, whole seconds, at least 1) for a host that dies; the
-        host watchdog (``board.watchdog_timeout``) stops a host that lives but goes quiet."""
+        """The board's kill switch for a host that dies: KILL in milliseconds where the firmware
+        has it (the Open Propeller Project port), else WATCH in whole seconds (at least 1: the
+        Parallax firmware cannot stop a dead host's motors sooner). The host watchdog
+        (``board.watchdog_timeout``) stops a host that lives but goes quiet."""
+        quiet = f"host watchdog {self.board_cfg.watchdog_timeout:.2f} s (host quiet)"
+        ms = max(1, min(26500, round(timeout_s * 1000)))
+        try:
+            self.command("KILL", ms)
+            return f"board KILL {ms} ms (host dead), {quiet}"
+        except BoardError as err:
+            if not self.connected:
+                raise
+            log.info("no KILL on this firmware (%s): WATCH in whole seconds", err)
         seconds = max(1, min(26, math.ceil(timeout_s)))
         self.watchdog(seconds)
-        return (
-            f"board WATCH {seconds} s (host dead), host watchdog "
-            f"{self.board_cfg.watchdog_timeout:.2f} s (host quiet)"
-        )
+        return f"board WATCH {seconds} s (host dead), {quiet}"
 
     def diagnostics(self) -> dict[str, Any]:
         out: dict[str, Any] = {

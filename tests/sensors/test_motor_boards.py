@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +26,7 @@ from sensors.motor_board import (
 from sensors.thunderborg import ThunderBorgBoard, parse_tacho_line, speed_to_power
 from sensors.types import ConfigError
 
+REPO = Path(__file__).resolve().parents[2]
 EASE = RobotConfig(wheel_diameter=0.317 / np.pi, ticks_per_revolution=1000, track_width=0.242)
 
 
@@ -257,3 +260,50 @@ def test_every_emulator_opens_behind_the_interface(kind: str) -> None:
         _drive(board, 0.2, 0.2, 0.6)
         time.sleep(0.1)
         assert board.ticks().left > 0
+
+
+def _eddie_host_drives_then_dies(emu_path: str, timeout_s: float = 0.25) -> subprocess.Popen:
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            (
+                "import time\n"
+                "from sensors.eddie import EddieBoard\n"
+                f"b = EddieBoard({emu_path!r})\n"
+                f"print(b.arm_failsafe({timeout_s}), flush=True)\n"
+                "while True:\n"
+                "    b.set_velocity(0.3, 0.0); time.sleep(0.05)\n"
+            ),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=str(REPO),
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+
+
+@pytest.mark.parametrize(("kill_ms", "limit_s"), [(True, 0.25), (False, 1.0)])
+def test_eddie_kill_switch_stops_a_killed_host(kill_ms: bool, limit_s: float) -> None:
+    """A host process drives and is killed -9: firmware with KILL [ms] stops the wheels within
+    250 ms; the Parallax firmware only has WATCH [s], so within 1 s."""
+    from sensors.eddie_emulator import EddieEmulator
+
+    emu = EddieEmulator(kill_ms_command=kill_ms)
+    host = _eddie_host_drives_then_dies(emu.serve_pty())
+    try:
+        armed = host.stdout.readline()
+        assert ("KILL 250 ms" if kill_ms else "WATCH 1 s") in armed
+        deadline = time.monotonic() + 10
+        while emu.speeds()[0] < 5 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert emu.speeds()[0] >= 5
+        host.kill()
+        host.wait()
+        killed = time.monotonic()
+        while emu.speeds() != (0.0, 0.0):
+            time.sleep(0.005)
+        assert time.monotonic() - killed <= limit_s + 0.05
+    finally:
+        host.kill()
+        emu.close()
