@@ -429,7 +429,12 @@ def live(
         str, typer.Option(help="sim, or an OpenNI2 device: openni:// (first) / openni://URI.")
     ] = "sim",
     board: Annotated[
-        str, typer.Option(help="sim, the board's serial port (/dev/ttyUSB0), or none.")
+        str,
+        typer.Option(
+            help="sim, a device spec (eddie:/dev/ttyUSB0, thunderborg:/dev/i2c-1@0x15, "
+            "arduino-bridge:/dev/ttyACM0@57600), emulator:KIND (the simulated robot driven "
+            "through that board emulator), or none."
+        ),
     ] = "sim",
     sim_world: Annotated[
         Path | None, typer.Option("--sim-world", help="World YAML for --camera/--board sim.")
@@ -470,6 +475,13 @@ def live(
     repeat_route: Annotated[
         bool, typer.Option(help="Drive the route again and again (soak tests).")
     ] = False,
+    joystick: Annotated[
+        str | None,
+        typer.Option(
+            help="Joystick teleop from this evdev device (/dev/input/eventN; extra "
+            "'joystick'): hold BTN_TL to drive, START switches manual/auto."
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the simulated robot.")] = 0,
     record: Annotated[
         Path | None,
@@ -510,7 +522,7 @@ def live(
                        config_files=config or [], overrides=set_ or [], map_bundle=map_,
                        duration_s=duration, drive=drive, goals=goals, rrd=rrd, viewer=viewer,
                        seed=seed, drills=[Drill.parse(d) for d in drill or []],
-                       repeat_route=repeat_route, record=record,
+                       repeat_route=repeat_route, record=record, joystick=joystick,
                        initial_pose=initial_pose)  # fmt: skip
     outputs, summary = run_live(opts)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
@@ -536,9 +548,20 @@ def live(
 @app.command()
 @_known_errors
 def board(
-    port: Annotated[str | None, typer.Argument(help="Serial port or pyserial URL.")] = None,
+    port: Annotated[
+        str | None,
+        typer.Argument(
+            help="Device spec: eddie:/dev/ttyUSB0 (or a bare port), "
+            "thunderborg:/dev/i2c-1@0x15[,TACHO_PORT], "
+            "arduino-bridge:/dev/ttyACM0@57600."
+        ),
+    ] = None,
     emulator: Annotated[
-        bool, typer.Option(help="Talk to the built-in board emulator on a pseudo-terminal.")
+        bool,
+        typer.Option(
+            help="Talk to a built-in emulator instead; the argument names which: eddie "
+            "(default), thunderborg or arduino-bridge."
+        ),
     ] = False,
     test_drive: Annotated[
         bool, typer.Option(help="Drive forward at 0.1 m/s for 1 s and measure it. Lift the robot!")
@@ -546,21 +569,15 @@ def board(
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """Check an Eddie control board: firmware, battery, encoders, round-trip time."""
+    """Check a motor board: which board, firmware, battery, odometry, round-trip time."""
     from rgbdnav.commands.board import check_board
     from rgbdnav.config import load_config
+    from sensors.boards import open_board
 
     cfg = load_config(config or [], set_ or [])
-    if emulator:
-        from sensors.eddie_emulator import EddieEmulator
-
-        emu = EddieEmulator(cfg.robot)
-        try:
-            report = check_board(emu.serve_pty(), cfg.board, cfg.robot, test_drive)
-        finally:
-            emu.close()
-    else:
-        report = check_board(port or cfg.board.port, cfg.board, cfg.robot, test_drive)
+    spec = f"emulator:{port or 'eddie'}" if emulator else (port or cfg.board.port)
+    with open_board(spec, cfg) as motor_board:
+        report = check_board(motor_board, spec, test_drive)
     typer.echo(report.text())
 
 

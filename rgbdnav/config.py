@@ -24,13 +24,16 @@ from nav.config import (
     PlannerConfig,
     SmootherConfig,
 )
+from nav.joystick import JoystickConfig
 from sensors.atomic import atomic_write_text
 from sensors.config import (
     BoardConfig,
+    BridgeConfig,
     CameraConfig,
     RobotConfig,
     SimConfig,
     SyncConfig,
+    ThunderBorgConfig,
     TopicsConfig,
     build_section,
     param,
@@ -187,6 +190,9 @@ class Config:
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     navigate: NavigateConfig = field(default_factory=NavigateConfig)
     board: BoardConfig = field(default_factory=BoardConfig)
+    thunderborg: ThunderBorgConfig = field(default_factory=ThunderBorgConfig)
+    arduino_bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    joystick: JoystickConfig = field(default_factory=JoystickConfig)
     topics: TopicsConfig = field(default_factory=TopicsConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     live: LiveConfig = field(default_factory=LiveConfig)

@@ -272,6 +272,51 @@ class BoardConfig:
 
 
 @dataclass(frozen=True)
+class ThunderBorgConfig:
+    """PiBorg ThunderBorg on I2C + an Arduino tacho on serial (EaseRobot); host-side PID."""
+
+    bus: int = param(1, ge=0, doc="I2C bus number (/dev/i2c-N)")
+    address: int = param(0x15, ge=0x03, le=0x77, doc="I2C address (PiBorg default 0x15)")
+    tacho_port: str = param("/dev/ttyUSB0", doc="Arduino tacho serial port")
+    tacho_baudrate: int = param(115200, unit="baud", gt=0)
+    left_motor: int = param(1, ge=1, le=2, doc="ThunderBorg motor driving the left wheel")
+    invert_right: bool = param(False, doc="the right motor is mounted mirrored")
+    p: float = param(0.5, ge=0.0, doc="PID proportional gain (EaseRobot)")
+    i: float = param(0.9, ge=0.0, doc="PID integral gain")
+    d: float = param(0.006, ge=0.0, doc="PID derivative gain")
+    use_pid: bool = param(True, doc="closed loop on tacho RPM; False: calibration only")
+    inertia_level: float = param(0.1, ge=0.0, lt=1.0, doc="motor power below which nothing moves")
+    slope: float = param(
+        0.649776, gt=0.0, unit="m/s per power", doc="speed = slope*power + y_intercept"
+    )
+    y_intercept: float = param(-0.0788956, unit="m/s", doc="calibration intercept")
+    pid_rate: float = param(
+        20.0, unit="Hz", gt=4.0, doc="PID loop; > 4 Hz feeds the board failsafe"
+    )
+    rpm_timeout: float = param(0.5, unit="s", gt=0.0, doc="tacho silent this long: motors stop")
+    battery_warn: float = param(11.0, unit="V", ge=0.0, doc="low-battery warning (LED orange)")
+    battery_stop: float = param(10.5, unit="V", ge=0.0, doc="below this the motors are refused")
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """ROSArduinoBridge firmware on a serial line: PID on the Arduino in ticks per PID frame."""
+
+    port: str = param("/dev/ttyACM0")
+    baudrate: int = param(57600, unit="baud", gt=0, doc="firmware BAUDRATE")
+    timeout: float = param(0.2, unit="s", gt=0.0, doc="reply timeout per command")
+    pid_rate: float = param(30.0, unit="Hz", gt=0.0, doc="firmware PID_RATE (ticks per frame)")
+    auto_stop_interval: float = param(
+        2.0, unit="s", gt=0.0, doc="firmware AUTO_STOP_INTERVAL (flash 0.25 for the 250 ms stop)"
+    )
+    kp: int = param(20, doc="firmware Kp (sent with `u` when set_pid is true)")
+    kd: int = param(12, doc="firmware Kd")
+    ki: int = param(0, doc="firmware Ki")
+    ko: int = param(50, doc="firmware Ko (output divisor)")
+    set_pid: bool = param(False, doc="send the gains above at connect")
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """Simulated Eddie + Kinect v1: rates, motion limits and sensor error models."""
 

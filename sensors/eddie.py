@@ -21,6 +21,7 @@ RST        -- (zero DIST and HEAD)                                --
 VER/HWVER  --                                                     version (4 digits)
 VERB       0 or 1                                                 --
 WATCH      kill-switch time [s] 0..26 (0 = off)                   --
+KILL       kill-switch time [ms] 0..26500 (OPP #8 port only)      --
 PING       --                                                     0..16 ranges (3 digits each)
 ADC        --                                                     8 channels (3 digits, 12-bit)
 IN/OUT     pin mask (32-bit): make pins inputs / outputs          --
@@ -93,6 +94,7 @@ except ImportError:  # pragma: no cover - not POSIX
     termios = None  # type: ignore[assignment]
 
 from sensors.config import BoardConfig, RobotConfig
+from sensors.motor_board import MotorBoard
 from sensors.types import NS_PER_S, SensorError, WheelTicks
 
 log = logging.getLogger(__name__)
@@ -182,6 +184,8 @@ COMMANDS: dict[str, CommandSpec] = {
     "HWVER": CommandSpec(reply=(_unsigned("hardware version", 16),)),
     "VERB": CommandSpec((_unsigned("verbose", 4, hi=1),)),
     "WATCH": CommandSpec((_unsigned("kill-switch time [s]", 8, hi=26),)),
+    # Open Propeller Project #8 firmware only (ddegn/EddieFirmware); Parallax's answers ERROR.
+    "KILL": CommandSpec((_unsigned("kill-switch time [ms]", 16, hi=26500),)),
     "PING": CommandSpec(reply=(_unsigned("range [mm]", 12),), repeated_reply=True),
     "ADC": CommandSpec(reply=tuple(_unsigned(f"adc{i}", 12) for i in range(ADC_CHANNELS))),
     "IN": CommandSpec((_MASK,)),
@@ -328,12 +332,15 @@ def battery_voltage(adc_counts: Sequence[int]) -> float:
 # --- the driver -------------------------------------------------------------------------------
 
 
-class EddieBoard:
+class EddieBoard(MotorBoard):
     """Typed access to the control board over pyserial (a device, ``socket://`` or ``loop://``).
 
     Opening is immediate: a port that cannot be opened raises BoardError. Use as a context
     manager, or call :meth:`close` (which also sends ``STOP 0`` if the watchdog is armed).
+    Implements :class:`sensors.motor_board.MotorBoard`.
     """
+
+    kind = "eddie"
 
     def __init__(
         self,
@@ -542,7 +549,15 @@ class EddieBoard:
 
         Arms the host watchdog: without another call for ``watchdog_timeout`` it sends STOP 0.
         """
-        left, right = wheel_speeds(v, w, self.robot_cfg)
+        return self._go_speed_watched(*wheel_speeds(v, w, self.robot_cfg))
+
+    def set_wheel_speeds(self, left: float, right: float) -> tuple[int, int]:
+        """Wheel speeds [m/s] as GOSPD [positions/s] (both scaled down together above
+        ``robot.max_wheel_speed``); arms the host watchdog as :meth:`set_velocity` does."""
+        v, w = (left + right) / 2, (right - left) / self.robot_cfg.track_width
+        return self.set_velocity(v, w)
+
+    def _go_speed_watched(self, left: int, right: int) -> tuple[int, int]:
         with self._lock:
             self._last_velocity_s = time.monotonic()
             self._watchdog_armed = True  # armed before sending: the GOSPD may arrive anyway
@@ -577,6 +592,37 @@ class EddieBoard:
                     continue
                 self._watchdog_armed = False
                 log.info("no velocity command for %.2f s: motors stopped", timeout)
+
+    def arm_failsafe(self, timeout_s: float) -> str:
+        """The board's kill switch for a host that dies: KILL in milliseconds where the firmware
+        has it (the Open Propeller Project port), else WATCH in whole seconds (at least 1: the
+        Parallax firmware cannot stop a dead host's motors sooner). The host watchdog
+        (``board.watchdog_timeout``) stops a host that lives but goes quiet."""
+        quiet = f"host watchdog {self.board_cfg.watchdog_timeout:.2f} s (host quiet)"
+        ms = max(1, min(26500, round(timeout_s * 1000)))
+        try:
+            self.command("KILL", ms)
+            return f"board KILL {ms} ms (host dead), {quiet}"
+        except BoardError as err:
+            if not self.connected:
+                raise
+            log.info("no KILL on this firmware (%s): WATCH in whole seconds", err)
+        seconds = max(1, min(26, math.ceil(timeout_s)))
+        self.watchdog(seconds)
+        return f"board WATCH {seconds} s (host dead), {quiet}"
+
+    def diagnostics(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "board": "Parallax Eddie",
+            "port": self.url,
+            "late_replies_dropped": self.late_replies_dropped,
+            "connected": self.connected,
+        }
+        try:
+            out["firmware"] = f"VER {self.version():04X}, HWVER {self.hardware_version():04X}"
+        except BoardError as err:
+            out["firmware"] = f"unavailable ({err})"
+        return out
 
     # -- queries -------------------------------------------------------------------------------
 
@@ -682,7 +728,7 @@ class OdometryPoller:
 
     def __init__(
         self,
-        board: EddieBoard,
+        board: MotorBoard,
         board_cfg: BoardConfig | None = None,
         *,
         callback: Callable[[WheelTicks], None] | None = None,
@@ -691,7 +737,7 @@ class OdometryPoller:
         diagnostics_period_s: float | None = DIAGNOSTICS_PERIOD_S,
     ) -> None:
         self.board = board
-        self.board_cfg = board_cfg or board.board_cfg
+        self.board_cfg = board_cfg or board.board_cfg  # type: ignore[attr-defined]
         self.callback = callback
         self.queue: queue.Queue[WheelTicks] = queue.Queue(maxsize=queue_size)
         self.read_speed_heading = read_speed_heading
@@ -728,7 +774,7 @@ class OdometryPoller:
         with self._stats_lock:
             self._stats = replace(self._stats, **changes)
 
-    def _count_error(self, err: BoardError) -> None:
+    def _count_error(self, err: SensorError) -> None:
         log.debug("poll failed: %s", err)
         with self._stats_lock:
             s = self._stats
@@ -750,9 +796,12 @@ class OdometryPoller:
     def _poll_once(self) -> None:
         try:
             ticks = self.board.ticks()
-        except BoardError as err:
+        except SensorError as err:
             self._count_error(err)
             return
+        last = self._stats.last_ticks
+        if last is not None and ticks.stamp_ns == last.stamp_ns:
+            return  # a tacho board between two readings: nothing new
         with self._stats_lock:
             self._stats = replace(self._stats, polls=self._stats.polls + 1, last_ticks=ticks)
         self._push(ticks)
@@ -761,17 +810,18 @@ class OdometryPoller:
                 self.callback(ticks)
             except Exception:  # a consumer's bug must not kill odometry
                 log.exception("WheelTicks callback raised")
-        if self.read_speed_heading:
+        if self.read_speed_heading and isinstance(self.board, EddieBoard):
             try:
                 self._update(speeds=self.board.speed(), heading_deg=self.board.heading())
-            except BoardError as err:
+            except SensorError as err:
                 self._count_error(err)
 
     def _poll_diagnostics(self) -> None:
         try:
             self._update(battery_v=self.board.battery_voltage())
-            self._update(ping_mm=self.board.ping())
-        except BoardError as err:
+            if isinstance(self.board, EddieBoard):
+                self._update(ping_mm=self.board.ping())
+        except SensorError as err:
             self._count_error(err)
 
     def _run(self) -> None:

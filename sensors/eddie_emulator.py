@@ -15,8 +15,9 @@ drive to a goal with a trapezoidal profile; ``STOP d`` decelerates to rest withi
 positions and ``STOP 0`` cuts power, modelled as an instant stop. Encoder counts are the floor of
 the integrated position; SPD reports the current speed; HEAD is the firmware formula with the
 positions-per-turn derived from the track: a full turn in place makes ``L - R`` equal
-``2*pi*track / (pi*D/ticks)``. The board-side kill switch (WATCH, seconds) stops the wheels when
-no command parsed for that long. Time comes from ``time_source`` (default ``time.monotonic``);
+``2*pi*track / (pi*D/ticks)``. The board-side kill switch (WATCH [s]; KILL [ms] with
+``kill_ms_command``, as the Open Propeller Project port has it) stops the wheels when no command
+parsed for that long. Time comes from ``time_source`` (default ``time.monotonic``);
 the model is integrated lazily when a command arrives or the state is read, so tests with a fake
 clock are deterministic.
 
@@ -204,6 +205,7 @@ class EddieEmulator:
         battery_v: float = DEFAULT_BATTERY_V,
         ping_mm: Sequence[int] = DEFAULT_PING_MM,
         firmware_version: int = FIRMWARE_VERSION,
+        kill_ms_command: bool = False,
         hardware_version: int = HARDWARE_VERSION,
     ) -> None:
         self.robot_cfg = robot_cfg or RobotConfig()
@@ -217,7 +219,8 @@ class EddieEmulator:
         self._t = time_source()  # [s] model time integrated up to
         self._last_command_t = self._t  # [s] last successfully parsed command (kill switch)
         self._accel = float(DEFAULT_ACCELERATION)  # [positions/s^2]
-        self._kill_switch_s = 0  # [s] 0 = off
+        self._kill_switch_s: float = 0  # [s] 0 = off
+        self.kill_ms_command = kill_ms_command  # the OPP #8 port's KILL [ms]; Parallax: none
         self._verbose = False
         self._dira = 0
         self._outa = 0
@@ -284,6 +287,10 @@ class EddieEmulator:
         with self._lock:
             self._advance(self.time_source())
             return self._left.pos, self._right.pos
+
+    def wheel_positions(self) -> tuple[float, float]:
+        """As :meth:`positions`: the name every board emulator gives the simulator."""
+        return self.positions()
 
     def speeds(self) -> tuple[float, float]:
         """Current wheel speeds (left, right) [positions/s]."""
@@ -369,7 +376,7 @@ class EddieEmulator:
     def _execute(self, line: bytes) -> bytes:
         cmd, words = split_command(line)
         spec = COMMANDS.get(cmd)
-        if spec is None:
+        if spec is None or (cmd == "KILL" and not self.kill_ms_command):
             raise FirmwareAbort("Invalid command")
         if len(words) < len(spec.params):
             raise FirmwareAbort("Too few parameters")
@@ -458,6 +465,12 @@ class EddieEmulator:
         if seconds > MAX_KILL_SWITCH_S:
             raise FirmwareAbort("Invalid parameter")
         self._kill_switch_s = seconds
+        return ()
+
+    def _cmd_kill(self, ms: int) -> tuple[int, ...]:
+        if ms > MAX_KILL_SWITCH_S * 1000 + 500:
+            raise FirmwareAbort("Invalid parameter")
+        self._kill_switch_s = ms / 1000.0
         return ()
 
     def _cmd_ping(self) -> tuple[int, ...]:

@@ -1,19 +1,22 @@
-"""`rgbdnav board`: talk to an Eddie control board (or its emulator) and report what it says."""
+"""`rgbdnav board`: talk to a motor board (or its emulator) through the MotorBoard interface and
+report what it says: which board, firmware, battery, odometry, round-trip time, a test drive."""
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from sensors.config import BoardConfig, RobotConfig
-from sensors.eddie import BoardError, EddieBoard
+from sensors.motor_board import MotorBoard
+from sensors.types import NS_PER_S, SensorError
 
-LATENCY_SAMPLES = 50  # DIST round trips timed
+LATENCY_SAMPLES = 50  # odometry reads timed
 TEST_DRIVE_SPEED = 0.1  # [m/s] gentle, so a robot on the floor barely moves
 TEST_DRIVE_TIME = 1.0  # [s]
 COMMAND_PERIOD = 0.05  # [s] re-send the velocity well inside the 0.25 s watchdog
+FIRST_READING_TIMEOUT_S = 2.0  # [s] a tacho board's first RPM line
 
 
 @dataclass
@@ -29,47 +32,68 @@ class BoardReport:
         return "\n".join(f"{label:<{width}}  {value}" for label, value in self.lines)
 
 
-def check_board(
-    url: str, board_cfg: BoardConfig, robot: RobotConfig, test_drive: bool
-) -> BoardReport:
-    report = BoardReport(url)
-    with EddieBoard(url, board_cfg, robot) as board:
-        report.add("port", url)
-        report.add("firmware", f"VER {board.version():04X}, HWVER {board.hardware_version():04X}")
-        report.add("battery", _optional(lambda: f"{board.battery_voltage():.2f} V"))
-        report.add("ping sensors", _optional(lambda: " ".join(str(r) for r in board.ping())))
-        left, right = board.distance()
+def _first_ticks(board: MotorBoard) -> Any:
+    deadline = time.monotonic() + FIRST_READING_TIMEOUT_S
+    while True:
+        try:
+            return board.ticks()
+        except SensorError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
+def check_board(board: MotorBoard, spec: str, test_drive: bool) -> BoardReport:
+    report = BoardReport(spec)
+    diag = board.diagnostics()
+    report.add("board", f"{diag.pop('board')} ({board.kind})")
+    report.add("port", str(diag.pop("port", spec)))
+    if "firmware" in diag:
+        report.add("firmware", str(diag.pop("firmware")))
+    report.add("battery", _optional(lambda: f"{board.battery_voltage():.2f} V"))
+    t0 = _first_ticks(board)
+    report.add(
+        "odometry",
+        f"left {t0.left}, right {t0.right} positions; input "
+        f"{type(board.odometry_input()).__name__}",
+    )
+    rtt = []
+    for _ in range(LATENCY_SAMPLES):
+        t = time.perf_counter()
+        board.ticks()
+        rtt.append(time.perf_counter() - t)
+    report.add(
+        "round trip",
+        f"odometry read median {1e3 * np.median(rtt):.2f} ms, "
+        f"max {1e3 * max(rtt):.2f} ms over {LATENCY_SAMPLES}",
+    )
+    if test_drive:
+        report.add("failsafe", board.arm_failsafe(0.25))
+        a = board.ticks()
+        end = time.monotonic() + TEST_DRIVE_TIME
+        while time.monotonic() < end:
+            cmd = board.set_velocity(TEST_DRIVE_SPEED, 0.0)
+            time.sleep(COMMAND_PERIOD)
+        board.stop()
+        time.sleep(0.3)
+        b = board.ticks()
+        m = board.robot_cfg.metres_per_tick
+        travelled = (b.left - a.left + b.right - a.right) / 2 * m
+        span = (b.stamp_ns - a.stamp_ns) / NS_PER_S
         report.add(
-            "encoders", f"left {left}, right {right} positions; heading {board.heading()} deg"
+            "test drive",
+            f"sent {cmd} for {TEST_DRIVE_TIME:.1f} s: left {b.left - a.left}, right "
+            f"{b.right - a.right} positions = {travelled:.3f} m over {span:.2f} s "
+            f"(commanded {TEST_DRIVE_SPEED * TEST_DRIVE_TIME:.3f} m before ramps)",
         )
-        rtt = []
-        for _ in range(LATENCY_SAMPLES):
-            t0 = time.perf_counter()
-            board.distance()
-            rtt.append(time.perf_counter() - t0)
-        report.add("round trip", f"DIST median {1e3 * np.median(rtt):.2f} ms, "
-                                 f"max {1e3 * max(rtt):.2f} ms over {LATENCY_SAMPLES}")  # fmt: skip
-        if test_drive:
-            l0, r0 = board.distance()
-            end = time.monotonic() + TEST_DRIVE_TIME
-            while time.monotonic() < end:
-                cmd = board.set_velocity(TEST_DRIVE_SPEED, 0.0)
-                time.sleep(COMMAND_PERIOD)
-            board.stop()
-            time.sleep(0.2)
-            l1, r1 = board.distance()
-            travelled = (l1 - l0 + r1 - r0) / 2 * robot.metres_per_tick
-            report.add(
-                "test drive",
-                f"GOSPD {cmd[0]} {cmd[1]} positions/s for {TEST_DRIVE_TIME:.1f} s: "
-                f"left {l1 - l0}, right {r1 - r0} positions = {travelled:.3f} m "
-                f"(commanded {TEST_DRIVE_SPEED * TEST_DRIVE_TIME:.3f} m before ramps)",
-            )
+    extra = {k: v for k, v in board.diagnostics().items() if k not in ("board", "port", "firmware")}
+    if extra:
+        report.add("diagnostics", ", ".join(f"{k} {v}" for k, v in extra.items()))
     return report
 
 
-def _optional(read: object) -> str:
+def _optional(read: Any) -> str:
     try:
-        return read()  # type: ignore[operator]
-    except BoardError as err:
+        return read()
+    except SensorError as err:
         return f"unavailable ({err})"

@@ -65,7 +65,9 @@ from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE
 from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, occupied_cells_xy
-from sensors.eddie import BoardError, EddieBoard, OdometryPoller
+from sensors.boards import OpenedBoard, open_board
+from sensors.eddie import OdometryPoller
+from sensors.motor_board import MotorBoard
 from sensors.source import Source, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, RgbdNavError, SensorError, WheelTicks
@@ -81,6 +83,7 @@ log = logging.getLogger(__name__)
 DRILLS = ("unplug_board", "replug_board", "stall_camera")
 JOIN_TIMEOUT_S = 30.0  # [s] a thread that does not finish its queue by then is reported
 MIN_LATENCIES = 1  # percentiles need at least one processed frame
+SIM_WHEELS_PERIOD_S = 0.01  # [s] --board emulator:KIND: wheel travel to the simulated robot
 MODE_SWITCH_KEY = "\t"  # Tab: manual (teleop keys) <-> auto (route)
 GIL_SWITCH_INTERVAL_S = 0.001  # [s] (Python's default 0.005)
 MEMORY_SAMPLE_S = 5.0  # [s] resident memory is sampled this often for the summary
@@ -129,7 +132,8 @@ class Drill:
 class LiveOptions:
     out: Path
     camera: str = "sim"  # "sim" or an OpenNI2 target ("openni://", "openni://<uri>", x.oni)
-    board: str = "sim"  # "sim", a serial port / pyserial URL, or "none"
+    joystick: str | None = None  # /dev/input/eventN: evdev joystick teleop (nav.joystick)
+    board: str = "sim"  # "sim", a device spec (sensors.motor_board), emulator:KIND, or "none"
     world: Path | None = None  # simulator world (camera or board "sim")
     config_files: Sequence[Path] = ()
     overrides: Sequence[str] = ()
@@ -249,7 +253,8 @@ class LiveRun:
         self._last_snapshot = -math.inf  # [s] monotonic time of the last map handed to it
         self.sim: Any = None
         self.camera_src: Source | None = None  # a camera other than the simulated robot
-        self.board: EddieBoard | None = None
+        self.board: MotorBoard | None = None
+        self._opened: OpenedBoard | None = None
         self.poller: OdometryPoller | None = None
         self.vis: Any = NullVisualizer()
         self.mapper: Mapper | None = None
@@ -264,6 +269,22 @@ class LiveRun:
         self.route_done = False
         self.keys: queue.Queue[str] = queue.Queue()  # terminal keys (tests put them here)
         self.mode = "manual" if opts.drive == "teleop" else "auto"
+        self.joystick = None
+        if opts.joystick is not None:
+            from nav.joystick import JoystickTeleop
+
+            if not opts.joystick.startswith("replay:"):  # a recording needs no evdev
+                try:
+                    import evdev  # noqa: F401
+                except ImportError:
+                    raise ConfigError(
+                        "--joystick needs evdev: pip install 'rgbdnav[joystick]'"
+                    ) from None
+
+            # The mode button acts as the Tab key: the controller loop switches.
+            self.joystick = JoystickTeleop(
+                self.cfg.joystick, on_toggle=lambda: self.keys.put(MODE_SWITCH_KEY)
+            )
         self.recorder: LiveRecorder | None = None
         self.front_end: FrontEnd | None = None
         if opts.record is not None:
@@ -299,7 +320,8 @@ class LiveRun:
                 else world.route  # fmt: skip
             self.sim = SimRobot(opts.world, cfg.robot, cfg.camera, cfg.sim,  # type: ignore[arg-type]
                                 self.run.file("board.pty"), seed=opts.seed,
-                                truth_path=self.run.file("groundtruth.tum"))  # fmt: skip
+                                truth_path=self.run.file("groundtruth.tum"),
+                                external_wheels=opts.board.startswith("emulator:"))  # fmt: skip
             sim_port = self.sim.start()
         else:
             self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2)
@@ -310,22 +332,36 @@ class LiveRun:
             self.navigator = LiveNavigator(cfg, self.route, self.start_pose, opts.repeat_route,
                                            static)  # fmt: skip
             self.navigator.start()
-        port = sim_port if opts.board == "sim" else opts.board
+        spec = sim_port if opts.board == "sim" else opts.board
         if opts.board != "none":
-            self.board = EddieBoard(port, cfg.board, cfg.robot)
+            self._opened = open_board(spec, cfg)
+            self.board = self._opened.board
+            if self.sim is not None and self.sim.wheels is not None:
+                # The simulated robot moves by this emulator's wheels (--board emulator:KIND).
+                threading.Thread(target=self._turn_sim_wheels, name="sim-wheels",
+                                 daemon=True).start()  # fmt: skip
             if cfg.live.board_kill_switch:
-                # The board's own kill switch stops the motors if this host dies or the cable
+                # The board's own failsafe stops the motors if this host dies or the cable
                 # goes; the driver's watchdog covers a host that lives but stops commanding.
                 try:
-                    self.board.watchdog(cfg.live.board_kill_switch)
-                except BoardError as err:
-                    log.warning("could not arm the board's kill switch (WATCH): %s", err)
+                    log.info("failsafe: %s", self.board.arm_failsafe(cfg.live.board_kill_switch))
+                except SensorError as err:
+                    log.warning("could not arm the board's failsafe: %s", err)
             self.poller = OdometryPoller(self.board, cfg.board, callback=self.ticks_q.put,
                                          read_speed_heading=False)  # fmt: skip
         if opts.camera == "sim":
             return self._sim_frames()
         self.camera_src = open_source(opts.camera, source_options(cfg))
         return iter(self.camera_src.frames())
+
+    def _turn_sim_wheels(self) -> None:
+        """Copy the host-side board emulator's wheel travel [positions] to the simulated robot."""
+        emu = self._opened.emulator if self._opened is not None else None
+        while emu is not None and not self.stop.wait(SIM_WHEELS_PERIOD_S):
+            wheels = self.sim.wheels if self.sim is not None else None
+            if wheels is None:
+                return
+            wheels[:] = emu.wheel_positions()
 
     def _sim_frames(self) -> Iterator[RgbdFrame]:
         assert self.sim is not None and self.sim.intrinsics is not None
@@ -538,7 +574,9 @@ class LiveRun:
                 continue
             v = w = 0.0
             if self.mode == "manual":
-                if time.monotonic() - last_key <= lc.teleop_key_timeout:
+                if self.joystick is not None:
+                    v, w = self.joystick.twist  # (0, 0) unless the deadman is held
+                elif time.monotonic() - last_key <= lc.teleop_key_timeout:
                     v, w = manual_twist
             elif self.navigator is not None:
                 pose = self.shared.pose_in_map()
@@ -586,7 +624,7 @@ class LiveRun:
                     blocked_since = None
             try:
                 self.board.set_velocity(v, w)
-            except BoardError as err:
+            except SensorError as err:
                 if not failing:
                     log.warning("board not answering, motors assumed stopped: %s", err)
                 failing = True
@@ -596,6 +634,17 @@ class LiveRun:
                 log.info("board answering again")
                 self.counts.inc("board_recovered")
                 failing = False
+
+    def _joystick_loop(self) -> None:
+        """Events from the evdev device into the joystick teleop (a daemon thread: the blocking
+        read ends with the process)."""
+        from nav.joystick import read_device
+
+        assert self.joystick is not None and self.opts.joystick is not None
+        for event in read_device(self.opts.joystick):
+            if self.stop.is_set():
+                return
+            self.joystick.feed(*event)
 
     def _keyboard_loop(self) -> None:
         """Keys from the terminal (cbreak mode: Ctrl-C still interrupts), restored on exit."""
@@ -716,6 +765,8 @@ class LiveRun:
                 ("mapper", self._mapper_loop, ()),
                 ("controller", self._controller_loop, ()),
             ]
+            if self.joystick is not None:
+                specs.append(("joystick", self._joystick_loop, ()))
             if self.opts.drive != "idle" and _interactive():
                 specs.append(("keyboard", self._keyboard_loop, ()))
                 log.info("keys: teleop_twist_keyboard (u i o / j k l / m , .), Tab switches "
@@ -736,8 +787,8 @@ class LiveRun:
                                        f"{JOIN_TIMEOUT_S:.0f} s")  # fmt: skip
             if self.poller is not None:
                 self.poller.stop()
-            if self.board is not None:
-                self.board.close()  # STOP 0 if the motors may be running
+            if self._opened is not None:
+                self._opened.close()  # motors stopped if they may be running
             sim_stats = None
             if self.sim is not None:
                 try:
@@ -920,8 +971,9 @@ class LiveRun:
             ps = self.poller.stats()
             summary["board_link"] = {"port": str(self.board.url) if self.board else None,
                                 "polls": ps.polls, "errors": ps.errors,
-                                "late_replies_dropped": self.board.late_replies_dropped
-                                if self.board else 0,
+                                "board": self.board.kind if self.board else None,
+                                "late_replies_dropped": getattr(self.board,
+                                                                "late_replies_dropped", 0),
                                 "last_error": ps.last_error}  # fmt: skip
         if sim_stats is not None:
             summary["sim_robot"] = {

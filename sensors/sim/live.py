@@ -145,8 +145,8 @@ class _StallingEmulator(EddieEmulator):
 
 
 def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: SimConfig,
-              seed: int, port_link: str, truth_path: str, ring_name: str, frames: Any,
-              control: Any, replies: Any) -> None:  # fmt: skip
+              seed: int, port_link: str, truth_path: str, ring_name: str, wheels_name: str | None,
+              frames: Any, control: Any, replies: Any) -> None:  # fmt: skip
     from scipy.ndimage import distance_transform_edt
 
     from sensors.sim.motion import blocked_step, gauss_markov_step
@@ -179,14 +179,23 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
         tmp.symlink_to(path)
         os.replace(tmp, link)
 
-    serve(emu.serve_pty())
+    external = None
+    if wheels_name is None:
+        serve(emu.serve_pty())
+    else:  # another board's emulator in the host turns the wheels: read its travel
+        external = shared_memory.SharedMemory(name=wheels_name)
+        wheels = np.ndarray((2,), np.float64, external.buf)
+
+    def positions() -> np.ndarray:
+        return np.array(emu.positions()) if external is None else wheels.copy()
+
     stats = SimRobotStats()
     truth_file = open(truth_path, "w", buffering=1 << 16)  # closed when the loop ends
     truth_file.write(f"# planar trajectory (z = 0, rotation about z)\n"
                      f"# {' '.join(TRAJECTORY_COLUMNS)}\n")  # fmt: skip
     x, y, yaw = world.start
     slip = np.zeros(2)
-    prev = np.array(emu.positions())
+    prev = positions()
     period_ns = int(round(1e9 / sim.camera_rate))
     next_ns = time.monotonic_ns()
     stall_until_ns = 0
@@ -210,7 +219,7 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
             elif kind == "stall_camera":
                 stall_until_ns = time.monotonic_ns() + int(order[1] * 1e9)
         # 2. Move the robot by what the wheels did since the last frame.
-        now = np.array(emu.positions())
+        now = positions()
         slip = gauss_markov_step(slip, sim.wheel_slip, sim.slip_correlation_time,
                                  period_ns / 1e9, rng.standard_normal(2))  # fmt: skip
         per_pos = metres * (1.0 + slip)  # [m per encoder position] left, right
@@ -220,10 +229,12 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
         )
         x, y, yaw = (float(v) for v in pose)
         if outcome != "free":
-            # The encoders count only what the stalled wheels turned: hold the rest back.
+            # The encoders count only what the stalled wheels turned: hold the rest back
+            # (an external board's wheels spin on: its emulator is in the host).
             held = (travel - np.array([enc_l, enc_r])) / per_pos  # [positions]
-            emu.hold_back(float(held[0]), float(held[1]))
-            now = now - held
+            if external is None:
+                emu.hold_back(float(held[0]), float(held[1]))
+                now = now - held
             stats.collisions += 1
             stats.wall_slides += outcome == "slid"
             stats.stalled_travel_m += float(np.abs(held * per_pos).sum())
@@ -251,6 +262,9 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
             next_ns += (late // period_ns + 1) * period_ns
         time.sleep(max(0.0, (next_ns - time.monotonic_ns()) / 1e9))
     emu.close()
+    if external is not None:
+        del wheels
+        external.close()
     truth_file.close()
     ring.close()
     frames.cancel_join_thread()  # frames the host no longer reads must not block our exit
@@ -264,7 +278,8 @@ class SimRobot:
 
     def __init__(self, world_path: str | Path, robot: RobotConfig, camera: CameraConfig,
                  sim: SimConfig, port_link: str | Path, seed: int = 0,
-                 truth_path: str | Path | None = None) -> None:  # fmt: skip
+                 truth_path: str | Path | None = None,
+                 external_wheels: bool = False) -> None:  # fmt: skip
         self.world_path = str(world_path)
         self.robot, self.camera, self.sim, self.seed = robot, camera, sim, seed
         self.port_link = str(port_link)
@@ -272,13 +287,22 @@ class SimRobot:
             Path(port_link).with_name("groundtruth.tum")  # fmt: skip
         ctx = mp.get_context("spawn")  # the host has threads: never fork it
         self._ring = _FrameRing(camera.width, camera.height)
+        # external_wheels: the host's board emulator writes the wheel travel [positions] here
+        self.wheels_shm = shared_memory.SharedMemory(create=True, size=16) \
+            if external_wheels else None  # fmt: skip
+        self.wheels = None if self.wheels_shm is None else \
+            np.ndarray((2,), np.float64, self.wheels_shm.buf)  # fmt: skip
+        if self.wheels is not None:
+            self.wheels[:] = 0.0
         self._frames: Any = ctx.Queue(maxsize=FRAME_QUEUE_SIZE)
         self._control: Any = ctx.Queue()
         self._replies: Any = ctx.Queue()
         self._proc = ctx.Process(
             target=_child, name="rgbdnav-sim-robot", daemon=True,
             args=(self.world_path, robot, camera, sim, seed, self.port_link,
-                  str(self.truth_path), self._ring.shm.name, self._frames, self._control,
+                  str(self.truth_path), self._ring.shm.name,
+                  None if self.wheels_shm is None else self.wheels_shm.name, self._frames,
+                  self._control,
                   self._replies),
         )  # fmt: skip
         self.intrinsics: CameraIntrinsics | None = None
@@ -290,6 +314,7 @@ class SimRobot:
             return self._start()
         except BaseException:
             self._ring.close()  # no stop() follows a failed start
+            self._close_wheels()
             raise
 
     def _start(self) -> str:
@@ -315,6 +340,13 @@ class SimRobot:
             raise SensorError(f"the simulated robot failed to start: {payload.splitlines()[0]}")
         self.intrinsics = payload
         return self.port_link
+
+    def _close_wheels(self) -> None:
+        if self.wheels_shm is not None:
+            self.wheels = None
+            self.wheels_shm.close()
+            self.wheels_shm.unlink()
+            self.wheels_shm = None
 
     def next_frame(self, timeout_s: float) -> SimFrameMsg | None:
         """The next frame, or None after ``timeout_s`` without one (a stalled camera)."""
@@ -355,6 +387,7 @@ class SimRobot:
             if self._proc.is_alive():
                 self._proc.kill()
         self._ring.close()
+        self._close_wheels()
         if self._stats is None:
             if self._proc.pid is None:
                 raise SensorError("the simulated robot was never started, so it has no counts")

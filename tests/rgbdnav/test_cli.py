@@ -153,6 +153,27 @@ def test_board_check_talks_to_the_emulator_and_test_drives() -> None:
     assert 0.05 < float(m.group(3)) < 0.15
 
 
+@pytest.mark.parametrize(
+    ("kind", "name"),
+    [("thunderborg", "PiBorg ThunderBorg"), ("arduino-bridge", "ROSArduinoBridge")],
+)
+def test_board_check_test_drives_every_emulator_and_names_it(kind: str, name: str) -> None:
+    args = ["board", kind, "--emulator", "--test-drive", "--set", "robot.ticks_per_revolution=1000"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert name in result.output and f"({kind})" in result.output
+    import re
+
+    m = re.search(r"positions = ([0-9.]+) m", result.output)
+    assert m is not None and 0.05 < float(m.group(1)) < 0.15, result.output
+
+
+def test_board_check_rejects_a_bad_device_spec() -> None:
+    result = runner.invoke(app, ["board", "thunderborg:/dev/ttyUSB0"])
+    assert result.exit_code != 0
+    assert "expected thunderborg:/dev/i2c-N" in result.output
+
+
 def test_board_check_names_a_missing_port() -> None:
     result = runner.invoke(app, ["board", "/dev/rgbdnav-no-such-port"])
     assert result.exit_code == 1

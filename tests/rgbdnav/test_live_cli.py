@@ -326,3 +326,28 @@ def test_record_into_a_place_that_cannot_hold_it_is_an_error_not_a_lost_run(
     s = _live(tmp_path / "live", "--duration", "3", "--record", str(blocker / "rec"))
     assert s["recording"]["error"] and any("--record" in e for e in s["errors"])
     assert load_bundle(tmp_path / "live" / "map") is not None  # the run itself was saved
+
+
+def test_the_simulated_robot_drives_through_the_thunderborg_emulator_by_joystick(
+    tmp_path: Path,
+) -> None:
+    """--board emulator:thunderborg: the wheels are the emulator's (host PID, tacho RPM); the
+    recorded joystick session holds the deadman, drives ~1.2 m, then START switches to auto."""
+    s = _live(
+        tmp_path / "run",
+        "--board",
+        "emulator:thunderborg",
+        "--drive",
+        "teleop",
+        "--joystick",
+        f"replay:{REPO / 'scenes/joystick/forward_turn.events'}",
+        "--config",
+        str(REPO / "config/robots/easerobot.yaml"),
+        "--duration",
+        "12",
+    )
+    assert s["board_link"]["board"] == "thunderborg" and s["board_link"]["errors"] == 0
+    assert s["board_link"]["polls"] > 100  # tacho readings, not repeats of one
+    assert 0.8 < s["sim_robot"]["true_path_length_m"] < 1.8  # ~0.18 m/s for 7 s, plus the turn
+    assert s["counts"]["mode_switches"] == 1 and not s["errors"]
+    assert s["slam_vs_groundtruth"]["ate_rmse_m"] < 0.2
