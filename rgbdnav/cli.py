@@ -653,7 +653,7 @@ def export(
         Path | None,
         typer.Option("--out", "-o", help="Bag folder to write (default RUN_DIR/rosbag2)."),
     ] = None,
-    images: Annotated[bool, typer.Option(help="Include the run's colour images.")] = True,
+    images: Annotated[bool, typer.Option(help="Include the run's colour and depth images.")] = True,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:

@@ -120,7 +120,8 @@ def _chain(
     composition is ``map_base`` (see the module doc for where odometry comes from)."""
     t = map_base.stamps_ns
     if odom_base is not None:
-        x, y, yaw, _ = interpolate_poses(odom_base.stamps_ns, *odom_base.poses.T, t)
+        o = odom_base.poses
+        x, y, yaw, _ = interpolate_poses(odom_base.stamps_ns, o[:, 0], o[:, 1], o[:, 2], t)
         odom = np.column_stack([x, y, wrap_angle(yaw)])
         map_odom = oplus(map_base.poses, _inverse(odom))
     elif bundle is not None and len(bundle.keyframe_stamps_ns):
@@ -219,21 +220,21 @@ def run_content(run: Path, images: bool = True) -> tuple[BagContent, dict[str, A
     cfg = load_config([run / "config.yaml"] if (run / "config.yaml").is_file() else [])
     t0, t1 = int(main.stamps_ns[0]), int(main.stamps_ns[-1])
     bundle = grid_msg = None
+    values: np.ndarray | None = None
     if layout.bundle:
         bundle = load_bundle(run / "map")
         values = bundle.grid.trinary(bundle.occupied_thresh, bundle.free_thresh)
         grid = bundle.grid
     else:
         grid, values = _used_map(summary)
-    if grid is not None:
+    if grid is not None and values is not None:
         g = grid.geometry
         grid_msg = GridMessage(t0, MAP_FRAME, g.resolution, (g.origin_x, g.origin_y), values)
     if map_base is not None:
         transforms = list(_chain(map_base, odom_base, bundle))
         odom_track = odom_base or transforms[1]
     else:
-        odom_track = odom_base
-        transforms = [odom_base]
+        odom_track, transforms = main, [main]  # main is odom_base here
     has_camera = summary.get("frame", BASE_FRAME) != LASER_FRAME  # laser logs have no camera
     rec = _recording_folder(run, summary) if images and has_camera else None
     content = BagContent(
@@ -243,7 +244,7 @@ def run_content(run: Path, images: bool = True) -> tuple[BagContent, dict[str, A
         grid=grid_msg,
         scans=bundle.scans if bundle is not None else (),
         scan_frame=LASER_FRAME,
-        odometry=OdometryTrack(odom_track, _twist(odom_track)) if odom_track else None,
+        odometry=OdometryTrack(odom_track, _twist(odom_track)),
         paths={PATH_TOPIC: path_track},
         images=_images(rec, t0, t1) if rec is not None else None,
     )

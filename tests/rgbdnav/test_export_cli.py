@@ -19,14 +19,19 @@ from typer.testing import CliRunner
 from rgbdnav.cli import app
 from rgbdnav.config import load_config
 from sensors.sim.simulator import simulate
+from sensors.sim.world import floor_plan, load_world
 from sensors.tum import load_tum_trajectory, yaw_from_quaternion
 from slam.geometry import ominus, oplus, wrap_angle
-from slam.map_bundle import load_bundle
+from slam.map_bundle import load_bundle, save_map_yaml
+from slam.occupancy_grid import GridGeometry, OccupancyGrid
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "slam"))
 from scan_scenes import corrupt_steps, write_flaser_log  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+MIT = DATA / "carmen" / "mit-csail.clf"
+needs_mit = pytest.mark.skipif(not MIT.is_file(), reason="../shared/data/carmen is absent")
 runner = CliRunner()
 TOL_M, TOL_RAD = 1e-6, 1e-6  # [m], [rad]: transforms are float64 all the way
 
@@ -390,3 +395,56 @@ def test_the_exported_bag_maps_again_like_the_run_it_came_from(
     # the motion relative to the first pose.
     rel_before, rel_after = ominus(before[0], before), ominus(after[0], after)
     assert np.abs(rel_before[:, :2] - rel_after[:, :2]).max() < 0.05
+
+
+@needs_mit
+def test_a_map_of_the_real_mit_csail_log_exports_with_its_trajectory_intact(tmp_path: Path) -> None:
+    lines = [ln for ln in MIT.read_text().splitlines() if ln.startswith("FLASER")][:150]
+    log = tmp_path / "mit150.clf"
+    log.write_text("\n".join(lines) + "\n")
+    assert _cli("map", log, "--out", tmp_path / "run", "-q").exit_code == 0
+    assert _cli("export", tmp_path / "run", "--to", "mcap", "-q").exit_code == 0
+    msgs = _read(tmp_path / "run" / "rosbag2")
+    stamps, poses = _trajectory(tmp_path / "run" / "trajectory.tum")
+    t, composed, _ = _chain(msgs["/tf"])
+    assert np.array_equal(t, stamps) and len(t) == 150
+    _same_poses(composed, poses)
+    assert len(msgs["/scan"]) == len(load_bundle(tmp_path / "run" / "map").keyframe_ids)
+    assert len(msgs["/scan"][0][1].ranges) == 361  # the SICK's beams, as logged
+
+
+def test_a_navigate_run_exports_what_the_robot_believed_in_the_map_it_used(
+    tmp_path: Path,
+) -> None:
+    world = REPO / "scenes" / "house.yaml"
+    plan = floor_plan(load_world(world))
+    h, w = plan.occupied.shape
+    grid = OccupancyGrid.from_occupancy_values(
+        GridGeometry(plan.resolution, plan.origin_x, plan.origin_y, w, h),
+        np.where(plan.occupied, 100, 0),
+    )
+    save_map_yaml(grid, tmp_path / "house.yaml")
+    run = tmp_path / "nav"
+    res = _cli(
+        "navigate",
+        "--map",
+        tmp_path / "house.yaml",
+        "--sim",
+        world,
+        "--goal",
+        "2.5",
+        "2.5",
+        "--out",
+        run,
+        "-q",
+    )
+    assert res.exit_code == 0, res.output
+    assert _cli("export", run, "--to", "mcap", "-q").exit_code == 0
+    msgs = _read(run / "rosbag2")
+    stamps, believed = _trajectory(run / "estimated.tum")
+    t, composed, _ = _chain(msgs["/tf"])
+    assert np.array_equal(t, stamps)
+    _same_poses(composed, believed)
+    ((_, occ),) = msgs["/map"]
+    expected = grid.trinary(0.65, 0.25)  # map_server's reading of the trinary PGM
+    assert np.array_equal(np.asarray(occ.data).reshape(h, w), expected)
