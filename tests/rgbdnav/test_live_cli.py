@@ -194,13 +194,18 @@ def test_a_board_port_that_does_not_open_fails_in_one_line(tmp_path: Path) -> No
      (["--initial-pose", "1", "2", "0"], "--initial-pose places the robot in a saved map"),
      (["--map", str(REPO / "tests"), "--initial-pose", "1", "nan", "0"],
       "--initial-pose needs three finite numbers"),
-     (["--camera", "openni://", "--board", "none"], "OpenNI2")],  # no library or no device
+     (["--camera", "openni://", "--board", "none"], "OpenNI2"),  # no library or no device
+     (["--camera", "openni://", "--board", "none", "--sim-world", str(WORLD)],
+      "--sim-world: only with --camera sim or --board sim; it would be ignored here"),
+     (["--camera", "openni://", "--board", "none", "--seed", "2"], "--seed: only with"),
+     (["--drive", "idle", "--goal", "1,2"], "--goal: only with --drive route, not idle"),
+     (["--drive", "teleop", "--repeat-route"], "--repeat-route: only with --drive route")],
 )  # fmt: skip
 def test_bad_live_options_fail_in_one_line_before_anything_starts(
     tmp_path: Path, args: list[str], match: str
 ) -> None:
     cmd = ["live", "--out", str(tmp_path / "x"), "--duration", "3", "-q"]
-    if "--sim-world" not in args:
+    if "--sim-world" not in args and "none" not in args:  # no sim: --sim-world is refused
         cmd += ["--sim-world", str(WORLD)]
     res = runner.invoke(app, cmd + args)
     assert res.exit_code == 1, res.output
@@ -326,3 +331,14 @@ def test_record_into_a_place_that_cannot_hold_it_is_an_error_not_a_lost_run(
     s = _live(tmp_path / "live", "--duration", "3", "--record", str(blocker / "rec"))
     assert s["recording"]["error"] and any("--record" in e for e in s["errors"])
     assert load_bundle(tmp_path / "live" / "map") is not None  # the run itself was saved
+
+
+def test_live_exits_3_when_a_goal_was_not_reached(tmp_path: Path) -> None:
+    """A goal far outside the house cannot be reached in 4 s: the run ends normally (summary
+    written) but the exit status says the goal failed, as `navigate`'s does."""
+    out = tmp_path / "live"
+    res = runner.invoke(app, ["live", "--out", str(out), "--sim-world", str(WORLD), "-q",
+                              "--duration", "4", "--goal", "40,40"])  # fmt: skip
+    assert res.exit_code == 3, res.output
+    assert "goals       0 of 1 reached" in res.output
+    assert (out / "summary.json").is_file()
