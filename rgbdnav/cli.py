@@ -50,7 +50,11 @@ QuietOpt = Annotated[
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")]
 SourceArg = Annotated[
-    Path, typer.Argument(help="CARMEN log (.clf/.log[.gz]), recording folder, or world YAML.")
+    Path,
+    typer.Argument(
+        help="ROS bag (ROS 1 .bag, rosbag2 folder, .db3, .mcap), recording or TUM RGB-D folder, "
+        "CARMEN log (.clf/.log[.gz]), or world YAML."
+    ),
 ]
 MapOpt = Annotated[Path, typer.Option("--map", "-m", help="Map bundle folder, or a Nav2 map.yaml.")]
 WorldSeedOpt = Annotated[int, typer.Option(help="Seed when SOURCE is a world.")]
@@ -355,7 +359,7 @@ def simulate(
 @_known_errors
 def odometry(
     ctx: typer.Context,
-    source: Annotated[Path, typer.Argument(help="Recording folder, or a world YAML to render.")],
+    source: SourceArg,
     out: OutOpt,
     seed: WorldSeedOpt = 0,
     config: ConfigOpt = None,
