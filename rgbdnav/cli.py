@@ -10,6 +10,7 @@ import functools
 import logging
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -21,8 +22,9 @@ app = typer.Typer(
     name="rgbdnav",
     help="Map, localise and drive a differential-drive robot with an RGB-D camera, without ROS.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion (bash, zsh, fish, pwsh)
     pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
 )
 log = logging.getLogger("rgbdnav")
 
@@ -42,16 +44,119 @@ Force3DofOpt = Annotated[
         "Reg/Force3DoF) and a 2-D map, instead of a handheld camera's 6-DoF poses.",
     ),
 ]
-QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
+QuietOpt = Annotated[
+    bool, typer.Option("--quiet", "-q", help="No progress bars; log warnings and errors only.")
+]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")]
 SourceArg = Annotated[
-    Path, typer.Argument(help="CARMEN log (.clf/.log[.gz]), recording folder, or world YAML.")
+    Path,
+    typer.Argument(
+        help="ROS bag (ROS 1 .bag, rosbag2 folder, .db3, .mcap), recording or TUM RGB-D folder, "
+        "CARMEN log (.clf/.log[.gz]), or world YAML."
+    ),
 ]
 MapOpt = Annotated[Path, typer.Option("--map", "-m", help="Map bundle folder, or a Nav2 map.yaml.")]
 WorldSeedOpt = Annotated[int, typer.Option(help="Seed when SOURCE is a world.")]
 RrdOpt = Annotated[Path | None, typer.Option(help="Save a rerun recording (.rrd) of the run here.")]
 ViewerOpt = Annotated[bool, typer.Option(help="Spawn the rerun viewer and stream the run to it.")]
+FormatOpt = Annotated[
+    str,
+    typer.Option(
+        "--format",
+        help="Also write each trajectory as kitti (NAME.kitti.txt + NAME.times.txt) or euroc "
+        "(NAME.euroc.csv) beside its NAME.tum.",
+    ),
+]
+GoalOpt = Annotated[
+    list[str] | None,
+    typer.Option("--goal", "-g", metavar="X,Y", help="A goal in the map frame [m]; repeat."),
+]
+GOAL_FAILED_EXIT = 3  # exit status when a navigation goal was not reached (1: error, 2: usage)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            typer.echo(f"rgbdnav {version('rgbdnav')}")
+        except PackageNotFoundError:  # run from a source tree that was never installed
+            typer.echo("rgbdnav (not installed)")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        bool | None,
+        typer.Option("--version", callback=_version, is_eager=True, help="Print the version."),
+    ] = None,
+) -> None:
+    """Map, localise and drive a differential-drive robot with an RGB-D camera, without ROS."""
+
+
+def _given(ctx: typer.Context, name: str) -> bool:
+    """Whether the user typed option ``name`` (a parameter name), not just its default. By
+    the enum's name: typer >= 0.20 vendors click, so click's own ParameterSource is another
+    class."""
+    source = ctx.get_parameter_source(name)
+    return source is not None and source.name != "DEFAULT"
+
+
+def _refuse_unused(ctx: typer.Context, why: str, *names: str) -> None:
+    """An option that would be ignored here is an error, not silence."""
+    given = [f"--{n.rstrip('_').replace('_', '-')}" for n in names if _given(ctx, n)]
+    if given:
+        raise RgbdNavError(f"{', '.join(given)}: {why}; it would be ignored here")
+
+
+def _check_format(fmt: str) -> None:
+    from sensors.tum import TRAJECTORY_FORMATS
+
+    if fmt not in TRAJECTORY_FORMATS:
+        raise RgbdNavError(f"--format {fmt!r}: use one of {', '.join(TRAJECTORY_FORMATS)}")
+
+
+def _write_formats(out: Path, fmt: str) -> None:
+    """``--format``: every TUM trajectory of the run folder written again in ``fmt``."""
+    from sensors.tum import convert_tum_files
+
+    written = convert_tum_files(out, fmt)
+    if written:
+        typer.echo(f"{fmt:<11} {', '.join(p.name for p in written)}")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def parse_goals(values: Sequence[str], extra: Sequence[str] = ()) -> list[tuple[float, float]]:
+    """``--goal X,Y`` values -> goals (the one syntax of navigate and live). The older
+    ``navigate --goal X Y`` form arrives as a lone X plus a stray Y in ``extra``: accepted for
+    this release with a deprecation warning."""
+    from sensors.types import ConfigError
+
+    goals: list[tuple[float, float]] = []
+    stray = list(extra)
+    for value in values:
+        parts = value.split(",")
+        if len(parts) == 1 and stray and _is_number(stray[0]):
+            log.warning("--goal X Y is deprecated and goes in the next release; write --goal "
+                        "%s,%s", value, stray[0])  # fmt: skip
+            parts.append(stray.pop(0))
+        try:
+            x, y = (float(v) for v in parts)
+        except ValueError:
+            raise ConfigError(f"--goal {value!r}: expected X,Y in metres, e.g. 4.5,1.5") from None
+        goals.append((x, y))
+    if stray:
+        raise ConfigError(f"unexpected argument {stray[0]!r} (goals are --goal X,Y)")
+    return goals
 
 
 def _known_errors(fn: Any) -> Any:
@@ -72,12 +177,14 @@ def _known_errors(fn: Any) -> Any:
     return wrapper
 
 
-def _setup_logging(verbose: bool) -> None:
+def _setup_logging(verbose: bool, quiet: bool = False) -> None:
     from rich.console import Console
     from rich.logging import RichHandler
 
+    if verbose and quiet:
+        raise RgbdNavError("give --verbose or --quiet, not both")
     logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO,
+        level=logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO,
         format="%(message)s",
         handlers=[RichHandler(console=Console(stderr=True), show_time=False, show_path=False)],
         force=True,
@@ -168,8 +275,11 @@ def info(
     ],
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
 ) -> None:
     """Say what a recording, log, bag or world holds: streams, counts, rates, duration, gaps."""
+    _setup_logging(verbose, quiet)
     source = Path(source_text)
     if _is_world(source):
         from sensors.sim.world import load_world
@@ -219,7 +329,7 @@ def simulate(
     verbose: VerboseOpt = False,
 ) -> None:
     """Render a Kinect + wheel-encoder recording of a robot driving through a world."""
-    _setup_logging(verbose)
+    _setup_logging(verbose, quiet)
     from rgbdnav.config import load_config
     from rgbdnav.run_dir import RunDir
     from sensors.sim.simulator import simulate as run_simulation
@@ -248,18 +358,23 @@ def simulate(
 @app.command()
 @_known_errors
 def odometry(
-    source: Annotated[Path, typer.Argument(help="Recording folder, or a world YAML to render.")],
+    ctx: typer.Context,
+    source: SourceArg,
     out: OutOpt,
     seed: WorldSeedOpt = 0,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     vo: Annotated[bool, typer.Option(help="Run visual odometry on the RGB-D frames.")] = True,
     force_3dof: Force3DofOpt = False,
+    fmt: FormatOpt = "tum",
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Wheel, visual and fused (EKF) odometry of a source, with drift against ground truth."""
-    _setup_logging(verbose)
+    _setup_logging(verbose, quiet)
+    _check_format(fmt)
+    if not _is_world(source):
+        _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.odometry import run_odometry
     from rgbdnav.config import load_config
 
@@ -269,11 +384,13 @@ def odometry(
         outputs = run_odometry(recording, out, config or [], set_ or [], vo, progress, force_3dof)
     _echo_source(source, recording)
     _echo_outputs(outputs)
+    _write_formats(out, fmt)
 
 
 @app.command("map")
 @_known_errors
 def map_(
+    ctx: typer.Context,
     source: SourceArg,
     out: OutOpt,
     continue_: Annotated[
@@ -286,11 +403,15 @@ def map_(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     force_3dof: Force3DofOpt = False,
+    fmt: FormatOpt = "tum",
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Pose-graph SLAM: trajectory, occupancy grid and a map bundle (Nav2 PGM/YAML + graph)."""
-    _setup_logging(verbose)
+    _setup_logging(verbose, quiet)
+    _check_format(fmt)
+    if not _is_world(source):
+        _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.map import run_map
     from rgbdnav.config import load_config
 
@@ -302,11 +423,13 @@ def map_(
         )
     _echo_source(source, recording)
     _echo_outputs(outputs)
+    _write_formats(out, fmt)
 
 
 @app.command()
 @_known_errors
 def localize(
+    ctx: typer.Context,
     source: SourceArg,
     map_: MapOpt,
     out: OutOpt,
@@ -324,11 +447,15 @@ def localize(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     force_3dof: Force3DofOpt = False,
+    fmt: FormatOpt = "tum",
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Localise against a saved map (no mapping): trajectory, per-scan status and confidence."""
-    _setup_logging(verbose)
+    _setup_logging(verbose, quiet)
+    _check_format(fmt)
+    if not _is_world(source):
+        _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.localize import describe, run_localize
     from rgbdnav.config import load_config
     from slam.map_bundle import load_map
@@ -353,9 +480,10 @@ def localize(
     _echo_source(source, recording)
     typer.echo(f"result      {describe(summary)}")
     _echo_outputs(outputs)
+    _write_formats(out, fmt)
 
 
-# Typer has no repeatable multi-value option, so `--goal X Y` pairs arrive as extra args.
+# Extra args: the Y of the deprecated `--goal X Y` form (see parse_goals).
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 @_known_errors
 def navigate(
@@ -390,23 +518,26 @@ def navigate(
         typer.Option("--waypoint-pause", help="Seconds to wait at each reached goal (default 0)."),
     ] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of wheel slip and depth noise.")] = 0,
+    goal_: GoalOpt = None,
     rrd: RrdOpt = None,
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    fmt: FormatOpt = "tum",
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Drive to goals on a saved map in a simulated world (localiser or ground truth).
 
-    Goals: --goal X Y [--goal X Y ...] in the map frame (metres), driven in order.
-    --localization, --goal-timeout, --max-replans and --waypoint-pause override the navigate
-    settings (nav.config.NavigateConfig).
+    Goals: --goal X,Y [--goal X,Y ...] in the map frame (metres), driven in order; the exit
+    status is 3 when a goal was not reached. --localization, --goal-timeout, --max-replans and
+    --waypoint-pause override the navigate settings (nav.config.NavigateConfig).
     """
-    _setup_logging(verbose)
-    from rgbdnav.commands.navigate import describe, parse_goal_args, run_navigate
+    _setup_logging(verbose, quiet)
+    _check_format(fmt)
+    from rgbdnav.commands.navigate import describe, run_navigate
 
-    goal = parse_goal_args(ctx.args)
+    goal = parse_goals(goal_ or [], ctx.args)
     with _Progress("navigating", quiet) as progress:
         outputs, summary = run_navigate(map_, goal, sim, out, config or [], set_ or [], start,
                                         keepout, goal_timeout, max_replans, progress,
@@ -414,16 +545,20 @@ def navigate(
                                         waypoint_pause_s=waypoint_pause, rrd=rrd,
                                         viewer=viewer)  # fmt: skip
     typer.echo(f"result      {describe(summary)}")
-    for g in summary["goals"]:
-        if g["status"] != "reached":
-            typer.echo(f"goal        ({g['goal'][0]:.2f}, {g['goal'][1]:.2f}) {g['status']}: "
-                       f"{g['reason']}")  # fmt: skip
+    failed = [g for g in summary["goals"] if g["status"] != "reached"]
+    for g in failed:
+        typer.echo(f"goal        ({g['goal'][0]:.2f}, {g['goal'][1]:.2f}) {g['status']}: "
+                   f"{g['reason']}")  # fmt: skip
     _echo_outputs(outputs)
+    _write_formats(out, fmt)
+    if failed:
+        raise typer.Exit(GOAL_FAILED_EXIT)
 
 
 @app.command()
 @_known_errors
 def live(
+    ctx: typer.Context,
     out: OutOpt,
     camera: Annotated[
         str, typer.Option(help="sim, or an OpenNI2 device: openni:// (first) / openni://URI.")
@@ -437,7 +572,8 @@ def live(
         ),
     ] = "sim",
     sim_world: Annotated[
-        Path | None, typer.Option("--sim-world", help="World YAML for --camera/--board sim.")
+        Path,
+        typer.Option("--sim-world", help="World YAML for --camera/--board sim."),
     ] = Path("scenes/house.yaml"),
     map_: Annotated[
         Path | None,
@@ -461,7 +597,13 @@ def live(
     ] = "route",
     goal: Annotated[
         list[str] | None,
-        typer.Option(help="A waypoint X,Y for --drive route (repeat; default: the world's route)."),
+        typer.Option(
+            "--goal",
+            "-g",
+            metavar="X,Y",
+            help="A waypoint for --drive route (repeat; default: the world's route); the exit "
+            "status is 3 when one was not reached.",
+        ),
     ] = None,
     rrd: RrdOpt = None,
     viewer: ViewerOpt = False,
@@ -502,21 +644,20 @@ def live(
     ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    fmt: FormatOpt = "tum",
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """The live run on the robot (or the simulated robot): map, or localise with --map."""
-    _setup_logging(verbose)
+    _setup_logging(verbose, quiet)
+    _check_format(fmt)
     from rgbdnav.live.run import Drill, LiveOptions, run_live
-    from sensors.types import ConfigError
 
-    goals = []
-    for g in goal or []:
-        try:
-            x, y = (float(v) for v in g.split(","))
-        except ValueError:
-            raise ConfigError(f"--goal {g!r}: expected X,Y in metres, e.g. 4.5,1.5") from None
-        goals.append((x, y))
+    goals = parse_goals(goal or [])
+    if "sim" not in (camera, board):  # (--drill and --initial-pose: checked by LiveRun)
+        _refuse_unused(ctx, "only with --camera sim or --board sim", "sim_world", "seed")
+    if drive != "route":
+        _refuse_unused(ctx, f"only with --drive route, not {drive}", "goal", "repeat_route")
     world = sim_world if "sim" in (camera, board) else None
     opts = LiveOptions(out=out, camera=camera, board=board, world=world,
                        config_files=config or [], overrides=set_ or [], map_bundle=map_,
@@ -525,6 +666,7 @@ def live(
                        repeat_route=repeat_route, record=record, joystick=joystick,
                        initial_pose=initial_pose)  # fmt: skip
     outputs, summary = run_live(opts)
+    _write_formats(out, fmt)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
     c = summary["counts"]
     typer.echo(
@@ -543,6 +685,10 @@ def live(
             f"writer fell behind), {rec['wheel_readings']} encoder readings"
         )
     _echo_outputs(outputs)
+    reached = summary["counts"].get("waypoints_reached", 0)
+    if goals and not repeat_route and reached < len(goals):
+        typer.echo(f"goals       {reached} of {len(goals)} reached", err=True)
+        raise typer.Exit(GOAL_FAILED_EXIT)
 
 
 @app.command()
@@ -568,8 +714,11 @@ def board(
     ] = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
 ) -> None:
     """Check a motor board: which board, firmware, battery, odometry, round-trip time."""
+    _setup_logging(verbose, quiet)
     from rgbdnav.commands.board import check_board
     from rgbdnav.config import load_config
     from sensors.boards import open_board
@@ -584,11 +733,27 @@ def board(
 @app.command("eval")
 @_known_errors
 def eval_(
+    ctx: typer.Context,
     trajectory: Annotated[
-        Path, typer.Argument(metavar="TRAJ", help="Estimated TUM trajectory, or a run directory.")
+        Path,
+        typer.Argument(
+            metavar="TRAJ",
+            help="Estimated trajectory (TUM, KITTI or EuRoC CSV, detected), or a run directory.",
+        ),
     ],
     reference: Annotated[
-        Path | None, typer.Option("--reference", "-r", help="Reference TUM trajectory (ATE, RPE).")
+        Path | None,
+        typer.Option("--reference", "-r", help="Reference trajectory, any format (ATE, RPE)."),
+    ] = None,
+    times: Annotated[
+        Path | None,
+        typer.Option(
+            help="KITTI times file of TRAJ (default: NAME.times.txt or times.txt beside)."
+        ),
+    ] = None,
+    reference_times: Annotated[
+        Path | None,
+        typer.Option(help="KITTI times file of --reference (default: found beside it)."),
     ] = None,
     relations: Annotated[
         Path | None,
@@ -599,7 +764,7 @@ def eval_(
     ] = None,
     out: Annotated[
         Path | None,
-        typer.Option("--out", "-o", help="Run directory to write (needed with --reference)."),
+        typer.Option("--out", "-o", help="Also write summary.json (and ate.png) to this folder."),
     ] = None,
     align: Annotated[
         str, typer.Option(help="Alignment: se3 (TUM ATE), sim3 (monocular), se2 (planar), none.")
@@ -613,11 +778,13 @@ def eval_(
     ] = "m",
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Score a trajectory against a reference: ATE and RPE (TUM RGB-D benchmark / evo method),
-    or against reference relations (Kümmerle et al. 2009)."""
-    _setup_logging(verbose)
+    or against reference relations (Kümmerle et al. 2009). Prints the result; --out also
+    writes it."""
+    _setup_logging(verbose, quiet)
     from rgbdnav.commands.eval import (
         format_relations_report,
         format_report,
@@ -628,20 +795,25 @@ def eval_(
     if (reference is None) == (relations is None):
         raise RgbdNavError("give exactly one of --reference GT and --relations FILE")
     if relations is not None:
+        _refuse_unused(ctx, "only with --reference, not --relations", "align", "delta",
+                       "delta_unit", "reference_times")  # fmt: skip
         summary = run_relations_eval(trajectory, relations, out, max_diff_s=max_diff,
-                                     config_files=config or [], overrides=set_ or [])  # fmt: skip
+                                     config_files=config or [], overrides=set_ or [],
+                                     estimate_times=times)  # fmt: skip
         typer.echo(format_relations_report(summary))
         if out is not None:
             typer.echo(f"wrote {out / 'summary.json'}")
         return
-    if reference is None or out is None:  # reference is set here; the check narrows the type
-        raise RgbdNavError("--reference needs --out DIR (the run directory for ate.png)")
+    if reference is None:  # exactly one of the two, checked above; this narrows the type
+        raise RgbdNavError("give --reference GT")
     summary = run_eval(
         trajectory, reference, out, align=align, max_diff_s=max_diff, delta=delta,
         delta_unit=delta_unit, config_files=config or [], overrides=set_ or [],
+        estimate_times=times, reference_times=reference_times,
     )  # fmt: skip
     typer.echo(format_report(summary))
-    typer.echo(f"wrote {out / 'summary.json'} and {out / 'ate.png'}")
+    if out is not None:
+        typer.echo(f"wrote {out / 'summary.json'} and {out / 'ate.png'}")
 
 
 @app.command("export")
@@ -659,7 +831,7 @@ def export(
 ) -> None:
     """A run as a rosbag2/MCAP folder (/tf, /tf_static, /map, /scan, /odom, Path, images) for
     Foxglove or `ros2 bag play` into RViz."""
-    _setup_logging(verbose)
+    _setup_logging(verbose, quiet)
     from rgbdnav.commands.export import run_export
 
     result = run_export(run, to, out, images)

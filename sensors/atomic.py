@@ -9,12 +9,32 @@ import tempfile
 from pathlib import Path
 
 
+def current_umask() -> int:
+    """The process's file-mode creation mask, read without changing it where Linux allows
+    (``/proc/self/status``; setting and restoring it would race with other threads)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
-    """Write ``data`` to a temp file beside ``path``, fsync, then rename over ``path``."""
+    """Write ``data`` to a temp file beside ``path``, fsync, then rename over ``path``.
+
+    ``mkstemp`` creates the temp file 0600; it gets the mode ``open()`` would have given
+    (0666 less the umask: 0644 by default) so a map or run folder is readable by other users
+    and containers (a Nav2 map_server) as with any other tool."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
@@ -35,10 +55,17 @@ STAGING_SUFFIX = ".partial"
 def make_staging_dir(final: Path) -> Path:
     """A fresh hidden folder beside ``final`` (same file system, so the rename is atomic),
     named after the writing process (``.NAME.pidPID-XXXX.partial``) so that a later commit can
-    tell a folder whose writer died (kill -9 mid-save) from one still being written."""
+    tell a folder whose writer died (kill -9 mid-save) from one still being written.
+    ``mkdtemp`` makes it 0700; it gets ``mkdir``'s mode (0777 less the umask: 0755 by default)
+    since it becomes the final folder by a rename."""
     final.parent.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=f".{final.name}.pid{os.getpid()}-",
-                                 suffix=STAGING_SUFFIX, dir=final.parent))  # fmt: skip
+    staging = Path(
+        tempfile.mkdtemp(
+            prefix=f".{final.name}.pid{os.getpid()}-", suffix=STAGING_SUFFIX, dir=final.parent
+        )
+    )
+    staging.chmod(0o777 & ~current_umask())
+    return staging
 
 
 def _process_alive(pid: int) -> bool:

@@ -34,7 +34,7 @@ from sensors.atomic import atomic_write_text, commit_staging_dir, make_staging_d
 from sensors.images import ImageError, read_image
 from sensors.safe_yaml import read_yaml
 from sensors.tum import (
-    load_tum_trajectory,
+    load_trajectory,
     read_stamped_text,
     write_tum_trajectory,
     yaw_from_quaternion,
@@ -442,7 +442,7 @@ class Recording:
     def groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(stamps_ns, xyz (N, 3) [m], quat_xyzw (N, 4)) of base_link in the world, or None."""
         file = self.path / "groundtruth.txt"
-        return load_tum_trajectory(file) if file.is_file() else None
+        return load_trajectory(file) if file.is_file() else None
 
     def groundtruth_planar(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """(stamps_ns, x [m], y [m], yaw [rad]) or None."""

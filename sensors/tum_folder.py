@@ -43,7 +43,7 @@ from sensors.images import (
 )
 from sensors.recording import DEFAULT_MAX_DIFFERENCE_NS, associate, counts_to_depth
 from sensors.source import PoseStream, SourceBase, SourceOptions
-from sensors.tum import load_tum_trajectory, read_stamped_text, yaw_from_quaternion
+from sensors.tum import load_trajectory, read_stamped_text, yaw_from_quaternion
 from sensors.types import (
     NS_PER_S,
     CameraIntrinsics,
@@ -353,7 +353,7 @@ class TumFolderSource(SourceBase):
 
     def _groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         if self._gt is None and self._groundtruth_file is not None:
-            self._gt = load_tum_trajectory(self._groundtruth_file)
+            self._gt = load_trajectory(self._groundtruth_file)
         return self._gt
 
     # -- Source protocol --

@@ -33,6 +33,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from sensors.atomic import (
@@ -174,8 +175,8 @@ def parse_map_yaml(path: str | os.PathLike[str], inside_folder: bool = False) ->
         raise MapError(f"{path}: 'origin' must be 3 finite numbers [x, y, yaw], got {origin!r}")
     occ = _number(doc, "occupied_thresh", path)
     free = _number(doc, "free_thresh", path)
-    if not (0.0 < free < 1.0 and 0.0 < occ < 1.0):
-        raise MapError(f"{path}: thresholds must lie in (0, 1), got free_thresh {free}, "
+    if not (0.0 <= free <= 1.0 and 0.0 <= occ <= 1.0):
+        raise MapError(f"{path}: thresholds must lie in [0, 1], got free_thresh {free}, "
                        f"occupied_thresh {occ}")  # fmt: skip
     if free >= occ:
         raise MapError(f"{path}: free_thresh ({free}) must be below occupied_thresh ({occ})")
@@ -191,16 +192,21 @@ def parse_map_yaml(path: str | os.PathLike[str], inside_folder: bool = False) ->
                    float(origin[2])), bool(negate), occ, free)  # fmt: skip
 
 
-_PGM_HEADER = re.compile(rb"P5(?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)"
+_PGM_HEADER = re.compile(rb"P([25])(?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)"
                          rb"(?:\s+|#[^\n]*\n)+(\d+)\s")  # fmt: skip
+_PGM_COMMENT = re.compile(rb"#[^\n]*")
+_MAX_16BIT = 65535
 
 
 def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, int]:
-    """Binary 8-bit PGM (P5) -> ((H, W) uint8 pixels, top row first; maxval)."""
+    """PGM, binary (P5) or ASCII (P2), 8- or 16-bit -> ((H, W) uint8/uint16 pixels, top row
+    first; maxval). Decoded here rather than by OpenCV, which rescales P2 pixels to 255 but
+    leaves P5 ones as stored: map_server (ImageMagick) reads every PGM as value / maxval."""
     m = _PGM_HEADER.match(data)
     if m is None:
-        raise MapError(f"{name}: not a binary PGM (P5) image header")
-    width, height, maxval = (int(g) for g in m.groups())
+        raise MapError(f"{name}: not a PGM (P5 binary or P2 ASCII) image header")
+    kind = m.group(1)
+    width, height, maxval = (int(g) for g in m.groups()[1:])
     if width < 1 or height < 1:
         raise MapError(f"{name}: PGM size {width}x{height} is empty")
     if width * height > MAX_IMAGE_PIXELS:
@@ -208,16 +214,34 @@ def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, i
             f"{name}: PGM declares {width}x{height} pixels, more than the "
             f"{MAX_IMAGE_PIXELS} read here"
         )
-    if not 0 < maxval <= _MAX_8BIT:
-        raise MapError(f"{name}: PGM maxval {maxval} unsupported; need an 8-bit image (1..255)")
+    if not 0 < maxval <= _MAX_16BIT:
+        raise MapError(f"{name}: PGM maxval {maxval} unsupported (1..65535)")
+    dtype = np.dtype(np.uint8) if maxval <= _MAX_8BIT else np.dtype(">u2")
     body = data[m.end() :]
-    if len(body) != width * height:
-        raise MapError(f"{name}: PGM {width}x{height} needs {width * height} bytes of pixels, "
-                       f"found {len(body)}")  # fmt: skip
-    pixels = np.frombuffer(body, dtype=np.uint8).reshape(height, width)
+    if kind == b"5":
+        need = width * height * dtype.itemsize
+        if len(body) != need:
+            raise MapError(f"{name}: PGM {width}x{height} needs {need} bytes of pixels, "
+                           f"found {len(body)}")  # fmt: skip
+        pixels = np.frombuffer(body, dtype=dtype)
+    else:
+        tokens = _PGM_COMMENT.sub(b" ", body).split()
+        if len(tokens) != width * height:
+            raise MapError(f"{name}: ASCII PGM {width}x{height} needs {width * height} pixel "
+                           f"values, found {len(tokens)}")  # fmt: skip
+        try:
+            pixels = np.array(tokens, dtype=np.int64)
+        except ValueError:
+            raise MapError(
+                f"{name}: ASCII PGM holds a pixel value that is not an integer"
+            ) from None
+        if pixels.size and int(pixels.min()) < 0:
+            raise MapError(f"{name}: PGM pixel value {int(pixels.min())} is negative")
+    pixels = pixels.reshape(height, width)
     if int(pixels.max()) > maxval:
         raise MapError(f"{name}: PGM pixel value {int(pixels.max())} exceeds maxval {maxval}")
-    return pixels, maxval
+    native = np.uint8 if maxval <= _MAX_8BIT else np.uint16
+    return pixels.astype(native), maxval
 
 
 def encode_pgm(pixels: np.ndarray) -> bytes:
@@ -233,7 +257,7 @@ def _read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise MapError(f"{path}: missing image file")
     # A regular file only: `image: /dev/zero` would be read until memory runs out.
     data = read_bounded(path, MAX_IMAGE_FILE_BYTES, MapError, "image")
-    if data[:1] == b"P" and data[1:2].isdigit():  # any netpbm: only P5 is supported
+    if data[:2] in (b"P2", b"P5"):  # PGM: value / maxval (other netpbm kinds: OpenCV)
         pixels, maxval = decode_pgm(data, path)
         return pixels.astype(np.float64) / maxval, None
     img = decode_image(data, path, MapError)  # a declared size is checked before decoding
@@ -276,14 +300,55 @@ def occupancy_values_from_image(
     return out
 
 
+def unrotate_grid(
+    values: np.ndarray, resolution: float, origin: tuple[float, float, float]
+) -> tuple[np.ndarray, float, float]:
+    """Cells of a map whose ``origin`` has a yaw (row 0 = lowest row, int8 nav_msgs values)
+    resampled, nearest cell, into an axis-aligned grid of the same resolution covering it:
+    -> (values, origin_x, origin_y). Cells outside the rotated map are unknown (-1).
+
+    map_server publishes such a map with a rotated ``info.origin``; our grids are axis-aligned
+    in the map frame, so the rotation is applied once here and every cell keeps its place in
+    the map frame (to within half a cell) and no occupied cell is lost."""
+    ox, oy, yaw = origin
+    h, w = values.shape
+    c, s = math.cos(yaw), math.sin(yaw)
+    rot = np.array([[c, -s], [s, c]])
+    corners = rot @ np.array([[0.0, w, 0.0, w], [0.0, 0.0, h, h]]) * resolution
+    lo = corners.min(axis=1)
+    # Snap to whole cells of the rotated corners' extent (a 1e-9 cell slack for round-off).
+    out_w, out_h = (int(math.ceil((hi - low) / resolution - 1e-9))
+                    for low, hi in zip(lo, corners.max(axis=1), strict=True))  # fmt: skip
+    new_ox, new_oy = ox + float(lo[0]), oy + float(lo[1])
+    # Output cell (x, y) centre in the map frame -> source cell coordinates (centre-integer).
+    d = np.array([new_ox - ox, new_oy - oy]) / resolution + 0.5
+    inverse = np.hstack([rot.T, (rot.T @ d - 0.5)[:, None]])
+    shifted = (values.astype(np.int16) + 1).astype(np.uint8)  # -1..100 -> 0..101, 0 = unknown
+    out = cv2.warpAffine(shifted, inverse, (max(out_w, 1), max(out_h, 1)),
+                         flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)  # fmt: skip
+    out = (out.astype(np.int16) - 1).astype(np.int8)
+    # Nearest sampling can step over a one-cell obstacle at a non-right angle: every cell with
+    # some occupancy also marks the output cell that holds its centre (never less occupied).
+    rows, cols = np.nonzero(values > 0)
+    if rows.size:
+        centres = rot @ np.stack([cols + 0.5, rows + 0.5]) * resolution - lo[:, None]
+        c_out = np.clip(np.floor(centres[0] / resolution).astype(np.int64), 0, out.shape[1] - 1)
+        r_out = np.clip(np.floor(centres[1] / resolution).astype(np.int64), 0, out.shape[0] - 1)
+        np.maximum.at(out, (r_out, c_out), values[rows, cols])
+    return out, new_ox, new_oy
+
+
 def _grid_from_yaml(meta: MapYaml) -> OccupancyGrid:
     shade, alpha = _read_image(meta.image)
-    if abs(meta.origin[2]) > 1e-9:
-        raise MapError(f"{meta.image}: rotated map origins (yaw {meta.origin[2]}) are not "
-                       f"supported")  # fmt: skip
     values = occupancy_values_from_image(shade, alpha, meta)[::-1]  # row 0 = lowest y
+    ox, oy, yaw = meta.origin
+    if yaw != 0.0:
+        values, ox, oy = unrotate_grid(values, meta.resolution, meta.origin)
+        log.info("%s: origin yaw %.4f rad; resampled into an axis-aligned %dx%d grid at (%.3f, "
+                 "%.3f)", meta.image, yaw, values.shape[1], values.shape[0], ox, oy)  # fmt: skip
     h, w = values.shape
-    geom = GridGeometry(meta.resolution, meta.origin[0], meta.origin[1], w, h)
+    geom = GridGeometry(meta.resolution, ox, oy, w, h)
     return OccupancyGrid.from_occupancy_values(geom, values)
 
 
@@ -693,4 +758,5 @@ __all__ = [
     "save_bundle",
     "save_map_yaml",
     "trinary_pixels",
+    "unrotate_grid",
 ]

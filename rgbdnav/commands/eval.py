@@ -1,5 +1,5 @@
-"""`rgbdnav eval`: ATE and RPE of a TUM trajectory against a reference, or the Kümmerle 2009
-relations metric against a relations file, written to a run directory.
+"""`rgbdnav eval`: ATE and RPE of a trajectory (TUM, KITTI or EuRoC) against a reference, or the
+Kümmerle 2009 relations metric against a relations file, printed and written to a run directory.
 
 I/O lives here; the metrics are the pure kernels of :mod:`slam.trajectory_eval`.
 """
@@ -18,13 +18,8 @@ import numpy as np
 from rgbdnav.config import load_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
-from sensors.tum import (
-    TRAJECTORY_COLUMNS,
-    check_poses,
-    read_stamped_text,
-    yaw_from_quaternion,
-)
-from sensors.types import NS_PER_S, SensorError, format_stamp
+from sensors.tum import read_pose_table, yaw_from_quaternion
+from sensors.types import NS_PER_S, format_stamp
 from slam.trajectory_eval import (
     ALIGN_MODES,
     DELTA_UNITS,
@@ -55,18 +50,16 @@ class Trajectory:
     repeated_stamps: int  # lines dropped because a later line had the same stamp
 
 
-def read_trajectory(path: Path) -> Trajectory:
-    """Read a TUM trajectory the way the TUM benchmark tools do (into a dict keyed by stamp):
-    lines may come in any order, and a repeated stamp keeps its last line. The official
-    fr2/desk ground truth has such a repeat. Malformed lines are errors naming file:line."""
+def read_trajectory(path: Path, times: Path | None = None) -> Trajectory:
+    """Read a TUM, KITTI (``times``: its times file) or EuRoC/ASL trajectory, detected from the
+    content, the way the TUM benchmark tools read TUM (into a dict keyed by stamp): lines may
+    come in any order, and a repeated stamp keeps its last line. The official fr2/desk ground
+    truth has such a repeat. Malformed lines are errors naming file:line."""
     path = Path(path)
     if path.is_dir():
         path = path / RUN_TRAJECTORY
-    table = read_stamped_text(path, TRAJECTORY_COLUMNS, check_order=False)
-    if not len(table.stamps_ns):
-        raise SensorError(f"{path}: no poses (expected lines '{' '.join(TRAJECTORY_COLUMNS)}')")
-    data = table.numeric(np.float64, "pose (tx ty tz qx qy qz qw)")
-    check_poses(table, data)
+    table = read_pose_table(path, times=times, check_order=False)
+    data = table.poses
     # Sort by stamp (stable), then keep the last line of each run of equal stamps.
     order = np.argsort(table.stamps_ns, kind="stable")
     sorted_ns = table.stamps_ns[order]
@@ -170,7 +163,7 @@ def format_report(summary: dict) -> str:
 def run_eval(
     estimate_path: Path,
     reference_path: Path,
-    out: Path,
+    out: Path | None,
     *,
     align: str = "se3",
     max_diff_s: float = 0.02,
@@ -178,15 +171,20 @@ def run_eval(
     delta_unit: str = "m",
     config_files: Sequence[Path] = (),
     overrides: Sequence[str] = (),
+    estimate_times: Path | None = None,
+    reference_times: Path | None = None,
 ) -> dict:
-    """Evaluate, write ``config.yaml``, ``summary.json`` and ``ate.png`` to ``out``; return the
+    """Evaluate; with ``out``, write ``config.yaml``, ``summary.json`` and ``ate.png`` there
+    (without, only compute, as evo_ape prints without ``--save_results``). Return the
     summary."""
     t0 = time.perf_counter()
     cfg = load_config(list(config_files), list(overrides))
-    estimate = read_trajectory(estimate_path)
-    reference = read_trajectory(reference_path)
+    estimate = read_trajectory(estimate_path, estimate_times)
+    reference = read_trajectory(reference_path, reference_times)
     result = evaluate_files(estimate, reference, align, max_diff_s, delta, delta_unit)
     summary = summary_of(result, estimate, reference, align, max_diff_s, delta, delta_unit)
+    if out is None:
+        return summary
 
     run = RunDir(out)
     run.write_config(cfg)
@@ -228,6 +226,7 @@ def run_relations_eval(
     max_diff_s: float = 0.02,
     config_files: Sequence[Path] = (),
     overrides: Sequence[str] = (),
+    estimate_times: Path | None = None,
 ) -> dict:
     """Score the planar part (x, y, yaw) of a TUM trajectory against reference relations; with
     ``out``, write ``config.yaml`` and ``summary.json`` there. Return the summary."""
@@ -236,7 +235,7 @@ def run_relations_eval(
     max_diff_ns = int(round(max_diff_s * NS_PER_S))
     if max_diff_ns <= 0:
         raise TrajectoryEvalError(f"--max-diff must be > 0 s, got {max_diff_s}")
-    estimate = read_trajectory(estimate_path)
+    estimate = read_trajectory(estimate_path, estimate_times)
     relations = read_relations(relations_path)
     poses = np.column_stack([estimate.xyz[:, :2], yaw_from_quaternion(estimate.quat_xyzw)])
     try:

@@ -429,31 +429,13 @@ class _Sim:
 # 4. The run ---------------------------------------------------------------------------------
 
 
-def parse_goal_args(args: Sequence[str]) -> list[tuple[float, float]]:
-    """``--goal X Y [--goal X Y ...]`` (or ``-g``) tokens -> goals; :class:`ConfigError` on
-    anything else (an unknown option ends up here too)."""
-    goals: list[tuple[float, float]] = []
-    k = 0
-    while k < len(args):
-        if args[k] not in ("--goal", "-g"):
-            raise ConfigError(f"unexpected argument {args[k]!r} (goals are --goal X Y)")
-        pair = args[k + 1 : k + 3]
-        try:
-            x, y = (float(v) for v in pair)
-        except ValueError:
-            raise ConfigError(f"--goal needs two numbers X Y, got {' '.join(pair)!r}") from None
-        goals.append((x, y))
-        k += 3
-    return goals
-
-
 def _check_goals(goals: Sequence[Sequence[float]]) -> list[tuple[float, float]]:
     if not goals:
-        raise ConfigError("give at least one --goal X Y")
+        raise ConfigError("give at least one --goal X,Y")
     out = []
     for g in goals:
         if len(g) != 2 or not all(math.isfinite(v) for v in g):
-            raise ConfigError(f"--goal needs two finite numbers X Y, got {list(g)}")
+            raise ConfigError(f"--goal needs two finite numbers X,Y, got {list(g)}")
         out.append((float(g[0]), float(g[1])))
     return out
 
@@ -737,7 +719,6 @@ __all__ = [
     "describe",
     "goal_problem",
     "navigate_settings",
-    "parse_goal_args",
-    "pose_errors",
+        "pose_errors",
     "run_navigate",
 ]

@@ -18,7 +18,7 @@ import numpy as np
 
 from sensors.config import RobotConfig, SimConfig
 from sensors.sim.world import World
-from sensors.tum import load_tum_trajectory
+from sensors.tum import load_trajectory
 from sensors.types import NS_PER_S, WorldError
 
 HEADING_GAIN = 2.5  # [1/s] angular speed per radian of heading error
@@ -119,7 +119,7 @@ def drive_route(world: World, sim: SimConfig) -> Trajectory:
 def replay_tum(path: str | Path, robot: RobotConfig, sim: SimConfig) -> Trajectory:
     """A recorded camera trajectory (TUM, z up, planar motion, e.g. the TUM fr2/pioneer mocap)
     -> base_link trajectory at the physics rate, starting at t = 0."""
-    stamps, xyz, quat = load_tum_trajectory(path)
+    stamps, xyz, quat = load_trajectory(path)
     if len(stamps) < 2:
         raise WorldError(f"{path}: a trajectory to replay needs at least 2 poses")
     qx, qy, qz, qw = quat.T

@@ -246,10 +246,27 @@ def test_reference_and_relations_together_or_neither_are_refused(
     assert both == neither == "error: give exactly one of --reference GT and --relations FILE"
 
 
-def test_reference_still_needs_out(line_pair: tuple[Path, Path]) -> None:
+def test_reference_without_out_prints_and_writes_nothing(
+    line_pair: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Like evo_ape: the result on the terminal, files only when asked (--out)."""
     est, gt = line_pair
-    line = _one_line_error(["eval", str(est), "--reference", str(gt)])
-    assert "--reference needs --out" in line
+    before = set(tmp_path.iterdir())
+    result = runner.invoke(app, ["eval", str(est), "--reference", str(gt)])
+    assert result.exit_code == 0, result.output
+    assert "ATE [m]     rmse 0.000000" in result.output and "wrote" not in result.output
+    assert set(tmp_path.iterdir()) == before
+
+
+def test_options_of_the_other_mode_are_refused_not_ignored(
+    line_pair: tuple[Path, Path], tmp_path: Path
+) -> None:
+    est, _ = line_pair
+    rel = tmp_path / "r.relations"
+    rel.write_text("0 1 0.1 0 0 0 0 0\n")
+    line = _one_line_error(["eval", str(est), "--relations", str(rel), "--align", "se2"])
+    assert line == ("error: --align: only with --reference, not --relations; it would be "
+                    "ignored here")  # fmt: skip
 
 
 @needs_carmen
@@ -272,3 +289,19 @@ def test_raw_odometry_of_mit_csail_scores_the_published_relations_figures(tmp_pa
                                                                             abs=1e-3)  # fmt: skip
     assert (metric["rot_mean_deg"], metric["rot_std_deg"]) == pytest.approx((5.072, 8.241),
                                                                           abs=1e-2)  # fmt: skip
+
+
+@needs_tum
+@pytest.mark.parametrize(("est_fmt", "ref_fmt"), [("kitti", "euroc"), ("euroc", "kitti")])
+def test_kitti_and_euroc_files_score_as_their_tum_originals(tmp_path, est_fmt, ref_fmt) -> None:
+    """fr1/xyz written as KITTI (+ times file) and EuRoC CSV: detected, same ATE check value."""
+    from sensors.tum import load_tum_trajectory, write_trajectory
+
+    est = tmp_path / f"est.{est_fmt}"
+    ref = tmp_path / f"gt.{ref_fmt}"
+    write_trajectory(est, *load_tum_trajectory(TUM / "freiburg1_xyz-rgbdslam.txt"), est_fmt)
+    write_trajectory(ref, *load_tum_trajectory(TUM / "freiburg1_xyz-groundtruth.txt"), ref_fmt)
+    result = runner.invoke(app, ["eval", str(est), "-r", str(ref), "-q"])
+    assert result.exit_code == 0, result.output
+    assert "matched     786 of 788" in result.output
+    assert "ATE [m]     rmse 0.013473" in result.output

@@ -194,13 +194,18 @@ def test_a_board_port_that_does_not_open_fails_in_one_line(tmp_path: Path) -> No
      (["--initial-pose", "1", "2", "0"], "--initial-pose places the robot in a saved map"),
      (["--map", str(REPO / "tests"), "--initial-pose", "1", "nan", "0"],
       "--initial-pose needs three finite numbers"),
-     (["--camera", "openni://", "--board", "none"], "OpenNI2")],  # no library or no device
+     (["--camera", "openni://", "--board", "none"], "OpenNI2"),  # no library or no device
+     (["--camera", "openni://", "--board", "none", "--sim-world", str(WORLD)],
+      "--sim-world: only with --camera sim or --board sim; it would be ignored here"),
+     (["--camera", "openni://", "--board", "none", "--seed", "2"], "--seed: only with"),
+     (["--drive", "idle", "--goal", "1,2"], "--goal: only with --drive route, not idle"),
+     (["--drive", "teleop", "--repeat-route"], "--repeat-route: only with --drive route")],
 )  # fmt: skip
 def test_bad_live_options_fail_in_one_line_before_anything_starts(
     tmp_path: Path, args: list[str], match: str
 ) -> None:
     cmd = ["live", "--out", str(tmp_path / "x"), "--duration", "3", "-q"]
-    if "--sim-world" not in args:
+    if "--sim-world" not in args and "none" not in args:  # no sim: --sim-world is refused
         cmd += ["--sim-world", str(WORLD)]
     res = runner.invoke(app, cmd + args)
     assert res.exit_code == 1, res.output
@@ -351,3 +356,14 @@ def test_the_simulated_robot_drives_through_the_thunderborg_emulator_by_joystick
     assert 0.8 < s["sim_robot"]["true_path_length_m"] < 1.8  # ~0.18 m/s for 7 s, plus the turn
     assert s["counts"]["mode_switches"] == 1 and not s["errors"]
     assert s["slam_vs_groundtruth"]["ate_rmse_m"] < 0.2
+
+
+def test_live_exits_3_when_a_goal_was_not_reached(tmp_path: Path) -> None:
+    """A goal far outside the house cannot be reached in 4 s: the run ends normally (summary
+    written) but the exit status says the goal failed, as `navigate`'s does."""
+    out = tmp_path / "live"
+    res = runner.invoke(app, ["live", "--out", str(out), "--sim-world", str(WORLD), "-q",
+                              "--duration", "4", "--goal", "40,40"])  # fmt: skip
+    assert res.exit_code == 3, res.output
+    assert "goals       0 of 1 reached" in res.output
+    assert (out / "summary.json").is_file()

@@ -267,3 +267,54 @@ def test_localize_an_rgbd_recording_of_the_house_tracks_within_6cm_of_the_ground
     assert gt["tracked_but_wrong"] == 0
     assert gt["position_error_m"]["median"] < 0.06 and gt["position_error_m"]["max"] < 0.1, gt
     assert gt["heading_error_deg"]["max"] < 2.0, gt
+
+
+def test_localize_in_a_rotated_ascii_nav2_map_tracks_as_in_the_original(
+    mapped: Path, second_session: tuple[Path, np.ndarray], tmp_path: Path
+) -> None:
+    """The bundle's map rewritten as another tool might: an ASCII (P2) PGM turned a quarter turn
+    with ``origin: [x, y, 1.5708]`` so that map_server puts every cell where it was. Localising
+    in it tracks as well as in the original; --format euroc writes the trajectory for evo."""
+    from slam.map_bundle import decode_pgm, parse_map_yaml
+
+    meta = parse_map_yaml(mapped / "map.yaml")
+    img, _ = decode_pgm((mapped / "map.pgm").read_bytes(), "map.pgm")
+    h, w = img.shape
+    turned = img[::-1].T  # J_img[i_row, j] = I_yup[...]: the y-up image transposed (see below)
+    # cell (col i, row j up) of the turned image lies at origin + R(90 deg) ((i+.5) r, (j+.5) r);
+    # with origin x = ox + w r it is the original's cell (col w-1-j, row i)
+    ox, oy, _ = meta.origin
+    rows = "\n".join(" ".join(str(int(v)) for v in row) for row in turned)
+    (tmp_path / "turned.pgm").write_text(f"P2\n# turned by hand\n{h} {w}\n255\n{rows}\n")
+    (tmp_path / "turned.yaml").write_text(
+        f"image: turned.pgm\nmode: trinary\nresolution: {meta.resolution}\n"
+        f"origin: [{ox + w * meta.resolution}, {oy}, {math.pi / 2}]\nnegate: 0\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    log, truth = second_session
+    out = tmp_path / "run"
+    x, y, yaw = truth[0]
+    result = runner.invoke(app, ["localize", str(log), "--map", str(tmp_path / "turned.yaml"),
+                                 "--out", str(out), "--initial-pose", f"{x}", f"{y}", f"{yaw}",
+                                 "-q", "--format", "euroc"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    _, est = _trajectory(out / "trajectory.tum")
+    d, _ = _errors(est, truth)
+    assert np.median(d) < 0.03 and d.max() < 0.1, (np.median(d), d.max())
+    assert "trajectory.euroc.csv" in result.output
+    evo = runner.invoke(app, ["eval", str(out / "trajectory.euroc.csv"), "-r",
+                              str(out / "trajectory.tum"), "--align", "none"])  # fmt: skip
+    assert evo.exit_code == 0, evo.output
+    assert "ATE [m]     rmse 0.000000" in evo.output
+
+
+def test_seed_without_a_world_is_refused_not_ignored(
+    second_session: tuple[Path, np.ndarray], mapped: Path, tmp_path: Path
+) -> None:
+    log, _ = second_session
+    result = runner.invoke(app, ["localize", str(log), "--map", str(mapped), "--out",
+                                 str(tmp_path / "run"), "--seed", "3"])  # fmt: skip
+    assert result.exit_code == 1
+    assert result.output.strip() == ("error: --seed: only with a world SOURCE (it seeds the "
+                                     "rendering); it would be ignored here")  # fmt: skip
+    assert not (tmp_path / "run").exists()

@@ -15,9 +15,8 @@ import yaml
 from typer.testing import CliRunner
 
 from nav.navigator import past_escape
-from rgbdnav.cli import app
+from rgbdnav.cli import GOAL_FAILED_EXIT, app, parse_goals
 from rgbdnav.commands.nav_charts import accelerations
-from rgbdnav.commands.navigate import parse_goal_args
 from sensors.sim.scan import cast_scan, depth_range_sigma
 from sensors.sim.world import FloorPlan, floor_plan, load_world, world_from_dict
 from sensors.tum import load_tum_trajectory
@@ -83,7 +82,7 @@ def test_two_goals_are_reached_around_a_box_missing_from_the_map(
     # sees it once the robot turns, and the path is replanned around it.
     code, output, summary = _navigate(scene, tmp_path, "--localization", "groundtruth",
                                       "--start", "1.0", "2.0", str(math.pi),
-                                      "--goal", "5.0", "2.0", "--goal", "1.0", "3.0")  # fmt: skip
+                                      "--goal", "5.0,2.0", "--goal", "1.0,3.0")  # fmt: skip
     assert code == 0, output
     assert "2/2 goals reached" in output
     assert [g["status"] for g in summary["goals"]] == ["reached", "reached"]
@@ -125,7 +124,7 @@ def test_the_localiser_in_the_loop_drives_on_wheel_odometry_and_scan_matching(
     # Default mode: the navigator only has T_map_odom from the localiser and the encoder counts
     # the board emulator reports; the wheels slip and their diameters differ from nominal.
     code, output, summary = _navigate(scene, tmp_path, "--start", "1.0", "2.0", str(math.pi),
-                                      "--goal", "5.0", "2.0", "--goal", "1.0", "3.0")  # fmt: skip
+                                      "--goal", "5.0,2.0", "--goal", "1.0,3.0")  # fmt: skip
     assert code == 0, output
     assert "(localizer localisation)" in output
     loc = summary["localization"]
@@ -158,7 +157,7 @@ def test_the_localiser_in_the_loop_drives_on_wheel_odometry_and_scan_matching(
 
 def test_waypoint_pause_waits_at_each_reached_goal(scene: dict[str, Path], tmp_path: Path) -> None:
     code, output, summary = _navigate(scene, tmp_path, "--localization", "groundtruth",
-                                      "--waypoint-pause", "2", "--goal", "2.0", "1.0")  # fmt: skip
+                                      "--waypoint-pause", "2", "--goal", "2.0,1.0")  # fmt: skip
     assert code == 0, output
     (goal,) = summary["goals"]
     assert goal["status"] == "reached" and goal["task"] == "wait"
@@ -172,7 +171,7 @@ def test_navigate_with_rrd_logs_plan_paths_map_and_costmap(
 ) -> None:
     rrd = tmp_path / "nav.rrd"
     code, output, _ = _navigate(scene, tmp_path, "--localization", "groundtruth", "--rrd",
-                                str(rrd), "--goal", "2.0", "1.0")  # fmt: skip
+                                str(rrd), "--goal", "2.0,1.0")  # fmt: skip
     assert code == 0, output
     data = rrd.read_bytes()
     for path in (b"world/plan", b"world/truth", b"world/robot/trajectory", b"world/map",
@@ -189,7 +188,7 @@ def test_navigate_with_rrd_logs_plan_paths_map_and_costmap(
 def test_a_bad_navigate_setting_is_a_one_line_error(
     scene: dict[str, Path], tmp_path: Path, option: list[str], match: str
 ) -> None:
-    code, output, _ = _navigate(scene, tmp_path / "run", *option, "--goal", "2.0", "1.0")
+    code, output, _ = _navigate(scene, tmp_path / "run", *option, "--goal", "2.0,1.0")
     assert code == 1
     assert match in output and len(output.strip().splitlines()) == 1
     assert not (tmp_path / "run").exists()
@@ -198,9 +197,9 @@ def test_a_bad_navigate_setting_is_a_one_line_error(
 def test_a_goal_in_a_wall_is_refused_and_the_run_goes_on(
     scene: dict[str, Path], tmp_path: Path
 ) -> None:
-    code, output, summary = _navigate(scene, tmp_path, "--goal", "0.0", "2.0",
-                                      "--goal", "1.5", "1.0")  # fmt: skip
-    assert code == 0, output
+    code, output, summary = _navigate(scene, tmp_path, "--goal", "0.0,2.0",
+                                      "--goal", "1.5,1.0")  # fmt: skip
+    assert code == GOAL_FAILED_EXIT, output  # a goal not reached
     first, second = summary["goals"]
     assert first["status"] == "refused"
     assert "wall" in first["reason"]
@@ -211,8 +210,8 @@ def test_a_goal_in_a_wall_is_refused_and_the_run_goes_on(
 
 def test_a_goal_in_a_keepout_zone_is_refused(scene: dict[str, Path], tmp_path: Path) -> None:
     code, output, summary = _navigate(scene, tmp_path, "--keepout", str(scene["keepout"]),
-                                      "--goal", "5.2", "3.3")  # fmt: skip
-    assert code == 0, output
+                                      "--goal", "5.2,3.3")  # fmt: skip
+    assert code == GOAL_FAILED_EXIT, output  # a goal not reached
     (goal,) = summary["goals"]
     assert goal["status"] == "refused"
     assert "keepout" in goal["reason"]
@@ -222,7 +221,7 @@ def test_a_goal_in_a_keepout_zone_is_refused(scene: dict[str, Path], tmp_path: P
 def test_a_missing_map_is_a_one_line_error(scene: dict[str, Path], tmp_path: Path) -> None:
     result = runner.invoke(app, ["navigate", "--map", str(tmp_path / "nope.yaml"), "--sim",
                                  str(scene["world"]), "--out", str(tmp_path / "run"), "-q",
-                                 "--goal", "1", "1"])  # fmt: skip
+                                 "--goal", "1,1"])  # fmt: skip
     assert result.exit_code == 1
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and "no such map" in lines[0]
@@ -230,11 +229,31 @@ def test_a_missing_map_is_a_one_line_error(scene: dict[str, Path], tmp_path: Pat
 
 
 def test_goal_arguments_are_pairs_of_numbers() -> None:
-    assert parse_goal_args(["--goal", "1", "-2.5", "-g", "3e0", "4"]) == [(1.0, -2.5), (3.0, 4.0)]
-    with pytest.raises(ConfigError, match="two numbers"):
-        parse_goal_args(["--goal", "1"])
-    with pytest.raises(ConfigError, match="unexpected argument"):
-        parse_goal_args(["--gaol", "1", "2"])
+    assert parse_goals(["1,-2.5", "3e0,4"]) == [(1.0, -2.5), (3.0, 4.0)]
+    # the deprecated navigate form `--goal X Y`: the Y arrives as an extra argument
+    assert parse_goals(["1", "3e0"], ["-2.5", "4"]) == [(1.0, -2.5), (3.0, 4.0)]
+    with pytest.raises(ConfigError, match="expected X,Y"):
+        parse_goals(["1"])
+    with pytest.raises(ConfigError, match="expected X,Y"):
+        parse_goals(["1,2,3"])
+    with pytest.raises(ConfigError, match="unexpected argument '--gaol'"):
+        parse_goals(["1,2"], ["--gaol", "1,2"])
+
+
+def test_old_goal_form_still_drives_with_a_deprecation_warning(
+    scene: dict[str, Path], tmp_path: Path
+) -> None:
+    code, output, summary = _navigate(scene, tmp_path, "--goal", "1.5", "1.0")
+    assert code == 0, output
+    assert "--goal X Y is deprecated" in output and "1.5,1.0" in output
+    assert summary["goals"][0]["goal"] == [1.5, 1.0]
+
+
+def test_a_mistyped_option_is_an_error_not_ignored(scene: dict[str, Path], tmp_path: Path) -> None:
+    code, output, _ = _navigate(scene, tmp_path / "run", "--goal", "1.5,1.0", "--gaol", "2,2")
+    assert code == 1
+    assert "unexpected argument '--gaol'" in output
+    assert not (tmp_path / "run").exists()
 
 
 def test_cast_scan_returns_the_wall_distance() -> None:
@@ -266,8 +285,8 @@ def test_a_door_blocked_by_an_unmapped_box_fails_after_clearing_recoveries(
     (tmp_path / "world.yaml").write_text(yaml.safe_dump(world))
     scene = {"map": tmp_path / "map.yaml", "world": tmp_path / "world.yaml"}
     code, output, summary = _navigate(scene, tmp_path / "run", "--localization", "groundtruth",
-                                      "--max-replans", "2", "--goal", "5.0", "2.0")  # fmt: skip
-    assert code == 0, output
+                                      "--max-replans", "2", "--goal", "5.0,2.0")  # fmt: skip
+    assert code == GOAL_FAILED_EXIT, output  # a goal not reached
     (goal,) = summary["goals"]
     assert goal["status"] == "failed"
     assert "gave up after 2 replans" in goal["reason"] or "replan failed" in goal["reason"]
@@ -326,8 +345,8 @@ def test_the_navigator_believes_what_the_localiser_tracks(
 
     monkeypatch.setattr(navigate_run, "Localizer", _jumpy_localizer(8, 10_000))
     code, output, summary = _navigate(scene, tmp_path, "--goal-timeout", "3",
-                                      "--goal", "3.0", "1.0")  # fmt: skip
-    assert code == 0, output
+                                      "--goal", "3.0,1.0")  # fmt: skip
+    assert code == GOAL_FAILED_EXIT, output  # a goal not reached
     loc = summary["localization"]
     assert loc["position_error_m"]["max"] > 2.5  # the navigator believes the (wrong) 3 m
     assert loc["tracking_jumps_confirmed"] == 0  # the real localiser never jumped
@@ -360,7 +379,7 @@ def test_a_lost_localiser_is_put_back_on_odometry_with_its_last_covariance(
             super().set_initial_pose(pose, covariance)
 
     monkeypatch.setattr(navigate_run, "Localizer", Dropping)
-    code, output, summary = _navigate(scene, tmp_path, "--goal", "3.0", "1.0")
+    code, output, summary = _navigate(scene, tmp_path, "--goal", "3.0,1.0")
     assert code == 0, output
     loc = summary["localization"]
     assert loc["reseeded_from_odometry"] == 2
@@ -411,7 +430,7 @@ def test_a_goal_settle_turns_in_place_and_drives_on_to_the_corrected_goal(
     spin = "6.0" if settle else "0.0"
     code, output, summary = _navigate(scene, tmp_path, "--set", "follower.xy_goal_tolerance=0.1",
                                       "--set", f"navigate.goal_settle_spin={spin}",
-                                      "--goal", "3.0", "1.0")  # fmt: skip
+                                      "--goal", "3.0,1.0")  # fmt: skip
     assert code == 0, output
     goal = summary["goals"][0]
     assert goal["status"] == "reached" and goal["estimated_error_m"] <= 0.1 + 1e-6
@@ -448,7 +467,7 @@ def test_a_run_of_gated_matches_while_driving_settles_then_replans(
             return 15 if Contested.calls == 6 else 0  # the 6th scan, while driving
 
     monkeypatch.setattr(navigate_run, "Localizer", Contested)
-    code, output, summary = _navigate(scene, tmp_path, "--goal", "5.0", "2.0")
+    code, output, summary = _navigate(scene, tmp_path, "--goal", "5.0,2.0")
     assert code == 0, output
     goal = summary["goals"][0]
     assert goal["status"] == "reached"
@@ -458,7 +477,7 @@ def test_a_run_of_gated_matches_while_driving_settles_then_replans(
     Contested.calls = 0  # the same disagreement, with settling while driving off
     code, output, summary = _navigate(scene, tmp_path / "off", "--set",
                                       "navigate.settle_on_gated_scans=0",
-                                      "--goal", "5.0", "2.0")  # fmt: skip
+                                      "--goal", "5.0,2.0")  # fmt: skip
     assert code == 0, output
     assert len(summary["goals"][0]["settles"]) == 1  # at the goal only
 
@@ -494,7 +513,7 @@ def test_replan_frequency_plans_again_while_driving(
         code, output, summary = _navigate(scene, tmp_path / f"hz{hz:g}", "--localization",
                                           "groundtruth", "--set",
                                           f"navigate.replan_frequency={hz}",
-                                          "--goal", "1.0", "3.4")  # fmt: skip
+                                          "--goal", "1.0,3.4")  # fmt: skip
         assert code == 0, output
         (goal,) = summary["goals"]
         assert goal["status"] == "reached" and summary["collisions"]["events"] == 0

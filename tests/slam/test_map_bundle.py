@@ -248,7 +248,7 @@ def edit_yaml(folder: Path, old: str, new: str) -> None:
         ("resolution: 0.1", "resolution: 0.0", "'resolution' must be positive"),
         ("resolution: 0.1", "resolution: -1", "'resolution' must be positive"),
         ("free_thresh: 0.196", "free_thresh: 0.7", r"free_thresh \(0.7\) must be below"),
-        ("occupied_thresh: 0.65", "occupied_thresh: 1.5", r"thresholds must lie in \(0, 1\)"),
+        ("occupied_thresh: 0.65", "occupied_thresh: 1.5", r"thresholds must lie in \[0, 1\]"),
         ("origin: [-1.0, -0.5, 0.0]", "origin: [1.0, 2.0]", "'origin' must be 3 finite numbers"),
         ("origin: [-1.0, -0.5, 0.0]", "origin: [1.0, a, 0]", "'origin' must be 3 finite numbers"),
         ("mode: trinary", "mode: fancy", "'mode' must be one of"),
@@ -312,9 +312,10 @@ def test_plain_loader_allows_absolute_and_resolves_relative_images(tmp_path):
 @pytest.mark.parametrize(
     ("data", "match"),
     [
-        (b"P2\n20 10\n255\n" + bytes(200), "not a binary PGM"),
+        (b"P2\n20 10\n255\n" + bytes(200), "needs 200 pixel values, found 1"),
+        (b"P5x\n20 10\n255\n" + bytes(200), "not a PGM"),
         (b"P5\n20 10\n255\n" + bytes(199), r"needs 200 bytes of pixels, found 199"),
-        (b"P5\n20 10\n65535\n" + bytes(400), "maxval 65535 unsupported"),
+        (b"P5\n20 10\n65535\n" + bytes(399), "needs 400 bytes of pixels, found 399"),
         (b"P5\n20 10\n100\n" + bytes([200]) * 200, "pixel value 200 exceeds maxval 100"),
         (b"P5\n# comment\n20 10\n255\n" + bytes(200) + b"x", "found 201"),
     ],

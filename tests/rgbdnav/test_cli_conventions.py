@@ -1,0 +1,61 @@
+"""CLI conventions a ROS / Unix user expects (issue 23, item 8): --version, -h, shell
+completion, --quiet everywhere, and no option that is silently ignored."""
+
+from __future__ import annotations
+
+import pytest
+from typer.main import get_command
+from typer.testing import CliRunner
+
+from rgbdnav.cli import app
+
+runner = CliRunner()
+VERBS = sorted(get_command(app).commands)  # type: ignore[attr-defined]
+
+
+def test_version() -> None:
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0
+    assert result.output.startswith("rgbdnav ")
+
+
+@pytest.mark.parametrize("verb", [None, *VERBS])
+def test_dash_h_is_help_everywhere(verb: str | None) -> None:
+    args = [verb] if verb else []
+    short, long = runner.invoke(app, [*args, "-h"]), runner.invoke(app, [*args, "--help"])
+    assert short.exit_code == long.exit_code == 0
+    assert short.output == long.output and "Usage:" in short.output
+
+
+@pytest.mark.parametrize("verb", VERBS)
+def test_every_verb_has_quiet_and_verbose(verb: str) -> None:
+    command = get_command(app).commands[verb]  # type: ignore[attr-defined]
+    names = {opt for p in command.params for opt in getattr(p, "opts", [])}
+    assert {"--quiet", "-q", "--verbose", "-v"} <= names, verb
+
+
+def test_shell_completion_script() -> None:
+    result = runner.invoke(app, ["--show-completion", "bash"])
+    assert result.exit_code == 0
+    assert "complete" in result.output and "COMP_WORDS" in result.output
+
+
+def test_board_refuses_a_port_it_would_ignore_with_the_emulator() -> None:
+    # With --emulator the argument names the emulator kind; a device path is not silently dropped.
+    result = runner.invoke(app, ["board", "/dev/ttyUSB0", "--emulator"])
+    assert result.exit_code == 1
+    assert result.output.startswith("error: board 'emulator:/dev/ttyUSB0': unknown emulator")
+
+
+def test_quiet_and_verbose_together_are_refused(tmp_path) -> None:
+    result = runner.invoke(app, ["eval", str(tmp_path / "x"), "-r", str(tmp_path / "y"),
+                                 "-q", "-v"])  # fmt: skip
+    assert result.exit_code == 1
+    assert "give --verbose or --quiet, not both" in result.output
+
+
+def test_a_bad_trajectory_format_is_refused_before_any_work(tmp_path) -> None:
+    result = runner.invoke(app, ["map", str(tmp_path / "nope.clf"), "-o", str(tmp_path / "r"),
+                                 "--format", "g2o"])  # fmt: skip
+    assert result.exit_code == 1
+    assert "--format 'g2o': use one of tum, kitti, euroc" in result.output
