@@ -719,6 +719,6 @@ __all__ = [
     "describe",
     "goal_problem",
     "navigate_settings",
-        "pose_errors",
+    "pose_errors",
     "run_navigate",
 ]
