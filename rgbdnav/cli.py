@@ -42,11 +42,36 @@ Force3DofOpt = Annotated[
         "Reg/Force3DoF) and a 2-D map, instead of a handheld camera's 6-DoF poses.",
     ),
 ]
+RosParamsOpt = Annotated[
+    list[Path] | None,
+    typer.Option(
+        "--ros-params",
+        help="ROS 2 parameter YAML (robot_localization, slam_toolbox, AMCL, Nav2), repeatable: "
+        "what rgbdnav implements is applied over --config, a table says what was ignored.",
+    ),
+]
+
+
+def _topic_opt(role: str) -> Any:
+    return typer.Option(f"--{role}-topic", help=f"Bag topic of the {role} stream.")
+
+
+RgbTopicOpt = Annotated[str | None, _topic_opt("rgb")]
+DepthTopicOpt = Annotated[str | None, _topic_opt("depth")]
+InfoTopicOpt = Annotated[
+    str | None, typer.Option("--info-topic", help="Bag topic of the colour CameraInfo.")
+]
+OdomTopicOpt = Annotated[str | None, _topic_opt("odom")]
+ImuTopicOpt = Annotated[str | None, _topic_opt("imu")]
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")]
 SourceArg = Annotated[
-    Path, typer.Argument(help="CARMEN log (.clf/.log[.gz]), recording folder, or world YAML.")
+    Path,
+    typer.Argument(
+        help="Recording folder, TUM RGB-D folder, ROS bag (.bag, rosbag2 folder, .db3, .mcap), "
+        "CARMEN log (.clf/.log[.gz]), or world YAML."
+    ),
 ]
 MapOpt = Annotated[Path, typer.Option("--map", "-m", help="Map bundle folder, or a Nav2 map.yaml.")]
 WorldSeedOpt = Annotated[int, typer.Option(help="Seed when SOURCE is a world.")]
@@ -55,21 +80,58 @@ ViewerOpt = Annotated[bool, typer.Option(help="Spawn the rerun viewer and stream
 
 
 def _known_errors(fn: Any) -> Any:
-    """Known errors become one line on stderr and exit code 1, never a traceback."""
+    """Known errors become one line on stderr and exit code 1, never a traceback. A run
+    directory the command had started is not left without its summary.json: it says why."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
         except RgbdNavError as err:
-            typer.echo(f"error: {err}", err=True)
-            raise typer.Exit(1) from None
+            message = str(err)
         except OSError as err:  # unwritable --out, full disk, ...
             where = f"{err.filename}: " if err.filename else ""
-            typer.echo(f"error: {where}{err.strerror or err}", err=True)
-            raise typer.Exit(1) from None
+            message = f"{where}{err.strerror or err}"
+        _failed_run_summary(kwargs.get("out"), fn.__name__.rstrip("_"), message)
+        typer.echo(f"error: {message}", err=True)
+        raise typer.Exit(1) from None
 
     return wrapper
+
+
+def _failed_run_summary(out: Any, command: str, message: str) -> None:
+    """A started run directory without summary.json gets one that records the failure."""
+    if not isinstance(out, Path) or not out.is_dir() or (out / "summary.json").exists():
+        return
+    if not any(out.iterdir()):
+        return
+    from rgbdnav.run_dir import RunDir
+
+    try:
+        RunDir(out).write_summary({"command": command, "status": "failed", "error": message})
+    except OSError:
+        pass  # the original error is what the user needs to see
+
+
+def _settings(
+    set_: list[str] | None,
+    ros_params: list[Path] | None = None,
+    topics: dict[str, str | None] | None = None,
+) -> list[str]:
+    """--ros-params (lowest), then --*-topic flags, then --set as ``section.key=value`` texts."""
+    import json
+
+    out: list[str] = []
+    if ros_params:
+        from rgbdnav.ros_params import format_table, load_ros_params
+
+        overrides, rows = load_ros_params(ros_params)
+        typer.echo(format_table(rows))
+        out += overrides
+    for role, topic in (topics or {}).items():
+        if topic is not None:
+            out.append(f"topics.{role}={json.dumps(topic)}")
+    return out + list(set_ or [])
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -168,8 +230,21 @@ def info(
     ],
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    imu_topic: ImuTopicOpt = None,
 ) -> None:
     """Say what a recording, log, bag or world holds: streams, counts, rates, duration, gaps."""
+    set_ = _settings(
+        set_,
+        ros_params,
+        dict(
+            rgb=rgb_topic, depth=depth_topic, camera_info=info_topic, odom=odom_topic, imu=imu_topic
+        ),
+    )
     source = Path(source_text)
     if _is_world(source):
         from sensors.sim.world import load_world
@@ -191,7 +266,8 @@ def info(
     from sensors.source import open_source
     from sensors.stream_stats import describe_source, format_stats_table
 
-    src = open_source(source_text, source_options(load_config(config or [], set_ or [])))
+    cfg = load_config(config or [], set_ or [])
+    src = open_source(source_text, source_options(cfg, require_topics=False))
     try:
         typer.echo(f"{source}: {src.describe()}")
         typer.echo(format_stats_table(describe_source(src)))
@@ -215,10 +291,12 @@ def simulate(
     ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Render a Kinect + wheel-encoder recording of a robot driving through a world."""
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose)
     from rgbdnav.config import load_config
     from rgbdnav.run_dir import RunDir
@@ -253,12 +331,25 @@ def odometry(
     seed: WorldSeedOpt = 0,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    imu_topic: ImuTopicOpt = None,
     vo: Annotated[bool, typer.Option(help="Run visual odometry on the RGB-D frames.")] = True,
     force_3dof: Force3DofOpt = False,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Wheel, visual and fused (EKF) odometry of a source, with drift against ground truth."""
+    set_ = _settings(
+        set_,
+        ros_params,
+        dict(
+            rgb=rgb_topic, depth=depth_topic, camera_info=info_topic, odom=odom_topic, imu=imu_topic
+        ),
+    )
     _setup_logging(verbose)
     from rgbdnav.commands.odometry import run_odometry
     from rgbdnav.config import load_config
@@ -285,11 +376,24 @@ def map_(
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    imu_topic: ImuTopicOpt = None,
     force_3dof: Force3DofOpt = False,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Pose-graph SLAM: trajectory, occupancy grid and a map bundle (Nav2 PGM/YAML + graph)."""
+    set_ = _settings(
+        set_,
+        ros_params,
+        dict(
+            rgb=rgb_topic, depth=depth_topic, camera_info=info_topic, odom=odom_topic, imu=imu_topic
+        ),
+    )
     _setup_logging(verbose)
     from rgbdnav.commands.map import run_map
     from rgbdnav.config import load_config
@@ -323,11 +427,24 @@ def localize(
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    imu_topic: ImuTopicOpt = None,
     force_3dof: Force3DofOpt = False,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Localise against a saved map (no mapping): trajectory, per-scan status and confidence."""
+    set_ = _settings(
+        set_,
+        ros_params,
+        dict(
+            rgb=rgb_topic, depth=depth_topic, camera_info=info_topic, odom=odom_topic, imu=imu_topic
+        ),
+    )
     _setup_logging(verbose)
     from rgbdnav.commands.localize import describe, run_localize
     from rgbdnav.config import load_config
@@ -394,6 +511,7 @@ def navigate(
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -403,6 +521,7 @@ def navigate(
     --localization, --goal-timeout, --max-replans and --waypoint-pause override the navigate
     settings (nav.config.NavigateConfig).
     """
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose)
     from rgbdnav.commands.navigate import describe, parse_goal_args, run_navigate
 
@@ -490,10 +609,12 @@ def live(
     ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """The live run on the robot (or the simulated robot): map, or localise with --map."""
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose)
     from rgbdnav.live.run import Drill, LiveOptions, run_live
     from sensors.types import ConfigError
@@ -545,8 +666,10 @@ def board(
     ] = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
 ) -> None:
     """Check an Eddie control board: firmware, battery, encoders, round-trip time."""
+    set_ = _settings(set_, ros_params)
     from rgbdnav.commands.board import check_board
     from rgbdnav.config import load_config
 
@@ -596,10 +719,12 @@ def eval_(
     ] = "m",
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
     verbose: VerboseOpt = False,
 ) -> None:
     """Score a trajectory against a reference: ATE and RPE (TUM RGB-D benchmark / evo method),
     or against reference relations (Kümmerle et al. 2009)."""
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose)
     from rgbdnav.commands.eval import (
         format_relations_report,

@@ -282,14 +282,18 @@ def write_config(cfg: Config, path: Path) -> None:
     atomic_write_text(path, text)
 
 
-def source_options(cfg: Config, strict: bool = False) -> SourceOptions:
-    """What adapters need from the configuration (rosbag topics, robot, camera)."""
+def source_options(
+    cfg: Config, strict: bool = False, require_topics: bool = True
+) -> SourceOptions:
+    """What adapters need from the configuration (rosbag topics, robot, camera).
+    ``require_topics=False`` (``info``) describes a bag whose topics do not resolve."""
     return SourceOptions(
         topics=section_to_dict(cfg.topics),
         robot=cfg.robot,
         camera=cfg.camera,
         strict=strict,
         sync=cfg.sync,
+        require_topics=require_topics,
     )
 
 

@@ -387,13 +387,76 @@ def _namespace(topic: str | None) -> str:
     return topic.rsplit("/", 1)[0] if topic else "\0"
 
 
+# Camera drivers' (rgb, registered depth, camera_info) topic triples, relative to the driver's
+# namespace, most preferred first. Depth registered (aligned) to the colour image is what
+# rgbdnav needs; the unregistered depth the same drivers also publish is never auto-picked.
+DRIVER_TRIPLES: tuple[tuple[str, str, str, str], ...] = (
+    # realsense2_camera 4.x (ROS 2, namespace /camera/camera), align_depth.enable:=true
+    ("RealSense", "color/image_raw", "aligned_depth_to_color/image_raw", "color/camera_info"),
+    # Azure_Kinect_ROS_Driver: depth_to_rgb is depth registered to the colour camera
+    ("Azure Kinect", "rgb/image_raw", "depth_to_rgb/image_raw", "rgb/camera_info"),
+    # iai_kinect2 kinect2_bridge: qhd, hd and sd rectified colour with registered depth
+    ("Kinect v2", "qhd/image_color_rect", "qhd/image_depth_rect", "qhd/camera_info"),
+    ("Kinect v2", "hd/image_color_rect", "hd/image_depth_rect", "hd/camera_info"),
+    ("Kinect v2", "sd/image_color_rect", "sd/image_depth_rect", "sd/camera_info"),
+    # openni_launch / openni2_launch with depth_registration:=true
+    ("OpenNI", "rgb/image_rect_color", "depth_registered/image_raw", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_color", "depth_registered/image_raw", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_raw", "depth_registered/image_raw", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_rect_color", "depth_registered/image", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_color", "depth_registered/image", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_raw", "depth_registered/image_rect_raw", "rgb/camera_info"),
+    # zed_wrapper (ZED ROS 2 wrapper, namespace /zed/zed_node)
+    ("ZED", "rgb/image_rect_color", "depth/depth_registered", "rgb/camera_info"),
+    # OrbbecSDK_ROS2 / OrbbecSDK_ROS1 (depth_registration:=true aligns depth to colour)
+    ("Orbbec", "color/image_raw", "depth/image_raw", "color/camera_info"),
+)
+IMAGE_ROLES = ("rgb", "depth", "camera_info")
+ROLE_FLAGS: Mapping[str, str] = {
+    "rgb": "--rgb-topic",
+    "depth": "--depth-topic",
+    "camera_info": "--info-topic",
+    "odom": "--odom-topic",
+    "imu": "--imu-topic",
+    "wheels": "--set topics.wheels=",
+}
+
+
+def match_driver(types: Mapping[str, str]) -> tuple[str, str, tuple[str, str, str]] | None:
+    """(driver, namespace, (rgb, depth, info)) of the first driver triple the bag holds.
+
+    Raises SensorError when two namespaces (two cameras) hold the same preferred triple.
+    """
+    for driver, rgb, depth, info in DRIVER_TRIPLES:
+        spaces = sorted(
+            t[: -len(rgb)]
+            for t, ty in types.items()
+            if t.endswith("/" + rgb) and ty in ROLE_TYPES["rgb"]
+            and types.get(t[: -len(rgb)] + depth) in ROLE_TYPES["depth"]
+        )  # fmt: skip
+        if len(spaces) > 1:
+            found = ", ".join(ns + depth for ns in spaces)
+            raise SensorError(
+                f"{driver} registered depth from {len(spaces)} cameras ({found}): "
+                "choose one with --rgb-topic and --depth-topic"
+            )
+        if spaces:
+            ns = spaces[0]
+            return driver, ns, (ns + rgb, ns + depth, ns + info)
+    return None
+
+
 def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[str, TopicChoice]:
     """Pick the topic for every role from ``available`` (topic -> message type).
 
-    A configured topic of an accepted type is used as is. When a role's *default* topic is absent
-    (or of the wrong type), the unique remaining topic of an accepted type is auto-detected, with
-    name hints breaking ties (depth topics contain "depth"; "registered" depth, raw Image over
-    CompressedImage, camera_info beside the rgb topic, wheels named wheel/encoder).
+    A configured topic of an accepted type is used as is. When the image roles are all at their
+    defaults and absent, a known camera driver's topic set (:data:`DRIVER_TRIPLES`) is looked
+    for: registered depth with its colour image and colour camera_info. Otherwise, when a role's
+    *default* topic is absent (or of the wrong type), the unique remaining topic of an accepted
+    type is auto-detected, with name hints breaking ties (depth topics contain "depth";
+    "registered" depth, raw Image over CompressedImage, camera_info beside the rgb topic, wheels
+    named wheel/encoder). A camera driver's own IMU and odometry (optical-frame gyro, visual
+    odometry) are never auto-picked for the robot's imu/odom roles.
     """
     types = {t: normalize_type(ty) for t, ty in available.items()}
     defaults = RosbagTopics()
@@ -402,6 +465,22 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
         topic = getattr(wanted, role)
         if types.get(topic) in ROLE_TYPES[role]:
             chosen[role] = TopicChoice(role, topic, types[topic])
+    camera_ns: str | None = None
+    at_default = all(getattr(wanted, r) == getattr(defaults, r) for r in ("rgb", "depth"))
+    if at_default and not any(r in chosen for r in ("rgb", "depth")):
+        try:
+            driver = match_driver(types)
+        except SensorError as err:  # two cameras: both image roles stay unresolved
+            driver = None
+            for role in ("rgb", "depth"):
+                chosen[role] = TopicChoice(role, None, None, f"ambiguous: {err}")
+        if driver is not None:
+            name, camera_ns, triple = driver
+            for role, topic in zip(IMAGE_ROLES, triple, strict=True):
+                if role not in chosen and types.get(topic) in ROLE_TYPES[role]:
+                    chosen[role] = TopicChoice(
+                        role, topic, types[topic], f"{name} driver topics under {camera_ns}"
+                    )
     taken = {c.topic for c in chosen.values()}
     for role in ROLES:
         if role in chosen:
@@ -414,6 +493,11 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
         candidates = sorted(
             t for t, ty in types.items() if ty in ROLE_TYPES[role] and t not in taken
         )
+        if role in ("imu", "odom") and camera_ns is not None:
+            own = [t for t in candidates if t.startswith(camera_ns)]
+            candidates = [t for t in candidates if not t.startswith(camera_ns)]
+            if own and not candidates:
+                why += f"; the camera's own {', '.join(own)} not used for the robot (set it)"
         pick = _auto_pick(role, candidates, types, chosen)
         if pick is not None:
             chosen[role] = TopicChoice(role, pick, types[pick], f"auto-detected; {why}")
@@ -426,6 +510,38 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
             kinds = " or ".join(short_type(t) for t in ROLE_TYPES[role])
             chosen[role] = TopicChoice(role, None, None, f"{why}; no {kinds} topic")
     return chosen
+
+
+def check_topics(
+    available: Mapping[str, str], wanted: RosbagTopics, chosen: Mapping[str, TopicChoice]
+) -> None:
+    """Refuse, in one line, a configured topic the bag lacks and any ambiguous role.
+
+    Commands that process a bag call this (``info`` only describes): a missing stream must not
+    silently turn VO, the IMU or odometry off.
+    """
+    types = {t: normalize_type(ty) for t, ty in available.items()}
+    defaults = RosbagTopics()
+    problems = []
+    for role in ROLES:
+        c = chosen[role]
+        if c.topic is not None:
+            continue
+        kinds = ROLE_TYPES[role]
+        candidates = sorted(t for t, ty in types.items() if ty in kinds)
+        listed = ", ".join(candidates) if candidates else "none"
+        kind = " or ".join(short_type(k) for k in kinds)
+        flag = ROLE_FLAGS[role]
+        if getattr(wanted, role) != getattr(defaults, role):
+            problems.append(
+                f"{role} topic {getattr(wanted, role)} is not in the bag ({kind} topics: {listed})"
+            )
+        elif c.note.startswith("ambiguous: "):
+            problems.append(c.note.removeprefix("ambiguous: "))
+        elif "ambiguous" in c.note:
+            problems.append(f"{role} is ambiguous: {listed}; choose one with {flag}")
+    if problems:
+        raise SensorError("; ".join(dict.fromkeys(problems)))
 
 
 def _auto_pick(
@@ -614,6 +730,7 @@ class RosbagSource(SourceBase):
             p,
             topics,
             strict=options.strict,
+            require_topics=options.require_topics,
             robot=options.robot,
             camera=options.camera,
             sync=options.sync,
@@ -629,8 +746,12 @@ class RosbagSource(SourceBase):
         robot: RobotConfig | None = None,
         camera: CameraConfig | None = None,
         sync: SyncConfig | None = None,
+        require_topics: bool = False,
     ) -> RosbagSource:
-        """Open a bag; the reader is closed again if anything after opening it fails."""
+        """Open a bag; the reader is closed again if anything after opening it fails.
+
+        ``require_topics``: refuse a missing configured topic or an ambiguous role
+        (:func:`check_topics`) instead of reading on without that stream."""
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
@@ -650,6 +771,11 @@ class RosbagSource(SourceBase):
         try:
             available = {t: info.msgtype or "" for t, info in reader.topics.items()}
             choices = resolve_topics(available, topics or RosbagTopics())
+            if require_topics:
+                try:
+                    check_topics(available, topics or RosbagTopics(), choices)
+                except SensorError as err:
+                    raise SensorError(f"{path}: {err}") from None
             return cls(
                 path,
                 reader,
