@@ -271,6 +271,15 @@ def info(
     try:
         typer.echo(f"{source}: {src.describe()}")
         typer.echo(format_stats_table(describe_source(src)))
+        if hasattr(src, "static_extrinsics"):
+            from rgbdnav.config import camera_mount
+
+            _, mount = camera_mount(src, config or [], set_)
+            shown = ", ".join(f"{k}={v:g}" for k, v in mount.items() if k.startswith("camera_"))
+            where = mount.get("chain") or mount.get("note") or "no usable /tf_static chain"
+            typer.echo(
+                f"extrinsics  from {mount['source']} ({where}){': ' + shown if shown else ''}"
+            )
         if src.skipped:
             typer.echo(f"skipped while reading: {src.skipped}")
     finally:

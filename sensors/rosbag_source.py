@@ -97,6 +97,8 @@ INT32_MULTI_ARRAY = "std_msgs/msg/Int32MultiArray"
 INT64_MULTI_ARRAY = "std_msgs/msg/Int64MultiArray"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 HEADERLESS_TYPES = frozenset({INT32_MULTI_ARRAY, INT64_MULTI_ARRAY})
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TF_STATIC = "/tf_static"
 
 ROLE_TYPES: Mapping[str, tuple[str, ...]] = {
     "rgb": (IMAGE, COMPRESSED_IMAGE),
@@ -411,6 +413,14 @@ DRIVER_TRIPLES: tuple[tuple[str, str, str, str], ...] = (
     # OrbbecSDK_ROS2 / OrbbecSDK_ROS1 (depth_registration:=true aligns depth to colour)
     ("Orbbec", "color/image_raw", "depth/image_raw", "color/camera_info"),
 )
+# The drivers' own IMU / odometry topics (relative to their namespace): an optical-frame gyro or
+# visual odometry, never auto-picked as the robot's imu/odom (--imu-topic can still name one).
+DRIVER_OWN_MOTION: Mapping[str, tuple[str, ...]] = {
+    "RealSense": ("imu", "gyro/sample", "accel/sample"),
+    "Azure Kinect": ("imu",),
+    "ZED": ("imu/data", "imu/data_raw", "odom"),
+    "Orbbec": ("gyro_accel/sample", "gyro/sample", "accel/sample"),
+}
 IMAGE_ROLES = ("rgb", "depth", "camera_info")
 ROLE_FLAGS: Mapping[str, str] = {
     "rgb": "--rgb-topic",
@@ -449,9 +459,9 @@ def match_driver(types: Mapping[str, str]) -> tuple[str, str, tuple[str, str, st
 def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[str, TopicChoice]:
     """Pick the topic for every role from ``available`` (topic -> message type).
 
-    A configured topic of an accepted type is used as is. When the image roles are all at their
-    defaults and absent, a known camera driver's topic set (:data:`DRIVER_TRIPLES`) is looked
-    for: registered depth with its colour image and colour camera_info. Otherwise, when a role's
+    A configured topic of an accepted type is used as is. The image roles left at their defaults
+    come from a known camera driver's topic set (:data:`DRIVER_TRIPLES`) when the bag holds
+    one: registered depth with its colour image and colour camera_info. Otherwise, when a role's
     *default* topic is absent (or of the wrong type), the unique remaining topic of an accepted
     type is auto-detected, with name hints breaking ties (depth topics contain "depth";
     "registered" depth, raw Image over CompressedImage, camera_info beside the rgb topic, wheels
@@ -465,9 +475,10 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
         topic = getattr(wanted, role)
         if types.get(topic) in ROLE_TYPES[role]:
             chosen[role] = TopicChoice(role, topic, types[topic])
-    camera_ns: str | None = None
-    at_default = all(getattr(wanted, r) == getattr(defaults, r) for r in ("rgb", "depth"))
-    if at_default and not any(r in chosen for r in ("rgb", "depth")):
+    camera_own: set[str] = set()  # the matched driver's own IMU / odometry topics
+    # Image roles the user did not name come from a driver's topic set: its registered depth
+    # wins even over openni_launch's unregistered /camera/depth/image that our defaults name.
+    if any(getattr(wanted, r) == getattr(defaults, r) for r in IMAGE_ROLES):
         try:
             driver = match_driver(types)
         except SensorError as err:  # two cameras: both image roles stay unresolved
@@ -476,8 +487,10 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
                 chosen[role] = TopicChoice(role, None, None, f"ambiguous: {err}")
         if driver is not None:
             name, camera_ns, triple = driver
+            camera_own = {camera_ns + t for t in DRIVER_OWN_MOTION.get(name, ())}
             for role, topic in zip(IMAGE_ROLES, triple, strict=True):
-                if role not in chosen and types.get(topic) in ROLE_TYPES[role]:
+                configured = getattr(wanted, role) != getattr(defaults, role)
+                if not configured and types.get(topic) in ROLE_TYPES[role]:
                     chosen[role] = TopicChoice(
                         role, topic, types[topic], f"{name} driver topics under {camera_ns}"
                     )
@@ -493,9 +506,9 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
         candidates = sorted(
             t for t, ty in types.items() if ty in ROLE_TYPES[role] and t not in taken
         )
-        if role in ("imu", "odom") and camera_ns is not None:
-            own = [t for t in candidates if t.startswith(camera_ns)]
-            candidates = [t for t in candidates if not t.startswith(camera_ns)]
+        if role in ("imu", "odom"):
+            own = [t for t in candidates if t in camera_own]
+            candidates = [t for t in candidates if t not in camera_own]
             if own and not candidates:
                 why += f"; the camera's own {', '.join(own)} not used for the robot (set it)"
         pick = _auto_pick(role, candidates, types, chosen)
@@ -951,6 +964,64 @@ class RosbagSource(SourceBase):
             )
         stream: PoseStream = self._cache["odom"]
         return stream
+
+    def static_extrinsics(self) -> tuple[dict[str, float], str] | None:
+        """Camera mount (RobotConfig camera_* keys) from ``/tf_static``, and where it came from
+        (``"base_link -> camera_color_optical_frame"``), or None without a usable chain.
+
+        The camera frame is the depth image's ``header.frame_id``; the chain is composed up to
+        base_footprint, else base_link. A chain that exists but cannot be used (a camera yawed
+        on the robot) raises SensorError: the config must then say where the camera is.
+        """
+        from sensors.extrinsics import chain_to_root, quaternion_matrix, robot_mount_from_tf
+
+        if "tf_static" in self._cache:
+            cached: tuple[dict[str, float], str] | None = self._cache["tf_static"]
+            return cached
+        self._cache["tf_static"] = None
+        if self._reader is None or self.choices["depth"].topic is None:
+            return None
+        tf_conns = [
+            c
+            for c in self._reader.connections
+            if c.topic == TF_STATIC and normalize_type(c.msgtype) == TF_MESSAGE
+        ]
+        if not tf_conns:
+            return None
+        depth_conns = [
+            c for c in self._reader.connections if c.topic == self.choices["depth"].topic
+        ]
+        frame = None
+        try:
+            for conn, _t, raw in self._reader.messages(connections=depth_conns):
+                frame = str(self._reader.deserialize(raw, conn.msgtype).header.frame_id)
+                break
+            edges: dict[str, tuple[str, np.ndarray]] = {}
+            for conn, _t, raw in self._reader.messages(connections=tf_conns):
+                for tf in self._reader.deserialize(raw, conn.msgtype).transforms:
+                    tr, q = tf.transform.translation, tf.transform.rotation
+                    t = np.eye(4)
+                    t[:3, :3] = quaternion_matrix(q.x, q.y, q.z, q.w)
+                    t[:3, 3] = (tr.x, tr.y, tr.z)
+                    edges[str(tf.child_frame_id).lstrip("/")] = (
+                        str(tf.header.frame_id).lstrip("/"),
+                        t,
+                    )
+        except self._decode_errors as err:
+            raise SensorError(f"{self.path}: reading {TF_STATIC} failed: {err}") from err
+        if not frame:
+            return None
+        found = chain_to_root(edges, frame.lstrip("/"))
+        if found is None:
+            return None
+        root, t_root_camera = found
+        try:
+            mount = robot_mount_from_tf(t_root_camera, optical="optical" in frame)
+        except ValueError as err:
+            raise SensorError(f"{self.path}: {TF_STATIC} {root} -> {frame}: {err}") from None
+        result = (mount, f"{root} -> {frame.lstrip('/')}")
+        self._cache["tf_static"] = result
+        return result
 
     # --- internals ----------------------------------------------------------------------------
 
