@@ -31,7 +31,7 @@ PARAMS_KEY = "ros__parameters"
 RPP_PLUGIN = "RegulatedPurePursuitController"
 NAVFN_PLUGIN = "NavfnPlanner"
 STATE_SIZE = 15  # robot_localization's state vector
-NO_ROS = "rgbdnav has no ROS graph (topics, frames, QoS, clocks)"
+NO_ROS = "rgbdnav has no ROS graph: topics, frames, QoS, clocks"
 # Keys every node may carry, and why they have no counterpart.
 COMMON_IGNORED: Mapping[str, str] = {
     "use_sim_time": NO_ROS,
@@ -76,7 +76,8 @@ def parameter_blocks(data: Any, path: Path) -> list[tuple[str, dict[str, Any]]]:
                 if not isinstance(v, Mapping):
                     raise ConfigError(f"{path}: {'/'.join(names)}: {PARAMS_KEY} is not a mapping")
                 name = names[-1] if names else "/**"
-                blocks.append((name.rsplit("/", 1)[-1] or name, _flatten(v)))
+                short = name if name == "/**" else name.rsplit("/", 1)[-1] or name
+                blocks.append((short, _flatten(v)))
             elif isinstance(v, Mapping):
                 walk(v, [*names, str(k)])
 
@@ -155,6 +156,14 @@ def _ekf(key: str, value: Any, what: str) -> tuple[str, Any, str] | str:
 
 
 SLAM_REASONS: Mapping[str, str] = {
+    "transform_timeout": NO_ROS,
+    "transform_publish_period": NO_ROS,
+    "tf_buffer_duration": NO_ROS,
+    "map_update_interval": NO_ROS,
+    "debug_logging": NO_ROS,
+    "stack_size_to_use": NO_ROS,
+    "enable_interactive_mode": NO_ROS,
+    "use_map_saver": "`map` always writes the map bundle",
     "solver_plugin": "the pose graph is optimised with GTSAM",
     "mode": "mapping vs localization is the verb: `map` or `localize`",
     "map_file_name": "`map --continue BUNDLE` extends a saved map",
@@ -171,7 +180,7 @@ def _by_name(section: str, section_type: type, reasons: Mapping[str, str], defau
             return f"{section}.{key}", value, ""
         if key.startswith("ceres_"):
             return "the pose graph is optimised with GTSAM"
-        if key.endswith(("_frame", "_frame_id", "_topic")) or key in reasons:
+        if key.endswith(("_frame", "_frame_id", "_topic", "_timeout")) or key in reasons:
             return reasons.get(key, NO_ROS)
         return default
 
@@ -242,6 +251,8 @@ def _collision_monitor(blocks: Mapping[str, Any]) -> Any:
             return "live.collision_slowdown_ratio", value, ""
         if leaf in ("points", "radius", "type", "action_type"):
             return "zone shapes: rgbdnav's boxes are the footprint + live.collision_*_distance"
+        if leaf.endswith(("_frame_id", "_topic", "_timeout", "topic")):
+            return NO_ROS
         return "collision_monitor parameter rgbdnav does not implement"
 
     return mapper
@@ -252,7 +263,7 @@ def _mapper_for(node: str, params: Mapping[str, Any]) -> tuple[Any, str]:
     from nav.config import SmootherConfig
     from slam.config import LocalizerConfig, MapperConfig
 
-    if node == "**":
+    if node == "/**":
         return _wildcard, "all nodes"
     if "ekf" in node or "ukf" in node:
         return _ekf, "robot_localization"
@@ -353,14 +364,17 @@ def _short(value: Any, width: int = 28) -> str:
 
 
 def format_table(rows: Iterable[Row]) -> str:
-    """Applied keys first (-> section.key), then ignored ones with the reason."""
+    """Applied keys one a line (-> section.key); ignored keys grouped by node and reason."""
     rows = list(rows)
     applied = [r for r in rows if r.target]
-    ignored = [r for r in rows if not r.target]
-    lines = [f"ros-params: {len(applied)} applied, {len(ignored)} ignored"]
+    ignored: dict[tuple[str, str], list[str]] = {}
+    for r in rows:
+        if not r.target:
+            ignored.setdefault((r.node, r.reason), []).append(r.key)
+    n_ignored = len(rows) - len(applied)
+    lines = [f"ros-params: {len(applied)} applied, {n_ignored} ignored"]
     for r in applied:
         lines.append(f"  applied  {r.node}.{r.key} = {_short(r.value)} -> {r.target}")
-    for r in ignored:
-        shown = f" = {_short(r.value)}" if r.value != "" else ""
-        lines.append(f"  ignored  {r.node}.{r.key}{shown}: {r.reason}")
+    for (node, reason), keys in ignored.items():
+        lines.append(f"  ignored  {node}: {', '.join(keys)} ({reason})")
     return "\n".join(lines)
