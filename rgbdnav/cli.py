@@ -274,7 +274,10 @@ def info(
         if hasattr(src, "static_extrinsics"):
             from rgbdnav.config import camera_mount
 
-            _, mount = camera_mount(src, config or [], set_)
+            try:
+                _, mount = camera_mount(src, config or [], set_)
+            except RgbdNavError as err:  # info describes; the commands refuse
+                mount = {"source": "config", "note": f"tf_static not usable: {err}"}
             shown = ", ".join(f"{k}={v:g}" for k, v in mount.items() if k.startswith("camera_"))
             where = mount.get("chain") or mount.get("note") or "no usable /tf_static chain"
             typer.echo(

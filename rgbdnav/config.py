@@ -39,7 +39,7 @@ from sensors.config import (
 )
 from sensors.safe_yaml import load_yaml, read_yaml
 from sensors.source import SourceOptions
-from sensors.types import ConfigError
+from sensors.types import ConfigError, RgbdNavError
 from slam.config import (
     DepthToScanConfig,
     EkfConfig,
@@ -333,15 +333,22 @@ def camera_mount(
 
     out = {k: dict(v) for k, v in (base or {}).items()}
     static = getattr(src, "static_extrinsics", None)
-    found = static() if static is not None else None
-    if found is None:
+    if static is None:
         return out, {"source": "config"}
-    mount, chain = found
     set_by_user = sorted(
         k
         for k in user_keys(files, overrides) | {f"robot.{k}" for k in out.get("robot", {})}
         if k in {f"robot.{m}" for m in MOUNT_KEYS}
     )
+    try:
+        found = static()
+    except RgbdNavError as err:
+        if not set_by_user:
+            raise
+        return out, {"source": "config", "note": f"tf_static not usable: {err}"}
+    if found is None:
+        return out, {"source": "config"}
+    mount, chain = found
     if set_by_user:
         note = f"tf_static {chain} not used: the config sets {', '.join(set_by_user)}"
         return out, {"source": "config", "note": note}

@@ -973,12 +973,14 @@ class RosbagSource(SourceBase):
         base_footprint, else base_link. A chain that exists but cannot be used (a camera yawed
         on the robot) raises SensorError: the config must then say where the camera is.
         """
+        if "tf_static" not in self._cache:  # a refused chain raises again, uncached
+            self._cache["tf_static"] = self._read_static_extrinsics()
+        cached: tuple[dict[str, float], str] | None = self._cache["tf_static"]
+        return cached
+
+    def _read_static_extrinsics(self) -> tuple[dict[str, float], str] | None:
         from sensors.extrinsics import chain_to_root, quaternion_matrix, robot_mount_from_tf
 
-        if "tf_static" in self._cache:
-            cached: tuple[dict[str, float], str] | None = self._cache["tf_static"]
-            return cached
-        self._cache["tf_static"] = None
         if self._reader is None or self.choices["depth"].topic is None:
             return None
         tf_conns = [
@@ -1019,9 +1021,7 @@ class RosbagSource(SourceBase):
             mount = robot_mount_from_tf(t_root_camera, optical="optical" in frame)
         except ValueError as err:
             raise SensorError(f"{self.path}: {TF_STATIC} {root} -> {frame}: {err}") from None
-        result = (mount, f"{root} -> {frame.lstrip('/')}")
-        self._cache["tf_static"] = result
-        return result
+        return mount, f"{root} -> {frame.lstrip('/')}"
 
     # --- internals ----------------------------------------------------------------------------
 

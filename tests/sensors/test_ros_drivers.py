@@ -22,7 +22,7 @@ from test_rosbag_source import MS, T0, Bag, frame_pixels, write_bag
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.config import load_config, source_options
+from rgbdnav.config import camera_mount, load_config, source_options
 from sensors.source import open_source
 from sensors.types import SensorError
 
@@ -367,6 +367,12 @@ def test_a_yawed_camera_in_tf_static_is_refused(tmp_path):
     with open_source(path, source_options(load_config())) as src:
         with pytest.raises(SensorError, match="turned 28.6 deg"):
             src.static_extrinsics()
+        with pytest.raises(SensorError, match="turned 28.6 deg"):
+            camera_mount(src, [], [])
+        # ... unless the config says where the camera is: then it wins, and says why.
+        base, entry = camera_mount(src, [], ["robot.camera_height=0.4"])
+    assert entry["source"] == "config" and "turned 28.6 deg" in entry["note"]
+    assert base == {}
 
 
 def test_odometry_summary_says_tf_static_won_unless_the_config_sets_the_mount(tmp_path):
