@@ -996,11 +996,13 @@ class RosbagSource(SourceBase):
         frame = None
         try:
             for conn, _t, raw in self._reader.messages(connections=depth_conns):
-                frame = str(self._reader.deserialize(raw, conn.msgtype).header.frame_id)
+                image: Any = self._reader.deserialize(raw, conn.msgtype)
+                frame = str(image.header.frame_id)
                 break
             edges: dict[str, tuple[str, np.ndarray]] = {}
             for conn, _t, raw in self._reader.messages(connections=tf_conns):
-                for tf in self._reader.deserialize(raw, conn.msgtype).transforms:
+                tf_message: Any = self._reader.deserialize(raw, conn.msgtype)
+                for tf in tf_message.transforms:
                     tr, q = tf.transform.translation, tf.transform.rotation
                     t = np.eye(4)
                     t[:3, :3] = quaternion_matrix(q.x, q.y, q.z, q.w)
