@@ -100,10 +100,11 @@ def _known_errors(fn: Any) -> Any:
 
 
 def _failed_run_summary(out: Any, command: str, message: str) -> None:
-    """A started run directory without summary.json gets one that records the failure."""
-    if not isinstance(out, Path) or not out.is_dir() or (out / "summary.json").exists():
+    """A started run directory (its config.yaml written) without summary.json gets one that
+    records the failure; any other folder named by --out is left alone."""
+    if not isinstance(out, Path) or not (out / "config.yaml").is_file():
         return
-    if not any(out.iterdir()):
+    if (out / "summary.json").exists():
         return
     from rgbdnav.run_dir import RunDir
 
