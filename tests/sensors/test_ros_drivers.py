@@ -398,3 +398,16 @@ def test_odometry_summary_says_tf_static_won_unless_the_config_sets_the_mount(tm
     assert "extrinsics  from tf_static (base_footprint -> camera_color_optical_frame)" in (
         result.output
     )
+
+
+def test_a_failure_writes_nothing_into_a_folder_that_is_not_a_started_run(tmp_path):
+    path = tmp_path / "imu_only"
+    with write_bag(path, "mcap") as bag:
+        bag.write("/imu_a", IMU, T0, bag.imu(T0, 0.1))
+        bag.write("/imu_b", IMU, T0, bag.imu(T0, 0.1))
+    out = tmp_path / "home"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    result = run_cli("odometry", path, "-o", out, "-q")
+    assert result.exit_code == 1 and "imu is ambiguous" in result.output
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
