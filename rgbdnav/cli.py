@@ -47,6 +47,29 @@ Force3DofOpt = Annotated[
 QuietOpt = Annotated[
     bool, typer.Option("--quiet", "-q", help="No progress bars; log warnings and errors only.")
 ]
+
+
+RosParamsOpt = Annotated[
+    list[Path] | None,
+    typer.Option(
+        "--ros-params",
+        help="ROS 2 parameter YAML (robot_localization, slam_toolbox, AMCL, Nav2), repeatable: "
+        "what rgbdnav implements is applied over --config, a table says what was ignored.",
+    ),
+]
+
+
+def _topic_opt(role: str) -> Any:
+    return typer.Option(f"--{role}-topic", help=f"Bag topic of the {role} stream.")
+
+
+RgbTopicOpt = Annotated[str | None, _topic_opt("rgb")]
+DepthTopicOpt = Annotated[str | None, _topic_opt("depth")]
+InfoTopicOpt = Annotated[
+    str | None, typer.Option("--info-topic", help="Bag topic of the colour CameraInfo.")
+]
+OdomTopicOpt = Annotated[str | None, _topic_opt("odom")]
+ImuTopicOpt = Annotated[str | None, _topic_opt("imu")]
 VerboseOpt = Annotated[bool, typer.Option("--verbose", "-v", help="Debug logging.")]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")]
 SourceArg = Annotated[
@@ -160,21 +183,66 @@ def parse_goals(values: Sequence[str], extra: Sequence[str] = ()) -> list[tuple[
 
 
 def _known_errors(fn: Any) -> Any:
-    """Known errors become one line on stderr and exit code 1, never a traceback."""
+    """Known errors become one line on stderr and exit code 1, never a traceback. A run
+    directory the command had started is not left without its summary.json: it says why."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
         except RgbdNavError as err:
-            typer.echo(f"error: {err}", err=True)
-            raise typer.Exit(1) from None
+            message = str(err)
         except OSError as err:  # unwritable --out, full disk, ...
             where = f"{err.filename}: " if err.filename else ""
-            typer.echo(f"error: {where}{err.strerror or err}", err=True)
-            raise typer.Exit(1) from None
+            message = f"{where}{err.strerror or err}"
+        _failed_run_summary(kwargs.get("out"), fn.__name__.rstrip("_"), message)
+        typer.echo(f"error: {message}", err=True)
+        raise typer.Exit(1) from None
 
     return wrapper
+
+
+def _failed_run_summary(out: Any, command: str, message: str) -> None:
+    """A started run directory (its config.yaml written) without summary.json gets one that
+    records the failure; any other folder named by --out is left alone."""
+    if not isinstance(out, Path) or not (out / "config.yaml").is_file():
+        return
+    if (out / "summary.json").exists():
+        return
+    from rgbdnav.run_dir import RunDir
+
+    try:
+        RunDir(out).write_summary({"command": command, "status": "failed", "error": message})
+    except OSError:
+        pass  # the original error is what the user needs to see
+
+
+def _topic_flags(
+    rgb: str | None, depth: str | None, info: str | None, odom: str | None, imu: str | None
+) -> dict[str, str | None]:
+    """The --*-topic flags by the ``topics`` key each sets."""
+    return {"rgb": rgb, "depth": depth, "camera_info": info, "odom": odom, "imu": imu}
+
+
+def _settings(
+    set_: list[str] | None,
+    ros_params: list[Path] | None = None,
+    topics: dict[str, str | None] | None = None,
+) -> list[str]:
+    """--ros-params (lowest), then --*-topic flags, then --set as ``section.key=value`` texts."""
+    import json
+
+    out: list[str] = []
+    if ros_params:
+        from rgbdnav.ros_params import format_table, load_ros_params
+
+        overrides, rows = load_ros_params(ros_params)
+        typer.echo(format_table(rows))
+        out += overrides
+    for role, topic in (topics or {}).items():
+        if topic is not None:
+            out.append(f"topics.{role}={json.dumps(topic)}")
+    return out + list(set_ or [])
 
 
 def _setup_logging(verbose: bool, quiet: bool = False) -> None:
@@ -275,10 +343,19 @@ def info(
     ],
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    imu_topic: ImuTopicOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Say what a recording, log, bag or world holds: streams, counts, rates, duration, gaps."""
+    set_ = _settings(
+        set_, ros_params, _topic_flags(rgb_topic, depth_topic, info_topic, odom_topic, imu_topic)
+    )
     _setup_logging(verbose, quiet)
     source = Path(source_text)
     if _is_world(source):
@@ -301,10 +378,23 @@ def info(
     from sensors.source import open_source
     from sensors.stream_stats import describe_source, format_stats_table
 
-    src = open_source(source_text, source_options(load_config(config or [], set_ or [])))
+    cfg = load_config(config or [], set_ or [])
+    src = open_source(source_text, source_options(cfg, require_topics=False))
     try:
         typer.echo(f"{source}: {src.describe()}")
         typer.echo(format_stats_table(describe_source(src)))
+        if hasattr(src, "static_extrinsics"):
+            from rgbdnav.config import camera_mount
+
+            try:
+                _, mount = camera_mount(src, config or [], set_)
+            except RgbdNavError as err:  # info describes; the commands refuse
+                mount = {"source": "config", "note": f"tf_static not usable: {err}"}
+            shown = ", ".join(f"{k}={v:g}" for k, v in mount.items() if k.startswith("camera_"))
+            where = mount.get("chain") or mount.get("note") or "no usable /tf_static chain"
+            typer.echo(
+                f"extrinsics  from {mount['source']} ({where}){': ' + shown if shown else ''}"
+            )
         if src.skipped:
             typer.echo(f"skipped while reading: {src.skipped}")
     finally:
@@ -325,10 +415,12 @@ def simulate(
     ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Render a Kinect + wheel-encoder recording of a robot driving through a world."""
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose, quiet)
     from rgbdnav.config import load_config
     from rgbdnav.run_dir import RunDir
@@ -364,6 +456,12 @@ def odometry(
     seed: WorldSeedOpt = 0,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    imu_topic: ImuTopicOpt = None,
     vo: Annotated[bool, typer.Option(help="Run visual odometry on the RGB-D frames.")] = True,
     force_3dof: Force3DofOpt = False,
     fmt: FormatOpt = "tum",
@@ -371,6 +469,9 @@ def odometry(
     verbose: VerboseOpt = False,
 ) -> None:
     """Wheel, visual and fused (EKF) odometry of a source, with drift against ground truth."""
+    set_ = _settings(
+        set_, ros_params, _topic_flags(rgb_topic, depth_topic, info_topic, odom_topic, imu_topic)
+    )
     _setup_logging(verbose, quiet)
     _check_format(fmt)
     if not _is_world(source):
@@ -402,12 +503,21 @@ def map_(
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    imu_topic: ImuTopicOpt = None,
     force_3dof: Force3DofOpt = False,
     fmt: FormatOpt = "tum",
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Pose-graph SLAM: trajectory, occupancy grid and a map bundle (Nav2 PGM/YAML + graph)."""
+    set_ = _settings(
+        set_, ros_params, _topic_flags(rgb_topic, depth_topic, info_topic, odom_topic, imu_topic)
+    )
     _setup_logging(verbose, quiet)
     _check_format(fmt)
     if not _is_world(source):
@@ -446,12 +556,21 @@ def localize(
     viewer: ViewerOpt = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    imu_topic: ImuTopicOpt = None,
     force_3dof: Force3DofOpt = False,
     fmt: FormatOpt = "tum",
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Localise against a saved map (no mapping): trajectory, per-scan status and confidence."""
+    set_ = _settings(
+        set_, ros_params, _topic_flags(rgb_topic, depth_topic, info_topic, odom_topic, imu_topic)
+    )
     _setup_logging(verbose, quiet)
     _check_format(fmt)
     if not _is_world(source):
@@ -524,6 +643,7 @@ def navigate(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     fmt: FormatOpt = "tum",
+    ros_params: RosParamsOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -533,6 +653,7 @@ def navigate(
     status is 3 when a goal was not reached. --localization, --goal-timeout, --max-replans and
     --waypoint-pause override the navigate settings (nav.config.NavigateConfig).
     """
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose, quiet)
     _check_format(fmt)
     from rgbdnav.commands.navigate import describe, run_navigate
@@ -645,10 +766,12 @@ def live(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     fmt: FormatOpt = "tum",
+    ros_params: RosParamsOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """The live run on the robot (or the simulated robot): map, or localise with --map."""
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose, quiet)
     _check_format(fmt)
     from rgbdnav.live.run import Drill, LiveOptions, run_live
@@ -714,10 +837,12 @@ def board(
     ] = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Check a motor board: which board, firmware, battery, odometry, round-trip time."""
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose, quiet)
     from rgbdnav.commands.board import check_board
     from rgbdnav.config import load_config
@@ -778,12 +903,14 @@ def eval_(
     ] = "m",
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    ros_params: RosParamsOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Score a trajectory against a reference: ATE and RPE (TUM RGB-D benchmark / evo method),
     or against reference relations (Kümmerle et al. 2009). Prints the result; --out also
     writes it."""
+    set_ = _settings(set_, ros_params)
     _setup_logging(verbose, quiet)
     from rgbdnav.commands.eval import (
         format_relations_report,

@@ -42,7 +42,7 @@ from sensors.config import (
 )
 from sensors.safe_yaml import load_yaml, read_yaml
 from sensors.source import SourceOptions
-from sensors.types import ConfigError
+from sensors.types import ConfigError, RgbdNavError
 from slam.config import (
     DepthToScanConfig,
     EkfConfig,
@@ -303,14 +303,16 @@ def write_config(cfg: Config, path: Path) -> None:
     atomic_write_text(path, text)
 
 
-def source_options(cfg: Config, strict: bool = False) -> SourceOptions:
-    """What adapters need from the configuration (rosbag topics, robot, camera)."""
+def source_options(cfg: Config, strict: bool = False, require_topics: bool = True) -> SourceOptions:
+    """What adapters need from the configuration (rosbag topics, robot, camera).
+    ``require_topics=False`` (``info``) describes a bag whose topics do not resolve."""
     return SourceOptions(
         topics=section_to_dict(cfg.topics),
         robot=cfg.robot,
         camera=cfg.camera,
         strict=strict,
         sync=cfg.sync,
+        require_topics=require_topics,
     )
 
 
@@ -320,3 +322,57 @@ def initial_pose_array(values: Sequence[float]) -> np.ndarray:
     if init.shape != (3,) or not np.all(np.isfinite(init)):
         raise ConfigError(f"--initial-pose needs three finite numbers X Y YAW, got {list(values)}")
     return init
+
+
+def user_keys(
+    files: Iterable[str | os.PathLike[str]] = (), overrides: Iterable[str] = ()
+) -> set[str]:
+    """``section.key`` names the user's config files and ``--set`` overrides set."""
+    keys: set[str] = set()
+    for f in files:
+        for section, values in _read_yaml(Path(f)).items():
+            if isinstance(values, Mapping):
+                keys |= {f"{section}.{k}" for k in values}
+    for text in overrides:
+        section, name, _ = parse_override(text)
+        keys.add(f"{section}.{name}")
+    return keys
+
+
+def camera_mount(
+    src: Any,
+    files: Sequence[str | os.PathLike[str]],
+    overrides: Sequence[str],
+    base: Mapping[str, Mapping[str, Any]] | None = None,
+) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+    """(``base`` with the camera mount a bag's ``/tf_static`` gives, summary entry).
+
+    The tf values go in the lowest layer, and only when neither the config files, ``--set``
+    nor ``base`` set any ``robot.camera_*`` key: the config wins, whole, over tf_static.
+    """
+    from sensors.extrinsics import MOUNT_KEYS
+
+    out = {k: dict(v) for k, v in (base or {}).items()}
+    static = getattr(src, "static_extrinsics", None)
+    if static is None:
+        return out, {"source": "config"}
+    set_by_user = sorted(
+        k
+        for k in user_keys(files, overrides) | {f"robot.{k}" for k in out.get("robot", {})}
+        if k in {f"robot.{m}" for m in MOUNT_KEYS}
+    )
+    try:
+        found = static()
+    except RgbdNavError as err:
+        if not set_by_user:
+            raise
+        return out, {"source": "config", "note": f"tf_static not usable: {err}"}
+    if found is None:
+        return out, {"source": "config"}
+    mount, chain = found
+    if set_by_user:
+        note = f"tf_static {chain} not used: the config sets {', '.join(set_by_user)}"
+        return out, {"source": "config", "note": note}
+    out.setdefault("robot", {}).update(mount)
+    values = {k: round(v, 4) for k, v in mount.items()}
+    return out, {"source": "tf_static", "chain": chain, **values}

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdnav.config import Config, load_config
+from rgbdnav.config import Config, camera_mount, load_config
 from rgbdnav.run_dir import RunDir
 from sensors.carmen import CarmenSource
 from sensors.recording_source import RecordingSource
@@ -36,16 +36,18 @@ HANDHELD = (
 
 def source_config(
     src: Source, config_files: Sequence[Path], overrides: Sequence[str]
-) -> tuple[dict, list[Path], Config]:
+) -> tuple[dict, list[Path], Config, dict]:
     """The source's scene (recordings), the config files with the RGB-D profile put first for
-    depth-camera sources (yours still win), and the config resolved over the recording's own
-    robot description."""
+    depth-camera sources (yours still win), the config resolved over the recording's own
+    robot description or a bag's /tf_static camera mount, and which of config / tf_static gave
+    the camera extrinsics (for the run summary)."""
     scene = src.recording.scene if isinstance(src, RecordingSource) else {}
     base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
     files = list(config_files)
     if not isinstance(src, CarmenSource) and RGBD_PROFILE.is_file():
         files = [RGBD_PROFILE, *files]
-    return scene, files, load_config(files, overrides, base=base)
+    base, extrinsics = camera_mount(src, files, overrides, base)
+    return scene, files, load_config(files, overrides, base=base), extrinsics
 
 
 def scan_stream(

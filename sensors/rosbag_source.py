@@ -97,6 +97,8 @@ INT32_MULTI_ARRAY = "std_msgs/msg/Int32MultiArray"
 INT64_MULTI_ARRAY = "std_msgs/msg/Int64MultiArray"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 HEADERLESS_TYPES = frozenset({INT32_MULTI_ARRAY, INT64_MULTI_ARRAY})
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TF_STATIC = "/tf_static"
 
 ROLE_TYPES: Mapping[str, tuple[str, ...]] = {
     "rgb": (IMAGE, COMPRESSED_IMAGE),
@@ -387,13 +389,84 @@ def _namespace(topic: str | None) -> str:
     return topic.rsplit("/", 1)[0] if topic else "\0"
 
 
+# Camera drivers' (rgb, registered depth, camera_info) topic triples, relative to the driver's
+# namespace, most preferred first. Depth registered (aligned) to the colour image is what
+# rgbdnav needs; the unregistered depth the same drivers also publish is never auto-picked.
+DRIVER_TRIPLES: tuple[tuple[str, str, str, str], ...] = (
+    # realsense2_camera 4.x (ROS 2, namespace /camera/camera), align_depth.enable:=true
+    ("RealSense", "color/image_raw", "aligned_depth_to_color/image_raw", "color/camera_info"),
+    # Azure_Kinect_ROS_Driver: depth_to_rgb is depth registered to the colour camera
+    ("Azure Kinect", "rgb/image_raw", "depth_to_rgb/image_raw", "rgb/camera_info"),
+    # iai_kinect2 kinect2_bridge: qhd, hd and sd rectified colour with registered depth
+    ("Kinect v2", "qhd/image_color_rect", "qhd/image_depth_rect", "qhd/camera_info"),
+    ("Kinect v2", "hd/image_color_rect", "hd/image_depth_rect", "hd/camera_info"),
+    ("Kinect v2", "sd/image_color_rect", "sd/image_depth_rect", "sd/camera_info"),
+    # openni_launch / openni2_launch with depth_registration:=true
+    ("OpenNI", "rgb/image_rect_color", "depth_registered/image_raw", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_color", "depth_registered/image_raw", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_raw", "depth_registered/image_raw", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_rect_color", "depth_registered/image", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_color", "depth_registered/image", "rgb/camera_info"),
+    ("OpenNI", "rgb/image_raw", "depth_registered/image_rect_raw", "rgb/camera_info"),
+    # zed_wrapper (ZED ROS 2 wrapper, namespace /zed/zed_node)
+    ("ZED", "rgb/image_rect_color", "depth/depth_registered", "rgb/camera_info"),
+    # OrbbecSDK_ROS2 / OrbbecSDK_ROS1 (depth_registration:=true aligns depth to colour)
+    ("Orbbec", "color/image_raw", "depth/image_raw", "color/camera_info"),
+)
+# The drivers' own IMU / odometry topics (relative to their namespace): an optical-frame gyro or
+# visual odometry, never auto-picked as the robot's imu/odom (--imu-topic can still name one).
+DRIVER_OWN_MOTION: Mapping[str, tuple[str, ...]] = {
+    "RealSense": ("imu", "gyro/sample", "accel/sample"),
+    "Azure Kinect": ("imu",),
+    "ZED": ("imu/data", "imu/data_raw", "odom"),
+    "Orbbec": ("gyro_accel/sample", "gyro/sample", "accel/sample"),
+}
+IMAGE_ROLES = ("rgb", "depth", "camera_info")
+ROLE_FLAGS: Mapping[str, str] = {
+    "rgb": "--rgb-topic",
+    "depth": "--depth-topic",
+    "camera_info": "--info-topic",
+    "odom": "--odom-topic",
+    "imu": "--imu-topic",
+    "wheels": "--set topics.wheels=",
+}
+
+
+def match_driver(types: Mapping[str, str]) -> tuple[str, str, tuple[str, str, str]] | None:
+    """(driver, namespace, (rgb, depth, info)) of the first driver triple the bag holds.
+
+    Raises SensorError when two namespaces (two cameras) hold the same preferred triple.
+    """
+    for driver, rgb, depth, info in DRIVER_TRIPLES:
+        spaces = sorted(
+            t[: -len(rgb)]
+            for t, ty in types.items()
+            if t.endswith("/" + rgb) and ty in ROLE_TYPES["rgb"]
+            and types.get(t[: -len(rgb)] + depth) in ROLE_TYPES["depth"]
+        )  # fmt: skip
+        if len(spaces) > 1:
+            found = ", ".join(ns + depth for ns in spaces)
+            raise SensorError(
+                f"{driver} registered depth from {len(spaces)} cameras ({found}): "
+                "choose one with --rgb-topic and --depth-topic"
+            )
+        if spaces:
+            ns = spaces[0]
+            return driver, ns, (ns + rgb, ns + depth, ns + info)
+    return None
+
+
 def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[str, TopicChoice]:
     """Pick the topic for every role from ``available`` (topic -> message type).
 
-    A configured topic of an accepted type is used as is. When a role's *default* topic is absent
-    (or of the wrong type), the unique remaining topic of an accepted type is auto-detected, with
-    name hints breaking ties (depth topics contain "depth"; "registered" depth, raw Image over
-    CompressedImage, camera_info beside the rgb topic, wheels named wheel/encoder).
+    A configured topic of an accepted type is used as is. The image roles left at their defaults
+    come from a known camera driver's topic set (:data:`DRIVER_TRIPLES`) when the bag holds
+    one: registered depth with its colour image and colour camera_info. Otherwise, when a role's
+    *default* topic is absent (or of the wrong type), the unique remaining topic of an accepted
+    type is auto-detected, with name hints breaking ties (depth topics contain "depth";
+    "registered" depth, raw Image over CompressedImage, camera_info beside the rgb topic, wheels
+    named wheel/encoder). A camera driver's own IMU and odometry (optical-frame gyro, visual
+    odometry) are never auto-picked for the robot's imu/odom roles.
     """
     types = {t: normalize_type(ty) for t, ty in available.items()}
     defaults = RosbagTopics()
@@ -402,6 +475,25 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
         topic = getattr(wanted, role)
         if types.get(topic) in ROLE_TYPES[role]:
             chosen[role] = TopicChoice(role, topic, types[topic])
+    camera_own: set[str] = set()  # the matched driver's own IMU / odometry topics
+    # Image roles the user did not name come from a driver's topic set: its registered depth
+    # wins even over openni_launch's unregistered /camera/depth/image that our defaults name.
+    if any(getattr(wanted, r) == getattr(defaults, r) for r in IMAGE_ROLES):
+        try:
+            driver = match_driver(types)
+        except SensorError as err:  # two cameras: both image roles stay unresolved
+            driver = None
+            for role in ("rgb", "depth"):
+                chosen[role] = TopicChoice(role, None, None, f"ambiguous: {err}")
+        if driver is not None:
+            name, camera_ns, triple = driver
+            camera_own = {camera_ns + t for t in DRIVER_OWN_MOTION.get(name, ())}
+            for role, topic in zip(IMAGE_ROLES, triple, strict=True):
+                configured = getattr(wanted, role) != getattr(defaults, role)
+                if not configured and types.get(topic) in ROLE_TYPES[role]:
+                    chosen[role] = TopicChoice(
+                        role, topic, types[topic], f"{name} driver topics under {camera_ns}"
+                    )
     taken = {c.topic for c in chosen.values()}
     for role in ROLES:
         if role in chosen:
@@ -414,6 +506,11 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
         candidates = sorted(
             t for t, ty in types.items() if ty in ROLE_TYPES[role] and t not in taken
         )
+        if role in ("imu", "odom"):
+            own = [t for t in candidates if t in camera_own]
+            candidates = [t for t in candidates if t not in camera_own]
+            if own and not candidates:
+                why += f"; the camera's own {', '.join(own)} not used for the robot (set it)"
         pick = _auto_pick(role, candidates, types, chosen)
         if pick is not None:
             chosen[role] = TopicChoice(role, pick, types[pick], f"auto-detected; {why}")
@@ -426,6 +523,38 @@ def resolve_topics(available: Mapping[str, str], wanted: RosbagTopics) -> dict[s
             kinds = " or ".join(short_type(t) for t in ROLE_TYPES[role])
             chosen[role] = TopicChoice(role, None, None, f"{why}; no {kinds} topic")
     return chosen
+
+
+def check_topics(
+    available: Mapping[str, str], wanted: RosbagTopics, chosen: Mapping[str, TopicChoice]
+) -> None:
+    """Refuse, in one line, a configured topic the bag lacks and any ambiguous role.
+
+    Commands that process a bag call this (``info`` only describes): a missing stream must not
+    silently turn VO, the IMU or odometry off.
+    """
+    types = {t: normalize_type(ty) for t, ty in available.items()}
+    defaults = RosbagTopics()
+    problems = []
+    for role in ROLES:
+        c = chosen[role]
+        if c.topic is not None:
+            continue
+        kinds = ROLE_TYPES[role]
+        candidates = sorted(t for t, ty in types.items() if ty in kinds)
+        listed = ", ".join(candidates) if candidates else "none"
+        kind = " or ".join(short_type(k) for k in kinds)
+        flag = ROLE_FLAGS[role]
+        if getattr(wanted, role) != getattr(defaults, role):
+            problems.append(
+                f"{role} topic {getattr(wanted, role)} is not in the bag ({kind} topics: {listed})"
+            )
+        elif c.note.startswith("ambiguous: "):
+            problems.append(c.note.removeprefix("ambiguous: "))
+        elif "ambiguous" in c.note:
+            problems.append(f"{role} is ambiguous: {listed}; choose one with {flag}")
+    if problems:
+        raise SensorError("; ".join(dict.fromkeys(problems)))
 
 
 def _auto_pick(
@@ -614,6 +743,7 @@ class RosbagSource(SourceBase):
             p,
             topics,
             strict=options.strict,
+            require_topics=options.require_topics,
             robot=options.robot,
             camera=options.camera,
             sync=options.sync,
@@ -629,8 +759,12 @@ class RosbagSource(SourceBase):
         robot: RobotConfig | None = None,
         camera: CameraConfig | None = None,
         sync: SyncConfig | None = None,
+        require_topics: bool = False,
     ) -> RosbagSource:
-        """Open a bag; the reader is closed again if anything after opening it fails."""
+        """Open a bag; the reader is closed again if anything after opening it fails.
+
+        ``require_topics``: refuse a missing configured topic or an ambiguous role
+        (:func:`check_topics`) instead of reading on without that stream."""
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
@@ -650,6 +784,11 @@ class RosbagSource(SourceBase):
         try:
             available = {t: info.msgtype or "" for t, info in reader.topics.items()}
             choices = resolve_topics(available, topics or RosbagTopics())
+            if require_topics:
+                try:
+                    check_topics(available, topics or RosbagTopics(), choices)
+                except SensorError as err:
+                    raise SensorError(f"{path}: {err}") from None
             return cls(
                 path,
                 reader,
@@ -825,6 +964,66 @@ class RosbagSource(SourceBase):
             )
         stream: PoseStream = self._cache["odom"]
         return stream
+
+    def static_extrinsics(self) -> tuple[dict[str, float], str] | None:
+        """Camera mount (RobotConfig camera_* keys) from ``/tf_static``, and where it came from
+        (``"base_link -> camera_color_optical_frame"``), or None without a usable chain.
+
+        The camera frame is the depth image's ``header.frame_id``; the chain is composed up to
+        base_footprint, else base_link. A chain that exists but cannot be used (a camera yawed
+        on the robot) raises SensorError: the config must then say where the camera is.
+        """
+        if "tf_static" not in self._cache:  # a refused chain raises again, uncached
+            self._cache["tf_static"] = self._read_static_extrinsics()
+        cached: tuple[dict[str, float], str] | None = self._cache["tf_static"]
+        return cached
+
+    def _read_static_extrinsics(self) -> tuple[dict[str, float], str] | None:
+        from sensors.extrinsics import chain_to_root, quaternion_matrix, robot_mount_from_tf
+
+        if self._reader is None or self.choices["depth"].topic is None:
+            return None
+        tf_conns = [
+            c
+            for c in self._reader.connections
+            if c.topic == TF_STATIC and normalize_type(c.msgtype) == TF_MESSAGE
+        ]
+        if not tf_conns:
+            return None
+        depth_conns = [
+            c for c in self._reader.connections if c.topic == self.choices["depth"].topic
+        ]
+        frame = None
+        try:
+            for conn, _t, raw in self._reader.messages(connections=depth_conns):
+                image: Any = self._reader.deserialize(raw, conn.msgtype)
+                frame = str(image.header.frame_id)
+                break
+            edges: dict[str, tuple[str, np.ndarray]] = {}
+            for conn, _t, raw in self._reader.messages(connections=tf_conns):
+                tf_message: Any = self._reader.deserialize(raw, conn.msgtype)
+                for tf in tf_message.transforms:
+                    tr, q = tf.transform.translation, tf.transform.rotation
+                    t = np.eye(4)
+                    t[:3, :3] = quaternion_matrix(q.x, q.y, q.z, q.w)
+                    t[:3, 3] = (tr.x, tr.y, tr.z)
+                    edges[str(tf.child_frame_id).lstrip("/")] = (
+                        str(tf.header.frame_id).lstrip("/"),
+                        t,
+                    )
+        except self._decode_errors as err:
+            raise SensorError(f"{self.path}: reading {TF_STATIC} failed: {err}") from err
+        if not frame:
+            return None
+        found = chain_to_root(edges, frame.lstrip("/"))
+        if found is None:
+            return None
+        root, t_root_camera = found
+        try:
+            mount = robot_mount_from_tf(t_root_camera, optical="optical" in frame)
+        except ValueError as err:
+            raise SensorError(f"{self.path}: {TF_STATIC} {root} -> {frame}: {err}") from None
+        return mount, f"{root} -> {frame.lstrip('/')}"
 
     # --- internals ----------------------------------------------------------------------------
 

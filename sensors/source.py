@@ -130,6 +130,7 @@ class SourceOptions:
     camera: CameraConfig | None = None  # intrinsics when a source carries none
     strict: bool = False  # raise on the first bad record instead of counting skips
     sync: SyncConfig | None = None  # association windows (rosbag and OpenNI readers)
+    require_topics: bool = False  # a bag's missing/ambiguous topic is an error, not a skip
 
 
 Opener = Callable[[Path | str, SourceOptions], "Source | None"]

@@ -184,7 +184,7 @@ def run_localize(
         raise
     try:
         # depth->scan with the RGB-D profile, as the map was made
-        _, config_files, cfg = source_config(src, config_files, overrides)
+        _, config_files, cfg, extrinsics = source_config(src, config_files, overrides)
         t_model = time.perf_counter()
         model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
                                    loaded.free_thresh)  # fmt: skip
@@ -192,7 +192,7 @@ def run_localize(
         g = loaded.grid.geometry
         summary: dict[str, Any] = {
             "command": "localize", "source": str(source_path), "source_kind": src.describe(),
-            "config_files": [str(p) for p in config_files],
+            "config_files": [str(p) for p in config_files], "extrinsics": extrinsics,
             "map": {"path": str(map_path), "kind": loaded.kind, "resolution": g.resolution,
                     "width": g.width, "height": g.height, "origin": [g.origin_x, g.origin_y],
                     "occupied_thresh": loaded.occupied_thresh,

@@ -61,11 +61,11 @@ def run_map(
     cfg = load_config(config_files, overrides)
     src = open_source(source_path, source_options(cfg))
     try:
-        scene, config_files, cfg = source_config(src, config_files, overrides)
+        scene, config_files, cfg, extrinsics = source_config(src, config_files, overrides)
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
         summary: dict = {"command": "map", "source": str(source_path),
-                         "source_kind": src.describe()}  # fmt: skip
+                         "source_kind": src.describe(), "extrinsics": extrinsics}  # fmt: skip
         mapper_cfg = cfg.mapper
         if isinstance(src, CarmenSource) and src.log.stamp_source == "synthesised":
             # Made-up stamps say nothing about time between scans: gate keyframes on motion.

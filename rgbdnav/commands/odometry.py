@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdnav.config import Config, load_config, source_options
+from rgbdnav.config import Config, camera_mount, load_config, source_options
 from rgbdnav.report import contact_sheet, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from sensors.recording_source import RecordingSource
@@ -58,7 +58,9 @@ def run_odometry(
         scene = src.recording.scene if isinstance(src, RecordingSource) else {}
         # A recording's own robot description sits under the user's files and --set.
         base = {k: scene[k] for k in ("robot",) if isinstance(scene.get(k), dict)}
+        base, extrinsics = camera_mount(src, config_files, overrides, base)
         cfg = load_config(config_files, overrides, base=base)
+        scene = {**scene, "extrinsics": extrinsics}
         return _run(src, source_path, out, cfg, scene, t0, use_vo, progress, force_3dof)
     finally:
         src.close()
@@ -90,6 +92,7 @@ def _run(
         "source": str(source_path),
         "source_kind": src.describe(),
         "mode": "planar (ground robot)" if opts.planar else "6-DoF (handheld camera)",
+        "extrinsics": scene.get("extrinsics", {"source": "config"}),
     }
     paths: list[tuple[str, np.ndarray, np.ndarray]] = []
     if wheels is not None:

@@ -593,8 +593,11 @@ def test_topics_from_the_user_config_reach_the_adapter_through_open_source(tmp_p
     with write_bag(path, "bag") as bag:
         bag.write("/a/odom", "nav_msgs/msg/Odometry", T0, bag.odometry(T0, 1.0, 0.0, 0.0))
         bag.write("/b/odom", "nav_msgs/msg/Odometry", T0, bag.odometry(T0, 2.0, 0.0, 0.0))
-    # Two candidates: auto-detection must not guess ...
-    with open_source(path, source_options(load_config())) as src:
+    # Two candidates: auto-detection must not guess; a command stops with both listed ...
+    with pytest.raises(SensorError, match=r"odom is ambiguous: /a/odom, /b/odom.*--odom-topic"):
+        open_source(path, source_options(load_config()))
+    # ... `info` (require_topics=False) describes the bag without the stream ...
+    with open_source(path, source_options(load_config(), require_topics=False)) as src:
         assert src.odometry() is None
     # ... and `--set topics.odom=/b/odom` picks one.
     cfg = load_config(overrides=["topics.odom=/b/odom"])
