@@ -240,8 +240,9 @@ class ThunderBorgBoard(MotorBoard):
         self.battery = "ok"  # ok, battery_low, battery_stop
         self._led: tuple[int, int, int] | None = None
         self._stop = threading.Event()
+        self._drive_lock = threading.Lock()  # a control step and a watchdog stop never interleave
         self.watchdog = HostWatchdog(
-            self.board_cfg.watchdog_timeout, self._zero_target, "thunderborg-watchdog"
+            self.board_cfg.watchdog_timeout, self._watchdog_stop, "thunderborg-watchdog"
         )
         self._threads = [
             threading.Thread(target=self._tacho_loop, name="tacho", daemon=True),
@@ -274,8 +275,8 @@ class ThunderBorgBoard(MotorBoard):
         return self.i2c.battery_voltage()
 
     def stop(self) -> None:
-        self._zero_target()
-        self.i2c.motors_off()
+        self.watchdog.disarm()
+        self._watchdog_stop()
 
     def arm_failsafe(self, timeout_s: float) -> str:
         self.i2c.set_failsafe(True)
@@ -325,6 +326,13 @@ class ThunderBorgBoard(MotorBoard):
         with self._lock:
             self._target = (0.0, 0.0)
 
+    def _watchdog_stop(self) -> None:
+        """Motors off at once (not at the next PID step, up to 1 / pid_rate later)."""
+        with self._drive_lock:
+            self._zero_target()
+            self.i2c.motors_off()
+            self.power = (0.0, 0.0)
+
     def _tacho_loop(self) -> None:
         buf = b""
         while not self._stop.is_set():
@@ -358,7 +366,8 @@ class ThunderBorgBoard(MotorBoard):
                 if now >= next_battery:
                     next_battery = now + BATTERY_CHECK_S
                     self._check_battery()
-                self._drive(self._control_step(dt))
+                with self._drive_lock:
+                    self._drive(self._control_step(dt))
             except MotorBoardError as err:
                 self.counts["i2c_errors"] += 1
                 log.warning("ThunderBorg: %s", err)
