@@ -102,7 +102,7 @@ class ThunderBorgI2C:
                 raise MotorBoardError(
                     f"ThunderBorg 0x{self.address:02X}: read {command} failed: {err}"
                 ) from err
-            reply = list(msg)
+            reply = list(bytes(msg.buf[: msg.len]))
             if reply and reply[0] == command:
                 return reply
             self.retries += 1
