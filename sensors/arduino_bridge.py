@@ -116,6 +116,10 @@ class ArduinoBridgeBoard(MotorBoard):
         on_line = 2 * 10 * NS_PER_S // self.baudrate
         return WheelTicks(self._last_sent_ns + on_line, left, right)
 
+    def probe(self) -> str:
+        self.command("e")
+        return "e (encoders)"
+
     def battery_voltage(self) -> float:
         raise MotorBoardError("the ROSArduinoBridge firmware reports no battery voltage")
 

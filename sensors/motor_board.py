@@ -131,6 +131,11 @@ class MotorBoard(ABC):
     def ticks(self) -> WheelTicks:
         """Cumulative wheel positions (at ``robot.ticks_per_revolution``), stamped."""
 
+    def probe(self) -> str:
+        """One round trip to the board (timed by ``rgbdnav board``); returns what it was."""
+        self.ticks()
+        return "odometry read"
+
     def odometry_input(self) -> WheelTicks | WheelRpm:
         """The board's own odometry reading: encoder ticks, or RPM for tacho boards."""
         return self.ticks()

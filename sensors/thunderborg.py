@@ -265,6 +265,10 @@ class ThunderBorgBoard(MotorBoard):
                 raise MotorBoardError("no tacho reading yet")
             return self._ticks
 
+    def probe(self) -> str:
+        self.i2c.board_id()
+        return "I2C GET_ID"
+
     def odometry_input(self) -> WheelRpm:
         with self._lock:
             if self._rpm is None:
