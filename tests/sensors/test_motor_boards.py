@@ -115,6 +115,8 @@ def test_thunderborg_pid_reaches_the_target_the_open_loop_misses() -> None:
         try:
             _drive(board, 0.25, 0.25, 2.5)
             errors[use_pid] = np.abs(np.array(emu.wheel_speeds()) - 0.25).max()
+            assert "1-sigma" in board.diagnostics()["rpm_odometry"]
+            assert board.odometry.pose[0] > 0.4 and board.odometry.covariance[0, 0] > 0
             assert emu.led == (0, 255, 0)  # green: driving
             assert isinstance(board.odometry_input(), WheelRpm)
         finally:
@@ -219,6 +221,8 @@ def test_bridge_speaks_pid_frames() -> None:
         assert t.left > 0 > t.right
         board.reset()
         assert abs(board.ticks().left) < 50
+        assert board.set_wheel_speeds(0.001, 0.0) == (0, 0)  # under one tick per frame
+        assert board.diagnostics()["speeds_rounded_to_zero"] == 1
     finally:
         board.close()
         emu.close()
