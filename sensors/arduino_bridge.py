@@ -65,6 +65,7 @@ class ArduinoBridgeBoard(MotorBoard):
         except (serial.SerialException, OSError, ValueError) as err:
             raise MotorBoardError(f"cannot open the Arduino bridge at {url}: {err}") from err
         self.errors = 0
+        self.rounded_to_zero = 0  # wheel commands under one tick per frame, sent as 0
         self.reported_baud = self.command("b")
         if self.cfg.set_pid:
             self.command(
@@ -100,6 +101,15 @@ class ArduinoBridgeBoard(MotorBoard):
             ticks_per_frame(left, self.robot_cfg, rate),
             ticks_per_frame(right, self.robot_cfg, rate),
         )
+        if (left and not cmd[0]) or (right and not cmd[1]):
+            if not self.rounded_to_zero:
+                log.warning(
+                    "%.3f / %.3f m/s is under one tick per PID frame: sent as 0 (check "
+                    "robot.ticks_per_revolution)",
+                    left,
+                    right,
+                )
+            self.rounded_to_zero += 1
         self.watchdog.feed()
         self.command(f"m {cmd[0]} {cmd[1]}", expect_ok=True)
         self.sent = cmd
@@ -115,6 +125,10 @@ class ArduinoBridgeBoard(MotorBoard):
         # the firmware reads the counters as the command's last byte arrives
         on_line = 2 * 10 * NS_PER_S // self.baudrate
         return WheelTicks(self._last_sent_ns + on_line, left, right)
+
+    def probe(self) -> str:
+        self.command("e")
+        return "e (encoders)"
 
     def battery_voltage(self) -> float:
         raise MotorBoardError("the ROSArduinoBridge firmware reports no battery voltage")
@@ -149,6 +163,7 @@ class ArduinoBridgeBoard(MotorBoard):
             "port": self.url,
             "firmware": f"baud {self.reported_baud}",
             "errors": self.errors,
+            "speeds_rounded_to_zero": self.rounded_to_zero,
             "watchdog_stops": self.watchdog.fired,
         }
 

@@ -38,7 +38,7 @@ def open_board(spec: str, cfg: Any) -> OpenedBoard:
         if dev.emulator:
             from sensors.eddie_emulator import EddieEmulator
 
-            emu = EddieEmulator(cfg.robot)
+            emu: Any = EddieEmulator(cfg.robot)
             try:
                 return OpenedBoard(EddieBoard(emu.serve_pty(), cfg.board, cfg.robot), emu)
             except BaseException:

@@ -611,6 +611,10 @@ class EddieBoard(MotorBoard):
         self.watchdog(seconds)
         return f"board WATCH {seconds} s (host dead), {quiet}"
 
+    def probe(self) -> str:
+        self.distance()
+        return "DIST"
+
     def diagnostics(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "board": "Parallax Eddie",

@@ -37,7 +37,9 @@ from sensors.types import NS_PER_S, ConfigError, Pose2, SensorError, WheelTicks
 log = logging.getLogger(__name__)
 
 BOARD_KINDS = ("eddie", "thunderborg", "arduino-bridge")
-WATCHDOG_CHECK_PERIOD_S = 0.01  # [s] the host watchdog stops the motors within timeout + this
+WATCHDOG_LEAD_S = 0.02  # [s] the host watchdog's stop leaves this long before the timeout
+WATCHDOG_IDLE_WAIT_S = 0.05  # [s] longest wait before looking again (stop requests, feeds)
+WATCHDOG_RETRY_S = 0.01  # [s] after a failed stop
 
 
 class MotorBoardError(SensorError):
@@ -129,6 +131,11 @@ class MotorBoard(ABC):
     def ticks(self) -> WheelTicks:
         """Cumulative wheel positions (at ``robot.ticks_per_revolution``), stamped."""
 
+    def probe(self) -> str:
+        """One round trip to the board (timed by ``rgbdnav board``); returns what it was."""
+        self.ticks()
+        return "odometry read"
+
     def odometry_input(self) -> WheelTicks | WheelRpm:
         """The board's own odometry reading: encoder ticks, or RPM for tacho boards."""
         return self.ticks()
@@ -161,11 +168,14 @@ class MotorBoard(ABC):
 
 
 class HostWatchdog:
-    """Calls ``on_timeout`` once when :meth:`feed` has not been called for ``timeout_s`` since
-    the last feed (armed by the first feed). Retries when ``on_timeout`` raises SensorError."""
+    """Calls ``on_timeout`` once when :meth:`feed` has not been called for ``timeout_s`` (armed
+    by the first feed); retries when ``on_timeout`` raises SensorError. It fires
+    :data:`WATCHDOG_LEAD_S` early, waiting for the exact instant rather than polling, so the
+    stop has reached the board by ``timeout_s`` after the last command."""
 
     def __init__(self, timeout_s: float, on_timeout: Callable[[], None], name: str) -> None:
         self.timeout_s = timeout_s
+        self.fire_after_s = max(timeout_s - WATCHDOG_LEAD_S, timeout_s / 2)
         self.on_timeout = on_timeout
         self.fired = 0
         self._last = 0.0
@@ -188,19 +198,25 @@ class HostWatchdog:
         return self._armed
 
     def _run(self) -> None:
-        period = min(WATCHDOG_CHECK_PERIOD_S, self.timeout_s / 10)
-        while not self._stop.wait(period):
+        while True:
             with self._lock:
-                due = self._armed and time.monotonic() - self._last >= self.timeout_s
-            if not due:
+                armed, last = self._armed, self._last
+            wait = (
+                WATCHDOG_IDLE_WAIT_S if not armed else last + self.fire_after_s - time.monotonic()
+            )
+            if wait > 0:
+                if self._stop.wait(min(wait, WATCHDOG_IDLE_WAIT_S)):
+                    return
                 continue
             try:
                 self.on_timeout()
             except SensorError as err:
                 log.warning("watchdog stop failed (will retry): %s", err)
+                if self._stop.wait(WATCHDOG_RETRY_S):
+                    return
                 continue
             with self._lock:
-                if time.monotonic() - self._last >= self.timeout_s:
+                if self._last == last:  # no command came meanwhile
                     self._armed = False
                     self.fired += 1
             log.info("no wheel command for %.2f s: motors stopped", self.timeout_s)

@@ -31,6 +31,7 @@ import threading
 import time
 from typing import Any, Protocol
 
+import numpy as np
 import serial
 
 from sensors.config import BoardConfig, RobotConfig, ThunderBorgConfig
@@ -102,7 +103,7 @@ class ThunderBorgI2C:
                 raise MotorBoardError(
                     f"ThunderBorg 0x{self.address:02X}: read {command} failed: {err}"
                 ) from err
-            reply = list(msg)
+            reply = list(bytes(msg.buf[: msg.len]))
             if reply and reply[0] == command:
                 return reply
             self.retries += 1
@@ -240,8 +241,9 @@ class ThunderBorgBoard(MotorBoard):
         self.battery = "ok"  # ok, battery_low, battery_stop
         self._led: tuple[int, int, int] | None = None
         self._stop = threading.Event()
+        self._drive_lock = threading.Lock()  # a control step and a watchdog stop never interleave
         self.watchdog = HostWatchdog(
-            self.board_cfg.watchdog_timeout, self._zero_target, "thunderborg-watchdog"
+            self.board_cfg.watchdog_timeout, self._watchdog_stop, "thunderborg-watchdog"
         )
         self._threads = [
             threading.Thread(target=self._tacho_loop, name="tacho", daemon=True),
@@ -264,6 +266,10 @@ class ThunderBorgBoard(MotorBoard):
                 raise MotorBoardError("no tacho reading yet")
             return self._ticks
 
+    def probe(self) -> str:
+        self.i2c.board_id()
+        return "I2C GET_ID"
+
     def odometry_input(self) -> WheelRpm:
         with self._lock:
             if self._rpm is None:
@@ -274,8 +280,8 @@ class ThunderBorgBoard(MotorBoard):
         return self.i2c.battery_voltage()
 
     def stop(self) -> None:
-        self._zero_target()
-        self.i2c.motors_off()
+        self.watchdog.disarm()
+        self._watchdog_stop()
 
     def arm_failsafe(self, timeout_s: float) -> str:
         self.i2c.set_failsafe(True)
@@ -292,11 +298,21 @@ class ThunderBorgBoard(MotorBoard):
             "port": self.url,
             "state": self.state,
             "power": tuple(round(p, 3) for p in self.power),
-            "battery_v": self.battery_v,
+            "battery_v": None if self.battery_v is None else round(self.battery_v, 2),
             "i2c_read_retries": self.i2c.retries,
             "watchdog_stops": self.watchdog.fired,
+            "rpm_odometry": self._odometry_summary(),
             **self.counts,
         }
+
+    def _odometry_summary(self) -> str:
+        with self._lock:
+            pose, cov = self.odometry.pose.copy(), self.odometry.covariance.copy()
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return (
+            f"x {pose[0]:.3f} m, y {pose[1]:.3f} m, yaw {math.degrees(pose[2]):.1f} deg "
+            f"(1-sigma {sd[0]:.4f} m, {sd[1]:.4f} m, {math.degrees(sd[2]):.2f} deg)"
+        )
 
     def close(self) -> None:
         self._stop.set()
@@ -324,6 +340,13 @@ class ThunderBorgBoard(MotorBoard):
     def _zero_target(self) -> None:
         with self._lock:
             self._target = (0.0, 0.0)
+
+    def _watchdog_stop(self) -> None:
+        """Motors off at once (not at the next PID step, up to 1 / pid_rate later)."""
+        with self._drive_lock:
+            self._zero_target()
+            self.i2c.motors_off()
+            self.power = (0.0, 0.0)
 
     def _tacho_loop(self) -> None:
         buf = b""
@@ -358,7 +381,8 @@ class ThunderBorgBoard(MotorBoard):
                 if now >= next_battery:
                     next_battery = now + BATTERY_CHECK_S
                     self._check_battery()
-                self._drive(self._control_step(dt))
+                with self._drive_lock:
+                    self._drive(self._control_step(dt))
             except MotorBoardError as err:
                 self.counts["i2c_errors"] += 1
                 log.warning("ThunderBorg: %s", err)

@@ -12,7 +12,7 @@ import numpy as np
 from sensors.motor_board import MotorBoard
 from sensors.types import NS_PER_S, SensorError
 
-LATENCY_SAMPLES = 50  # odometry reads timed
+LATENCY_SAMPLES = 50  # board round trips timed
 TEST_DRIVE_SPEED = 0.1  # [m/s] gentle, so a robot on the floor barely moves
 TEST_DRIVE_TIME = 1.0  # [s]
 COMMAND_PERIOD = 0.05  # [s] re-send the velocity well inside the 0.25 s watchdog
@@ -60,12 +60,12 @@ def check_board(board: MotorBoard, spec: str, test_drive: bool) -> BoardReport:
     rtt = []
     for _ in range(LATENCY_SAMPLES):
         t = time.perf_counter()
-        board.ticks()
+        what = board.probe()
         rtt.append(time.perf_counter() - t)
     report.add(
         "round trip",
-        f"odometry read median {1e3 * np.median(rtt):.2f} ms, "
-        f"max {1e3 * max(rtt):.2f} ms over {LATENCY_SAMPLES}",
+        f"{what} median {1e3 * np.median(rtt):.2f} ms, max {1e3 * max(rtt):.2f} ms "
+        f"over {LATENCY_SAMPLES}",
     )
     if test_drive:
         report.add("failsafe", board.arm_failsafe(0.25))

@@ -318,10 +318,16 @@ class LiveRun:
             self.start_pose = np.array(world.start, dtype=np.float64)
             self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2) if opts.goals \
                 else world.route  # fmt: skip
-            self.sim = SimRobot(opts.world, cfg.robot, cfg.camera, cfg.sim,  # type: ignore[arg-type]
-                                self.run.file("board.pty"), seed=opts.seed,
-                                truth_path=self.run.file("groundtruth.tum"),
-                                external_wheels=opts.board.startswith("emulator:"))  # fmt: skip
+            self.sim = SimRobot(
+                opts.world,  # type: ignore[arg-type]
+                cfg.robot,
+                cfg.camera,
+                cfg.sim,
+                self.run.file("board.pty"),
+                seed=opts.seed,
+                truth_path=self.run.file("groundtruth.tum"),
+                external_wheels=opts.board.startswith("emulator:"),
+            )
             sim_port = self.sim.start()
         else:
             self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2)

@@ -276,10 +276,17 @@ class SimRobot:
     camera frames as they arrive; ``stop()`` returns the child's counters; the ground truth
     is in the TUM file ``truth_path`` (default: beside the port link, ``groundtruth.tum``)."""
 
-    def __init__(self, world_path: str | Path, robot: RobotConfig, camera: CameraConfig,
-                 sim: SimConfig, port_link: str | Path, seed: int = 0,
-                 truth_path: str | Path | None = None,
-                 external_wheels: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self,
+        world_path: str | Path,
+        robot: RobotConfig,
+        camera: CameraConfig,
+        sim: SimConfig,
+        port_link: str | Path,
+        seed: int = 0,
+        truth_path: str | Path | None = None,
+        external_wheels: bool = False,
+    ) -> None:
         self.world_path = str(world_path)
         self.robot, self.camera, self.sim, self.seed = robot, camera, sim, seed
         self.port_link = str(port_link)
@@ -288,10 +295,12 @@ class SimRobot:
         ctx = mp.get_context("spawn")  # the host has threads: never fork it
         self._ring = _FrameRing(camera.width, camera.height)
         # external_wheels: the host's board emulator writes the wheel travel [positions] here
-        self.wheels_shm = shared_memory.SharedMemory(create=True, size=16) \
-            if external_wheels else None  # fmt: skip
-        self.wheels = None if self.wheels_shm is None else \
-            np.ndarray((2,), np.float64, self.wheels_shm.buf)  # fmt: skip
+        self.wheels_shm = (
+            shared_memory.SharedMemory(create=True, size=16) if external_wheels else None
+        )
+        self.wheels = (
+            None if self.wheels_shm is None else np.ndarray((2,), np.float64, self.wheels_shm.buf)
+        )
         if self.wheels is not None:
             self.wheels[:] = 0.0
         self._frames: Any = ctx.Queue(maxsize=FRAME_QUEUE_SIZE)
