@@ -128,7 +128,9 @@ def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
     from sensors.recording import Recording
     from sensors.sim.simulator import simulate
 
-    if not source.exists():
+    from sensors.source import is_device_uri
+
+    if not source.exists() and not is_device_uri(source):
         raise RgbdNavError(f"{source}: no such file or folder")
     if not _is_world(source):
         return source

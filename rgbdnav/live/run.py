@@ -128,7 +128,7 @@ class Drill:
 @dataclass(frozen=True)
 class LiveOptions:
     out: Path
-    camera: str = "sim"  # "sim" or an OpenNI2 target ("openni://", "openni://<uri>", x.oni)
+    camera: str = "sim"  # "sim" or a camera URI/recording: openni://, realsense://, freenect://
     board: str = "sim"  # "sim", a serial port / pyserial URL, or "none"
     world: Path | None = None  # simulator world (camera or board "sim")
     config_files: Sequence[Path] = ()
@@ -324,7 +324,8 @@ class LiveRun:
                                          read_speed_heading=False)  # fmt: skip
         if opts.camera == "sim":
             return self._sim_frames()
-        self.camera_src = open_source(opts.camera, source_options(cfg))
+        # realtime: a device recording plays at its own pace, stamped like a camera.
+        self.camera_src = open_source(opts.camera, replace(source_options(cfg), realtime=True))
         return iter(self.camera_src.frames())
 
     def _sim_frames(self) -> Iterator[RgbdFrame]:
