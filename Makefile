@@ -5,7 +5,7 @@ VENV        ?= .venv
 PYTHON      ?= python3
 PY          := $(VENV)/bin/python
 STAMP       := $(VENV)/.rgbdnav-installed
-APT_PACKAGES := libusb-1.0-0 libgomp1
+APT_PACKAGES := libusb-1.0-0 libgomp1 libfreenect-dev
 DEMO_OUT    ?= runs/demo
 PYTEST_ARGS ?=
 

@@ -127,7 +127,6 @@ def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
     from rgbdnav.cache import cached_recording_path
     from sensors.recording import Recording
     from sensors.sim.simulator import simulate
-
     from sensors.source import is_device_uri
 
     if not source.exists() and not is_device_uri(source):

@@ -9,11 +9,12 @@ aligned to colour with ``rs.align``, so the intrinsics are the colour stream's, 
 (metres per count) are the depth sensor's ``depth_units`` option, and the colour-depth extrinsics
 are the device's (or the recording's) calibration. ``describe`` says where each came from.
 
-Stamps: frames in the ``global_time`` domain (librealsense's default for D400 cameras) are already
-host time; ``hardware_clock`` stamps are shifted by one constant fixed at the first frame so it
-carries its host arrival time. A recording opened by an offline command plays as fast as it is read
-(``set_real_time(False)``) and keeps its recorded clock; opened with ``realtime`` (``rgbdnav
-live``), it plays in real time and is stamped like a camera: the live run cannot tell the two apart.
+Stamps: for ``rgbdnav live`` (``SourceOptions.realtime``) device stamps are shifted by a constant,
+fixed at the first frame, onto the live run's clock (``time.monotonic_ns``, as the board's): free of
+jitter, yet comparable with the wheels. A recording then plays in real time and is stamped the
+same way, so the live run cannot tell it from a camera. Offline, a recording plays as fast as it is
+read (``set_real_time(False)``) with its recorded clock, and a camera's ``global_time`` stamps
+(librealsense's default on D400s: host wall time) are kept.
 
 The D435i/D455 gyro (200 Hz) is the IMU: ``imu()`` of a recording holding a gyro stream yields the
 yaw rate, -gyro_y (the IMU frame is x right, y down, z forward; a level camera's yaw is about -y).
@@ -186,7 +187,12 @@ class RealSenseSource(SourceBase):
         sync = (options.sync if options else None) or SyncConfig()
         if target is None:
             return None
-        return cls.open(target, realtime=realtime, max_difference_ns=seconds_to_ns(sync.slop))
+        return cls.open(
+            target,
+            realtime=realtime,
+            clock=time.monotonic_ns if realtime else time.time_ns,
+            max_difference_ns=seconds_to_ns(sync.slop),
+        )
 
     @classmethod
     def open(
@@ -316,11 +322,13 @@ class RealSenseSource(SourceBase):
             colour, depth = aligned.get_color_frame(), aligned.get_depth_frame()
             stamp_ms = float(colour.get_timestamp())
             if offset_ns is None:
-                on_host = (
-                    self._playback is None
-                    and colour.get_frame_timestamp_domain() == rs.timestamp_domain.global_time
-                )
-                keep = on_host or (self._playback is not None and not self._realtime)
+                global_time = rs.timestamp_domain.global_time
+                if self._realtime:  # the live run's clock: monotonic host time
+                    keep = False
+                elif self._playback is not None:  # offline: the recorded clock
+                    keep = True
+                else:  # global_time is host wall time already
+                    keep = colour.get_frame_timestamp_domain() == global_time
                 offset_ns = 0 if keep else host_offset_ns(stamp_ms, self._clock())
             channels = COLOUR_FORMATS[self._colour_format]
             rgb = np.ascontiguousarray(np.asanyarray(colour.get_data())[..., channels])
