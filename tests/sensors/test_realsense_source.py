@@ -175,3 +175,35 @@ def test_without_pyrealsense2_the_error_says_what_to_install(monkeypatch) -> Non
     monkeypatch.setattr(importlib, "import_module", fake)
     with pytest.raises(SensorError, match=r"pip install 'rgbdnav\[realsense\]'"):
         RealSenseSource.open("realsense://")
+
+
+def test_the_recording_opened_as_a_plain_rosbag_reads_its_own_camera(route) -> None:
+    """The SDK topics (/device_0/sensor_N/...) are found, camera_info is the colour stream's (not
+    "ambiguous"), and 16-bit depth is scaled by the recording's depth units, not read as mm."""
+    path, truth = route
+    with open_source(path) as bag:
+        assert bag.choices["camera_info"].topic == "/device_0/sensor_1/Color_0/image/camera_info"
+        k = bag.intrinsics()
+        assert (k.fx, k.fy, k.cx, k.cy) == (570.0, 568.0, 322.5, 236.5)
+        text = bag.describe()
+        assert "depth units 0.5 mm from /device_0/sensor_0/option/Depth_Units/value" in text
+        assert "NOT registered" not in text  # same intrinsics, no offset: registered already
+        first = next(iter(bag.frames()))
+    want = truth[0].depth_m
+    valid = np.isfinite(want) & (want > 0) & (want < 30.0)
+    assert np.median(np.abs(first.depth_m[valid] - want[valid])) <= DEPTH_UNITS
+
+
+def test_a_rosbag_with_unregistered_sdk_depth_says_how_to_align_it(tmp_path: Path) -> None:
+    intr = CameraIntrinsics(640, 480, 600.0, 601.0, 320.5, 240.5)
+    frames = [
+        RgbdFrame(i * PERIOD_NS, np.zeros((480, 640, 3), np.uint8),
+                  np.full((480, 640), 2.0, np.float32), intr)
+        for i in range(2)
+    ]  # fmt: skip
+    path = tmp_path / "offset.db3"
+    write_sdk_recording(path, frames, depth_to_colour_m=(-0.015, 0.0, 0.0))
+    with open_source(path) as bag:
+        text = bag.describe()
+    assert "translation (-15.0, +0.0, +0.0) mm from /device_0/sensor_1/Color_0/tf/ref_1" in text
+    assert f"open it as realsense://{path}" in text
