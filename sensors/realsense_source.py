@@ -28,6 +28,7 @@ from __future__ import annotations
 import importlib
 import itertools
 import logging
+import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -392,13 +393,15 @@ def write_sdk_recording(
     *,
     depth_units: float = 0.001,
     depth_to_colour_m: Sequence[float] = (0.0, 0.0, 0.0),
+    gyro: ImuStream | None = None,
     pace: bool = False,
 ) -> int:
     """Record RGB-D frames as a RealSense SDK recording (``.db3``), as ``rs.recorder`` writes a
     camera's, with no camera attached: a software device streams them with the frames' own
     intrinsics (colour and depth), ``depth_units`` [m/count] and a depth-to-colour translation.
     Device stamps are the frames' stamps; ``pace`` sleeps between frames so the recorded capture
-    times (what real-time playback follows) keep the frames' spacing. Returns the frame count."""
+    times (what real-time playback follows) keep the frames' spacing. ``gyro`` adds a D435i-style
+    200 Hz gyro stream holding the yaw rates (as -gyro_y). Returns the frame count."""
     rs = load_pyrealsense2()
     frames = iter(frames)
     first = next(frames, None)
@@ -421,21 +424,50 @@ def write_sdk_recording(
         vs.fps, vs.bpp, vs.fmt, vs.intrinsics = LIVE_MODE[2], bpp, fmt, intr
         sensors[name] = device.add_sensor(name)
         profiles[name] = sensors[name].add_video_stream(vs)
+    if gyro is not None:
+        ms = rs.motion_stream()
+        ms.type, ms.index, ms.uid, ms.fps, ms.fmt = (
+            rs.stream.gyro,
+            0,
+            2,
+            200,
+            rs.format.motion_xyz32f,
+        )
+        ms.intrinsics = rs.motion_device_intrinsic()
+        sensors["Motion Module"] = device.add_sensor("Motion Module")
+        profiles["Motion Module"] = sensors["Motion Module"].add_motion_stream(ms)
     sensors["Depth"].add_read_only_option(rs.option.depth_units, depth_units)
     ex = rs.extrinsics()
     ex.rotation, ex.translation = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0], list(depth_to_colour_m)
     profiles["Depth"].register_extrinsics_to(profiles["Color"], ex)
     device.create_matcher(rs.matchers.default)
     recorder = rs.recorder(str(path), device)
-    queue = rs.frame_queue(4)
+    queue = rs.frame_queue(64)
     for name in sensors:
         sensors[name].open(profiles[name])
         sensors[name].start(queue)
     count, t0_ns, wall0 = 0, first.stamp_ns, time.monotonic()
+    n_gyro = 0
+
+    def send_gyro(until_ns: float) -> None:
+        nonlocal n_gyro
+        while (
+            gyro is not None and n_gyro < len(gyro.stamps_ns) and gyro.stamps_ns[n_gyro] <= until_ns
+        ):
+            f = rs.software_motion_frame()
+            v = rs.vector()
+            v.x, v.y, v.z = 0.0, -float(gyro.gyro_z[n_gyro]), 0.0
+            f.data, f.timestamp = v, int(gyro.stamps_ns[n_gyro]) / NS_PER_MS
+            f.domain, f.frame_number = rs.timestamp_domain.hardware_clock, n_gyro
+            f.profile = profiles["Motion Module"].as_motion_stream_profile()
+            sensors["Motion Module"].on_motion_frame(f)
+            n_gyro += 1
+
     try:
         for frame in itertools.chain((first,), frames):
             if pace:
                 time.sleep(max(0.0, (frame.stamp_ns - t0_ns) / 1e9 - (time.monotonic() - wall0)))
+            send_gyro(frame.stamp_ns)
             counts = np.round(np.nan_to_num(frame.depth_m, nan=0.0) / depth_units)
             pixels = {
                 "Depth": np.clip(counts, 0, 65535).astype(np.uint16),
@@ -453,6 +485,7 @@ def write_sdk_recording(
             while queue.poll_for_frame():
                 pass  # the recorder has it; keep the queue from filling
             count += 1
+        send_gyro(math.inf)
     finally:
         for sensor in sensors.values():
             sensor.stop()

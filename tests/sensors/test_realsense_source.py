@@ -21,7 +21,7 @@ from sensors.realsense_source import (
     parse_target,
     write_sdk_recording,
 )
-from sensors.source import SourceOptions, open_source
+from sensors.source import ImuStream, SourceOptions, open_source
 from sensors.types import CameraIntrinsics, RgbdFrame, SensorError
 
 pytest.importorskip("pyrealsense2")
@@ -33,6 +33,8 @@ N_FRAMES = 45
 STEP_M, TURN_RAD = 0.015, 0.004  # per frame: forward along the start heading, and yaw
 PERIOD_NS = 33_333_333  # [ns] 30 Hz
 START_NS = 5_000_000_000  # [ns] device clock of the first frame
+GYRO_PERIOD_NS = 5_000_000  # [ns] 200 Hz
+YAW_RATE = TURN_RAD * 1e9 / PERIOD_NS  # [rad/s]
 runner = CliRunner()
 
 
@@ -56,7 +58,10 @@ def _route_frames() -> list[RgbdFrame]:
 def route(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[RgbdFrame]]:
     frames = _route_frames()
     path = tmp_path_factory.mktemp("rs") / "route.db3"
-    assert write_sdk_recording(path, frames, depth_units=DEPTH_UNITS, pace=True) == N_FRAMES
+    stamps = np.arange(START_NS, frames[-1].stamp_ns, GYRO_PERIOD_NS, dtype=np.int64)
+    gyro = ImuStream(stamps, np.full(len(stamps), YAW_RATE))  # a D435i's gyro, turning left
+    n = write_sdk_recording(path, frames, depth_units=DEPTH_UNITS, gyro=gyro, pace=True)
+    assert n == N_FRAMES
     return path, frames
 
 
@@ -84,6 +89,15 @@ def test_a_recording_reads_its_own_intrinsics_depth_units_and_frames(route) -> N
         valid = np.isfinite(want.depth_m) & (want.depth_m > 0) & (want.depth_m < 30.0)
         err = np.abs(got.depth_m[valid] - want.depth_m[valid])
         assert np.median(err) <= DEPTH_UNITS  # quantised to the recording's units, not mm
+
+
+def test_a_recordings_gyro_is_the_imu_yaw_rate(route) -> None:
+    path, truth = route
+    with open_source(f"realsense://{path}") as src:
+        imu = src.imu()
+    assert imu is not None and len(imu.stamps_ns) >= 0.9 * (N_FRAMES - 1) * PERIOD_NS / 5e6
+    assert imu.stamps_ns[0] == START_NS and np.all(np.diff(imu.stamps_ns) == GYRO_PERIOD_NS)
+    np.testing.assert_allclose(imu.gyro_z, YAW_RATE, rtol=1e-6)  # -gyro_y: yaw about "up"
 
 
 def test_a_recording_reads_its_depth_to_colour_extrinsics(tmp_path: Path) -> None:
@@ -115,6 +129,7 @@ def test_odometry_and_map_of_a_recording_follow_the_route(route, tmp_path: Path)
     assert yaw == pytest.approx((N_FRAMES - 1) * TURN_RAD, abs=0.03)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == N_FRAMES and "fx=570.0" in summary["source_kind"]
+    assert summary["ekf"]["stats"]["sensors"]["imu0"]["fused"] > 0, summary["ekf"]  # the gyro
     res = runner.invoke(app, ["map", f"realsense://{path}", "-o", str(tmp_path / "map"), "-q",
                               "--force-3dof"])  # fmt: skip
     assert res.exit_code == 0, res.output
@@ -189,9 +204,13 @@ def test_the_recording_opened_as_a_plain_rosbag_reads_its_own_camera(route) -> N
         assert "depth units 0.5 mm from /device_0/sensor_0/option/Depth_Units/value" in text
         assert "NOT registered" not in text  # same intrinsics, no offset: registered already
         first = next(iter(bag.frames()))
-    want = truth[0].depth_m
-    valid = np.isfinite(want) & (want > 0) & (want < 30.0)
-    assert np.median(np.abs(first.depth_m[valid] - want[valid])) <= DEPTH_UNITS
+
+    def error(want: np.ndarray) -> float:
+        valid = np.isfinite(want) & (want > 0) & (want < 30.0)
+        return float(np.median(np.abs(first.depth_m[valid] - want[valid])))
+
+    # The bag pairs by recorded capture time, which a loaded machine may skew by a frame.
+    assert min(error(f.depth_m) for f in truth[:3]) <= DEPTH_UNITS
 
 
 def test_a_rosbag_with_unregistered_sdk_depth_says_how_to_align_it(tmp_path: Path) -> None:
