@@ -164,7 +164,9 @@ def info(
     source_text: Annotated[
         str,
         typer.Argument(
-            metavar="SOURCE", help="Recording, TUM folder, CARMEN log, bag, .oni, openni://, world."
+            metavar="SOURCE",
+            help="Recording, TUM folder, CARMEN log, bag, .oni, world, or a camera URI "
+            "(realsense://, freenect://, openni://).",
         ),
     ],
     config: ConfigOpt = None,
@@ -427,7 +429,10 @@ def navigate(
 def live(
     out: OutOpt,
     camera: Annotated[
-        str, typer.Option(help="sim, or an OpenNI2 device: openni:// (first) / openni://URI.")
+        str,
+        typer.Option(
+            help="sim, or a camera: realsense://[SERIAL|FILE.db3], freenect://[N], openni://[URI]."
+        ),
     ] = "sim",
     board: Annotated[
         str, typer.Option(help="sim, the board's serial port (/dev/ttyUSB0), or none.")
