@@ -226,3 +226,13 @@ def test_a_rosbag_with_unregistered_sdk_depth_says_how_to_align_it(tmp_path: Pat
         text = bag.describe()
     assert "translation (-15.0, +0.0, +0.0) mm from /device_0/sensor_1/Color_0/tf/ref_1" in text
     assert f"open it as realsense://{path}" in text
+
+
+@pytest.mark.parametrize(("camera", "match"),
+                         [("realsense://", "no RealSense camera found"),
+                          ("freenect://", "freenect")])  # fmt: skip
+def test_live_without_the_camera_fails_in_one_line(tmp_path: Path, camera: str, match: str) -> None:
+    res = runner.invoke(app, ["live", "--camera", camera, "--board", "none", "--duration", "3",
+                              "--out", str(tmp_path / "x"), "-q"])  # fmt: skip
+    assert res.exit_code == 1, res.output
+    assert match in res.output and "Traceback" not in res.output
