@@ -196,7 +196,7 @@ def info(
 
     src = open_source(source_text, source_options(load_config(config or [], set_ or [])))
     try:
-        typer.echo(f"{source}: {src.describe()}")
+        typer.echo(f"{source_text}: {src.describe()}")
         typer.echo(format_stats_table(describe_source(src)))
         if src.skipped:
             typer.echo(f"skipped while reading: {src.skipped}")

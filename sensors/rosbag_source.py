@@ -1006,7 +1006,7 @@ class RosbagSource(SourceBase):
             units = units_topic = extr = extr_topic = depth_k = None
             for topic in sorted(self._topic_types):
                 if SDK_DEPTH_UNITS.match(topic):
-                    value = getattr(self._first_message(topic), "data", None)
+                    value: Any = getattr(self._first_message(topic), "data", None)
                     try:
                         units, units_topic = float(value), topic  # String or Float32
                     except (TypeError, ValueError):
