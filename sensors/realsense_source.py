@@ -245,9 +245,13 @@ class RealSenseSource(SourceBase):
                 clock=clock,
                 max_difference_ns=max_difference_ns,
             )
+        except SensorError:
+            pipeline.stop()  # e.g. a stream format rgbdnav does not read
+            raise
         except RuntimeError as err:
             pipeline.stop()
-            raise SensorError(f"{target}: RealSense SDK: {err}") from err
+            where = target.file or f"RealSense camera {target.serial or ''}"
+            raise SensorError(f"{where}: RealSense SDK: {err}") from err
 
     @staticmethod
     def _find_camera(rs: ModuleType, serial: str | None) -> str:
