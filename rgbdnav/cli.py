@@ -302,8 +302,9 @@ def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
     from rgbdnav.cache import cached_recording_path
     from sensors.recording import Recording
     from sensors.sim.simulator import simulate
+    from sensors.source import is_device_uri
 
-    if not source.exists():
+    if not source.exists() and not is_device_uri(source):
         raise RgbdNavError(f"{source}: no such file or folder")
     if not _is_world(source):
         return source
@@ -338,7 +339,9 @@ def info(
     source_text: Annotated[
         str,
         typer.Argument(
-            metavar="SOURCE", help="Recording, TUM folder, CARMEN log, bag, .oni, openni://, world."
+            metavar="SOURCE",
+            help="Recording, TUM folder, CARMEN log, bag, .oni, world, or a camera URI "
+            "(realsense://, freenect://, openni://).",
         ),
     ],
     config: ConfigOpt = None,
@@ -381,7 +384,7 @@ def info(
     cfg = load_config(config or [], set_ or [])
     src = open_source(source_text, source_options(cfg, require_topics=False))
     try:
-        typer.echo(f"{source}: {src.describe()}")
+        typer.echo(f"{source_text}: {src.describe()}")
         typer.echo(format_stats_table(describe_source(src)))
         if hasattr(src, "static_extrinsics"):
             from rgbdnav.config import camera_mount
@@ -682,7 +685,10 @@ def live(
     ctx: typer.Context,
     out: OutOpt,
     camera: Annotated[
-        str, typer.Option(help="sim, or an OpenNI2 device: openni:// (first) / openni://URI.")
+        str,
+        typer.Option(
+            help="sim, or a camera: realsense://[SERIAL|FILE.db3], freenect://[N], openni://[URI]."
+        ),
     ] = "sim",
     board: Annotated[
         str,

@@ -1,5 +1,5 @@
 """Registers the built-in source adapters with :func:`sensors.source.open_source`, most specific
-first. Optional adapters (rosbags, OpenNI) import their heavy libraries only when opening."""
+first. Optional adapters (rosbags, OpenNI, RealSense, libfreenect) load their libraries on open."""
 
 from __future__ import annotations
 
@@ -13,8 +13,12 @@ register_opener("TUM RGB-D folder", TumFolderSource.try_open)
 register_opener("CARMEN log", CarmenSource.try_open)
 
 # Optional adapters: their try_open only looks at the path; rosbags/openni load when opening.
+from sensors.freenect_source import FreenectSource  # noqa: E402
 from sensors.openni_source import OpenNISource  # noqa: E402
+from sensors.realsense_source import RealSenseSource  # noqa: E402
 from sensors.rosbag_source import RosbagSource  # noqa: E402
 
 register_opener("rosbag", RosbagSource.try_open)
 register_opener("OpenNI2", OpenNISource.try_open, uri=True)
+register_opener("RealSense", RealSenseSource.try_open, uri=True)
+register_opener("libfreenect", FreenectSource.try_open, uri=True)

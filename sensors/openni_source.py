@@ -319,7 +319,11 @@ class OpenNISource(SourceBase):
         target = parse_target(path)
         camera = options.camera if options else None
         sync = options.sync if options else None
-        return None if target is None else cls.open(target, camera=camera, sync=sync)
+        if target is None:
+            return None
+        # The live run (realtime) stamps everything on time.monotonic_ns, as the board does.
+        clock = time.monotonic_ns if options and options.realtime else time.time_ns
+        return cls.open(target, camera=camera, sync=sync, clock=clock)
 
     @classmethod
     def open(

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import struct
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
@@ -129,6 +130,22 @@ class RosbagTopics:
 
 
 ROLES: tuple[str, ...] = tuple(f.name for f in fields(RosbagTopics))
+
+# RealSense SDK recordings (rs.recorder, RealSense Viewer): /device_N/sensor_M/<Stream>_K/...
+SDK_TOPIC = re.compile(r"^/device_\d+/sensor_\d+/")
+SDK_DEPTH_UNITS = re.compile(r"^/device_\d+/sensor_\d+/option/Depth[ _]Units/value$")
+SDK_STREAM = re.compile(r"^(/device_\d+/sensor_\d+/[A-Za-z]+_\d+)/")
+
+
+@dataclass(frozen=True)
+class SdkMeta:
+    """What a RealSense SDK recording says about itself, and the topic each value came from."""
+
+    depth_units: float | None  # [m/count] of 16-bit depth
+    depth_units_topic: str | None
+    extrinsics: tuple[tuple[float, ...], tuple[float, ...]] | None  # colour rel. depth (R, t)
+    extrinsics_topic: str | None
+    depth_k: tuple[float, ...] | None  # depth stream's own K (row-major)
 
 
 @dataclass(frozen=True)
@@ -579,11 +596,42 @@ def _auto_pick(
             [
                 lambda t: _namespace(t) == _namespace(rgb.topic if rgb else None),
                 lambda t: _namespace(t) == _namespace(depth.topic if depth else None),
+                # RealSense SDK recordings: .../Color_0/image/camera_info (or info/camera_info)
+                # shares the most path components with .../Color_0/image/data
+                lambda t: (
+                    _shared_depth(t, rgb.topic if rgb else None)
+                    == max(_shared_depth(c, rgb.topic if rgb else None) for c in candidates)
+                ),
             ],
         )
     if role == "wheels":
         return _narrow(candidates, [lambda t: "wheel" in t.lower() or "encoder" in t.lower()])
     return _narrow(candidates, [])
+
+
+def _shared_depth(a: str, b: str | None) -> int:
+    """How many leading path components two topics share."""
+    if b is None:
+        return 0
+    n = 0
+    for x, y in zip(a.strip("/").split("/"), b.strip("/").split("/"), strict=False):
+        if x != y:
+            break
+        n += 1
+    return n
+
+
+def parse_sdk_transform(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """RealSense SDK ``tf`` string ``rotation=r0,...,r8;translation=x,y,z`` -> (R row-major, t)."""
+    fields_ = dict(part.split("=", 1) for part in text.strip(";").split(";") if "=" in part)
+    try:
+        rotation = tuple(float(v) for v in fields_["rotation"].split(","))
+        translation = tuple(float(v) for v in fields_["translation"].split(","))
+    except (KeyError, ValueError) as err:
+        raise SensorError(f"RealSense SDK transform {text!r} is unreadable") from err
+    if len(rotation) != 9 or len(translation) != 3:
+        raise SensorError(f"RealSense SDK transform {text!r} is not 3x3 + 3")
+    return rotation, translation
 
 
 def _nearest_sorted(sorted_values: np.ndarray, queries: np.ndarray) -> np.ndarray:
@@ -829,6 +877,7 @@ class RosbagSource(SourceBase):
         if self.choices["camera_info"].topic is None and self._has_images():
             k = self._config_intrinsics()
             parts.append(f"intrinsics from config: fx={k.fx:g} fy={k.fy:g} cx={k.cx:g} cy={k.cy:g}")
+        parts += self._describe_sdk()
         others = [
             f"{t} ({short_type(ty)}, {self._topic_counts.get(t, 0)})"
             for t, ty in sorted(self._topic_types.items())
@@ -1126,6 +1175,86 @@ class RosbagSource(SourceBase):
         return _Index(stamps, receive)
 
     def _decode_image(self, role: str, raw: bytes) -> np.ndarray | None:
+        image = self._decode_image_as_is(role, raw)
+        sdk = self._sdk_meta() if role == "depth" else None
+        if image is None or sdk is None or sdk.depth_units is None:
+            return image
+        msg_encoding = self._cache.setdefault("depth_encoding", self._depth_encoding(raw))
+        if "32FC1" in msg_encoding:
+            return image  # metres already
+        # the decoders read 16-bit depth as mm; the SDK's counts are depth_units metres
+        return (image * np.float32(sdk.depth_units * MM_PER_M)).astype(np.float32)
+
+    def _depth_encoding(self, raw: bytes) -> str:
+        msg = self._deserialize("depth", raw)
+        return str(getattr(msg, "format", None) or getattr(msg, "encoding", ""))
+
+    def _first_message(self, topic: str) -> Any:
+        assert self._reader is not None
+        conn = self._connections[topic]
+        for c, _t, raw in self._reader.messages(connections=[conn]):
+            return self._reader.deserialize(raw, c.msgtype)
+        return None
+
+    def _sdk_meta(self) -> SdkMeta | None:
+        """Depth units, colour-depth extrinsics and the depth stream's K of an SDK recording."""
+        if "sdk" in self._cache:
+            return self._cache["sdk"]
+        meta = None
+        if any(SDK_TOPIC.match(t) for t in self._topic_types):
+            units = units_topic = extr = extr_topic = depth_k = None
+            for topic in sorted(self._topic_types):
+                if SDK_DEPTH_UNITS.match(topic):
+                    value: Any = getattr(self._first_message(topic), "data", None)
+                    try:
+                        units, units_topic = float(value), topic  # String or Float32
+                    except (TypeError, ValueError):
+                        log.warning("%s: depth units %r unreadable", topic, value)
+            rgb, depth = self.choices["rgb"].topic, self.choices["depth"].topic
+            colour = SDK_STREAM.match(rgb or "")
+            if colour:
+                for topic, ty in sorted(self._topic_types.items()):
+                    if topic.startswith(f"{colour.group(1)}/tf/") and ty == "std_msgs/msg/String":
+                        extr = parse_sdk_transform(str(self._first_message(topic).data))
+                        extr_topic = topic
+                        break
+            stream = SDK_STREAM.match(depth or "")
+            if stream:
+                for topic, ty in sorted(self._topic_types.items()):
+                    if topic.startswith(f"{stream.group(1)}/") and ty == CAMERA_INFO:
+                        depth_k = tuple(float(v) for v in self._first_message(topic).k)
+                        break
+            meta = SdkMeta(units, units_topic, extr, extr_topic, depth_k)
+        self._cache["sdk"] = meta
+        return meta
+
+    def _describe_sdk(self) -> list[str]:
+        sdk = self._sdk_meta()
+        if sdk is None:
+            return []
+        parts = []
+        if sdk.depth_units is not None:
+            parts.append(
+                f"depth units {sdk.depth_units * MM_PER_M:g} mm from {sdk.depth_units_topic}"
+            )
+        if sdk.extrinsics is not None:
+            t = ", ".join(f"{v * MM_PER_M:+.1f}" for v in sdk.extrinsics[1])
+            parts.append(
+                f"colour-depth extrinsics: translation ({t}) mm from {sdk.extrinsics_topic}"
+            )
+        infos = self._camera_infos()
+        colour_k = infos.intrinsics[0] if infos is not None and infos.intrinsics else None
+        if sdk.depth_k is not None and colour_k is not None:
+            same_k = np.allclose(sdk.depth_k, colour_k.matrix().ravel())
+            moved = sdk.extrinsics is not None and np.any(np.abs(sdk.extrinsics[1]) > 1e-4)
+            if not same_k or moved:
+                parts.append(
+                    "depth is NOT registered to colour (own intrinsics or offset): open it as "
+                    f"realsense://{self.path} to align depth to colour"
+                )
+        return parts
+
+    def _decode_image_as_is(self, role: str, raw: bytes) -> np.ndarray | None:
         try:
             msg = self._deserialize(role, raw)
             if self.choices[role].msgtype == COMPRESSED_IMAGE:

@@ -131,10 +131,13 @@ class SourceOptions:
     strict: bool = False  # raise on the first bad record instead of counting skips
     sync: SyncConfig | None = None  # association windows (rosbag and OpenNI readers)
     require_topics: bool = False  # a bag's missing/ambiguous topic is an error, not a skip
+    realtime: bool = False  # device recordings play in real time, stamped like a camera (live)
 
 
 Opener = Callable[[Path | str, SourceOptions], "Source | None"]
 _URI = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")  # pseudo-paths such as openni://
+# The same after Path() collapsed its "//" (a CLI argument typed as a path): realsense:/x.db3
+_COLLAPSED_URI = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]+:/")
 _OPENERS: list[tuple[str, Opener, bool]] = []
 
 
@@ -145,6 +148,13 @@ def register_opener(name: str, opener: Opener, uri: bool = False) -> None:
     _OPENERS.append((name, opener, uri))
 
 
+def is_device_uri(path: str | Path) -> bool:
+    """A device URI such as ``openni://`` or ``realsense://x.db3``, even after Path() collapsed
+    its ``//``: not a file path to check for existence."""
+    text = str(path)
+    return bool(_URI.match(text) or (isinstance(path, Path) and _COLLAPSED_URI.match(text)))
+
+
 def open_source(path: str | Path, options: SourceOptions | None = None) -> Source:
     """The first registered adapter that recognises ``path``; a clear error if none does."""
     import sensors.adapters  # noqa: F401  (registers the built-in adapters)
@@ -152,7 +162,7 @@ def open_source(path: str | Path, options: SourceOptions | None = None) -> Sourc
     opts = options or SourceOptions()
     kinds = ", ".join(name for name, _, _ in _OPENERS)
     text = str(path)
-    if isinstance(path, str) and _URI.match(text):
+    if is_device_uri(path):
         # A device URI: no file to check, and Path() would collapse its double slashes.
         for _name, opener, uri in _OPENERS:
             src = opener(text, opts) if uri else None

@@ -131,7 +131,7 @@ class Drill:
 @dataclass(frozen=True)
 class LiveOptions:
     out: Path
-    camera: str = "sim"  # "sim" or an OpenNI2 target ("openni://", "openni://<uri>", x.oni)
+    camera: str = "sim"  # "sim" or a camera URI/recording: openni://, realsense://, freenect://
     joystick: str | None = None  # /dev/input/eventN: evdev joystick teleop (nav.joystick)
     board: str = "sim"  # "sim", a device spec (sensors.motor_board), emulator:KIND, or "none"
     world: Path | None = None  # simulator world (camera or board "sim")
@@ -357,7 +357,8 @@ class LiveRun:
                                          read_speed_heading=False)  # fmt: skip
         if opts.camera == "sim":
             return self._sim_frames()
-        self.camera_src = open_source(opts.camera, source_options(cfg))
+        # realtime: a device recording plays at its own pace, stamped like a camera.
+        self.camera_src = open_source(opts.camera, replace(source_options(cfg), realtime=True))
         return iter(self.camera_src.frames())
 
     def _turn_sim_wheels(self) -> None:

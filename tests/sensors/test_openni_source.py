@@ -285,6 +285,22 @@ def test_a_live_device_is_configured_and_yields_registered_frames_on_the_host_cl
     assert colour.closed and depth.closed and device.closed
 
 
+def test_the_live_run_gets_frames_on_its_monotonic_clock(install):
+    """``rgbdnav live`` opens cameras with ``realtime``: stamps on time.monotonic_ns, as the
+    board's readings and the live run's latency clock, not wall time."""
+    import time
+
+    from sensors.source import SourceOptions
+
+    colour, depth = make_streams(1)
+    install(fake_openni2(FakeDevice(None, colour, depth)))
+    src = OpenNISource.try_open("openni://", SourceOptions(realtime=True))
+    assert src is not None
+    stamp = next(iter(src.frames())).stamp_ns
+    assert abs(stamp - time.monotonic_ns()) < 1e9
+    src.close()
+
+
 def test_a_silent_live_device_is_an_error_not_a_hang(install):
     colour, depth = make_streams(1)
     install(fake_openni2(FakeDevice(None, colour, depth)))

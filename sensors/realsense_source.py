@@ -1,0 +1,498 @@
+"""An Intel RealSense camera (D415/D435/D435i/D455) or a RealSense SDK recording as a
+:class:`~sensors.source.Source`, through the optional PyPI wheel ``pyrealsense2`` (SDK inside).
+
+Targets: ``realsense://`` (the first camera), ``realsense://SERIAL`` and ``realsense://FILE.db3`` /
+``realsense://FILE.bag`` (a recording by RealSense Viewer or ``rs.recorder``; SDK 2.59 writes
+rosbag2 ``.db3``, older SDKs rosbag1 ``.bag``). A camera streams colour (RGB8) and depth (Z16) at
+640x480 @ 30 Hz; a recording plays its recorded streams. Both go through the same code: depth is
+aligned to colour with ``rs.align``, so the intrinsics are the colour stream's, the depth units
+(metres per count) are the depth sensor's ``depth_units`` option, and the colour-depth extrinsics
+are the device's (or the recording's) calibration. ``describe`` says where each came from.
+
+Stamps: for ``rgbdnav live`` (``SourceOptions.realtime``) device stamps are shifted by a constant,
+fixed at the first frame, onto the live run's clock (``time.monotonic_ns``, as the board's): free of
+jitter, yet comparable with the wheels. A recording then plays in real time and is stamped the
+same way, so the live run cannot tell it from a camera. Offline, a recording plays as fast as it is
+read (``set_real_time(False)``) with its recorded clock, and a camera's ``global_time`` stamps
+(librealsense's default on D400s: host wall time) are kept.
+
+The D435i/D455 gyro (200 Hz) is the IMU: ``imu()`` of a recording holding a gyro stream yields the
+yaw rate, -gyro_y (the IMU frame is x right, y down, z forward; a level camera's yaw is about -y).
+
+Installing: ``pip install 'rgbdnav[realsense]'``; for a non-root user on Linux, librealsense's udev
+rules (``99-realsense-libusb.rules``) must be installed, see docs/guide.md.
+"""
+
+from __future__ import annotations
+
+import importlib
+import itertools
+import logging
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+from sensors.config import SyncConfig
+from sensors.source import ImuStream, SourceBase, SourceOptions
+from sensors.types import CameraIntrinsics, RgbdFrame, SensorError, seconds_to_ns
+
+log = logging.getLogger(__name__)
+
+SCHEME = "realsense:"
+RECORDING_SUFFIXES = (".db3", ".bag")
+LIVE_MODE = (640, 480, 30)  # [px], [px], [Hz]
+FRAME_TIMEOUT_MS = 2000  # [ms] a camera silent this long is gone
+NS_PER_MS = 1_000_000  # [ns/ms] librealsense stamps are milliseconds
+# librealsense colour formats -> channel order to RGB
+COLOUR_FORMATS = {"rgb8": [0, 1, 2], "bgr8": [2, 1, 0], "rgba8": [0, 1, 2], "bgra8": [2, 1, 0]}
+UDEV_HELP = (
+    "without librealsense's udev rules only root can open the camera: `sudo curl -o "
+    "/etc/udev/rules.d/99-realsense-libusb.rules https://raw.githubusercontent.com/IntelRealSense/"
+    "librealsense/master/config/99-realsense-libusb.rules && sudo udevadm control --reload-rules "
+    "&& sudo udevadm trigger`, then replug the camera"
+)
+INSTALL_HELP = "pip install 'rgbdnav[realsense]' (or pip install pyrealsense2)"
+
+
+@dataclass(frozen=True)
+class RealSenseTarget:
+    """A camera (``serial`` None = the first one) or a recording file."""
+
+    serial: str | None = None
+    file: Path | None = None
+
+
+def parse_target(path: Path | str) -> RealSenseTarget | None:
+    """``realsense://``, ``realsense://SERIAL``, ``realsense://FILE.db3|.bag``; else None."""
+    text = str(path)
+    if not text.lower().startswith(SCHEME):
+        return None
+    rest = text[len(SCHEME) :]
+    if Path(rest).suffix.lower() in RECORDING_SUFFIXES:
+        if rest.startswith("//"):
+            return RealSenseTarget(file=Path(rest[2:]))
+        # realsense:/a/b.db3 (Path collapsed "//"): absolute if that exists, else relative
+        absolute = Path(rest)
+        return RealSenseTarget(file=absolute if absolute.exists() else Path(rest.lstrip("/")))
+    return RealSenseTarget(serial=rest.strip("/") or None)
+
+
+def load_pyrealsense2() -> ModuleType:
+    try:
+        return importlib.import_module("pyrealsense2")
+    except ImportError as err:
+        raise SensorError(f"RealSense needs the pyrealsense2 wheel: {INSTALL_HELP}") from err
+
+
+def depth_to_metres(counts: np.ndarray, depth_units: float) -> np.ndarray:
+    """Z16 counts -> float32 [m]; 0 stays 0 (invalid)."""
+    return (counts.astype(np.float32) * np.float32(depth_units)).astype(np.float32)
+
+
+def host_offset_ns(stamp_ms: float, host_ns: int) -> int:
+    """Constant that maps a device stamp [ms] onto the host clock at one frame."""
+    return host_ns - round(stamp_ms * NS_PER_MS)
+
+
+def _stamp_ns(stamp_ms: float, offset_ns: int) -> int:
+    return round(stamp_ms * NS_PER_MS) + offset_ns
+
+
+def _info(rs: ModuleType, device: Any, field: str) -> str:
+    info = getattr(rs.camera_info, field)
+    return str(device.get_info(info)) if device.supports(info) else "?"
+
+
+def _describe_extrinsics(rotation: Sequence[float], translation: Sequence[float]) -> str:
+    r = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    angle = np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+    t = ", ".join(f"{v * 1000.0:+.1f}" for v in translation)
+    return f"translation ({t}) mm, rotation {angle:.2f} deg"
+
+
+class RealSenseSource(SourceBase):
+    """A camera or an SDK recording, depth aligned to colour. Use :meth:`open`."""
+
+    def __init__(
+        self,
+        rs: ModuleType,
+        target: RealSenseTarget,
+        pipeline: Any,
+        profile: Any,
+        *,
+        realtime: bool,
+        clock: Callable[[], int],
+        max_difference_ns: int,
+    ) -> None:
+        self.path = f"realsense://{target.file or target.serial or ''}"
+        self.skipped: dict[str, int] = {}
+        self.target = target
+        self._rs = rs
+        self._pipeline: Any = pipeline
+        self._realtime = realtime
+        self._clock = clock
+        self._max_difference_ns = max_difference_ns
+        device = profile.get_device()
+        self.device_name = _info(rs, device, "name")
+        self.serial = _info(rs, device, "serial_number")
+        self._playback = device.as_playback() if target.file is not None else None
+        if self._playback is not None:
+            self._playback.set_real_time(realtime)
+        colour = profile.get_stream(rs.stream.color).as_video_stream_profile()
+        depth = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+        k = colour.get_intrinsics()
+        sensor = device.first_depth_sensor()
+        has_units = sensor.supports(rs.option.depth_units)
+        units = float(sensor.get_option(rs.option.depth_units)) if has_units else 0.001
+        self.depth_units = units  # [m/count]
+        self.depth_units_from = "depth_units option" if has_units else "(no option: 1 mm assumed)"
+        self._intrinsics = CameraIntrinsics(
+            int(k.width),
+            int(k.height),
+            float(k.fx),
+            float(k.fy),
+            float(k.ppx),
+            float(k.ppy),
+            1.0 / units,
+        )
+        ex = depth.get_extrinsics_to(colour)
+        self.extrinsics = (tuple(ex.rotation), tuple(ex.translation))  # depth -> colour
+        self._align = rs.align(rs.stream.color)
+        self._colour_format = str(colour.format()).rsplit(".", 1)[-1]
+        if self._colour_format not in COLOUR_FORMATS or depth.format() != rs.format.z16:
+            raise SensorError(
+                f"{self.path}: colour is {self._colour_format}, depth {depth.format()}; rgbdnav "
+                f"reads colour as {', '.join(COLOUR_FORMATS)} and depth as z16"
+            )
+        where = "the recording" if target.file is not None else "the camera"
+        self.origins = {
+            "intrinsics": f"{where}'s colour stream",
+            "depth_units": f"{where}'s {self.depth_units_from}",
+            "extrinsics": f"{where}'s depth-to-colour calibration",
+        }
+
+    # --- opening ------------------------------------------------------------------------------
+
+    @classmethod
+    def try_open(
+        cls, path: Path | str, options: SourceOptions | None = None
+    ) -> RealSenseSource | None:
+        target = parse_target(path)
+        realtime = bool(options and options.realtime)
+        sync = (options.sync if options else None) or SyncConfig()
+        if target is None:
+            return None
+        return cls.open(
+            target,
+            realtime=realtime,
+            clock=time.monotonic_ns if realtime else time.time_ns,
+            max_difference_ns=seconds_to_ns(sync.slop),
+        )
+
+    @classmethod
+    def open(
+        cls,
+        target: RealSenseTarget | str,
+        *,
+        realtime: bool = False,
+        clock: Callable[[], int] = time.time_ns,
+        max_difference_ns: int = seconds_to_ns(SyncConfig().slop),
+    ) -> RealSenseSource:
+        if not isinstance(target, RealSenseTarget):
+            parsed = parse_target(target)
+            if parsed is None:
+                raise SensorError(f"{target}: not a realsense:// camera or recording")
+            target = parsed
+        if target.file is not None and not target.file.is_file():
+            raise SensorError(f"{target.file}: no such RealSense recording")
+        rs = load_pyrealsense2()
+        config = rs.config()
+        if target.file is not None:
+            config.enable_device_from_file(str(target.file), repeat_playback=False)
+            config.enable_stream(rs.stream.color)  # as recorded; converted in frames()
+            config.enable_stream(rs.stream.depth)
+        else:
+            serial = cls._find_camera(rs, target.serial)
+            config.enable_device(serial)
+            width, height, fps = LIVE_MODE
+            config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
+            config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
+        pipeline = rs.pipeline()
+        try:
+            profile = pipeline.start(config)
+        except RuntimeError as err:
+            if target.file is not None:
+                raise SensorError(
+                    f"{target.file}: RealSense SDK cannot play it as colour + depth: {err}"
+                ) from err
+            hint = UDEV_HELP if "permission" in str(err).lower() else "is another program using it?"
+            raise SensorError(
+                f"RealSense camera {serial}: cannot start it ({err}); {hint}"
+            ) from err
+        try:
+            return cls(
+                rs,
+                target,
+                pipeline,
+                profile,
+                realtime=realtime,
+                clock=clock,
+                max_difference_ns=max_difference_ns,
+            )
+        except SensorError:
+            pipeline.stop()  # e.g. a stream format rgbdnav does not read
+            raise
+        except RuntimeError as err:
+            pipeline.stop()
+            where = target.file or f"RealSense camera {target.serial or ''}"
+            raise SensorError(f"{where}: RealSense SDK: {err}") from err
+
+    @staticmethod
+    def _find_camera(rs: ModuleType, serial: str | None) -> str:
+        devices = rs.context().query_devices()
+        serials = [d.get_info(rs.camera_info.serial_number) for d in devices]
+        if not serials:
+            raise SensorError(
+                "no RealSense camera found: is it plugged into a USB 3 port? On Linux, " + UDEV_HELP
+            )
+        if serial is None:
+            return str(serials[0])
+        if serial not in serials:
+            raise SensorError(
+                f"no RealSense camera with serial {serial}; connected: {', '.join(serials)}"
+            )
+        return serial
+
+    def close(self) -> None:
+        if self._pipeline is not None:
+            pipeline, self._pipeline = self._pipeline, None
+            pipeline.stop()
+
+    # --- Source -------------------------------------------------------------------------------
+
+    def describe(self) -> str:
+        k = self._intrinsics
+        what = (
+            f"RealSense SDK recording {self.target.file} ({self.device_name})"
+            if self.target.file is not None
+            else f"RealSense {self.device_name} serial {self.serial}, {LIVE_MODE[2]} Hz"
+        )
+        return (
+            f"{what}, depth aligned to colour; camera {k.width}x{k.height} fx={k.fx:.1f} "
+            f"fy={k.fy:.1f} cx={k.cx:g} cy={k.cy:g} from {self.origins['intrinsics']}; "
+            f"depth units {self.depth_units * 1000.0:g} mm from {self.origins['depth_units']}; "
+            f"depth-to-colour extrinsics {_describe_extrinsics(*self.extrinsics)} from "
+            f"{self.origins['extrinsics']}"
+        )
+
+    def stream_stamps(self) -> dict[str, np.ndarray]:
+        """Nothing is known before reading: a camera (or a recording played back) has no index."""
+        return {}
+
+    def intrinsics(self) -> CameraIntrinsics | None:
+        return self._intrinsics
+
+    def frames(self) -> Iterator[RgbdFrame]:
+        """Aligned colour/depth pairs until :meth:`close` (camera) or the recording's end."""
+        rs = self._rs
+        offset_ns: int | None = None
+        last_colour = -1
+        while self._pipeline is not None:
+            try:
+                ok, frameset = self._pipeline.try_wait_for_frames(FRAME_TIMEOUT_MS)
+            except RuntimeError as err:
+                raise SensorError(f"{self.path}: reading frames failed: {err}") from err
+            if not ok:
+                if self._playback is not None:
+                    return  # the recording ended
+                raise SensorError(
+                    f"{self.path}: no frames for {FRAME_TIMEOUT_MS / 1000:g} s; was the camera "
+                    "unplugged?"
+                )
+            colour, depth = frameset.get_color_frame(), frameset.get_depth_frame()
+            # The pipeline's syncer hands out a frameset per arriving frame, pairing it with the
+            # other stream's latest: keep each colour frame once, with a depth frame close to it.
+            reason = self._unusable(colour, depth, last_colour)
+            if reason:
+                self.skipped[reason] = self.skipped.get(reason, 0) + 1
+                continue
+            last_colour = colour.get_frame_number()
+            aligned = self._align.process(frameset)
+            colour, depth = aligned.get_color_frame(), aligned.get_depth_frame()
+            stamp_ms = float(colour.get_timestamp())
+            if offset_ns is None:
+                global_time = rs.timestamp_domain.global_time
+                if self._realtime:  # the live run's clock: monotonic host time
+                    keep = False
+                elif self._playback is not None:  # offline: the recorded clock
+                    keep = True
+                else:  # global_time is host wall time already
+                    keep = colour.get_frame_timestamp_domain() == global_time
+                offset_ns = 0 if keep else host_offset_ns(stamp_ms, self._clock())
+            channels = COLOUR_FORMATS[self._colour_format]
+            rgb = np.ascontiguousarray(np.asanyarray(colour.get_data())[..., channels])
+            counts = np.asanyarray(depth.get_data())
+            yield RgbdFrame(
+                _stamp_ns(stamp_ms, offset_ns),
+                rgb,
+                depth_to_metres(counts, self.depth_units),
+                self._intrinsics,
+            )
+
+    def _unusable(self, colour: Any, depth: Any, last_colour: int) -> str:
+        """Why a frameset is not a new colour/depth pair ("" if it is)."""
+        if not colour or not depth:
+            return "incomplete_frameset"
+        if colour.get_frame_number() == last_colour:
+            return "repeated_color"
+        gap_ms = abs(colour.get_timestamp() - depth.get_timestamp())
+        return "unpaired_color" if gap_ms * NS_PER_MS > self._max_difference_ns else ""
+
+    def imu(self) -> ImuStream | None:
+        """A recording's gyro as yaw rate (-gyro_y), read in a second pass; None without one."""
+        if self.target.file is None:
+            return None
+        rs = self._rs
+        config = rs.config()
+        config.enable_device_from_file(str(self.target.file), repeat_playback=False)
+        config.enable_stream(rs.stream.gyro)
+        pipeline = rs.pipeline()
+        try:
+            profile = pipeline.start(config)
+        except RuntimeError:
+            return None  # no gyro stream in the recording
+        stamps: list[int] = []
+        rates: list[float] = []
+        try:
+            profile.get_device().as_playback().set_real_time(False)
+            while True:
+                ok, frameset = pipeline.try_wait_for_frames(FRAME_TIMEOUT_MS)
+                if not ok:
+                    break
+                for frame in frameset:
+                    motion = frame.as_motion_frame()
+                    if motion:
+                        stamps.append(round(motion.get_timestamp() * NS_PER_MS))
+                        rates.append(-float(motion.get_motion_data().y))
+        finally:
+            pipeline.stop()
+        if not stamps:
+            return None
+        order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+        return ImuStream(np.asarray(stamps, dtype=np.int64)[order], np.asarray(rates)[order])
+
+
+# --- writing SDK recordings (librealsense's software device) -----------------------------------
+
+
+def write_sdk_recording(
+    path: Path,
+    frames: Iterable[RgbdFrame],
+    *,
+    depth_units: float = 0.001,
+    depth_to_colour_m: Sequence[float] = (0.0, 0.0, 0.0),
+    gyro: ImuStream | None = None,
+    pace: bool = False,
+) -> int:
+    """Record RGB-D frames as a RealSense SDK recording (``.db3``), as ``rs.recorder`` writes a
+    camera's, with no camera attached: a software device streams them with the frames' own
+    intrinsics (colour and depth), ``depth_units`` [m/count] and a depth-to-colour translation.
+    Device stamps are the frames' stamps; ``pace`` sleeps between frames so the recorded capture
+    times (what real-time playback follows) keep the frames' spacing. ``gyro`` adds a D435i-style
+    200 Hz gyro stream holding the yaw rates (as -gyro_y). Returns the frame count."""
+    rs = load_pyrealsense2()
+    frames = iter(frames)
+    first = next(frames, None)
+    if first is None:
+        raise SensorError(f"{path}: no frames to record")
+    k = first.intrinsics
+    device = rs.software_device()
+    sensors, profiles = {}, {}
+    for uid, (name, stream, fmt, bpp) in enumerate(
+        (
+            ("Depth", rs.stream.depth, rs.format.z16, 2),
+            ("Color", rs.stream.color, rs.format.rgb8, 3),
+        )
+    ):
+        intr = rs.intrinsics()
+        intr.width, intr.height, intr.fx, intr.fy = k.width, k.height, k.fx, k.fy
+        intr.ppx, intr.ppy, intr.model, intr.coeffs = k.cx, k.cy, rs.distortion.none, [0.0] * 5
+        vs = rs.video_stream()
+        vs.type, vs.index, vs.uid, vs.width, vs.height = stream, 0, uid, k.width, k.height
+        vs.fps, vs.bpp, vs.fmt, vs.intrinsics = LIVE_MODE[2], bpp, fmt, intr
+        sensors[name] = device.add_sensor(name)
+        profiles[name] = sensors[name].add_video_stream(vs)
+    if gyro is not None:
+        ms = rs.motion_stream()
+        ms.type, ms.index, ms.uid, ms.fps, ms.fmt = (
+            rs.stream.gyro,
+            0,
+            2,
+            200,
+            rs.format.motion_xyz32f,
+        )
+        ms.intrinsics = rs.motion_device_intrinsic()
+        sensors["Motion Module"] = device.add_sensor("Motion Module")
+        profiles["Motion Module"] = sensors["Motion Module"].add_motion_stream(ms)
+    sensors["Depth"].add_read_only_option(rs.option.depth_units, depth_units)
+    ex = rs.extrinsics()
+    ex.rotation, ex.translation = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0], list(depth_to_colour_m)
+    profiles["Depth"].register_extrinsics_to(profiles["Color"], ex)
+    device.create_matcher(rs.matchers.default)
+    recorder = rs.recorder(str(path), device)
+    queue = rs.frame_queue(64)
+    for name in sensors:
+        sensors[name].open(profiles[name])
+        sensors[name].start(queue)
+    count, t0_ns, wall0 = 0, first.stamp_ns, time.monotonic()
+    n_gyro = 0
+
+    def send_gyro(until_ns: float) -> None:
+        nonlocal n_gyro
+        while (
+            gyro is not None and n_gyro < len(gyro.stamps_ns) and gyro.stamps_ns[n_gyro] <= until_ns
+        ):
+            f = rs.software_motion_frame()
+            v = rs.vector()
+            v.x, v.y, v.z = 0.0, -float(gyro.gyro_z[n_gyro]), 0.0
+            f.data, f.timestamp = v, int(gyro.stamps_ns[n_gyro]) / NS_PER_MS
+            f.domain, f.frame_number = rs.timestamp_domain.hardware_clock, n_gyro
+            f.profile = profiles["Motion Module"].as_motion_stream_profile()
+            sensors["Motion Module"].on_motion_frame(f)
+            n_gyro += 1
+
+    try:
+        for frame in itertools.chain((first,), frames):
+            if pace:
+                time.sleep(max(0.0, (frame.stamp_ns - t0_ns) / 1e9 - (time.monotonic() - wall0)))
+            send_gyro(frame.stamp_ns)
+            counts = np.round(np.nan_to_num(frame.depth_m, nan=0.0) / depth_units)
+            pixels = {
+                "Depth": np.clip(counts, 0, 65535).astype(np.uint16),
+                "Color": np.ascontiguousarray(frame.rgb, dtype=np.uint8),
+            }
+            for name, bpp in (("Depth", 2), ("Color", 3)):
+                f = rs.software_video_frame()
+                f.pixels, f.bpp, f.stride = pixels[name], bpp, k.width * bpp
+                f.timestamp, f.frame_number = frame.stamp_ns / NS_PER_MS, count
+                f.domain = rs.timestamp_domain.hardware_clock
+                f.profile = profiles[name].as_video_stream_profile()
+                if name == "Depth":
+                    f.depth_units = depth_units
+                sensors[name].on_video_frame(f)
+            while queue.poll_for_frame():
+                pass  # the recorder has it; keep the queue from filling
+            count += 1
+        send_gyro(math.inf)
+    finally:
+        for sensor in sensors.values():
+            sensor.stop()
+            sensor.close()
+        del recorder  # closes the file
+    return count

@@ -1,0 +1,238 @@
+"""RealSense SDK recordings written with librealsense's software device (no camera): a simulated
+route rendered with non-default intrinsics and depth units is recorded as ``rs.recorder`` would
+record a D435, then read back offline (``rgbdnav odometry`` / ``map``) and as a live camera."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from rgbdnav.cli import app
+from sensors.config import CameraConfig, RobotConfig, SimConfig
+from sensors.realsense_source import (
+    RealSenseSource,
+    RealSenseTarget,
+    parse_target,
+    write_sdk_recording,
+)
+from sensors.source import ImuStream, SourceOptions, open_source
+from sensors.types import CameraIntrinsics, RgbdFrame, SensorError
+
+pytest.importorskip("pyrealsense2")
+
+REPO = Path(__file__).resolve().parents[2]
+CAMERA = CameraConfig(fx=570.0, fy=568.0, cx=322.5, cy=236.5)  # not the Kinect defaults (525)
+DEPTH_UNITS = 0.0005  # [m/count] not the D400 default (1 mm)
+N_FRAMES = 45
+STEP_M, TURN_RAD = 0.015, 0.004  # per frame: forward along the start heading, and yaw
+PERIOD_NS = 33_333_333  # [ns] 30 Hz
+START_NS = 5_000_000_000  # [ns] device clock of the first frame
+GYRO_PERIOD_NS = 5_000_000  # [ns] 200 Hz
+YAW_RATE = TURN_RAD * 1e9 / PERIOD_NS  # [rad/s]
+runner = CliRunner()
+
+
+def _route_frames() -> list[RgbdFrame]:
+    from sensors.sim.render import KinectRenderer
+    from sensors.sim.world import load_world
+
+    world = load_world(REPO / "scenes" / "house.yaml")
+    renderer = KinectRenderer(world, CAMERA, RobotConfig(), SimConfig())
+    rng = np.random.default_rng(0)
+    x0, y0, yaw0 = world.start
+    frames = []
+    for i in range(N_FRAMES):
+        x, y = x0 + i * STEP_M * math.cos(yaw0), y0 + i * STEP_M * math.sin(yaw0)
+        rgb, depth = renderer.render(x, y, yaw0 + i * TURN_RAD, rng)
+        frames.append(RgbdFrame(START_NS + i * PERIOD_NS, rgb, depth, renderer.intrinsics))
+    return frames  # rendered first, so the recording's capture times keep the 30 Hz spacing
+
+
+@pytest.fixture(scope="module")
+def route(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[RgbdFrame]]:
+    frames = _route_frames()
+    path = tmp_path_factory.mktemp("rs") / "route.db3"
+    stamps = np.arange(START_NS, frames[-1].stamp_ns, GYRO_PERIOD_NS, dtype=np.int64)
+    gyro = ImuStream(stamps, np.full(len(stamps), YAW_RATE))  # a D435i's gyro, turning left
+    n = write_sdk_recording(path, frames, depth_units=DEPTH_UNITS, gyro=gyro, pace=True)
+    assert n == N_FRAMES
+    return path, frames
+
+
+def test_targets_name_a_camera_a_serial_or_a_recording() -> None:
+    assert parse_target("realsense://") == RealSenseTarget()
+    assert parse_target("realsense://123456789012") == RealSenseTarget(serial="123456789012")
+    assert parse_target("realsense:///data/run.db3") == RealSenseTarget(file=Path("/data/run.db3"))
+    assert parse_target("realsense://run.bag") == RealSenseTarget(file=Path("run.bag"))
+    assert parse_target("openni://") is None and parse_target("run.db3") is None
+
+
+def test_a_recording_reads_its_own_intrinsics_depth_units_and_frames(route) -> None:
+    path, truth = route
+    with open_source(f"realsense://{path}") as src:
+        k = src.intrinsics()
+        assert (k.fx, k.fy, k.cx, k.cy) == (570.0, 568.0, 322.5, 236.5)
+        assert src.depth_units == pytest.approx(DEPTH_UNITS)
+        text = src.describe()
+        assert "from the recording's colour stream" in text
+        assert "depth units 0.5 mm from the recording's depth_units option" in text
+        frames = list(src.frames())
+    assert [f.stamp_ns for f in frames] == [f.stamp_ns for f in truth]  # recorded clock, offline
+    for got, want in ((frames[0], truth[0]), (frames[-1], truth[-1])):
+        np.testing.assert_array_equal(got.rgb, want.rgb)
+        valid = np.isfinite(want.depth_m) & (want.depth_m > 0) & (want.depth_m < 30.0)
+        err = np.abs(got.depth_m[valid] - want.depth_m[valid])
+        assert np.median(err) <= DEPTH_UNITS  # quantised to the recording's units, not mm
+
+
+def test_a_recordings_gyro_is_the_imu_yaw_rate(route) -> None:
+    path, truth = route
+    with open_source(f"realsense://{path}") as src:
+        imu = src.imu()
+    assert imu is not None and len(imu.stamps_ns) >= 0.9 * (N_FRAMES - 1) * PERIOD_NS / 5e6
+    assert imu.stamps_ns[0] == START_NS and np.all(np.diff(imu.stamps_ns) == GYRO_PERIOD_NS)
+    np.testing.assert_allclose(imu.gyro_z, YAW_RATE, rtol=1e-6)  # -gyro_y: yaw about "up"
+
+
+def test_a_recording_reads_its_depth_to_colour_extrinsics(tmp_path: Path) -> None:
+    intr = CameraIntrinsics(640, 480, 600.0, 601.0, 320.5, 240.5)
+    frames = [
+        RgbdFrame(i * PERIOD_NS, np.full((480, 640, 3), 9 * i, np.uint8),
+                  np.full((480, 640), 2.0, np.float32), intr)
+        for i in range(3)
+    ]  # fmt: skip
+    path = tmp_path / "ex.db3"
+    write_sdk_recording(path, frames, depth_to_colour_m=(-0.015, 0.0, 0.0))
+    with RealSenseSource.open(f"realsense://{path}") as src:
+        rotation, translation = src.extrinsics
+        assert translation == pytest.approx((-0.015, 0.0, 0.0))
+        assert rotation == pytest.approx((1, 0, 0, 0, 1, 0, 0, 0, 1))
+        assert "translation (-15.0, +0.0, +0.0) mm" in src.describe().replace("-0.0", "+0.0")
+
+
+def test_odometry_and_map_of_a_recording_follow_the_route(route, tmp_path: Path) -> None:
+    path, _ = route
+    out = tmp_path / "odo"
+    res = runner.invoke(app, ["odometry", f"realsense://{path}", "-o", str(out), "-q",
+                              "--force-3dof"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    last = np.loadtxt(out / "vo.tum")[-1]
+    travelled = (N_FRAMES - 1) * STEP_M
+    assert math.hypot(last[1], last[2]) == pytest.approx(travelled, rel=0.1)
+    yaw = 2.0 * math.atan2(last[6], last[7])
+    assert yaw == pytest.approx((N_FRAMES - 1) * TURN_RAD, abs=0.03)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == N_FRAMES and "fx=570.0" in summary["source_kind"]
+    assert summary["ekf"]["stats"]["sensors"]["imu0"]["fused"] > 0, summary["ekf"]  # the gyro
+    res = runner.invoke(app, ["map", f"realsense://{path}", "-o", str(tmp_path / "map"), "-q",
+                              "--force-3dof"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "map bundle" in res.output and (tmp_path / "map" / "summary.json").exists()
+
+
+def test_a_recording_played_as_a_camera_keeps_its_timing(route) -> None:
+    path, truth = route
+    t0 = time.monotonic()
+    with open_source(f"realsense://{path}", SourceOptions(realtime=True)) as src:
+        arrivals, stamps = [], []
+        for frame in src.frames():
+            arrivals.append(time.monotonic_ns())
+            stamps.append(frame.stamp_ns)
+    wall = time.monotonic() - t0
+    assert len(stamps) >= N_FRAMES // 2  # a loaded machine may drop frames, as a camera would
+    recorded = {f.stamp_ns - truth[0].stamp_ns for f in truth}
+    assert all(s - stamps[0] in recorded for s in stamps)  # spacing kept: the device clock
+    assert abs(arrivals[0] - stamps[0]) < 0.2e9  # stamped on the live run's clock (monotonic)
+    assert wall >= 0.9 * (truth[-1].stamp_ns - truth[0].stamp_ns) / 1e9  # paced in real time
+
+
+def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) -> None:
+    path, _ = route
+    out = tmp_path / "live"
+    res = runner.invoke(app, ["live", "--camera", f"realsense://{path}", "--board", "none",
+                              "--out", str(out), "--duration", "3", "-q"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    s = json.loads((out / "summary.json").read_text())
+    assert s["errors"] == [] and s["counts"]["frames_processed"] >= 5
+    assert s["counts"]["scans_mapped"] >= 1
+    assert 0.0 <= s["camera_to_host_ms_p50"] < 10_000.0  # one clock with the host, not 1970
+
+
+@pytest.mark.parametrize(
+    ("uri", "match"),
+    [("realsense://", "no RealSense camera found"),
+     ("realsense://123", "no RealSense camera"),
+     ("realsense:///no/such.db3", "no such RealSense recording")],
+)  # fmt: skip
+def test_no_camera_or_file_is_one_error_line(uri: str, match: str) -> None:
+    res = runner.invoke(app, ["info", uri])
+    assert res.exit_code == 1
+    assert match in res.output and "Traceback" not in res.output
+    assert res.output.count("error:") == 1
+
+
+def test_without_pyrealsense2_the_error_says_what_to_install(monkeypatch) -> None:
+    import importlib
+
+    real = importlib.import_module
+
+    def fake(name: str, *args):
+        if name == "pyrealsense2":
+            raise ImportError(name)
+        return real(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", fake)
+    with pytest.raises(SensorError, match=r"pip install 'rgbdnav\[realsense\]'"):
+        RealSenseSource.open("realsense://")
+
+
+def test_the_recording_opened_as_a_plain_rosbag_reads_its_own_camera(route) -> None:
+    """The SDK topics (/device_0/sensor_N/...) are found, camera_info is the colour stream's (not
+    "ambiguous"), and 16-bit depth is scaled by the recording's depth units, not read as mm."""
+    path, truth = route
+    with open_source(path) as bag:
+        assert bag.choices["camera_info"].topic == "/device_0/sensor_1/Color_0/image/camera_info"
+        k = bag.intrinsics()
+        assert (k.fx, k.fy, k.cx, k.cy) == (570.0, 568.0, 322.5, 236.5)
+        text = bag.describe()
+        assert "depth units 0.5 mm from /device_0/sensor_0/option/Depth_Units/value" in text
+        assert "NOT registered" not in text  # same intrinsics, no offset: registered already
+        first = next(iter(bag.frames()))
+
+    def error(want: np.ndarray) -> float:
+        valid = np.isfinite(want) & (want > 0) & (want < 30.0)
+        return float(np.median(np.abs(first.depth_m[valid] - want[valid])))
+
+    # The bag pairs by recorded capture time, which a loaded machine may skew by a frame.
+    assert min(error(f.depth_m) for f in truth[:3]) <= DEPTH_UNITS
+
+
+def test_a_rosbag_with_unregistered_sdk_depth_says_how_to_align_it(tmp_path: Path) -> None:
+    intr = CameraIntrinsics(640, 480, 600.0, 601.0, 320.5, 240.5)
+    frames = [
+        RgbdFrame(i * PERIOD_NS, np.zeros((480, 640, 3), np.uint8),
+                  np.full((480, 640), 2.0, np.float32), intr)
+        for i in range(2)
+    ]  # fmt: skip
+    path = tmp_path / "offset.db3"
+    write_sdk_recording(path, frames, depth_to_colour_m=(-0.015, 0.0, 0.0))
+    with open_source(path) as bag:
+        text = bag.describe()
+    assert "translation (-15.0, +0.0, +0.0) mm from /device_0/sensor_1/Color_0/tf/ref_1" in text
+    assert f"open it as realsense://{path}" in text
+
+
+@pytest.mark.parametrize(("camera", "match"),
+                         [("realsense://", "no RealSense camera found"),
+                          ("freenect://", "freenect")])  # fmt: skip
+def test_live_without_the_camera_fails_in_one_line(tmp_path: Path, camera: str, match: str) -> None:
+    res = runner.invoke(app, ["live", "--camera", camera, "--board", "none", "--duration", "3",
+                              "--out", str(tmp_path / "x"), "-q"])  # fmt: skip
+    assert res.exit_code == 1, res.output
+    assert match in res.output and "Traceback" not in res.output
