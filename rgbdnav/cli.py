@@ -119,31 +119,16 @@ class _Progress:
 
 
 def _is_world(path: Path) -> bool:
-    return path.is_file() and path.suffix in (".yaml", ".yml")
+    from rgbdnav.cache import is_world
+
+    return is_world(path)
 
 
 def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
     """A recording folder as given, or the cached rendering of a world file (made if missing)."""
-    from rgbdnav.cache import cached_recording_path
-    from sensors.recording import Recording
-    from sensors.sim.simulator import simulate
+    from rgbdnav.cache import recording_for
 
-    if not source.exists():
-        raise RgbdNavError(f"{source}: no such file or folder")
-    if not _is_world(source):
-        return source
-    cached = cached_recording_path(source, cfg, seed)
-    if cached.exists():
-        try:
-            Recording.open(cached)
-            log.info("using cached rendering %s", cached)
-            return cached
-        except RgbdNavError as err:
-            log.warning("cached rendering is unreadable (%s); rendering again", err)
-    log.info("rendering %s (seed %d) into %s", source, seed, cached)
-    with _Progress(f"rendering {source.stem}", quiet) as progress:
-        simulate(source, cached, cfg.robot, cfg.camera, cfg.sim, seed=seed, progress=progress)
-    return cached
+    return recording_for(source, cfg, seed, lambda what: _Progress(what, quiet))
 
 
 def _echo_source(source: Path, recording: Path) -> None:
@@ -625,6 +610,72 @@ def eval_(
     )  # fmt: skip
     typer.echo(format_report(summary))
     typer.echo(f"wrote {out / 'summary.json'} and {out / 'ate.png'}")
+
+
+@app.command()
+@_known_errors
+def batch(
+    verb: Annotated[str, typer.Argument(help="map, localize or eval: the verb run per source.")],
+    sources: Annotated[
+        list[Path],
+        typer.Argument(help="Sources (logs, recordings, worlds; for eval: trajectories or runs)."),
+    ],
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Batch folder: DIR/<source-name>/ + report.")
+    ],
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Address of a running Dask scheduler (default: a LocalCluster)."),
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="LocalCluster worker processes (default: one per core).")
+    ] = None,
+    map_: Annotated[
+        Path | None, typer.Option("--map", "-m", help="localize: the map every source uses.")
+    ] = None,
+    reference: Annotated[
+        Path | None, typer.Option("--reference", "-r", help="eval: reference TUM trajectory.")
+    ] = None,
+    relations: Annotated[
+        Path | None, typer.Option(help="eval: Kümmerle relations file, instead of --reference.")
+    ] = None,
+    align: Annotated[str, typer.Option(help="eval --reference: se3, sim3, se2, none.")] = "se3",
+    seed: WorldSeedOpt = 0,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    force_3dof: Force3DofOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run map, localize or eval on many sources at once on Dask: one task per source, a report
+    per source (accuracy, time, memory); finished sources are skipped on a rerun."""
+    _setup_logging(verbose)
+    from rgbdnav.commands.batch import BatchOptions, accuracy_text, run_batch
+
+    opts = BatchOptions(
+        verb=verb,
+        out=out,
+        config_files=tuple(config or []),
+        overrides=tuple(set_ or []),
+        map_bundle=map_,
+        reference=reference,
+        relations=relations,
+        align=align,
+        seed=seed,
+        force_3dof=force_3dof,
+    )
+
+    def echo(row: dict) -> None:
+        status = "done*" if row.get("resumed") else row["status"]
+        what = row["error"] if row["error"] else accuracy_text(row["accuracy"])
+        typer.echo(f"{status:<7} {row['name']:<24} {row.get('wall_s', '-'):>7} s  {what}")
+
+    result = run_batch(sources, opts, scheduler, workers, on_row=echo)
+    typer.echo(
+        f"{len(result.rows) - result.failed} done ({result.skipped} skipped as done "
+        f"before, marked *), {result.failed} failed; report {out / 'report.md'}"
+    )
+    if result.failed:
+        raise typer.Exit(1)
 
 
 def main() -> None:
