@@ -473,6 +473,21 @@ def live(
             "Estimate; without it the robot relocalises globally, which needs it to move.",
         ),
     ] = None,
+    robot: Annotated[
+        str | None,
+        typer.Option(
+            help="This robot's name in a fleet: the run goes to OUT/NAME/ and its frames are "
+            "NAME/map, NAME/odom. Run one process per robot; `rgbdnav world-view OUT` draws them."
+        ),
+    ] = None,
+    start: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option(
+            "--start",
+            metavar="X Y YAW",
+            help="The simulated robot's true start in the world (default: the world's start).",
+        ),
+    ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     quiet: QuietOpt = False,
@@ -482,6 +497,13 @@ def live(
     _setup_logging(verbose)
     from rgbdnav.live.run import Drill, LiveOptions, run_live
     from sensors.types import ConfigError
+
+    if robot is not None:
+        if not robot.replace("-", "").replace("_", "").isalnum():
+            raise ConfigError(f"--robot {robot!r}: use letters, digits, - and _ (a folder name)")
+        out = out / robot
+    if start is not None and "sim" not in (camera, board):
+        raise ConfigError("--start places the simulated robot; a real robot starts where it is")
 
     goals = []
     for g in goal or []:
@@ -496,7 +518,7 @@ def live(
                        duration_s=duration, drive=drive, goals=goals, rrd=rrd, viewer=viewer,
                        seed=seed, drills=[Drill.parse(d) for d in drill or []],
                        repeat_route=repeat_route, record=record,
-                       initial_pose=initial_pose)  # fmt: skip
+                       initial_pose=initial_pose, robot=robot, start=start)  # fmt: skip
     outputs, summary = run_live(opts)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
     c = summary["counts"]
@@ -516,6 +538,28 @@ def live(
             f"writer fell behind), {rec['wheel_readings']} encoder readings"
         )
     _echo_outputs(outputs)
+
+
+@app.command("world-view")
+@_known_errors
+def world_view(
+    runs: Annotated[
+        list[Path], typer.Argument(help="Robot run folders (live --robot), or folders of them.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Picture to write (PNG).")],
+) -> None:
+    """Every robot's own map and path in the world frame, in one picture."""
+    from rgbdnav.live.world_view import robot_runs
+    from rgbdnav.live.world_view import world_view as draw
+
+    found = robot_runs(runs)
+    for name, d in draw(found, out).items():
+        x, y, yaw = d["T_world_map"]
+        typer.echo(
+            f"{name:<11} {d['occupied_cells']} occupied cells, {d['path_poses']} poses; "
+            f"world -> {name}/map: x={x:g} y={y:g} yaw={yaw:g}"
+        )
+    typer.echo(f"picture     {out}")
 
 
 @app.command()
