@@ -304,7 +304,7 @@ def _client(scheduler: str | None, workers: int) -> Any:
     # Dask's own chatter (start-up, and a heartbeat racing the shutdown) is not the user's
     # business; each source's failure is in its row. --verbose shows it.
     quiet = not log.isEnabledFor(logging.DEBUG)
-    logging.getLogger("distributed").setLevel(logging.WARNING if quiet else logging.INFO)
+    logging.getLogger("distributed").setLevel(logging.ERROR if quiet else logging.INFO)
     cluster = LocalCluster(
         n_workers=workers,
         threads_per_worker=1,

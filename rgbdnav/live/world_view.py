@@ -166,9 +166,9 @@ def world_view(runs: list[RobotRun], out: Path) -> dict[str, dict]:
         img[cells(xy, res)] = FLOOR_PLAN_BGR
     drawn: dict[str, dict] = {}
     for i, (run, occ, est, _truth, res) in enumerate(layers):
-        color = np.array(COLORS_BGR[i % len(COLORS_BGR)], float)
+        tint = np.array(COLORS_BGR[i % len(COLORS_BGR)], float)
         m = cells(occ, res) if len(occ) else np.zeros((h, w), bool)
-        img[m] = (1 - MAP_ALPHA) * img[m] + MAP_ALPHA * color
+        img[m] = (1 - MAP_ALPHA) * img[m] + MAP_ALPHA * tint
         drawn[run.name] = {
             "occupied_cells": int(len(occ)),
             "path_poses": int(len(est)),
