@@ -23,7 +23,7 @@ import os
 import resource
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -272,8 +272,17 @@ def plan(sources: Sequence[Path], opts: BatchOptions) -> list[Task]:
     for extra in (opts.map_bundle, opts.reference, opts.relations):
         if extra is not None and not extra.exists():
             raise ConfigError(f"{extra}: no such file or folder")
+    # Absolute paths: a worker's working directory is not necessarily ours.
+    opts = replace(
+        opts,
+        out=opts.out.absolute(),
+        config_files=tuple(p.absolute() for p in opts.config_files),
+        map_bundle=opts.map_bundle.absolute() if opts.map_bundle else None,
+        reference=opts.reference.absolute() if opts.reference else None,
+        relations=opts.relations.absolute() if opts.relations else None,
+    )
     tasks: dict[str, Task] = {}
-    for source in sources:
+    for source in (s.absolute() for s in sources):
         name = source_name(source)
         if name in tasks:
             raise ConfigError(
@@ -327,6 +336,7 @@ def run_batch(
     tasks = plan(sources, opts)
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
+    opts = tasks[0].opts  # with absolute paths
     opts.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rows: dict[str, dict[str, Any]] = {}

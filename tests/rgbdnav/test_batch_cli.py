@@ -82,28 +82,35 @@ def test_batch_map_on_two_workers_reports_each_source_and_resumes(tmp_path: Path
     assert (out / "mit-a" / "summary.json").stat().st_mtime_ns == first_summary
     assert "1 skipped as done before" in again.output
 
-    # batch eval scores the two runs against the full benchmark's relations.
+    # batch eval on a cluster already running (--scheduler): the two runs against the full
+    # benchmark's relations score as the map tasks scored them.
+    from distributed import LocalCluster
+
     ev = tmp_path / "eval"
-    result = runner.invoke(
-        app,
-        [
-            "batch",
-            "eval",
-            str(out / "mit-a"),
-            str(out / "mit-b"),
-            "--relations",
-            str(MIT.with_suffix(".relations")),
-            "--out",
-            str(ev),
-            "--workers",
-            "2",
-        ],
-    )
+    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster:
+        result = runner.invoke(
+            app,
+            [
+                "batch",
+                "eval",
+                str(out / "mit-a"),
+                str(out / "mit-b"),
+                "--relations",
+                str(MIT.with_suffix(".relations")),
+                "--out",
+                str(ev),
+                "--scheduler",
+                cluster.scheduler_address,
+            ],
+        )
     assert result.exit_code == 0, result.output
-    ev_rows = {r["name"]: r for r in _report(ev)["rows"]}
-    assert ev_rows["mit-a"]["accuracy"]["rel_trans_mean_m"] == pytest.approx(
-        rows["mit-a"]["accuracy"]["rel_trans_mean_m"]
-    )
+    report = _report(ev)
+    assert report["scheduler"].startswith("tcp://") and report["done"] == 2
+    ev_rows = {r["name"]: r for r in report["rows"]}
+    for name in ("mit-a", "mit-b"):
+        assert ev_rows[name]["accuracy"]["rel_trans_mean_m"] == pytest.approx(
+            rows[name]["accuracy"]["rel_trans_mean_m"]
+        )
 
 
 def test_batch_refuses_bad_batches_in_one_line_before_any_work(tmp_path: Path) -> None:
