@@ -306,7 +306,7 @@ def _client(scheduler: str | None, workers: int) -> Any:
     if scheduler is not None:
         try:
             return Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError) as err:
+        except (OSError, TimeoutError, ValueError) as err:  # unreachable, malformed
             raise ConfigError(
                 f"--scheduler {scheduler}: cannot connect ({one_line(err)})"
             ) from None

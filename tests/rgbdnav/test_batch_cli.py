@@ -123,6 +123,8 @@ def test_batch_refuses_bad_batches_in_one_line_before_any_work(tmp_path: Path) -
         (["batch", "localize", str(a)], "needs --map"),
         (["batch", "eval", str(a)], "exactly one of --reference"),
         (["batch", "fly", str(a)], "use one of map, localize, eval"),
+        (["batch", "map", str(a), "--workers", "0"], "--workers must be >= 1"),
+        (["batch", "map", str(a), "--scheduler", "not an address"], "--scheduler not an"),
     ]
     for args, message in cases:
         result = runner.invoke(app, [*args, "--out", str(tmp_path / "out")])
