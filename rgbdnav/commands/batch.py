@@ -295,7 +295,8 @@ def plan(sources: Sequence[Path], opts: BatchOptions) -> list[Task]:
 
 def default_workers(n_tasks: int) -> int:
     """One single-threaded worker per core (mapping is CPU-bound), never more than tasks."""
-    return max(1, min(n_tasks, os.cpu_count() or 1))
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(n_tasks, cores or 1))
 
 
 def _client(scheduler: str | None, workers: int) -> Any:
@@ -363,9 +364,9 @@ def run_batch(
 
     report()
     if todo:
+        client = _client(scheduler, n_workers)
         from distributed import as_completed
 
-        client = _client(scheduler, n_workers)
         try:
             futures = {
                 client.submit(
