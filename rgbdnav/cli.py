@@ -476,8 +476,8 @@ def live(
     robot: Annotated[
         str | None,
         typer.Option(
-            help="This robot's name in a fleet: the run goes to OUT/NAME/ and its frames are "
-            "NAME/map, NAME/odom. Run one process per robot; `rgbdnav world-view OUT` draws them."
+            help="This robot's name in a fleet: the run goes to OUT/NAME/. Run one process per "
+            "robot; `rgbdnav world-view OUT` draws them all in the world frame."
         ),
     ] = None,
     start: Annotated[

@@ -144,7 +144,7 @@ class LiveOptions:
     repeat_route: bool = False  # drive the route again and again (soak runs)
     record: Path | None = None  # write the frames and encoder readings as a recording here
     initial_pose: tuple[float, float, float] | None = None  # --map: start tracking here (map)
-    robot: str | None = None  # this robot's name in a fleet (its frames: NAME/map, NAME/odom)
+    robot: str | None = None  # this robot's name in a fleet (the run is in OUT/NAME)
     start: tuple[float, float, float] | None = None  # simulated robot's start in the world
 
 
