@@ -149,9 +149,12 @@ def _run_map(task: Task) -> dict[str, Any]:
     recording = recording_for(task.source, cfg, o.seed)
     run_map(recording, task.folder, o.config_files, o.overrides, force_3dof=o.force_3dof)
     acc: dict[str, Any] = {}
-    truth = _read_summary(task.folder).get("slam_vs_groundtruth") or {}
+    summary = _read_summary(task.folder)
+    truth = summary.get("slam_vs_groundtruth") or {}
     if "ate_rmse_m" in truth:
         acc = {"ate_rmse_m": truth["ate_rmse_m"], "ate_rmse_aligned_m": truth["ate_rmse_aligned_m"]}
+    if "grid_vs_floor_plan" in summary:  # a world's map against its floor plan
+        acc["grid_iou"] = summary["grid_vs_floor_plan"]["iou"]
     if (rel := relations_beside(task.source)) is not None:
         acc |= _relations_accuracy(task.folder / "trajectory.tum", rel, task.folder / "relations")
     return acc
@@ -411,6 +414,8 @@ def accuracy_text(acc: dict[str, Any]) -> str:
     parts = []
     if "ate_rmse_m" in acc:
         parts.append(f"ATE {acc['ate_rmse_m']:.3f} m")
+    if "grid_iou" in acc:
+        parts.append(f"grid IoU {acc['grid_iou']:.2f}")
     if "rpe_trans_rmse_m" in acc:
         parts.append(f"RPE {acc['rpe_trans_rmse_m']:.3f} m")
     if "rel_trans_mean_m" in acc:
