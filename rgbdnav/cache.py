@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 
 import yaml
 
 from rgbdnav.config import Config, config_to_dict
+from sensors.types import RgbdNavError
+
+log = logging.getLogger(__name__)
+ProgressBar = Callable[[str], AbstractContextManager[Callable[[int, int], None] | None]]
 
 SIM_VERSION = "2"  # bump when the simulator's output changes for the same inputs
 
@@ -35,3 +42,35 @@ def recording_key(world_path: Path, cfg: Config, seed: int) -> str:
 
 def cached_recording_path(world_path: Path, cfg: Config, seed: int) -> Path:
     return cache_root() / "recordings" / recording_key(world_path, cfg, seed)
+
+
+def is_world(path: Path) -> bool:
+    return path.is_file() and path.suffix in (".yaml", ".yml")
+
+
+def recording_for(
+    source: Path, cfg: Config, seed: int, progress_bar: ProgressBar | None = None
+) -> Path:
+    """A recording folder or log as given, or the cached rendering of a world file (made if
+    missing); ``progress_bar(description)`` gives the rendering's progress callback."""
+    from sensors.recording import Recording
+    from sensors.sim.simulator import simulate
+    from sensors.source import is_device_uri
+
+    if not source.exists() and not is_device_uri(source):
+        raise RgbdNavError(f"{source}: no such file or folder")
+    if not is_world(source):
+        return source
+    cached = cached_recording_path(source, cfg, seed)
+    if cached.exists():
+        try:
+            Recording.open(cached)
+            log.info("using cached rendering %s", cached)
+            return cached
+        except RgbdNavError as err:
+            log.warning("cached rendering is unreadable (%s); rendering again", err)
+    log.info("rendering %s (seed %d) into %s", source, seed, cached)
+    bar = progress_bar or (lambda _: nullcontext(None))
+    with bar(f"rendering {source.stem}") as progress:
+        simulate(source, cached, cfg.robot, cfg.camera, cfg.sim, seed=seed, progress=progress)
+    return cached

@@ -294,32 +294,16 @@ class _Progress:
 
 
 def _is_world(path: Path) -> bool:
-    return path.is_file() and path.suffix in (".yaml", ".yml")
+    from rgbdnav.cache import is_world
+
+    return is_world(path)
 
 
 def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
     """A recording folder as given, or the cached rendering of a world file (made if missing)."""
-    from rgbdnav.cache import cached_recording_path
-    from sensors.recording import Recording
-    from sensors.sim.simulator import simulate
-    from sensors.source import is_device_uri
+    from rgbdnav.cache import recording_for
 
-    if not source.exists() and not is_device_uri(source):
-        raise RgbdNavError(f"{source}: no such file or folder")
-    if not _is_world(source):
-        return source
-    cached = cached_recording_path(source, cfg, seed)
-    if cached.exists():
-        try:
-            Recording.open(cached)
-            log.info("using cached rendering %s", cached)
-            return cached
-        except RgbdNavError as err:
-            log.warning("cached rendering is unreadable (%s); rendering again", err)
-    log.info("rendering %s (seed %d) into %s", source, seed, cached)
-    with _Progress(f"rendering {source.stem}", quiet) as progress:
-        simulate(source, cached, cfg.robot, cfg.camera, cfg.sim, seed=seed, progress=progress)
-    return cached
+    return recording_for(source, cfg, seed, lambda what: _Progress(what, quiet))
 
 
 def _echo_source(source: Path, recording: Path) -> None:
@@ -769,6 +753,21 @@ def live(
             "Estimate; without it the robot relocalises globally, which needs it to move.",
         ),
     ] = None,
+    robot: Annotated[
+        str | None,
+        typer.Option(
+            help="This robot's name in a fleet: the run goes to OUT/NAME/. Run one process per "
+            "robot; `rgbdnav world-view OUT` draws them all in the world frame."
+        ),
+    ] = None,
+    start: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option(
+            "--start",
+            metavar="X Y YAW",
+            help="The simulated robot's true start in the world (default: the world's start).",
+        ),
+    ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     fmt: FormatOpt = "tum",
@@ -782,6 +781,12 @@ def live(
     _check_format(fmt)
     from rgbdnav.live.run import Drill, LiveOptions, run_live
 
+    if robot is not None:
+        if not robot.replace("-", "").replace("_", "").isalnum():
+            raise RgbdNavError(f"--robot {robot!r}: use letters, digits, - and _ (a folder name)")
+        out = out / robot
+    if start is not None and "sim" not in (camera, board):
+        raise RgbdNavError("--start places the simulated robot; a real robot starts where it is")
     goals = parse_goals(goal or [])
     if "sim" not in (camera, board):  # (--drill and --initial-pose: checked by LiveRun)
         _refuse_unused(ctx, "only with --camera sim or --board sim", "sim_world", "seed")
@@ -793,7 +798,7 @@ def live(
                        duration_s=duration, drive=drive, goals=goals, rrd=rrd, viewer=viewer,
                        seed=seed, drills=[Drill.parse(d) for d in drill or []],
                        repeat_route=repeat_route, record=record, joystick=joystick,
-                       initial_pose=initial_pose)  # fmt: skip
+                       initial_pose=initial_pose, robot=robot, start=start)  # fmt: skip
     outputs, summary = run_live(opts)
     _write_formats(out, fmt)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
@@ -818,6 +823,28 @@ def live(
     if goals and not repeat_route and reached < len(goals):
         typer.echo(f"goals       {reached} of {len(goals)} reached", err=True)
         raise typer.Exit(GOAL_FAILED_EXIT)
+
+
+@app.command("world-view")
+@_known_errors
+def world_view(
+    runs: Annotated[
+        list[Path], typer.Argument(help="Robot run folders (live --robot), or folders of them.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Picture to write (PNG).")],
+) -> None:
+    """Every robot's own map and path in the world frame, in one picture."""
+    from rgbdnav.live.world_view import robot_runs
+    from rgbdnav.live.world_view import world_view as draw
+
+    found = robot_runs(runs)
+    for name, d in draw(found, out).items():
+        x, y, yaw = d["T_world_map"]
+        typer.echo(
+            f"{name:<11} {d['occupied_cells']} occupied cells, {d['path_poses']} poses; "
+            f"world -> {name}/map: x={x:g} y={y:g} yaw={yaw:g}"
+        )
+    typer.echo(f"picture     {out}")
 
 
 @app.command()
@@ -972,6 +999,72 @@ def export(
         for topic, n in result["counts"].items():
             typer.echo(f"{topic:<42} {n} messages")
     typer.echo(f"bag         {result['out']}")
+
+
+@app.command()
+@_known_errors
+def batch(
+    verb: Annotated[str, typer.Argument(help="map, localize or eval: the verb run per source.")],
+    sources: Annotated[
+        list[Path],
+        typer.Argument(help="Sources (logs, recordings, worlds; for eval: trajectories or runs)."),
+    ],
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Batch folder: DIR/<source-name>/ + report.")
+    ],
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Address of a running Dask scheduler (default: a LocalCluster)."),
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="LocalCluster worker processes (default: one per core).")
+    ] = None,
+    map_: Annotated[
+        Path | None, typer.Option("--map", "-m", help="localize: the map every source uses.")
+    ] = None,
+    reference: Annotated[
+        Path | None, typer.Option("--reference", "-r", help="eval: reference TUM trajectory.")
+    ] = None,
+    relations: Annotated[
+        Path | None, typer.Option(help="eval: Kümmerle relations file, instead of --reference.")
+    ] = None,
+    align: Annotated[str, typer.Option(help="eval --reference: se3, sim3, se2, none.")] = "se3",
+    seed: WorldSeedOpt = 0,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    force_3dof: Force3DofOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Run map, localize or eval on many sources at once on Dask: one task per source, a report
+    per source (accuracy, time, memory); finished sources are skipped on a rerun."""
+    _setup_logging(verbose)
+    from rgbdnav.commands.batch import BatchOptions, accuracy_text, run_batch
+
+    opts = BatchOptions(
+        verb=verb,
+        out=out,
+        config_files=tuple(config or []),
+        overrides=tuple(set_ or []),
+        map_bundle=map_,
+        reference=reference,
+        relations=relations,
+        align=align,
+        seed=seed,
+        force_3dof=force_3dof,
+    )
+
+    def echo(row: dict) -> None:
+        status = "done*" if row.get("resumed") else row["status"]
+        what = row["error"] if row["error"] else accuracy_text(row["accuracy"])
+        typer.echo(f"{status:<7} {row['name']:<24} {row.get('wall_s', '-'):>7} s  {what}")
+
+    result = run_batch(sources, opts, scheduler, workers, on_row=echo)
+    typer.echo(
+        f"{len(result.rows) - result.failed} done ({result.skipped} skipped as done "
+        f"before, marked *), {result.failed} failed; report {out / 'report.md'}"
+    )
+    if result.failed:
+        raise typer.Exit(1)
 
 
 def main() -> None:

@@ -148,6 +148,8 @@ class LiveOptions:
     repeat_route: bool = False  # drive the route again and again (soak runs)
     record: Path | None = None  # write the frames and encoder readings as a recording here
     initial_pose: tuple[float, float, float] | None = None  # --map: start tracking here (map)
+    robot: str | None = None  # this robot's name in a fleet (the run is in OUT/NAME)
+    start: tuple[float, float, float] | None = None  # simulated robot's start in the world
 
 
 class Counters:
@@ -305,6 +307,17 @@ class LiveRun:
                       "sim": section_to_dict(cfg.sim)}  # fmt: skip
         return scene
 
+    def _robot_frame(self) -> dict[str, Any]:
+        """Who this robot is and where its map sits in the world (``world -> NAME/map``). The
+        simulated robot is told its true start, so its map frame is the world frame; a real
+        robot's map frame is where it started, unknown to the world until aligned."""
+        simulated = self.sim is not None
+        return {
+            "name": self.opts.robot,
+            "start_in_world": self.start_pose.tolist() if simulated else None,
+            "T_world_map": [0.0, 0.0, 0.0] if simulated else None,
+        }
+
     # 1. Start: the simulated robot (if any), the board, the camera adapter.
 
     def _start_devices(self) -> Iterator[RgbdFrame]:
@@ -312,9 +325,12 @@ class LiveRun:
         sim_port = ""
         if opts.camera == "sim" or opts.board == "sim":
             from sensors.sim.live import SimRobot
-            from sensors.sim.world import load_world
+            from sensors.sim.world import check_start, load_world
 
             world = load_world(opts.world)  # type: ignore[arg-type]
+            if opts.start is not None:
+                check_start(world, opts.start, "--start")
+                world = replace(world, start=opts.start)
             self.start_pose = np.array(world.start, dtype=np.float64)
             self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2) if opts.goals \
                 else world.route  # fmt: skip
@@ -327,6 +343,7 @@ class LiveRun:
                 seed=opts.seed,
                 truth_path=self.run.file("groundtruth.tum"),
                 external_wheels=opts.board.startswith("emulator:"),
+                start=opts.start,
             )
             sim_port = self.sim.start()
         else:
@@ -919,6 +936,7 @@ class LiveRun:
             "camera": self.opts.camera,
             "board": self.opts.board,
             "world": str(self.opts.world) if self.opts.world else None,
+            "robot": self._robot_frame(),
             "mode": "localization" if self.localizer is not None else "mapping",
             "initial_pose": (
                 self.initial_pose.tolist()

@@ -36,7 +36,7 @@ import os
 import queue
 import signal
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Any
@@ -145,8 +145,9 @@ class _StallingEmulator(EddieEmulator):
 
 
 def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: SimConfig,
-              seed: int, port_link: str, truth_path: str, ring_name: str, wheels_name: str | None,
-              frames: Any, control: Any, replies: Any) -> None:  # fmt: skip
+              seed: int, start: tuple[float, float, float] | None, port_link: str,
+              truth_path: str, ring_name: str, wheels_name: str | None, frames: Any,
+              control: Any, replies: Any) -> None:  # fmt: skip
     from scipy.ndimage import distance_transform_edt
 
     from sensors.sim.motion import blocked_step, gauss_markov_step
@@ -156,6 +157,8 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
 
     rng = np.random.default_rng(seed)
     world = load_world(world_path)
+    if start is not None:  # this robot's own start (several robots in one world)
+        world = replace(world, start=start)
     renderer = KinectRenderer(world, camera, robot, sim, noise_seed=int(rng.integers(2**31)))
     plan = floor_plan(world)
     clearance = distance_transform_edt(~plan.occupied) * plan.resolution
@@ -286,6 +289,7 @@ class SimRobot:
         seed: int = 0,
         truth_path: str | Path | None = None,
         external_wheels: bool = False,
+        start: tuple[float, float, float] | None = None,
     ) -> None:
         self.world_path = str(world_path)
         self.robot, self.camera, self.sim, self.seed = robot, camera, sim, seed
@@ -308,7 +312,7 @@ class SimRobot:
         self._replies: Any = ctx.Queue()
         self._proc = ctx.Process(
             target=_child, name="rgbdnav-sim-robot", daemon=True,
-            args=(self.world_path, robot, camera, sim, seed, self.port_link,
+            args=(self.world_path, robot, camera, sim, seed, start, self.port_link,
                   str(self.truth_path), self._ring.shm.name,
                   None if self.wheels_shm is None else self.wheels_shm.name, self._frames,
                   self._control,

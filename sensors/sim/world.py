@@ -23,7 +23,7 @@ YAML schema (units: metres, radians)::
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -257,13 +257,16 @@ def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
         route=route,
         source=source,
     )
-    plan = floor_plan(world)  # a robot that starts inside a wall would be stuck from frame 0
+    check_start(world, world.start, f"{source}: start")
+    return world
+
+
+def check_start(world: World, start: Sequence[float], what: str) -> None:
+    """Refuse a start pose inside a wall or furniture: that robot would be stuck from frame 0."""
+    plan = floor_plan(world)
     r, c = plan.cell_of(np.array([start[:2]]))[0]
     if 0 <= r < plan.occupied.shape[0] and 0 <= c < plan.occupied.shape[1] and plan.occupied[r, c]:
-        raise WorldError(
-            f"{source}: start ({start[0]:g}, {start[1]:g}) is inside a wall or furniture"
-        )
-    return world
+        raise WorldError(f"{what} ({start[0]:g}, {start[1]:g}) is inside a wall or furniture")
 
 
 # --- floor plan -------------------------------------------------------------------------------
