@@ -832,8 +832,11 @@ def world_view(
         list[Path], typer.Argument(help="Robot run folders (live --robot), or folders of them.")
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="Picture to write (PNG).")],
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
 ) -> None:
     """Every robot's own map and path in the world frame, in one picture."""
+    _setup_logging(verbose, quiet)
     from rgbdnav.live.world_view import robot_runs
     from rgbdnav.live.world_view import world_view as draw
 
@@ -1033,11 +1036,12 @@ def batch(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     force_3dof: Force3DofOpt = False,
+    quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Run map, localize or eval on many sources at once on Dask: one task per source, a report
     per source (accuracy, time, memory); finished sources are skipped on a rerun."""
-    _setup_logging(verbose)
+    _setup_logging(verbose, quiet)
     from rgbdnav.commands.batch import BatchOptions, accuracy_text, run_batch
 
     opts = BatchOptions(
