@@ -124,4 +124,29 @@ def geo_yaml_text(anchor: GeoAnchor) -> str:
     return "".join(f"{k}: {v!r}\n" for k, v in anchor.as_dict().items())
 
 
-__all__ = ["GEO_YAML", "GeoAnchor", "geo_from_dict", "geo_yaml_text", "read_geo_anchor"]
+def geo_anchor_of(path: str | os.PathLike[str]) -> GeoAnchor:
+    """The anchor of a map (bundle folder or map.yaml beside a geo.yaml) or of a geo.yaml
+    itself; :class:`MapError` saying how to add one when there is none."""
+    p = Path(path)
+    if p.is_file() and p.name == GEO_YAML:
+        return geo_from_dict(read_yaml(p, MapError, "geo anchor"), str(p))
+    if not p.exists():
+        raise MapError(f"{p}: no such map")
+    anchor = read_geo_anchor(p)
+    if anchor is None:
+        where = p if p.is_dir() else p.parent
+        raise MapError(
+            f"{p}: the map has no geo anchor: add {where / GEO_YAML} with latitude, "
+            "longitude, altitude and heading_deg"
+        )
+    return anchor
+
+
+__all__ = [
+    "GEO_YAML",
+    "GeoAnchor",
+    "geo_anchor_of",
+    "geo_from_dict",
+    "geo_yaml_text",
+    "read_geo_anchor",
+]
