@@ -46,6 +46,7 @@ class AlignConfig:
     min_agreement: float = 0.5  # fraction of wall cells over the other's known area that agree
     min_overlap_m: float = 15.0  # [m] of wall matched both ways
     max_rival_ratio: float = 0.85  # a distinct pose scoring this fraction of the best: ambiguous
+    free_penalty: float = 1.0  # global search: cost of a wall point on the other's open floor
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,9 @@ class Verification:
 
     @property
     def score(self) -> float:
-        return min(self.agreement_ab, self.agreement_ba) * self.overlap_m
+        """Wall length matched less the length contradicted (walls over the other's known area
+        that are not near its walls), by the worse direction."""
+        return min(2 * self.agreement_ab - 1, 2 * self.agreement_ba - 1) * self.overlap_m
 
 
 @dataclass(frozen=True)
@@ -83,16 +86,26 @@ def _rotate(points: np.ndarray, yaw: float) -> np.ndarray:
     return points @ np.array([[c, s], [-s, c]])
 
 
-def _global_peaks(a_pts: np.ndarray, b_pts: np.ndarray, cfg: AlignConfig) -> list[np.ndarray]:
-    """The best ``cfg.candidates`` distinct (x, y, yaw, score) of the FFT correlation sweep."""
+def _global_peaks(
+    a: OccupancyGrid, a_pts: np.ndarray, b_pts: np.ndarray, cfg: AlignConfig
+) -> list[np.ndarray]:
+    """The best ``cfg.candidates`` distinct (x, y, yaw, score) of the FFT correlation sweep.
+
+    The score of a pose is the mean over B's wall points of ``F - free_penalty * C``, with ``C``
+    1 on A's observed free space farther than two sigmas from its walls: B's walls across A's
+    open floor count against a pose, so a pose laying more of B over A is not favoured for that."""
     res = cfg.coarse_resolution
-    a_lo = a_pts.min(axis=0) - 3 * cfg.smear_sigma
-    a_hw = np.ceil((a_pts.max(axis=0) + 3 * cfg.smear_sigma - a_lo) / res).astype(int) + 1
-    occ = np.full((a_hw[1], a_hw[0]), 255, np.uint8)
-    rc = np.floor((a_pts - a_lo) / res).astype(int)
-    occ[rc[:, 1], rc[:, 0]] = 0
+    pad = 3 * cfg.smear_sigma
+    lo, hi = a_pts.min(axis=0) - pad, a_pts.max(axis=0) + pad
+    geom = GridGeometry.from_bounds(lo[0], lo[1], hi[0], hi[1], res)
+    a_lo = np.array([geom.origin_x, geom.origin_y])
+    occ = np.full(geom.shape, 255, np.uint8)
+    rows, cols = geom.world_to_cell(a_pts[:, 0], a_pts[:, 1])
+    occ[rows, cols] = 0
     dist = cv2.distanceTransform(occ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
     field = np.exp(-0.5 * (dist / cfg.smear_sigma) ** 2).astype(np.float64)
+    free = warp_to_geometry(a.free_mask(), a.geometry, (0.0, 0.0, 0.0), geom)
+    field -= cfg.free_penalty * (free & (dist > 2 * cfg.smear_sigma))
     b_c = b_pts - b_pts.mean(axis=0)  # rotate about B's centroid: a compact image per yaw
     radius = float(np.max(np.hypot(b_c[:, 0], b_c[:, 1]))) + res
     n_b = int(np.ceil(2 * radius / res)) + 1
@@ -170,7 +183,7 @@ def align_maps(
         raise MapError("a map has fewer than 10 wall cells: nothing to align")
     a_coarse = voxel_filter(a_walls, cfg.coarse_resolution)
     b_coarse = voxel_filter(b_walls, cfg.coarse_resolution)
-    peaks = _global_peaks(a_coarse, b_coarse, cfg)
+    peaks = _global_peaks(a, a_coarse, b_coarse, cfg)
     ref = build_grid_reference(
         a.occupied_mask(occupied_thresh[0]),
         (a.geometry.origin_x, a.geometry.origin_y),
@@ -195,24 +208,25 @@ def align_maps(
     results.sort(key=lambda r: -r[0].score)
     best, pose, icp, peak = results[0]
     rival = next((r[0] for r in results[1:] if not _same(r[1], pose, cfg)), None)
-    rival_ratio = 0.0 if rival is None or best.score <= 0 else rival.score / best.score
+    rival_ratio = 0.0 if rival is None or best.score <= 0 else max(0.0, rival.score / best.score)
     where = f"best pose x {pose[0]:.2f} m, y {pose[1]:.2f} m, yaw {math.degrees(pose[2]):.1f} deg"
     agreement = min(best.agreement_ab, best.agreement_ba)
     if best.overlap_m < cfg.min_overlap_m:
         raise MapError(
-            f"the maps do not overlap enough to align: {best.overlap_m:.1f} m of wall "
+            f"cannot align the maps: they do not overlap enough: {best.overlap_m:.1f} m of wall "
             f"match at the {where} (need {cfg.min_overlap_m:g} m)"
         )
     if agreement < cfg.min_agreement:
         raise MapError(
-            f"the maps do not overlap: at the {where} only {agreement:.0%} of the "
-            f"walls over the other map's known area agree (need "
+            f"cannot align the maps: they do not overlap: at the {where} only "
+            f"{agreement:.0%} of the walls over the other map's known area agree (need "
             f"{cfg.min_agreement:.0%})"
         )
     if rival_ratio > cfg.max_rival_ratio:
         raise MapError(
-            f"the alignment is ambiguous: a pose elsewhere explains the maps "
-            f"{rival_ratio:.0%} as well as the {where}"
+            f"cannot align the maps: they match in more than one place (a pose elsewhere "
+            f"explains them {rival_ratio:.0%} as well as the {where}): they may not overlap, or only along "
+            "a featureless corridor"
         )
     pose = np.array([pose[0], pose[1], float(wrap_angle(pose[2]))])
     return Alignment(

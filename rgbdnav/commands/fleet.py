@@ -45,7 +45,7 @@ FREE_PALENESS = 0.65  # free space: this much white mixed into the tint
 UNKNOWN_RGB = (205, 205, 205)  # map_saver's unknown grey
 KEEPOUT_STRIPE_PX = 6  # [px] period of the keepout hatching
 MAX_PICTURE_PX = 4000  # [px] the picture's longer side; coarser cells beyond
-MARGIN_M = 5.0  # [m] around the maps and frame origins
+MARGIN_M = 2.0  # [m] around the maps
 
 
 @dataclass(frozen=True)
@@ -83,12 +83,10 @@ def _in_world(pts: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
 
 
 def world_geometry(layers: list[Layer]) -> GridGeometry:
-    """A grid over every map's footprint in the world, at the finest map resolution (coarser
+    """A grid over every map's footprint in the world (a frame origin far from its map is left
+    out: its arrow is clipped), at the finest map resolution (coarser
     if the picture would exceed ``MAX_PICTURE_PX``)."""
-    pts = np.vstack(
-        [_in_world(_corners(ly.grid.geometry), ly.T_world_map) for ly in layers]
-        + [np.array([ly.T_world_map[:2]]) for ly in layers]
-    )
+    pts = np.vstack([_in_world(_corners(ly.grid.geometry), ly.T_world_map) for ly in layers])
     lo, hi = pts.min(axis=0) - MARGIN_M, pts.max(axis=0) + MARGIN_M
     res = min(ly.grid.geometry.resolution for ly in layers)
     res = max(res, float(np.max(hi - lo)) / MAX_PICTURE_PX)
