@@ -225,8 +225,8 @@ def align_maps(
     if rival_ratio > cfg.max_rival_ratio:
         raise MapError(
             f"cannot align the maps: they match in more than one place (a pose elsewhere "
-            f"explains them {rival_ratio:.0%} as well as the {where}): they may not overlap, or only along "
-            "a featureless corridor"
+            f"explains them {rival_ratio:.0%} as well as the {where}): they may not "
+            "overlap, or only along a featureless corridor"
         )
     pose = np.array([pose[0], pose[1], float(wrap_angle(pose[2]))])
     return Alignment(
