@@ -685,7 +685,7 @@ def geo(
     ] = None,
 ) -> None:
     """Convert between a map's x/y and WGS84 latitude/longitude through its geo anchor."""
-    from slam.geo import geo_anchor_of
+    from sensors.geo import geo_anchor_of
 
     if (latlon is None) == (xy is None):
         raise RgbdNavError("give exactly one of --latlon LAT LON and --xy X Y")

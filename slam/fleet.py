@@ -11,7 +11,7 @@ alone; the fleet file only says where each map frame sits in a shared ``world`` 
         map: maps/alpha                   # bundle folder or map.yaml, relative to this file
         T_world_map: {x: 0.0, y: 0.0, yaw: 0.0}      # [m, m, rad] alpha/map in world
         keepout: maps/alpha_keepout.yaml  # optional Nav2 filter mask, in alpha/map
-        geo: {latitude: ..., longitude: ...}         # optional, see slam/geo.py
+        geo: {latitude: ..., longitude: ...}         # optional, see sensors/geo.py
 
 A robot's geo anchor is, in order: its own ``geo``, ``geo.yaml`` in its bundle, or the world's
 anchor moved by ``T_world_map``. The keepout mask lies in the robot's map frame (as Nav2's
@@ -28,9 +28,9 @@ from pathlib import Path
 from typing import Any
 
 from sensors.config import short_repr
+from sensors.geo import GeoAnchor, geo_from_dict, read_geo_anchor
 from sensors.safe_yaml import read_yaml
 from sensors.types import MapError
-from slam.geo import GeoAnchor, geo_from_dict, read_geo_anchor
 
 NAME_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,62}$")
 _ROBOT_KEYS = ("name", "map", "T_world_map", "keepout", "geo")

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sensors.geo import GeoAnchor
 from sensors.types import MapError
 from slam.fleet import load_fleet
-from slam.geo import GeoAnchor
 from slam.map_bundle import save_map_yaml
 from slam.occupancy_grid import GridGeometry, OccupancyGrid
 

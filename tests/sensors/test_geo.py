@@ -6,8 +6,8 @@ import math
 
 import pytest
 
+from sensors.geo import GeoAnchor, geo_anchor_of, geo_from_dict, geo_yaml_text
 from sensors.types import MapError
-from slam.geo import GeoAnchor, geo_anchor_of, geo_from_dict, geo_yaml_text
 
 MINNEAPOLIS = GeoAnchor(44.98, -93.27, 256.0, 0.0)
 M_PER_DEG_LAT_45 = 111_132.0  # [m] one degree of latitude at 45 deg (WGS84, to ~1 m)
