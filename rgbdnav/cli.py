@@ -325,6 +325,13 @@ def localize(
     config: ConfigOpt = None,
     set_: SetOpt = None,
     force_3dof: Force3DofOpt = False,
+    gps: Annotated[
+        Path | None,
+        typer.Option(
+            help="gps.txt fixes (t lat lon alt sigma_h) as the relocalisation prior; "
+            "the map needs a geo.yaml. Default: the source's own NavSatFix/gps.txt."
+        ),
+    ] = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -350,6 +357,7 @@ def localize(
             rrd,
             viewer,
             force_3dof,
+            gps,
         )
     _echo_source(source, recording)
     typer.echo(f"result      {describe(summary)}")
