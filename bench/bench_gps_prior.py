@@ -80,9 +80,11 @@ def run(name: str, starts: int, sigma: float) -> list[str]:
         for s in chosen:
             loc = Localizer(model, cfg)
             t0 = time.perf_counter()
+            fix_k = -1
             for i in range(s, s + MAX_RELOC_SCANS):
-                if use_gps and latest[i] >= 0:
-                    loc.set_gps_fix(gps_xy[latest[i]], float(gps.sigma_m[latest[i]]), odom[i])
+                if use_gps and latest[i] > fix_k:  # a new fix, at this odometry pose
+                    fix_k = latest[i]
+                    loc.set_gps_fix(gps_xy[fix_k], float(gps.sigma_m[fix_k]), odom[i])
                 r = loc.update(scans[i], odom[i])
                 if r.status == "tracking":
                     secs.append(time.perf_counter() - t0)
