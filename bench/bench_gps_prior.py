@@ -82,9 +82,10 @@ def run(name: str, starts: int, sigma: float) -> list[str]:
             t0 = time.perf_counter()
             fix_k = -1
             for i in range(s, s + MAX_RELOC_SCANS):
-                if use_gps and latest[i] > fix_k:  # a new fix, at this odometry pose
+                if use_gps and latest[i] > fix_k:  # a new fix, at the odometry of its time
                     fix_k = latest[i]
-                    loc.set_gps_fix(gps_xy[fix_k], float(gps.sigma_m[fix_k]), odom[i])
+                    at = max(int(np.searchsorted(stamps, gps.stamps_ns[fix_k], "right")) - 1, 0)
+                    loc.set_gps_fix(gps_xy[fix_k], float(gps.sigma_m[fix_k]), odom[at])
                 r = loc.update(scans[i], odom[i])
                 if r.status == "tracking":
                     secs.append(time.perf_counter() - t0)

@@ -213,19 +213,21 @@ def run_localize(
         gps = _gps_fixes(src, gps_path, map_path)
         # 2. Localise every scan (each new GPS fix narrows the global search).
         loc = Localizer(model, cfg.localizer, init)
-        fix_k, odoms = -1, []
+        fix_k, odoms, odom_stamps = -1, [], []
         results: list[LocalizationResult] = []
         scans_map: list[np.ndarray] = []  # tracked scans in the map frame, for the visualiser
         drawing = not isinstance(vis, NullVisualizer)
         update_s = 0.0
         for k, (scan, odom) in enumerate(stream):
             t = time.perf_counter()
+            odoms.append(odom)
+            odom_stamps.append(scan.stamp_ns)
             if gps is not None:
                 k_new = int(np.searchsorted(gps[0], scan.stamp_ns, side="right")) - 1
-                if k_new > fix_k:
-                    loc.set_gps_fix(gps[1][k_new], float(gps[2][k_new]), odom)
+                if k_new > fix_k:  # a new fix, placed at the odometry of its own time
+                    at = max(int(np.searchsorted(odom_stamps, gps[0][k_new], "right")) - 1, 0)
+                    loc.set_gps_fix(gps[1][k_new], float(gps[2][k_new]), odoms[at])
                     fix_k = k_new
-            odoms.append(odom)
             results.append(loc.update(scan, odom))
             update_s += time.perf_counter() - t
             if drawing and has_pose(results[-1]):
