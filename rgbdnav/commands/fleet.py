@@ -71,9 +71,18 @@ def load_layers(fleet: Fleet) -> list[Layer]:
     return layers
 
 
-def _corners(g: GridGeometry) -> np.ndarray:
-    x0, y0 = g.origin_x, g.origin_y
-    x1, y1 = x0 + g.width * g.resolution, y0 + g.height * g.resolution
+def _corners(grid: OccupancyGrid) -> np.ndarray:
+    """(4, 2) [m] corners of the box around the grid's walls (the whole grid if none): a map's
+    grid spans the laser's reach, far beyond the building."""
+    g = grid.geometry
+    rows, cols = np.nonzero(grid.occupied_mask())  # walls: rays past them are faint
+    r0, r1, c0, c1 = (
+        (rows.min(), rows.max() + 1, cols.min(), cols.max() + 1)
+        if len(rows)
+        else (0, g.height, 0, g.width)
+    )
+    x0, x1 = g.origin_x + c0 * g.resolution, g.origin_x + c1 * g.resolution
+    y0, y1 = g.origin_y + r0 * g.resolution, g.origin_y + r1 * g.resolution
     return np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
 
 
@@ -83,10 +92,10 @@ def _in_world(pts: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
 
 
 def world_geometry(layers: list[Layer]) -> GridGeometry:
-    """A grid over every map's footprint in the world (a frame origin far from its map is left
-    out: its arrow is clipped), at the finest map resolution (coarser
+    """A grid over every map's walls in the world (a frame origin far from its map is
+    left out: its arrow is clipped), at the finest map resolution (coarser
     if the picture would exceed ``MAX_PICTURE_PX``)."""
-    pts = np.vstack([_in_world(_corners(ly.grid.geometry), ly.T_world_map) for ly in layers])
+    pts = np.vstack([_in_world(_corners(ly.grid), ly.T_world_map) for ly in layers])
     lo, hi = pts.min(axis=0) - MARGIN_M, pts.max(axis=0) + MARGIN_M
     res = min(ly.grid.geometry.resolution for ly in layers)
     res = max(res, float(np.max(hi - lo)) / MAX_PICTURE_PX)
@@ -135,7 +144,7 @@ def _annotate(bgr: np.ndarray, layers: list[Layer], geom: GridGeometry) -> None:
     """Each map frame's axes (x long) and a legend, drawn in place."""
     h = geom.height
     axis_px = max(10, h // 25)
-    scale = max(0.5, max(geom.shape) / 1200)  # text size grows with the picture
+    scale = max(0.5, max(geom.shape) / 600)  # text size grows with the picture
     for i, ly in enumerate(layers):
         colour = tuple(int(v) for v in TINTS_RGB[i % len(TINTS_RGB)][::-1])
         x, y, yaw = ly.T_world_map
@@ -146,16 +155,15 @@ def _annotate(bgr: np.ndarray, layers: list[Layer], geom: GridGeometry) -> None:
         cv2.putText(
             bgr,
             f"{ly.name}/map",
-            (origin[0] + 4, origin[1] + 14),
+            (origin[0] + 4, origin[1] + int(20 * scale)),
             cv2.FONT_HERSHEY_SIMPLEX,
-            0.45,
+            0.5 * scale,
             colour,
-            1,
+            max(1, int(scale)),
             cv2.LINE_AA,
         )
-        cv2.putText(
-            bgr, ly.name, (8, 20 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2, cv2.LINE_AA
-        )
+        line = (8, int((30 + 30 * i) * scale))
+        cv2.putText(bgr, ly.name, line, cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 2, cv2.LINE_AA)
 
 
 def run_show(fleet_path: Path, out: Path) -> dict[str, Path]:
