@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 from sensors.atomic import atomic_write_text, commit_staging_dir, make_staging_dir
-from sensors.gps import GPS_TXT, GpsStream, read_gps_txt
+from sensors.gps import GPS_TXT, GpsStream, read_gps_txt, write_gps_txt
 from sensors.images import ImageError, read_image
 from sensors.safe_yaml import read_yaml
 from sensors.tum import (
@@ -215,6 +215,7 @@ class RecordingWriter:
         self._wheels: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._imu: list[tuple[np.ndarray, np.ndarray]] = []
         self._groundtruth: tuple[np.ndarray, ...] | None = None
+        self._gps: GpsStream | None = None
         self._closed = False
 
     def __enter__(self) -> RecordingWriter:
@@ -282,6 +283,11 @@ class RecordingWriter:
         if gyro.shape != stamps.shape or not np.isfinite(gyro).all():
             raise SensorError("imu: gyro_z must be finite, one per stamp")
         self._imu.append((stamps, gyro))
+
+    def set_gps(self, gps: GpsStream) -> None:
+        """GPS fixes, written as gps.txt; replaces any earlier call."""
+        self._check_open()
+        self._gps = gps
 
     def set_groundtruth(
         self, stamps_ns: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray
@@ -358,6 +364,8 @@ class RecordingWriter:
             )
         if self._groundtruth is not None:
             write_tum_trajectory(st / "groundtruth.txt", *self._groundtruth)
+        if self._gps is not None:
+            write_gps_txt(st / GPS_TXT, self._gps)
         atomic_write_text(st / "scene.yaml", yaml.safe_dump(self._scene, sort_keys=False))
 
 
