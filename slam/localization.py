@@ -673,8 +673,11 @@ class Localizer:
         """A GPS fix in the map frame (through the map's geo anchor) with its horizontal sigma,
         taken at odometry pose ``odom_pose``: the next global searches only look within
         ``gps_prior_sigmas`` sigmas of it, widened by the distance driven since."""
-        self._gps = (np.asarray(xy_map, float).copy(), float(sigma_m),
-                     np.asarray(odom_pose, float).copy())  # fmt: skip
+        self._gps = (
+            np.asarray(xy_map, float).copy(),
+            float(sigma_m),
+            np.asarray(odom_pose, float).copy(),
+        )
 
     def _gps_region(self) -> tuple[float, float, float] | None:
         if self._gps is None or self._odom is None:
