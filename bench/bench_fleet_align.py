@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from fleet_split_log import _open, split
+from fleet_split_log import read_log_lines, split
 
 from sensors.atomic import atomic_write_text
 from slam.geometry import oplus, wrap_angle
@@ -78,7 +78,7 @@ def main() -> None:
         folder = work / name
         if not (folder / "b.log").is_file():
             folder.mkdir(parents=True, exist_ok=True)
-            text_a, text_b = split(_open(log), 0.6, 0.4, SHIFT)
+            text_a, text_b = split(read_log_lines(log), 0.6, 0.4, SHIFT)
             atomic_write_text(folder / "a.log", text_a)
             atomic_write_text(folder / "b.log", text_b)
         a, b = _map(folder / "a.log", folder / "run_a"), _map(folder / "b.log", folder / "run_b")

@@ -23,7 +23,7 @@ from sensors.atomic import atomic_write_text
 from slam.geometry import oplus, wrap_angle
 
 
-def _open(path: Path) -> list[str]:
+def read_log_lines(path: Path) -> list[str]:
     opener = gzip.open if path.suffix == ".gz" else open
     with opener(path, "rt", errors="replace") as f:
         return f.read().splitlines()
@@ -74,7 +74,7 @@ def main() -> None:
     p.add_argument("--shift", type=float, nargs=3, default=(80.0, -40.0, 2.0))
     args = p.parse_args()
     shift = np.array(args.shift)
-    text_a, text_b = split(_open(args.log), args.a_end, args.b_start, shift)
+    text_a, text_b = split(read_log_lines(args.log), args.a_end, args.b_start, shift)
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "a.log", text_a)
     atomic_write_text(args.out / "b.log", text_b)

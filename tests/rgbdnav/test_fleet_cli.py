@@ -20,7 +20,7 @@ from slam.geometry import oplus, wrap_angle
 from slam.map_bundle import load_bundle, load_map_yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
-from fleet_split_log import _open, split  # noqa: E402
+from fleet_split_log import read_log_lines, split  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 ACES = DATA / "radish" / "aces-corrected.log.gz"
@@ -41,7 +41,7 @@ def _invoke(*args: object):
 @pytest.fixture(scope="module")
 def maps(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("fleet")
-    text_a, text_b = split(_open(ACES), 0.6, 0.4, SHIFT)
+    text_a, text_b = split(read_log_lines(ACES), 0.6, 0.4, SHIFT)
     (root / "a.log").write_text(text_a)
     (root / "b.log").write_text(text_b)
     out = {}
