@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -551,6 +552,13 @@ def localize(
     imu_topic: ImuTopicOpt = None,
     force_3dof: Force3DofOpt = False,
     fmt: FormatOpt = "tum",
+    gps: Annotated[
+        Path | None,
+        typer.Option(
+            help="gps.txt fixes (t lat lon alt sigma_h) as the relocalisation prior; "
+            "the map needs a geo.yaml. Default: the source's own NavSatFix/gps.txt."
+        ),
+    ] = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
@@ -582,6 +590,7 @@ def localize(
             rrd,
             viewer,
             force_3dof,
+            gps,
         )
     _echo_source(source, recording)
     typer.echo(f"result      {describe(summary)}")
@@ -1069,6 +1078,81 @@ def batch(
     )
     if result.failed:
         raise typer.Exit(1)
+
+
+fleet_app = typer.Typer(help="Several robots' maps in one world frame.", no_args_is_help=True)
+app.add_typer(fleet_app, name="fleet")
+
+
+@fleet_app.command("show")
+@_known_errors
+def fleet_show(
+    fleet_file: Annotated[Path, typer.Argument(help="Fleet file (fleet.yaml).")],
+    out: OutOpt,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """One picture of every robot's map and keepout mask in the world frame, and a rerun
+    recording."""
+    _setup_logging(verbose, quiet)
+    from rgbdnav.commands.fleet import run_show
+
+    _echo_outputs(run_show(fleet_file, out))
+
+
+@fleet_app.command("align")
+@_known_errors
+def fleet_align(
+    map_a: Annotated[Path, typer.Argument(help="Map A: bundle folder or map.yaml.")],
+    map_b: Annotated[Path, typer.Argument(help="Map B, to place in A's frame.")],
+    out: OutOpt,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Where B's map frame sits in A's, found without a guess; exit 1 when the maps do not
+    overlap."""
+    _setup_logging(verbose, quiet)
+    from rgbdnav.commands.fleet import run_align
+    from slam.map_align import AlignConfig
+
+    al, outputs = run_align(map_a, map_b, out, AlignConfig())
+    x, y, yaw = al.T_a_b
+    typer.echo(
+        f"B in A: x {x:.3f} m, y {y:.3f} m, yaw {yaw:.4f} rad "
+        f"({math.degrees(yaw):.2f} deg); confidence {al.confidence:.2f}, "
+        f"{al.verification.overlap_m:.0f} m of wall matched"
+    )
+    _echo_outputs(outputs)
+
+
+@app.command()
+@_known_errors
+def geo(
+    map_: Annotated[Path, typer.Argument(help="Map bundle (with geo.yaml) or a geo.yaml.")],
+    latlon: Annotated[
+        tuple[float, float] | None,
+        typer.Option("--latlon", metavar="LAT LON", help="WGS84 [deg] to map x y."),
+    ] = None,
+    xy: Annotated[
+        tuple[float, float] | None,
+        typer.Option("--xy", metavar="X Y", help="Map x y [m] to WGS84 lat lon."),
+    ] = None,
+    quiet: QuietOpt = False,
+    verbose: VerboseOpt = False,
+) -> None:
+    """Convert between a map's x/y and WGS84 latitude/longitude through its geo anchor."""
+    _setup_logging(verbose, quiet)
+    from sensors.geo import geo_anchor_of
+
+    if (latlon is None) == (xy is None):
+        raise RgbdNavError("give exactly one of --latlon LAT LON and --xy X Y")
+    anchor = geo_anchor_of(map_)
+    if latlon is not None:
+        x, y, _ = anchor.to_map(latlon[0], latlon[1])
+        typer.echo(f"x {float(x):.3f} y {float(y):.3f}")
+    else:
+        lat, lon, _ = anchor.to_wgs84(xy[0], xy[1])
+        typer.echo(f"lat {float(lat):.8f} lon {float(lon):.8f}")
 
 
 def main() -> None:

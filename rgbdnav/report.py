@@ -16,7 +16,7 @@ LINE_PX = 24  # [px] legend line height
 COLORS_BGR = [(40, 160, 40), (40, 40, 220), (220, 120, 30), (160, 40, 160), (30, 170, 200)]
 
 
-def _png(path: Path, image: np.ndarray) -> None:
+def write_png(path: Path, image: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", image)
     if not ok:  # pragma: no cover - OpenCV only fails here on invalid images
         raise ValueError(f"cannot encode {path}")
@@ -89,7 +89,7 @@ def plot_trajectories(
     x1, y1 = size[0] - MARGIN_PX, size[1] - MARGIN_PX // 2
     cv2.line(img, (int(x1 - scale), y1), (x1, y1), (0, 0, 0), 3)
     cv2.putText(img, "1 m", (int(x1 - scale), y1 - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
-    _png(path, img)
+    write_png(path, img)
 
 
 def contact_sheet(path: Path, frames: Sequence[tuple[np.ndarray, np.ndarray]],
@@ -105,4 +105,4 @@ def contact_sheet(path: Path, frames: Sequence[tuple[np.ndarray, np.ndarray]],
         rows.append(
             np.hstack([colour, cv2.resize(dc, (width_px, h), interpolation=cv2.INTER_NEAREST)])
         )
-    _png(path, np.vstack(rows))
+    write_png(path, np.vstack(rows))

@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -287,3 +287,50 @@ __all__ = [
     "make_visualizer",
     "occupied_cells_xy",
 ]
+
+
+def save_fleet_recording(
+    path: Path, layers: Sequence[Any], tints_rgb: Sequence[tuple[int, ...]]
+) -> None:
+    """A static rerun recording of a fleet: per robot a ``world/<name>/map`` transform (the
+    static ``world -> <name>/map`` TF) with its wall cells, and its keepout cells under it."""
+    try:
+        import rerun as rr
+    except ImportError as err:  # pragma: no cover - rerun-sdk is a dependency
+        raise VisualizerError("visualisation needs rerun-sdk (pip install rerun-sdk)") from err
+    rec = rr.RecordingStream("rgbdnav_fleet")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rec.save(str(path))
+    except Exception as err:  # rerun raises its own types
+        raise VisualizerError(f"cannot start rerun output: {err}") from err
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    for ly, tint in zip(layers, tints_rgb, strict=True):
+        x, y, yaw = ly.T_world_map
+        rot = rr.RotationAxisAngle(axis=[0.0, 0.0, 1.0], radians=yaw)
+        rec.log(
+            f"world/{ly.name}/map",
+            rr.Transform3D(translation=[x, y, 0.0], rotation=rot),
+            static=True,
+        )
+        g = ly.grid.geometry
+        walls = occupied_cells_xy(
+            ly.grid.occupied_mask(ly.occupied_thresh), (g.origin_x, g.origin_y), g.resolution
+        )
+        rec.log(
+            f"world/{ly.name}/map/walls",
+            rr.Points3D(_xyz(walls), colors=tint, radii=0.5 * g.resolution),
+            static=True,
+        )
+        if ly.keepout is not None:
+            k = ly.keepout.geometry
+            zone = occupied_cells_xy(
+                ly.keepout.occupied_mask(0.65), (k.origin_x, k.origin_y), k.resolution
+            )
+            rec.log(
+                f"world/{ly.name}/map/keepout_mask",
+                rr.Points3D(_xyz(zone), colors=tint, radii=0.5 * k.resolution),
+                static=True,
+            )
+    rec.flush()
+    rec.disconnect()

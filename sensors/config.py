@@ -247,6 +247,7 @@ class TopicsConfig:
     odom: str = param("/odom", doc="nav_msgs/Odometry")
     imu: str = param("/imu/data", doc="sensor_msgs/Imu")
     wheels: str = param("/wheel_encoders", doc="Int32MultiArray [left, right] or JointState")
+    gps: str = param("/gps/fix", doc="sensor_msgs/NavSatFix (robot_localization's gps/fix)")
 
     def validate(self) -> str | None:
         # An empty name matched no topic and silently dropped the role (VO off for rgb).

@@ -6,6 +6,7 @@ rgb/*.png            8-bit colour (BGR on disk, as OpenCV writes it; RGB in memo
 depth/*.png          16-bit depth, depth_scale counts per metre (5000 by default), 0 = invalid
 wheels.txt           "t left right", cumulative integer encoder counts
 imu.txt              optional, "t gyro_z" [rad/s]
+gps.txt              optional, "t latitude longitude altitude sigma_h" (sensors/gps.py)
 groundtruth.txt      optional, TUM "t tx ty tz qx qy qz qw": base_link in the world, planar
 scene.yaml           free-form dict; "camera:" holds the intrinsics
 ```
@@ -31,6 +32,7 @@ import numpy as np
 import yaml
 
 from sensors.atomic import atomic_write_text, commit_staging_dir, make_staging_dir
+from sensors.gps import GPS_TXT, GpsStream, read_gps_txt, write_gps_txt
 from sensors.images import ImageError, read_image
 from sensors.safe_yaml import read_yaml
 from sensors.tum import (
@@ -213,6 +215,7 @@ class RecordingWriter:
         self._wheels: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._imu: list[tuple[np.ndarray, np.ndarray]] = []
         self._groundtruth: tuple[np.ndarray, ...] | None = None
+        self._gps: GpsStream | None = None
         self._closed = False
 
     def __enter__(self) -> RecordingWriter:
@@ -280,6 +283,11 @@ class RecordingWriter:
         if gyro.shape != stamps.shape or not np.isfinite(gyro).all():
             raise SensorError("imu: gyro_z must be finite, one per stamp")
         self._imu.append((stamps, gyro))
+
+    def set_gps(self, gps: GpsStream) -> None:
+        """GPS fixes, written as gps.txt; replaces any earlier call."""
+        self._check_open()
+        self._gps = gps
 
     def set_groundtruth(
         self, stamps_ns: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray
@@ -356,6 +364,8 @@ class RecordingWriter:
             )
         if self._groundtruth is not None:
             write_tum_trajectory(st / "groundtruth.txt", *self._groundtruth)
+        if self._gps is not None:
+            write_gps_txt(st / GPS_TXT, self._gps)
         atomic_write_text(st / "scene.yaml", yaml.safe_dump(self._scene, sort_keys=False))
 
 
@@ -438,6 +448,11 @@ class Recording:
             return None
         table = read_stamped_text(file, ("timestamp", "gyro_z"))
         return table.stamps_ns, table.numeric(np.float64, "gyro_z [rad/s]").reshape(-1)
+
+    def gps(self) -> GpsStream | None:
+        """GPS fixes, or None without gps.txt."""
+        file = self.path / GPS_TXT
+        return read_gps_txt(file) if file.is_file() else None
 
     def groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(stamps_ns, xyz (N, 3) [m], quat_xyzw (N, 4)) of base_link in the world, or None."""

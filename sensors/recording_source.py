@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sensors.gps import GpsStream
 from sensors.recording import Recording
 from sensors.source import ImuStream, PoseStream, SourceBase, SourceOptions, WheelStream
 from sensors.types import CameraIntrinsics, RgbdFrame
@@ -57,6 +58,10 @@ class RecordingSource(SourceBase):
     def frames(self) -> Iterator[RgbdFrame]:
         yield from self.recording.frames(skip_bad=self.skip_bad)
         self.skipped = dict(self.recording.skipped)
+
+    def gps(self) -> GpsStream | None:
+        """The recording's gps.txt fixes, or None without one."""
+        return self.recording.gps()
 
     def wheels(self) -> WheelStream | None:
         stamps, left, right = self.recording.wheels()

@@ -24,6 +24,8 @@ wheels      std_msgs/Int32MultiArray, Int64MultiArray      WheelStream, data = [
             sensor_msgs/JointState (position = wheel       round(angle * ticks_per_revolution
             angles [rad], joints named *left*/*right*,     / 2 pi), cumulative like the board's
             else the first two)
+gps         sensor_msgs/NavSatFix (status >= 0, known   GpsStream (lat, lon, alt, sigma_h)
+            position_covariance)
 =========== ============================================== =====================================
 
 Stamps are ``header.stamp`` as integer nanoseconds; a zero header stamp falls back to the bag's
@@ -55,6 +57,7 @@ import cv2
 import numpy as np
 
 from sensors.config import CameraConfig, RobotConfig, SyncConfig
+from sensors.gps import GpsStream, check_fixes, navsatfix_sigma
 from sensors.images import decode_image
 from sensors.recording import associate
 from sensors.source import ImuStream, PoseStream, SourceBase, SourceOptions, WheelStream
@@ -94,6 +97,7 @@ COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 ODOMETRY = "nav_msgs/msg/Odometry"
 IMU = "sensor_msgs/msg/Imu"
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 INT32_MULTI_ARRAY = "std_msgs/msg/Int32MultiArray"
 INT64_MULTI_ARRAY = "std_msgs/msg/Int64MultiArray"
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -107,6 +111,7 @@ ROLE_TYPES: Mapping[str, tuple[str, ...]] = {
     "camera_info": (CAMERA_INFO,),
     "odom": (ODOMETRY,),
     "imu": (IMU,),
+    "gps": (NAVSATFIX,),
     "wheels": (INT32_MULTI_ARRAY, INT64_MULTI_ARRAY, JOINT_STATE),
 }
 # (x, y, yaw) rows and columns of a ROS 6x6 covariance (x, y, z, roll, pitch, yaw), row-major.
@@ -127,6 +132,7 @@ class RosbagTopics:
     odom: str = "/odom"
     imu: str = "/imu/data"
     wheels: str = "/wheel_encoders"
+    gps: str = "/gps/fix"
 
 
 ROLES: tuple[str, ...] = tuple(f.name for f in fields(RosbagTopics))
@@ -974,6 +980,29 @@ class RosbagSource(SourceBase):
             stamps, gz = self._read_stamped("imu", lambda m: (float(m.angular_velocity.z),))
             self._cache["imu"] = ImuStream(stamps, gz[:, 0].copy())
         stream: ImuStream = self._cache["imu"]
+        return stream
+
+    def gps(self) -> GpsStream | None:
+        """NavSatFix messages with a fix (status >= STATUS_FIX) and a known covariance, as a
+        :class:`GpsStream`; the others are counted in ``skipped``."""
+        if self.choices["gps"].topic is None:
+            return None
+        if "gps" not in self._cache:
+
+            def fix(m: Any) -> tuple[float, ...]:
+                if int(m.status.status) < 0:
+                    raise _BadMessage("gps_no_fix", "NavSatFix without a fix (status -1)")
+                sigma = navsatfix_sigma(m.position_covariance, int(m.position_covariance_type))
+                if not sigma > 0:
+                    raise _BadMessage("gps_no_covariance", "NavSatFix with unknown covariance")
+                return (float(m.latitude), float(m.longitude), float(m.altitude), sigma)
+
+            stamps, v = self._read_stamped("gps", fix)
+            self._cache["gps"] = check_fixes(
+                GpsStream(stamps, v[:, 0].copy(), v[:, 1].copy(), v[:, 2].copy(), v[:, 3].copy()),
+                f"{self.path} {self.choices['gps'].topic}",
+            )
+        stream: GpsStream = self._cache["gps"]
         return stream
 
     def odometry(self) -> PoseStream | None:

@@ -737,6 +737,9 @@ class LocalizerConfig:
     global_search_max_hypotheses: int = param(
         5, ge=1, doc="distinct global candidates kept for verification"
     )
+    gps_prior_sigmas: float = param(
+        3.0, gt=0.0, doc="with a GPS fix, the global search covers this many sigma_h around it"
+    )
     global_search_candidate_ratio: float = param(
         0.75, gt=0.0, le=1.0, doc="keep global candidates scoring at least this times the best"
     )

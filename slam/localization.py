@@ -286,6 +286,7 @@ def _global_scores(
 def global_search(
     gf: GlobalField, points: np.ndarray, angle_step_rad: float, min_score: float,
     candidate_ratio: float, max_hypotheses: int, separation_m: float, separation_rad: float,
+    region: tuple[float, float, float] | None = None,
 ) -> tuple[list[GlobalCandidate], int]:  # fmt: skip
     """Distinct lattice poses of scan ``points`` (N, 2, scan frame) over every free cell of the
     map and a full turn, best first, with the number of blocks and leaves scored.
@@ -294,7 +295,9 @@ def global_search(
     points' cells (a point's cell shifts by whole cells with the origin, because origins are cell
     centres: ``index = origin cell + floor(0.5 + p / res)``). Every leaf scoring at least
     ``max(min_score, candidate_ratio x best)`` is kept; non-maximum suppression then keeps up to
-    ``max_hypotheses`` separated by ``separation_m`` or ``separation_rad``."""
+    ``max_hypotheses`` separated by ``separation_m`` or ``separation_rad``. With ``region``
+    (x [m], y [m], radius [m]: a GPS fix and its uncertainty) only scan origins in that disk are
+    searched: top blocks that cannot reach it are never opened."""
     res, top = gf.resolution, len(gf.levels) - 1
     pts = points[np.hypot(points[:, 0], points[:, 1]) <= gf.reach_m]
     if len(pts) < MIN_SCAN_POINTS:
@@ -316,6 +319,11 @@ def global_search(
                                  np.arange(gf.pad, gf.pad + mw, step), indexing="ij")  # fmt: skip
     br, bc = grid_r.ravel(), grid_c.ravel()
     keep = gf.free[top][br, bc]
+    if region is not None:  # the block's centre within radius + half its diagonal
+        half = 0.5 * step * res
+        bx = gf.origin[0] + bc * res + half
+        by = gf.origin[1] + br * res + half
+        keep &= np.hypot(bx - region[0], by - region[1]) <= region[2] + math.sqrt(2) * half
     br, bc = br[keep], bc[keep]
     a = np.repeat(np.arange(n_ang), len(br))
     r, c = np.tile(br, n_ang), np.tile(bc, n_ang)
@@ -360,6 +368,9 @@ def global_search(
             best = max(best, float(score.max()))  # an exact leaf beats the greedy one
             threshold = max(threshold, max(min_score, candidate_ratio * best))
         keep = score >= threshold
+        if region is not None:
+            lx, ly = gf.origin[0] + (c + 0.5) * res, gf.origin[1] + (r + 0.5) * res
+            keep &= np.hypot(lx - region[0], ly - region[1]) <= region[2]
         cands = _suppress(gf, yaws, a[keep], r[keep], c[keep], score[keep], max_hypotheses,
                           separation_m, separation_rad)  # fmt: skip
         if len(cands) >= max_hypotheses:
@@ -570,6 +581,7 @@ class Localizer:
         self._drop_checked = False  # the current confidence drop was searched already
         self._jump: _Hypothesis | None = None  # gated matches waiting for confirmation
         self._gated_streak = 0  # consecutive gated matches (a fused match ends the run)
+        self._gps: tuple[np.ndarray, float, np.ndarray] | None = None  # (xy, sigma, odom then)
         if initial_pose is not None:
             self.set_initial_pose(initial_pose)
 
@@ -602,6 +614,23 @@ class Localizer:
         self._contested = False
         self._since_search = 0
         self._history = []
+
+    def set_gps_fix(self, xy_map: np.ndarray, sigma_m: float, odom_pose: np.ndarray) -> None:
+        """A GPS fix in the map frame (through the map's geo anchor) with its horizontal sigma,
+        taken at odometry pose ``odom_pose``: the next global searches only look within
+        ``gps_prior_sigmas`` sigmas of it, widened by the distance driven since."""
+        self._gps = (
+            np.asarray(xy_map, float).copy(),
+            float(sigma_m),
+            np.asarray(odom_pose, float).copy(),
+        )
+
+    def _gps_region(self) -> tuple[float, float, float] | None:
+        if self._gps is None or self._odom is None:
+            return None
+        xy, sigma, odom_then = self._gps
+        driven = float(np.hypot(*(self._odom[:2] - odom_then[:2])))
+        return (float(xy[0]), float(xy[1]), self.config.gps_prior_sigmas * sigma + driven)
 
     def _points(self, scan: LaserScan) -> np.ndarray:
         pts = scan_points(scan, self.config.laser_max_range)
@@ -900,7 +929,7 @@ class Localizer:
             gf, gpts, cfg.global_search_angular_resolution,
             min_score, cfg.global_search_candidate_ratio,
             cfg.global_search_max_hypotheses, cfg.relocalization_agreement_distance,
-            cfg.relocalization_agreement_angle,
+            cfg.relocalization_agreement_angle, self._gps_region(),
         )  # fmt: skip
         if not cands:
             return [], (f"no global candidate reaches global_search_min_score "

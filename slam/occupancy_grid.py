@@ -377,3 +377,47 @@ __all__ = [
     "integrate_scans",
     "logit",
 ]
+
+
+def warp_to_geometry(
+    values: np.ndarray,
+    src: GridGeometry,
+    T_dst_src: tuple[float, float, float] | np.ndarray,
+    dst: GridGeometry,
+    nearest: bool = True,
+    fill: float = 0.0,
+) -> np.ndarray:
+    """Resample a (H, W) array laid on ``src`` (row 0 = lowest y) onto ``dst``, where the frame
+    of ``src`` has pose ``T_dst_src`` (x [m], y [m], yaw [rad]) in that of ``dst``: one
+    ``cv2.warpAffine`` with the inverse map (dst cell -> src cell), ``fill`` outside ``src``."""
+    x, y, yaw = (float(v) for v in T_dst_src)
+    c, s = math.cos(yaw), math.sin(yaw)
+    # dst cell (col, row) -> dst metres -> src metres (T^-1) -> src cell; all affine.
+    to_dst_m = np.array(
+        [
+            [dst.resolution, 0.0, dst.origin_x + 0.5 * dst.resolution],
+            [0.0, dst.resolution, dst.origin_y + 0.5 * dst.resolution],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    src_from_dst = np.array([[c, s, -(c * x + s * y)], [-s, c, s * x - c * y], [0.0, 0.0, 1.0]])
+    to_src_cell = np.array(
+        [
+            [1.0 / src.resolution, 0.0, -src.origin_x / src.resolution - 0.5],
+            [0.0, 1.0 / src.resolution, -src.origin_y / src.resolution - 0.5],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    m = (to_src_cell @ src_from_dst @ to_dst_m)[:2]
+    arr = np.asarray(values)
+    work = arr.view(np.uint8) if arr.dtype == np.bool_ else arr
+    flags = (cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP
+    out = cv2.warpAffine(
+        work,
+        m,
+        (dst.width, dst.height),
+        flags=flags,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=fill,
+    )
+    return out.view(np.bool_) if arr.dtype == np.bool_ else out

@@ -47,10 +47,12 @@ from rgbdnav.visualize import (
     occupied_cells_xy,
 )
 from sensors.atomic import atomic_write_text
+from sensors.geo import geo_anchor_of, read_geo_anchor
+from sensors.gps import read_gps_txt
 from sensors.source import PoseStream, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
-from slam.geometry import wrap_angle
+from slam.geometry import oplus, wrap_angle
 from slam.localization import LocalizationResult, Localizer, MapModel
 from slam.map_bundle import LoadedMap, load_map
 from slam.metrics import interpolate_poses
@@ -168,9 +170,12 @@ def run_localize(
     rrd: Path | None = None,
     viewer: bool = False,
     force_3dof: bool = False,
+    gps_path: Path | None = None,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
     """Localise every scan of ``source_path`` in the map; (files written, summary). ``rrd`` /
-    ``viewer`` log the run to rerun (:mod:`rgbdnav.visualize`)."""
+    ``viewer`` log the run to rerun (:mod:`rgbdnav.visualize`). GPS fixes (``gps_path``, else the
+    source's own NavSatFix / gps.txt) through the map's geo anchor are the global search's
+    prior."""
     t0 = time.perf_counter()
     # 1. The map first: a bad map fails before the source is read or anything is written.
     loaded = load_map(map_path)
@@ -205,14 +210,24 @@ def run_localize(
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
         stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs, force_3dof)
-        # 2. Localise every scan.
+        gps = _gps_fixes(src, gps_path, map_path)
+        # 2. Localise every scan (each new GPS fix narrows the global search).
         loc = Localizer(model, cfg.localizer, init)
+        fix_k, odoms, odom_stamps = -1, [], []
         results: list[LocalizationResult] = []
         scans_map: list[np.ndarray] = []  # tracked scans in the map frame, for the visualiser
         drawing = not isinstance(vis, NullVisualizer)
         update_s = 0.0
         for k, (scan, odom) in enumerate(stream):
             t = time.perf_counter()
+            odoms.append(odom)
+            odom_stamps.append(scan.stamp_ns)
+            if gps is not None:
+                k_new = int(np.searchsorted(gps[0], scan.stamp_ns, side="right")) - 1
+                if k_new > fix_k:  # a new fix, placed at the odometry of its own time
+                    at = max(int(np.searchsorted(odom_stamps, gps[0][k_new], "right")) - 1, 0)
+                    loc.set_gps_fix(gps[1][k_new], float(gps[2][k_new]), odoms[at])
+                    fix_k = k_new
             results.append(loc.update(scan, odom))
             update_s += time.perf_counter() - t
             if drawing and has_pose(results[-1]):
@@ -276,6 +291,17 @@ def run_localize(
                           occupied=model.occupied, origin=(g.origin_x, g.origin_y),
                           resolution=g.resolution)  # fmt: skip
         outputs["picture"] = run.file("map.png")
+        if gps is not None:
+            summary["gps"] = _gps_chart(
+                run.file("gps.png"),
+                results,
+                np.array(odoms),
+                gps,
+                model,
+                loaded.grid.geometry,
+                source_path.name,
+            )
+            outputs["run chart"] = run.file("gps.png")
         _visualize(
             vis,
             stamps,
@@ -293,6 +319,77 @@ def run_localize(
     finally:
         vis.close()
         src.close()
+
+
+def _gps_fixes(
+    src: Any, gps_path: Path | None, map_path: Path
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(stamps_ns, xy in the map (N, 2) [m], sigma_h [m]) of the GPS fixes, or None: from
+    ``gps_path`` (a gps.txt; the map must then have a geo anchor), else the source's own fixes
+    when both they and the anchor exist."""
+    if gps_path is not None:
+        stream = read_gps_txt(gps_path)
+        anchor = geo_anchor_of(map_path)
+    else:
+        stream = src.gps() if callable(getattr(src, "gps", None)) else None
+        if stream is None or len(stream) == 0:
+            return None
+        anchor = read_geo_anchor(map_path)
+        if anchor is None:
+            log.warning(
+                "%s has GPS fixes but %s has no geo anchor (geo.yaml): GPS unused",
+                src.path,
+                map_path,
+            )
+            return None
+    if len(stream) == 0:
+        raise SensorError(f"{gps_path}: no GPS fixes")
+    return stream.stamps_ns, stream.in_map(anchor), stream.sigma_m
+
+
+def _gps_chart(
+    path: Path,
+    results: Sequence[LocalizationResult],
+    odoms: np.ndarray,
+    gps: tuple[np.ndarray, np.ndarray, np.ndarray],
+    model: MapModel,
+    g: Any,
+    name: str,
+) -> dict[str, Any]:
+    """The run chart: localiser, odometry (placed in the map at the first localised pose) and
+    GPS fixes over the map; and the GPS part of the summary."""
+    posed = [k for k, r in enumerate(results) if has_pose(r)]
+    paths = []
+    if posed:
+        first = results[posed[0]]
+        placed = oplus(first.map_to_odom, odoms)
+        loc_xy = np.array([results[k].pose[:2] for k in posed])
+        paths = [
+            ("localiser", loc_xy[:, 0], loc_xy[:, 1]),
+            ("odometry", placed[:, 0], placed[:, 1]),
+        ]
+    paths.append(("GPS", gps[1][:, 0], gps[1][:, 1]))
+    plot_trajectories(
+        path,
+        paths,
+        f"{name}: localiser, odometry and GPS",
+        occupied=model.occupied,
+        origin=(g.origin_x, g.origin_y),
+        resolution=g.resolution,
+    )
+    stamps = np.array([r.stamp_ns for r in results])
+    first_fix = posed[0] + 1 if posed else None
+    gps_err = None
+    if posed:
+        k = np.clip(np.searchsorted(gps[0], stamps[posed], side="right") - 1, 0, len(gps[0]) - 1)
+        d = np.hypot(*(gps[1][k] - np.array([results[i].pose[:2] for i in posed])).T)
+        gps_err = {"median_m": round(float(np.median(d)), 3), "max_m": round(float(d.max()), 3)}
+    return {
+        "fixes": int(len(gps[0])),
+        "median_sigma_m": round(float(np.median(gps[2])), 3),
+        "scans_to_first_pose": first_fix,
+        "gps_vs_localiser": gps_err,
+    }
 
 
 def _visualize(vis: Visualizer, stamps: np.ndarray, poses: np.ndarray,

@@ -24,6 +24,7 @@ import numpy as np
 import yaml
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig, section_to_dict
+from sensors.gps import SimGpsConfig, simulate_gps
 from sensors.recording import RecordingWriter
 from sensors.sim.motion import (
     Trajectory,
@@ -172,6 +173,9 @@ def simulate(
         if sim.gyro_enabled:
             writer.add_imu(imu_t, gyro)
         writer.set_groundtruth(gt_t, gt_x, gt_y, gt_yaw)
+        if world.geo is not None:  # a receiver riding base_link (sensors/gps.py defaults)
+            gps_xy = np.column_stack([gt_x, gt_y])
+            writer.set_gps(simulate_gps(gt_t, gps_xy, world.geo, SimGpsConfig(), seed))
     summary = SimulationSummary(
         world=world.name,
         seed=seed,

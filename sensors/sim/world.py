@@ -18,6 +18,8 @@ YAML schema (units: metres, radians)::
       - {name: sofa, center: [2, 1], size: [2.0, 0.9, 0.8], yaw: 0.0, texture: coffee}
     start: [1.0, 1.0, 0.0]     # x, y, yaw
     route: [[3, 1], [3, 3]]    # waypoints driven in order
+    geo: {latitude: 44.98, longitude: -93.27, altitude: 256.0, heading_deg: 0.0}  # optional:
+                               # the world on WGS84 (sensors/geo.py); recordings get gps.txt
 """
 
 from __future__ import annotations
@@ -32,8 +34,9 @@ import cv2
 import numpy as np
 
 from sensors.config import short_repr
+from sensors.geo import GeoAnchor, geo_from_dict
 from sensors.safe_yaml import read_yaml
-from sensors.types import WorldError
+from sensors.types import MapError, WorldError
 
 DEFAULT_WALL_THICKNESS = 0.1  # [m]
 DEFAULT_WALL_HEIGHT = 2.5  # [m]
@@ -88,6 +91,7 @@ class World:
     start: tuple[float, float, float]  # x [m], y [m], yaw [rad]
     route: np.ndarray  # (K, 2) waypoints [m]
     source: str = ""
+    geo: GeoAnchor | None = None  # the world frame on WGS84: the simulator then writes gps.txt
 
     def bounds(self, margin: float = 0.5) -> tuple[float, float, float, float]:
         """(x_min, y_min, x_max, y_max) of all footprints, grown by ``margin`` [m]."""
@@ -204,10 +208,19 @@ def load_world(path: str | Path) -> World:
     return world_from_dict(data, source=str(path))
 
 
+def _geo(data: Any, source: str) -> GeoAnchor | None:
+    if data is None:
+        return None
+    try:
+        return geo_from_dict(data, source)
+    except MapError as err:
+        raise WorldError(str(err)) from None
+
+
 def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
     known = {
         "name", "description", "wall_thickness", "wall_height", "door_height", "floor",
-        "ceiling", "walls", "furniture", "start", "route",
+        "ceiling", "walls", "furniture", "start", "route", "geo",
     }  # fmt: skip
     unknown = sorted(set(data) - known)
     if unknown:
@@ -256,6 +269,7 @@ def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
         start=(start[0], start[1], start[2]),
         route=route,
         source=source,
+        geo=_geo(data.get("geo"), source),
     )
     check_start(world, world.start, f"{source}: start")
     return world

@@ -753,3 +753,31 @@ def test_match_recent_leaves_the_estimate_alone_without_tracked_scans(
     out = loc.match_recent(10)
     assert out.reason == "no tracked scans to match"
     assert np.allclose(out.pose, [4.0, 3.0, 0.0])
+
+
+def test_a_gps_region_leaves_only_the_true_pose_of_a_symmetric_map() -> None:
+    box = plain_box(8.0, 6.0)
+    model = MapModel.from_grid(build_grid(box, mapping_poses()), CFG)
+    pose = np.array([2.0, 2.5, 0.3])
+    scan = raycast(box, pose, n_beams=N_BEAMS, fov=FOV)
+    from slam.scan_matching import scan_points
+
+    region = (2.6, 2.1, 1.5)  # a fix 0.7 m off, 0.5 m sigma x 3: the mirror (6, 3.5) is outside
+    cands, _ = global_search(
+        model.global_field, scan_points(scan), 2 * DEG, 0.3, 0.75, 5, 0.25, 0.2, region
+    )
+    assert cands and pose_error(pose, cands[0].pose)[0] < 0.15
+    assert all(math.hypot(c.pose[0] - 2.6, c.pose[1] - 2.1) <= 1.5 for c in cands)
+
+
+def test_a_gps_fix_relocalises_where_the_map_alone_is_ambiguous() -> None:
+    box = plain_box(8.0, 6.0)
+    model = MapModel.from_grid(build_grid(box, mapping_poses()), CFG)
+    truth = ellipse_route()[:8]
+    odom = corrupt_odometry(truth, 7)
+    loc = Localizer(model, CFG)
+    loc.set_gps_fix(truth[0, :2] + [0.6, -0.4], 0.5, odom[0])
+    results = run(loc, scans_along(box, truth), odom)
+    done = [i for i, r in enumerate(results) if r.status == "tracking"]
+    assert done, [r.reason for r in results]
+    assert pose_error(truth[done[0]], results[done[0]].pose)[0] < 0.1

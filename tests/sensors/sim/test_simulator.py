@@ -100,3 +100,23 @@ def test_replays_a_real_pioneer_trajectory_in_the_hall(tmp_path: Path) -> None:
     _, first_xyz, _ = load_tum_trajectory(traj)
     # The replay starts where the mocap does (camera on the axle midpoint by default).
     assert np.allclose(gt[1][0, :2], first_xyz[0, :2], atol=0.05)
+
+
+def test_a_world_with_a_geo_anchor_records_gps_fixes_near_the_truth(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from sensors.geo import GeoAnchor
+
+    assert run(tmp_path / "rec", seed=3).gps() is None  # the plain house has no anchor
+    world = tmp_path / "house_geo.yaml"
+    anchor = "geo: {latitude: 44.98, longitude: -93.27, altitude: 256.0, heading_deg: 30.0}"
+    world.write_text(HOUSE.read_text() + "\n" + anchor + "\n")
+    sim = replace(SimConfig(), camera_rate=2.0)  # few frames: the fixes are what is tested
+    simulate(world, tmp_path / "geo", RobotConfig(), CameraConfig(), sim, seed=3, duration_s=20.0)
+    rec = Recording.open(tmp_path / "geo")
+    gps = rec.gps()
+    assert gps is not None and 10 <= len(gps) <= 21  # 1 Hz, some lost to dropouts
+    t, x, y, _ = rec.groundtruth_planar()
+    xy = gps.in_map(GeoAnchor(44.98, -93.27, 256.0, 30.0))
+    err = xy - np.column_stack([np.interp(gps.stamps_ns, t, x), np.interp(gps.stamps_ns, t, y)])
+    assert float(np.median(np.hypot(err[:, 0], err[:, 1]))) < 4 * 3.0  # sigma 3 m per axis
