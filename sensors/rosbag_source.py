@@ -452,6 +452,7 @@ ROLE_FLAGS: Mapping[str, str] = {
     "odom": "--odom-topic",
     "imu": "--imu-topic",
     "wheels": "--set topics.wheels=",
+    "gps": "--set topics.gps=",
 }
 
 
