@@ -30,8 +30,10 @@ def test_dash_h_is_help_everywhere(verb: str | None) -> None:
 @pytest.mark.parametrize("verb", VERBS)
 def test_every_verb_has_quiet_and_verbose(verb: str) -> None:
     command = get_command(app).commands[verb]  # type: ignore[attr-defined]
-    names = {opt for p in command.params for opt in getattr(p, "opts", [])}
-    assert {"--quiet", "-q", "--verbose", "-v"} <= names, verb
+    leaves = list(getattr(command, "commands", {}).values()) or [command]  # a group: each verb
+    for leaf in leaves:
+        names = {opt for p in leaf.params for opt in getattr(p, "opts", [])}
+        assert {"--quiet", "-q", "--verbose", "-v"} <= names, (verb, leaf.name)
 
 
 def test_shell_completion_script() -> None:
