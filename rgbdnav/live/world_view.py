@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdnav.report import COLORS_BGR, LINE_PX, MARGIN_PX, TARGET_SIZE_PX, _png
+from rgbdnav.report import COLORS_BGR, LINE_PX, MARGIN_PX, TARGET_SIZE_PX, write_png
 from rgbdnav.visualize import occupied_cells_xy
 from sensors.tum import load_tum_trajectory
 from sensors.types import ConfigError
@@ -214,5 +214,5 @@ def world_view(runs: list[RobotRun], out: Path) -> dict[str, dict]:
         1,
         cv2.LINE_AA,
     )
-    _png(out, canvas)
+    write_png(out, canvas)
     return drawn
