@@ -39,7 +39,12 @@ def _cli(*args: str) -> float:
     """Run ``rgbdnav ARGS`` from this tree in a child process; its wall time [s]."""
     env = dict(os.environ, PYTHONPATH=str(REPO))
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "rgbdnav.cli", *args, "-q"], check=True, env=env)
+    subprocess.run(
+        [sys.executable, "-m", "rgbdnav.cli", *args, "-q"],
+        check=True,
+        env=env,
+        stdout=subprocess.DEVNULL,
+    )
     return time.perf_counter() - t0
 
 
@@ -59,14 +64,17 @@ def run(world: Path) -> dict:
     return {"render_s": render_s, "cache_mb": cache_mb, "map_s": map_s, "load": load, "s": s}
 
 
+def _shown(path: Path) -> str:
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+
+
 def report(world: Path, r: dict) -> str:
     s = r["s"]
     slam, grid = s["slam_vs_groundtruth"], s["grid_vs_floor_plan_aligned"]
     t = s["timings_s"]
     data_s, frames = s["data_duration_s"], s["counts"]["scans"]
-    front_end = t["mapping_total"] - sum(v for k, v in t.items() if k in ("optimize", "match",
-                                         "loop_closure", "keyframe"))  # fmt: skip
     mapper = {k: v for k, v in t.items() if k not in ("mapping_total", "grid_and_bundle", "wall")}
+    front_end = t["mapping_total"] - sum(mapper.values())
     total = r["render_s"] + r["map_s"]
     rows = [
         ("route", f"{world.name}: {frames} frames, {slam['path_length_m']:.1f} m in {data_s:.1f} s"),
@@ -78,7 +86,7 @@ def report(world: Path, r: dict) -> str:
         ("of the frame loop: front end (decode, VO, depth -> scan, EKF)", f"~{front_end:.1f} s"),
         ("of the frame loop: mapper stages [s]", ", ".join(f"{k} {v:.1f}" for k, v in
                                                            mapper.items())),  # fmt: skip
-        ("render share of `rgbdnav map scenes/house.yaml`", f"{100 * r['render_s'] / total:.0f} %"
+        ("render share of the world run (render + map)", f"{100 * r['render_s'] / total:.0f} %"
          f" of {total:.0f} s"),
         ("ATE RMSE, SE(2)-aligned / start-anchored", f"{slam['ate_rmse_aligned_m']:.4f} m / "
          f"{slam['ate_rmse_m']:.4f} m (target <= {ATE_TARGET_M} m aligned)"),
@@ -91,7 +99,7 @@ def report(world: Path, r: dict) -> str:
         "",
         f"Measured {dt.date.today()} on {machine('numpy', 'cv2')}; 1-min load average up to "
         f"{r['load']:.1f} during the run.",
-        f"Command: `python bench/bench_house_route.py --world {world.relative_to(REPO)}`.",
+        f"Command: `python bench/bench_house_route.py --world {_shown(world)}`.",
         "",
         "| figure | value |",
         "| --- | --- |",
