@@ -6,7 +6,7 @@ occupied cells match the floor plan's observed surfaces (IoU >= 0.9 within one c
 The suite drives a cut of the house route: the shipped house (same walls, textures, furniture,
 start, robot and sensor models), a 14 m loop of the living room that comes back to the start and
 re-drives its first metres, so it still closes a loop and re-visits mapped ground (1333 frames
-instead of 3970, ~2 minutes instead of ~5 on 2 cores). The thresholds are the full route's; the
+instead of 3970: a third of the rendering and mapping). The thresholds are the full route's; the
 cut measured 0.026 m aligned ATE, 0.044 m start-anchored, IoU 0.94, 6 closures accepted. The full
 44 m route, with the same targets, is `bench/bench_house_route.py` (docs/benchmarks.md).
 
