@@ -42,6 +42,7 @@ bench: $(STAMP)
 	$(PY) bench/bench_vo.py --out docs/benchmarks.md
 	$(PY) bench/bench_pose_graph.py --out docs/benchmarks.md
 	$(PY) bench/bench_mapper.py --out docs/benchmarks.md
+	$(PY) bench/bench_house_route.py --out docs/benchmarks.md
 	$(PY) bench/bench_localization.py --out docs/benchmarks.md
 	$(PY) bench/bench_nav.py --out docs/benchmarks.md
 	$(PY) bench/bench_live.py --out docs/benchmarks.md

@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
+import itertools
 import re
 import struct
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
 
 from sensors.bounded_read import read_bounded
 from sensors.types import SensorError
+
+T = TypeVar("T")
 
 PNG_IEND = b"IEND"  # type of the last chunk of every complete PNG
 JPEG_EOI = b"\xff\xd9"  # end-of-image marker of every complete JPEG
@@ -62,6 +68,29 @@ def read_image(file: Path, size: tuple[int, int], depth: bool) -> np.ndarray:
             "wrong_dtype",
         )
     return image if depth else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def decoded_ahead(
+    decode: Callable[[int], T], n: int, workers: int, name: str = "decode"
+) -> Iterator[tuple[int, Future[T]]]:
+    """``(k, future of decode(k))`` for k = 0..n-1 in order, ``workers`` threads decoding up to
+    ``2 * workers`` frames ahead (cv2 releases the GIL, so decoding overlaps the consumer's
+    work). The caller takes ``future.result()``: a bad frame raises there, in its place."""
+    with ThreadPoolExecutor(workers, thread_name_prefix=name) as pool:
+        todo = iter(range(n))
+        pending: deque[tuple[int, Future[T]]] = deque(
+            (k, pool.submit(decode, k)) for k in itertools.islice(todo, 2 * workers)
+        )
+        try:
+            while pending:
+                k, future = pending.popleft()
+                nxt = next(todo, None)
+                if nxt is not None:
+                    pending.append((nxt, pool.submit(decode, nxt)))
+                yield k, future
+        finally:  # an error or a consumer that stops early: drop the read-ahead
+            for _, future in pending:
+                future.cancel()
 
 
 # --- decoding bytes safely ---------------------------------------------------------------------

@@ -33,7 +33,7 @@ import yaml
 
 from sensors.atomic import atomic_write_text, commit_staging_dir, make_staging_dir
 from sensors.gps import GPS_TXT, GpsStream, read_gps_txt, write_gps_txt
-from sensors.images import ImageError, read_image
+from sensors.images import ImageError, decoded_ahead, read_image
 from sensors.safe_yaml import read_yaml
 from sensors.tum import (
     load_trajectory,
@@ -386,7 +386,10 @@ def _write_png(path: Path, image: np.ndarray, level: int = PNG_COMPRESSION) -> N
 
 
 class Recording:
-    """A recording folder opened for reading. Index files are read at open; images lazily."""
+    """A recording folder opened for reading. Index files are read at open; images lazily,
+    ``workers`` threads decoding ahead of the consumer in :meth:`frames`."""
+
+    workers = 2  # decode threads: the 2 cores of the robot's and CI's machines
 
     def __init__(
         self,
@@ -474,15 +477,17 @@ class Recording:
         the pair is skipped with a warning and counted in ``self.skipped`` (reset per call).
         """
         self.skipped = {}
-        for k in range(len(self)):
+        for k, future in decoded_ahead(self.frame, len(self), self.workers, "png-decode"):
             try:
-                yield self.frame(k)
+                frame = future.result()
             except ImageError as err:
                 if not skip_bad:
                     raise
                 stamp = format_stamp(int(self.rgb_stamps_ns[self.rgb_index[k]]))
                 log.warning("skipping frame %s: %s", stamp, err)
                 self.skipped[err.reason] = self.skipped.get(err.reason, 0) + 1
+                continue
+            yield frame
 
     def frame(self, k: int) -> RgbdFrame:
         """The k-th associated frame (0 <= k < len(self)); raises SensorError on a bad image."""

@@ -18,14 +18,11 @@ says which. Colour and depth are associated like TUM's ``associate.py`` (20 ms).
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 import os
 import re
-from collections import deque
 from collections.abc import Iterator, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +36,7 @@ from sensors.images import (
     ImageError,
     declared_size,
     decode_image,
+    decoded_ahead,
     read_image,
 )
 from sensors.recording import DEFAULT_MAX_DIFFERENCE_NS, associate, counts_to_depth
@@ -400,28 +398,15 @@ class TumFolderSource(SourceBase):
         per pass.
         """
         self.skipped = {}
-        with ThreadPoolExecutor(self.workers, thread_name_prefix="tum-decode") as pool:
-            todo = iter(range(len(self)))
-            pending: deque[tuple[int, Future[RgbdFrame]]] = deque(
-                (k, pool.submit(self.frame, k)) for k in itertools.islice(todo, 2 * self.workers)
-            )
+        for k, future in decoded_ahead(self.frame, len(self), self.workers, "tum-decode"):
             try:
-                while pending:
-                    k, future = pending.popleft()
-                    nxt = next(todo, None)
-                    if nxt is not None:
-                        pending.append((nxt, pool.submit(self.frame, nxt)))
-                    try:
-                        frame = future.result()
-                    except ImageError as err:
-                        if self.strict:
-                            raise
-                        self._count_skip(k, err)
-                        continue
-                    yield frame
-            finally:  # an error or a consumer that stops early: drop the read-ahead
-                for _, future in pending:
-                    future.cancel()
+                frame = future.result()
+            except ImageError as err:
+                if self.strict:
+                    raise
+                self._count_skip(k, err)
+                continue
+            yield frame
         if sum(self.skipped.values()) > MAX_WARNINGS:
             log.warning("%s: skipped %s frames", self.root, self.skipped)
 

@@ -20,12 +20,8 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("rec") / "house"
-    result = runner.invoke(app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45",
-                                 "--seed", "2", "--quiet"])  # fmt: skip
-    assert result.exit_code == 0, result.output
-    return out
+def recording(house_recording: Path) -> Path:
+    return house_recording  # tests/rgbdnav/conftest.py: rendered once per session
 
 
 def test_help_lists_the_commands() -> None:

@@ -10,28 +10,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from rgbdnav.cli import app
 from rgbdnav.live.run import LiveOptions, LiveRun
 from sensors.source import open_source
 from sensors.types import WheelTicks
 from slam.front_end import FrontEnd, options_for, replay
 from slam.geometry import wrap_angle
 
-REPO = Path(__file__).resolve().parents[2]
-HOUSE = REPO / "scenes" / "house.yaml"
-runner = CliRunner()
-
 
 @pytest.fixture(scope="module")
-def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("rec") / "house"
-    result = runner.invoke(
-        app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45", "--seed", "3", "--quiet"]
-    )
-    assert result.exit_code == 0, result.output
-    return out
+def recording(house_recording: Path) -> Path:
+    return house_recording  # tests/rgbdnav/conftest.py: rendered once per session
 
 
 def test_live_front_end_thread_and_offline_replay_give_the_same_poses(
