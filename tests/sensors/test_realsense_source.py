@@ -161,7 +161,10 @@ def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) 
     s = json.loads((out / "summary.json").read_text())
     assert s["errors"] == [] and s["counts"]["frames_processed"] >= 5
     assert s["counts"]["scans_mapped"] >= 1
-    assert 0.0 <= s["camera_to_host_ms_p50"] < 10_000.0  # one clock with the host, not 1970
+    # One clock with the host, not 1970. The stamp offset is fixed at the first frame, so a first
+    # frame that arrived late (playback starting on a loaded machine) puts later frames a few ms
+    # "before" their stamps.
+    assert -100.0 < s["camera_to_host_ms_p50"] < 10_000.0
 
 
 @pytest.mark.parametrize(
