@@ -270,13 +270,20 @@ class Mapper:
         moved = math.hypot(delta[0], delta[1]) >= self.config.minimum_travel_distance
         turned = abs(delta[2]) >= self.config.minimum_travel_heading
         waited = (scan.stamp_ns - self._ref_stamp) * 1e-9 >= self.config.minimum_time_interval
-        # The time gate bounds the keyframe rate of a fast sensor; it never lets keyframes drift
-        # further apart than twice the travel thresholds (a sparse log: one scan a metre).
+        # The time gate bounds the keyframe rate of a fast sensor, whose consecutive scans nearly
+        # repeat each other. A scan half a travel threshold or more from the one before it is
+        # sparse (a log with one scan a metre): new ground whatever the clock says, so the gate
+        # does not hold it back; nor does it let keyframes drift past twice the thresholds.
+        step = ominus(self._track_odom, odom)  # since the scan before this one
+        sparse = (
+            math.hypot(step[0], step[1]) >= 0.5 * self.config.minimum_travel_distance
+            or abs(step[2]) >= 0.5 * self.config.minimum_travel_heading
+        )
         far = (
             math.hypot(delta[0], delta[1]) >= 2 * self.config.minimum_travel_distance
             or abs(delta[2]) >= 2 * self.config.minimum_travel_heading
         )
-        is_keyframe = (moved or turned) and (waited or far)
+        is_keyframe = (moved or turned) and (waited or far or sparse)
         # 3. Track the scan against the local map.
         kf = self._make_keyframe(scan, odom)
         t0 = time.perf_counter()

@@ -12,7 +12,6 @@ import math
 import resource
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -29,7 +28,6 @@ from rgbdnav.visualize import (
     make_visualizer,
     occupied_cells_xy,
 )
-from sensors.carmen import CarmenSource
 from sensors.sim.world import FloorPlan, floor_plan, world_from_dict
 from sensors.source import PoseStream, open_source
 from sensors.tum import write_tum_trajectory
@@ -67,11 +65,6 @@ def run_map(
         summary: dict = {"command": "map", "source": str(source_path),
                          "source_kind": src.describe(), "extrinsics": extrinsics}  # fmt: skip
         mapper_cfg = cfg.mapper
-        if isinstance(src, CarmenSource) and src.log.stamp_source == "synthesised":
-            # Made-up stamps say nothing about time between scans: gate keyframes on motion.
-            mapper_cfg = replace(mapper_cfg, minimum_time_interval=0.0)
-            summary["note"] = "log has no usable stamps: minimum_time_interval set to 0"
-            log.warning("%s has no usable timestamps; keyframes gated on motion only", source_path)
         if continue_bundle is not None:
             previous = load_bundle(continue_bundle)
             mapper = Mapper.from_bundle(mapper_cfg, previous, cfg.localizer)

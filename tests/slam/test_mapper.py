@@ -191,7 +191,7 @@ def test_the_end_of_the_loop_closes_onto_its_start(corrupted_loop: LoopRun) -> N
     ("step_m", "period_s", "scans_per_keyframe"),
     [
         (0.12, 0.5, 5),  # distance-gated: ceil(0.5 m / 0.12 m) scans
-        (0.3, 0.15, 4),  # time-gated: 2 scans travel 0.6 m, but 0.5 s needs ceil(0.5 / 0.15)
+        (0.2, 0.15, 4),  # time-gated: 3 scans travel 0.6 m, but 0.5 s needs ceil(0.5 / 0.15)
     ],
 )
 def test_keyframes_follow_minimum_travel_distance_and_time(
@@ -459,13 +459,24 @@ def test_edges_are_well_formed(corrupted_loop: LoopRun) -> None:
         assert np.linalg.eigvalsh(info).min() > 0.0
 
 
-@pytest.mark.parametrize(("step_m", "keyframes"), [(0.6, 3), (1.2, 5)])
-def test_the_time_gate_never_spreads_keyframes_past_twice_the_travel_threshold(step_m, keyframes):
-    # Five scans 0.1 s apart, inside minimum_time_interval: 0.6 m steps (past the 0.5 m travel
-    # threshold) make a keyframe every other scan, once 1 m is reached; one scan every 1.2 m (a
-    # sparse log with synthetic stamps) makes one each scan. Time alone gave 2 in both cases.
-    truth = legs_route((1.0, 3.0, 0.0), [(4 * step_m, 0.0)], step=step_m)
-    scans = scans_along(ROOM, truth, noise_m=0.0, seed=0, period_ns=100_000_000)
+@pytest.mark.parametrize(
+    ("step_m", "period_s", "scans_per_keyframe"),
+    [
+        (0.6, 0.1, 1),  # sparse (a log with one scan a metre, stamps synthesised): every scan
+        (1.2, 0.1, 1),
+        (0.22, 0.02, 5),  # dense and fast: held back by time, but not past 2 x 0.5 m of travel
+    ],
+)
+def test_the_time_gate_holds_back_only_dense_scans_and_never_past_twice_the_travel_threshold(
+    step_m: float, period_s: float, scans_per_keyframe: int
+) -> None:
+    # The time gate (minimum_time_interval) bounds the keyframe rate of a fast sensor. A scan half
+    # a travel threshold from the one before it is new ground whatever the clock says (#12:
+    # gating should depend on what the scans need, not on where the stamps came from).
+    truth = legs_route((0.5, 3.0, 0.0), [(int(4.8 / step_m) * step_m, 0.0)], step=step_m)
+    scans = scans_along(ROOM, truth, noise_m=0.0, seed=0, period_ns=int(period_s * 1e9))
     config = replace(CFG, minimum_time_interval=0.25)
     result = run_mapper(scans, truth, config)
-    assert result.counts["keyframes"] == keyframes
+    assert [kf.stamp_ns for kf in result.keyframes] == [
+        s.stamp_ns for s in scans[::scans_per_keyframe]
+    ]
