@@ -62,6 +62,8 @@ LOOP_MIN_ANGULAR_WINDOW = 0.2  # [rad] smallest loop-closure angular half-window
 ODOM_MIN_SIGMA = (0.01, 0.005)  # [m, rad] floor of an odometry edge's sigmas
 LOOP_MIN_SIGMA = (0.02, 0.01)  # [m, rad] floor of a loop closure's sigmas
 UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
+ROTATED_RIVAL_WINDOW = math.pi / 4  # [rad] loop angular half-window from which turned twins count
+ROTATED_RIVAL_ANGLES = np.radians([90.0, 180.0, -90.0])  # [rad] yaw offsets of a turned twin
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
 GRID_MARGIN_M = 1.0  # [m] unknown border around the mapped area in the built grid
 REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
@@ -644,6 +646,12 @@ class Mapper:
             best = _response(local.field, kf.match_points, match.pose)
             rival = rival_score(local.field, kf.match_points, match.pose, lin,
                                 cfg.loop_match_ambiguity_distance)  # fmt: skip
+            if ang > ROTATED_RIVAL_WINDOW:
+                # A window this wide in yaw also holds the place turned a quarter or a half (a
+                # square junction): the match must beat its own turned twins too.
+                turned = rival_score(local.field, kf.match_points, match.pose, lin, -1.0,
+                                     angles_rad=ROTATED_RIVAL_ANGLES)  # fmt: skip
+                rival = max(rival, turned)
             if rival > cfg.loop_match_maximum_ambiguity * best:
                 self.loops.rejected["ambiguous (a rival pose scores as well)"] += 1
                 log.debug("loop %d-%d ambiguous: rival %.3f vs %.3f", j, k, rival, best)

@@ -507,6 +507,34 @@ def test_rival_score_of_a_distinctive_room_is_well_below_the_match() -> None:
     assert 0.0 <= rival < 0.6 * best, (rival, best)
 
 
+def _crossing(arm: float = 8.0, half: float = 1.0) -> np.ndarray:
+    """Two 2 m wide corridors crossing at the origin: the same place turned a quarter."""
+    segs = []
+    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        segs.append([sx * half, sy * half, sx * arm, sy * half])
+        segs.append([sx * half, sy * half, sx * half, sy * arm])
+    return np.array(segs)
+
+
+def test_rival_score_at_turned_yaws_finds_the_quarter_turned_twin_of_a_junction() -> None:
+    # The mapper's loop test for a wide angular window (issue #12: infinite-corridor seed 1
+    # closed loops 90 deg off at such a junction): the turned pose at the same place counts.
+    from slam.mapper import ROTATED_RIVAL_ANGLES
+
+    crossing, pose = _crossing(), np.array([0.0, 0.0, 0.3])
+    field = build_likelihood_field(_segment_points(crossing), RES, SMEAR, 6.0, N_LEVELS)
+    pts = body_points(crossing, pose, range_max=6.0)
+    best = float(field.lookup(transform_points(pose, pts)).mean())
+    turned = rival_score(field, pts, pose, 1.0, -1.0, angles_rad=ROTATED_RIVAL_ANGLES)
+    assert best > 0.5
+    assert turned > 0.9 * best, (turned, best)
+    room = room_field()
+    room_pts = body_points(ROOM, REF_POSE)
+    room_best = float(room.lookup(transform_points(REF_POSE, room_pts)).mean())
+    room_turned = rival_score(room, room_pts, REF_POSE, 1.0, -1.0, angles_rad=ROTATED_RIVAL_ANGLES)
+    assert room_turned < 0.7 * room_best, (room_turned, room_best)
+
+
 def test_rival_score_is_zero_when_the_window_holds_no_far_pose() -> None:
     field = room_field()
     pts = body_points(ROOM, REF_POSE)
