@@ -116,6 +116,9 @@ def _describe_extrinsics(rotation: Sequence[float], translation: Sequence[float]
     return f"translation ({t}) mm, rotation {angle:.2f} deg"
 
 
+_UNREAD = object()  # RealSenseSource's gyro before it is read
+
+
 class RealSenseSource(SourceBase):
     """A camera or an SDK recording, depth aligned to colour. Use :meth:`open`."""
 
@@ -141,6 +144,7 @@ class RealSenseSource(SourceBase):
         # [ns] added to device stamps to give the frames' (fixed at the first frame): the live
         # run moves the recording's gyro onto its clock with it (slam.front_end.MessageFeed).
         self.stamp_offset_ns = 0
+        self._gyro: ImuStream | None | object = _UNREAD  # imu(): read once
         device = profile.get_device()
         self.device_name = _info(rs, device, "name")
         self.serial = _info(rs, device, "serial_number")
@@ -368,9 +372,9 @@ class RealSenseSource(SourceBase):
         time: at opening, before the frames start playing); None without one."""
         if self.target.file is None:
             return None
-        if not hasattr(self, "_gyro"):
+        if self._gyro is _UNREAD:
             self._gyro = read_gyro(self._rs, self.target.file)
-        return self._gyro
+        return self._gyro  # type: ignore[return-value]
 
 
 def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:

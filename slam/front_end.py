@@ -363,10 +363,22 @@ class MessageFeed:
     """A source's non-frame streams (wheels, odometry, IMU, as ``fe.options`` enables them) in
     one time order, fed to ``fe`` up to each frame's stamp: the one interleaving the offline
     :func:`replay` and the live run share. ``offset_ns`` moves the source's clock onto the
-    frames' (the live run's monotonic clock: ``RealSenseSource.stamp_offset_ns``)."""
+    frames' (the live run's monotonic clock: ``RealSenseSource.stamp_offset_ns``); ``kinds``
+    narrows the streams (live: the camera's ``imu`` only, the board gives the wheels)."""
 
-    def __init__(self, src: Source, fe: FrontEnd, offset_ns: int = 0) -> None:
-        opts = fe.options
+    def __init__(
+        self,
+        src: Source,
+        fe: FrontEnd,
+        offset_ns: int = 0,
+        kinds: tuple[str, ...] = ("wheels", "odometry", "imu"),
+    ) -> None:
+        opts = replace(
+            fe.options,
+            wheels=fe.options.wheels and "wheels" in kinds,
+            odometry=fe.options.odometry if "odometry" in kinds else "",
+            imu=fe.options.imu and "imu" in kinds,
+        )
         stamps: list[np.ndarray] = []
         feed: list[Callable[[int], None]] = []
         wheels = src.wheels() if opts.wheels else None
@@ -378,7 +390,7 @@ class MessageFeed:
                     WheelTicks(int(w.stamps_ns[i]) + offset_ns, int(w.left[i]), int(w.right[i]))
                 )
             )
-        if opts.odometry and not opts.wheels:
+        if opts.odometry and not fe.options.wheels:
             msgs = _odometry_messages(src, opts.odometry, fe.ekf_cfg.odom0_default_variance)
             stamps.append(np.array([m.stamp_ns for m in msgs], np.int64))
             msgs = (
@@ -402,7 +414,6 @@ class MessageFeed:
         self._t = all_t[order] + offset_ns
         self._which, self._index, self._feed = which[order], index[order], feed
         self._k = 0
-        self.fed = 0  # messages handed to the front end so far
 
     def until(self, stamp_ns: int) -> None:
         """Every message stamped at or before ``stamp_ns`` not fed yet (ties: before the frame,
@@ -410,7 +421,6 @@ class MessageFeed:
         end = int(np.searchsorted(self._t, stamp_ns, side="right"))
         for m in range(self._k, end):
             self._feed[self._which[m]](int(self._index[m]))
-        self.fed += max(0, end - self._k)
         self._k = max(self._k, end)
 
 

@@ -470,7 +470,7 @@ class LiveRun:
             if opts.imu and src is not None:
                 if imu_feed is None:
                     offset = int(getattr(src, "stamp_offset_ns", 0))
-                    imu_feed = MessageFeed(src, fe, offset)  # a camera has no wheel stream
+                    imu_feed = MessageFeed(src, fe, offset, kinds=("imu",))
                 imu_feed.until(frame.stamp_ns)
             wheels_ms = 1e3 * (time.perf_counter() - t_a)
             # b. VO (skipped when frames wait: the next VO pair spans both), the pose at the
