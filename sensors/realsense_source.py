@@ -116,6 +116,9 @@ def _describe_extrinsics(rotation: Sequence[float], translation: Sequence[float]
     return f"translation ({t}) mm, rotation {angle:.2f} deg"
 
 
+_UNREAD = object()  # RealSenseSource's gyro before it is read
+
+
 class RealSenseSource(SourceBase):
     """A camera or an SDK recording, depth aligned to colour. Use :meth:`open`."""
 
@@ -138,6 +141,10 @@ class RealSenseSource(SourceBase):
         self._realtime = realtime
         self._clock = clock
         self._max_difference_ns = max_difference_ns
+        # [ns] added to device stamps to give the frames' (fixed at the first frame): the live
+        # run moves the recording's gyro onto its clock with it (slam.front_end.MessageFeed).
+        self.stamp_offset_ns = 0
+        self._gyro: ImuStream | None | object = _UNREAD  # imu(): read once
         device = profile.get_device()
         self.device_name = _info(rs, device, "name")
         self.serial = _info(rs, device, "serial_number")
@@ -223,6 +230,8 @@ class RealSenseSource(SourceBase):
             width, height, fps = LIVE_MODE
             config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
             config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
+        # Played in real time the recording runs from its start: its gyro is read before.
+        gyro = read_gyro(rs, target.file) if target.file is not None and realtime else None
         pipeline = rs.pipeline()
         try:
             profile = pipeline.start(config)
@@ -236,7 +245,7 @@ class RealSenseSource(SourceBase):
                 f"RealSense camera {serial}: cannot start it ({err}); {hint}"
             ) from err
         try:
-            return cls(
+            src = cls(
                 rs,
                 target,
                 pipeline,
@@ -245,6 +254,9 @@ class RealSenseSource(SourceBase):
                 clock=clock,
                 max_difference_ns=max_difference_ns,
             )
+            if target.file is not None and realtime:
+                src._gyro = gyro
+            return src
         except SensorError:
             pipeline.stop()  # e.g. a stream format rgbdnav does not read
             raise
@@ -335,6 +347,7 @@ class RealSenseSource(SourceBase):
                 else:  # global_time is host wall time already
                     keep = colour.get_frame_timestamp_domain() == global_time
                 offset_ns = 0 if keep else host_offset_ns(stamp_ms, self._clock())
+                self.stamp_offset_ns = offset_ns
             channels = COLOUR_FORMATS[self._colour_format]
             rgb = np.ascontiguousarray(np.asanyarray(colour.get_data())[..., channels])
             counts = np.asanyarray(depth.get_data())
@@ -355,37 +368,44 @@ class RealSenseSource(SourceBase):
         return "unpaired_color" if gap_ms * NS_PER_MS > self._max_difference_ns else ""
 
     def imu(self) -> ImuStream | None:
-        """A recording's gyro as yaw rate (-gyro_y), read in a second pass; None without one."""
+        """A recording's gyro as yaw rate (-gyro_y), read in a second pass, once (played in real
+        time: at opening, before the frames start playing); None without one."""
         if self.target.file is None:
             return None
-        rs = self._rs
-        config = rs.config()
-        config.enable_device_from_file(str(self.target.file), repeat_playback=False)
-        config.enable_stream(rs.stream.gyro)
-        pipeline = rs.pipeline()
-        try:
-            profile = pipeline.start(config)
-        except RuntimeError:
-            return None  # no gyro stream in the recording
-        stamps: list[int] = []
-        rates: list[float] = []
-        try:
-            profile.get_device().as_playback().set_real_time(False)
-            while True:
-                ok, frameset = pipeline.try_wait_for_frames(FRAME_TIMEOUT_MS)
-                if not ok:
-                    break
-                for frame in frameset:
-                    motion = frame.as_motion_frame()
-                    if motion:
-                        stamps.append(round(motion.get_timestamp() * NS_PER_MS))
-                        rates.append(-float(motion.get_motion_data().y))
-        finally:
-            pipeline.stop()
-        if not stamps:
-            return None
-        order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
-        return ImuStream(np.asarray(stamps, dtype=np.int64)[order], np.asarray(rates)[order])
+        if self._gyro is _UNREAD:
+            self._gyro = read_gyro(self._rs, self.target.file)
+        return self._gyro  # type: ignore[return-value]
+
+
+def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:
+    """A recording's gyro stream as yaw rates (-gyro_y), as fast as it reads; None without one."""
+    config = rs.config()
+    config.enable_device_from_file(str(file), repeat_playback=False)
+    config.enable_stream(rs.stream.gyro)
+    pipeline = rs.pipeline()
+    try:
+        profile = pipeline.start(config)
+    except RuntimeError:
+        return None  # no gyro stream in the recording
+    stamps: list[int] = []
+    rates: list[float] = []
+    try:
+        profile.get_device().as_playback().set_real_time(False)
+        while True:
+            ok, frameset = pipeline.try_wait_for_frames(FRAME_TIMEOUT_MS)
+            if not ok:
+                break
+            for frame in frameset:
+                motion = frame.as_motion_frame()
+                if motion:
+                    stamps.append(round(motion.get_timestamp() * NS_PER_MS))
+                    rates.append(-float(motion.get_motion_data().y))
+    finally:
+        pipeline.stop()
+    if not stamps:
+        return None
+    order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+    return ImuStream(np.asarray(stamps, dtype=np.int64)[order], np.asarray(rates)[order])
 
 
 # --- writing SDK recordings (librealsense's software device) -----------------------------------

@@ -359,44 +359,80 @@ def _odometry_messages(src: Source, kind: str, fallback_variance: float) -> list
     ]
 
 
+class MessageFeed:
+    """A source's non-frame streams (wheels, odometry, IMU, as ``fe.options`` enables them) in
+    one time order, fed to ``fe`` up to each frame's stamp: the one interleaving the offline
+    :func:`replay` and the live run share. ``offset_ns`` moves the source's clock onto the
+    frames' (the live run's monotonic clock: ``RealSenseSource.stamp_offset_ns``); ``kinds``
+    narrows the streams (live: the camera's ``imu`` only, the board gives the wheels)."""
+
+    def __init__(
+        self,
+        src: Source,
+        fe: FrontEnd,
+        offset_ns: int = 0,
+        kinds: tuple[str, ...] = ("wheels", "odometry", "imu"),
+    ) -> None:
+        opts = replace(
+            fe.options,
+            wheels=fe.options.wheels and "wheels" in kinds,
+            odometry=fe.options.odometry if "odometry" in kinds else "",
+            imu=fe.options.imu and "imu" in kinds,
+        )
+        stamps: list[np.ndarray] = []
+        feed: list[Callable[[int], None]] = []
+        wheels = src.wheels() if opts.wheels else None
+        if wheels is not None:
+            w = wheels
+            stamps.append(np.asarray(w.stamps_ns, np.int64))
+            feed.append(
+                lambda i: fe.wheels(
+                    WheelTicks(int(w.stamps_ns[i]) + offset_ns, int(w.left[i]), int(w.right[i]))
+                )
+            )
+        if opts.odometry and not fe.options.wheels:
+            msgs = _odometry_messages(src, opts.odometry, fe.ekf_cfg.odom0_default_variance)
+            stamps.append(np.array([m.stamp_ns for m in msgs], np.int64))
+            msgs = (
+                [replace(m, stamp_ns=m.stamp_ns + offset_ns) for m in msgs] if offset_ns else msgs
+            )
+            feed.append(lambda i: fe.odometry(msgs[i]))
+        imu = src.imu() if opts.imu else None
+        if imu is not None:
+            g = imu
+            stamps.append(np.asarray(g.stamps_ns, np.int64))
+            feed.append(
+                lambda i: fe.imu(ImuSample(int(g.stamps_ns[i]) + offset_ns, float(g.gyro_z[i])))
+            )
+        # One time-ordered merge (stable: ties keep the order above).
+        all_t = np.concatenate(stamps) if stamps else np.zeros(0, np.int64)
+        which = (
+            np.concatenate([np.full(len(s), k) for k, s in enumerate(stamps)]) if stamps else all_t
+        )
+        index = np.concatenate([np.arange(len(s)) for s in stamps]) if stamps else all_t
+        order = np.argsort(all_t, kind="stable")
+        self._t = all_t[order] + offset_ns
+        self._which, self._index, self._feed = which[order], index[order], feed
+        self._k = 0
+
+    def until(self, stamp_ns: int) -> None:
+        """Every message stamped at or before ``stamp_ns`` not fed yet (ties: before the frame,
+        as :func:`slam.ekf.fuse` orders a message at an output's stamp before the output)."""
+        end = int(np.searchsorted(self._t, stamp_ns, side="right"))
+        for m in range(self._k, end):
+            self._feed[self._which[m]](int(self._index[m]))
+        self._k = max(self._k, end)
+
+
 def replay(
     src: Source, fe: FrontEnd, progress: Callable[[int, int], None] | None = None
 ) -> Iterator[FrontEndStep]:
     """``src``'s streams through ``fe`` in time order: before each frame every wheel reading,
-    odometry message and IMU sample stamped at or before it (ties: the frame last, as
-    :func:`slam.ekf.fuse` orders a message at an output's stamp before the output)."""
-    opts = fe.options
-    stamps: list[np.ndarray] = []
-    feed: list[Callable[[int], None]] = []
-    wheels = src.wheels() if opts.wheels else None
-    if wheels is not None:
-        w = wheels
-        stamps.append(np.asarray(w.stamps_ns, np.int64))
-        feed.append(
-            lambda i: fe.wheels(WheelTicks(int(w.stamps_ns[i]), int(w.left[i]), int(w.right[i])))
-        )
-    if opts.odometry and not opts.wheels:
-        msgs = _odometry_messages(src, opts.odometry, fe.ekf_cfg.odom0_default_variance)
-        stamps.append(np.array([m.stamp_ns for m in msgs], np.int64))
-        feed.append(lambda i: fe.odometry(msgs[i]))
-    imu = src.imu() if opts.imu else None
-    if imu is not None:
-        g = imu
-        stamps.append(np.asarray(g.stamps_ns, np.int64))
-        feed.append(lambda i: fe.imu(ImuSample(int(g.stamps_ns[i]), float(g.gyro_z[i]))))
-    # One time-ordered merge of every non-frame message (stable: ties keep the order above).
-    all_t = np.concatenate(stamps) if stamps else np.zeros(0, np.int64)
-    which = np.concatenate([np.full(len(s), k) for k, s in enumerate(stamps)]) if stamps else all_t
-    index = np.concatenate([np.arange(len(s)) for s in stamps]) if stamps else all_t
-    order = np.argsort(all_t, kind="stable")
-    all_t, which, index = all_t[order], which[order], index[order]
+    odometry message and IMU sample stamped at or before it (:class:`MessageFeed`)."""
+    messages = MessageFeed(src, fe)
     n = len(src.stream_stamps().get("rgb", ()))
-    k = 0
     for j, frame in enumerate(src.frames()):
-        end = int(np.searchsorted(all_t, frame.stamp_ns, side="right"))
-        for m in range(k, end):
-            feed[which[m]](int(index[m]))
-        k = max(k, end)
+        messages.until(frame.stamp_ns)
         yield fe.frame(frame)
         if progress is not None:
             progress(j + 1, n)
@@ -407,6 +443,7 @@ __all__ = [
     "FrontEnd",
     "FrontEndOptions",
     "FrontEndStep",
+    "MessageFeed",
     "options_for",
     "pose_only_odom0",
     "replay",

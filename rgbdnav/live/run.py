@@ -71,7 +71,7 @@ from sensors.motor_board import MotorBoard
 from sensors.source import Source, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, RgbdNavError, SensorError, WheelTicks
-from slam.front_end import FrontEnd, FrontEndOptions
+from slam.front_end import FrontEnd, FrontEndOptions, MessageFeed
 from slam.geometry import ominus, oplus, path_length
 from slam.map_bundle import save_bundle
 from slam.mapper import Mapper, build_grid, make_bundle
@@ -424,13 +424,18 @@ class LiveRun:
         :class:`slam.front_end.FrontEnd` the offline commands drive); its scan and pose go to
         the mapper, the collision monitor and the navigator."""
         cfg = self.cfg
+        # The camera's gyro (a RealSense recording with one played as the camera) is imu0.
+        src = self.camera_src
+        gyro = src.imu() if src is not None else None
         opts = FrontEndOptions(
             wheels=self.opts.board != "none",
+            imu=gyro is not None and len(gyro.stamps_ns) > 0,
             pose_before_vo=cfg.live.pose_before_vo,
             camera_rate_hz=cfg.camera.rate,
         )
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
         self.front_end = fe
+        imu_feed: MessageFeed | None = None  # built at the first frame, when its clock is known
         last_mapped_ns = -(2**62)  # [ns] stamp of the last scan handed to the mapper
         stalled = False
         vis_every = cfg.live.visualize_every
@@ -461,6 +466,12 @@ class LiveRun:
                     break
                 if fe.wheels(t) and self.recorder is not None:
                     self.recorder.wheels(t)
+            # The gyro samples up to this frame, on its clock (the same merge as offline).
+            if opts.imu and src is not None:
+                if imu_feed is None:
+                    offset = int(getattr(src, "stamp_offset_ns", 0))
+                    imu_feed = MessageFeed(src, fe, offset, kinds=("imu",))
+                imu_feed.until(frame.stamp_ns)
             wheels_ms = 1e3 * (time.perf_counter() - t_a)
             # b. VO (skipped when frames wait: the next VO pair spans both), the pose at the
             #    frame's stamp and the scan: latency ends here.

@@ -165,6 +165,32 @@ def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) 
     # frame that arrived late (playback starting on a loaded machine) puts later frames a few ms
     # "before" their stamps.
     assert -100.0 < s["camera_to_host_ms_p50"] < 10_000.0
+    assert s["ekf"]["sensors"]["imu0"]["fused"] > 0, s["ekf"]  # the D435i's gyro
+
+
+def _live_yaw_error(path: Path, out: Path) -> tuple[float, dict]:
+    """Live on ``path`` (no board): |odometry yaw - true yaw| at the last frame, and the summary's
+    imu0 stats. The route turns at YAW_RATE from its first frame (odom.tum's first row)."""
+    res = runner.invoke(app, ["live", "--camera", f"realsense://{path}", "--board", "none",
+                              "--out", str(out), "--duration", "3", "-q"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    odom = np.loadtxt(out / "odom.tum", ndmin=2)
+    yaw = 2.0 * math.atan2(odom[-1, 6], odom[-1, 7])
+    truth = YAW_RATE * (odom[-1, 0] - odom[0, 0])
+    imu0 = json.loads((out / "summary.json").read_text())["ekf"]["sensors"]["imu0"]
+    return abs(yaw - truth), imu0
+
+
+def test_live_fuses_the_recordings_gyro_and_turns_as_the_route(route, tmp_path: Path) -> None:
+    path, frames = route
+    plain = tmp_path / "no_gyro.db3"  # the same frames, as a D435 (no IMU) records them
+    write_sdk_recording(plain, frames, depth_units=DEPTH_UNITS, pace=True)
+    with_gyro, imu0 = _live_yaw_error(path, tmp_path / "gyro")
+    without, imu0_plain = _live_yaw_error(plain, tmp_path / "plain")
+    assert imu0["fused"] > 0 and imu0["dropped_late"] == 0, imu0
+    assert imu0_plain["received"] == 0  # no gyro: the live run as before
+    assert with_gyro < 0.03, with_gyro  # the gyro's yaw, on the frames' clock
+    assert with_gyro <= without + 1e-3, (with_gyro, without)
 
 
 @pytest.mark.parametrize(
