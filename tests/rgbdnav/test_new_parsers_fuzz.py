@@ -150,6 +150,17 @@ def test_a_mutated_euroc_trajectory_reads_or_is_an_error(tmp_path: Path, data: b
         assert np.isfinite(table.poses).all()
 
 
+@pytest.mark.parametrize("stamp", ["9" * 19, "9" * 5000, "1²"])
+def test_a_euroc_stamp_too_large_for_int64_or_not_ascii_is_a_sensor_error(
+    tmp_path: Path, stamp: str
+) -> None:
+    # Found by fuzz_inputs.py: OverflowError (int64), ValueError ("²" passes str.isdigit).
+    path = tmp_path / "data.csv"
+    path.write_bytes(EUROC.replace(b"1403636579758555392", stamp.encode()))
+    with pytest.raises(RgbdNavError, match="not integer ns"):
+        read_pose_table(path, "euroc")
+
+
 @examples(80)
 @given(mutations(b"0.0 1 0 1\n0.5 3 1 -32767\n# c\n1.25 1 0 0\n", NUM_ALPHABET))
 def test_a_mutated_joystick_replay_file_parses_or_is_a_config_error(data: bytes) -> None:
@@ -188,6 +199,28 @@ def test_a_tacho_line_of_any_bytes_is_two_finite_rpms_or_none(line: bytes) -> No
 @given(st.text(max_size=60) | st.text("[]{},:;0123456789.-eEnaif ", max_size=60))
 def test_a_realsense_sdk_transform_parses_or_is_an_error(text: str) -> None:
     out = rejects_cleanly(parse_sdk_transform, text)
+    if out is not None:
+        assert np.isfinite(np.concatenate([np.ravel(x) for x in out])).all()
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "rotation=nan,0,0,0,1,0,0,0,1;translation=0,0,0",
+        "rotation=1,0,0,0,1,0,0,0,1;translation=inf,0,0",
+        "rotation=5,0,0,0,1,0,0,0,1;translation=0,0,0",
+    ],
+)
+def test_a_sdk_transform_that_is_not_a_finite_rotation_is_an_error(text: str) -> None:
+    # Found by fuzzing: NaN, inf and a scaled matrix were returned as the camera extrinsics.
+    with pytest.raises(RgbdNavError, match="not a finite rotation"):
+        parse_sdk_transform(text)
+
+
+@examples(60)
+@given(mutations(b"rotation=1,0,0,0,1,0,0,0,1;translation=0.015,0,0", b"0123456789.,-=;naif"))
+def test_a_mutated_sdk_transform_parses_or_is_an_error(text: bytes) -> None:
+    out = rejects_cleanly(parse_sdk_transform, text.decode("utf-8", "replace"))
     if out is not None:
         assert np.isfinite(np.concatenate([np.ravel(x) for x in out])).all()
 
