@@ -40,7 +40,14 @@ from sensors.thunderborg import parse_tacho_line  # noqa: E402
 from sensors.tum import load_tum_trajectory, read_pose_table  # noqa: E402
 from sensors.types import LaserScan, RgbdNavError, SensorError, parse_stamp  # noqa: E402
 from slam.fleet import load_fleet  # noqa: E402
-from slam.map_bundle import GraphEdge, MapBundle, load_bundle, load_map_yaml, save_bundle  # noqa: E402
+from slam.map_bundle import (  # noqa: E402
+    GraphEdge,
+    MapBundle,
+    decode_pgm,
+    load_bundle,
+    load_map_yaml,
+    save_bundle,
+)
 from slam.occupancy_grid import GridGeometry, OccupancyGrid  # noqa: E402
 
 OUTCOMES = ("ok", "counted skip", "clean error", "traceback", "hang")
@@ -130,6 +137,11 @@ def _carmen(data: bytes, tmp: Path) -> str:
 
 def _image(data: bytes, tmp: Path) -> str:
     decode_image(data, "x", SensorError)
+    return "ok"
+
+
+def _pgm(data: bytes, tmp: Path) -> str:
+    decode_pgm(data, "map.pgm")
     return "ok"
 
 
@@ -268,6 +280,11 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
         "image bytes (PNG)": (_image, png),
         "image bytes (JPEG)": (_image, jpg),
         "image bytes (PGM)": (_image, pgm),
+        "PGM ASCII P2 (Nav2 map)": (_pgm, b"P2\n# c\n3 2\n255\n0 254 205\n0 100 255\n"),
+        "PGM 16-bit P5 (Nav2 map)": (
+            _pgm,
+            b"P5\n2 2\n65535\n" + bytes([0, 0, 255, 255, 1, 0, 128, 0]),
+        ),
         "Nav2 map.yaml": (_map_yaml, map_yaml),
         "bundle graph.json": (_graph_json, graph),
         "fleet.yaml": (

@@ -23,6 +23,7 @@ from sensors.thunderborg import parse_tacho_line
 from sensors.tum import read_pose_table
 from sensors.types import ConfigError, MapError, RgbdNavError
 from slam.fleet import load_fleet
+from slam.map_bundle import decode_pgm
 from tests.rgbdnav.test_parsers_fuzz import YAML_ALPHABET, mutations
 
 
@@ -265,3 +266,28 @@ def test_fleet_files_that_raised_tracebacks_are_map_errors(tmp_path: Path, doc: 
     path.write_text(doc)
     with pytest.raises(MapError, match="fleet.yaml"):
         load_fleet(path)
+
+
+P2 = b"P2\n# a comment\n3 2\n255\n0 254 205\n# mid\n0 100 255\n"
+P5_16 = b"P5\n2 2\n65535\n" + bytes([0, 0, 255, 255, 1, 0, 128, 0])
+
+
+@examples(100)
+@given(mutations(P2, b"0123456789 \n#-+P2") | mutations(P5_16, b"\x00\xff0123456789 \n"))
+def test_a_mutated_ascii_or_16_bit_pgm_decodes_or_is_a_map_error(data: bytes) -> None:
+    out = rejects_cleanly(decode_pgm, data, "map.pgm", errors=(MapError,))
+    if out is not None:
+        pixels, maxval = out
+        assert pixels.ndim == 2 and int(pixels.max(initial=0)) <= maxval
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        b"P2\n2 1\n255\n99999999999999999999999 1\n",  # OverflowError from numpy
+        b"P2\n" + b"9" * 5000 + b" 1\n255\n1 1\n",  # ValueError: int() digit limit
+    ],
+)
+def test_pgm_numbers_too_large_for_int_are_map_errors(data: bytes) -> None:
+    with pytest.raises(MapError, match="map.pgm"):
+        decode_pgm(data, "map.pgm")
