@@ -31,6 +31,7 @@ from nav.joystick import parse_events  # noqa: E402
 from rgbdnav.config import load_config  # noqa: E402
 from rgbdnav.ros_params import load_ros_params  # noqa: E402
 from sensors.carmen import read_carmen_log  # noqa: E402
+from sensors.arduino_bridge import parse_encoder_reply  # noqa: E402
 from sensors.geo import read_geo_anchor  # noqa: E402
 from sensors.gps import read_gps_txt  # noqa: E402
 from sensors.images import decode_image  # noqa: E402
@@ -212,6 +213,13 @@ def _tacho(data: bytes, tmp: Path) -> str:
     return "ok"
 
 
+def _encoder_reply(data: bytes, tmp: Path) -> str:
+    counts = parse_encoder_reply(data.decode("ascii", "replace"))  # as the board decodes it
+    if counts is None:
+        raise SensorError("unreadable")  # the board raises MotorBoardError and counts it
+    return "ok"
+
+
 def _ros_params(data: bytes, tmp: Path) -> str:
     (tmp / "p.yaml").write_bytes(data)
     load_ros_params([tmp / "p.yaml"])
@@ -306,6 +314,7 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
         "joystick replay file": (_joystick, b"0.0 1 0 1\n0.5 3 1 -32767\n1.25 1 0 0\n"),
         "--board spec": (_board_spec, b"thunderborg:/dev/i2c-1@0x15,/dev/ttyUSB0"),
         "ThunderBorg tacho line": (_tacho, b"tacho 12.5 -3\r\n"),
+        "Arduino bridge 'e' reply": (_encoder_reply, b"123 -45"),
         "--ros-params file": (
             _ros_params,
             b"ekf_filter_node:\n  ros__parameters:\n    frequency: 30.0\n    two_d_mode: true\n"

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from nav.joystick import parse_events
 from rgbdnav.ros_params import load_ros_params
+from sensors.arduino_bridge import parse_encoder_reply
 from sensors.geo import geo_from_dict
 from sensors.gps import read_gps_txt
 from sensors.motor_board import parse_device_spec
@@ -291,3 +292,19 @@ def test_a_mutated_ascii_or_16_bit_pgm_decodes_or_is_a_map_error(data: bytes) ->
 def test_pgm_numbers_too_large_for_int_are_map_errors(data: bytes) -> None:
     with pytest.raises(MapError, match="map.pgm"):
         decode_pgm(data, "map.pgm")
+
+
+@examples(100)
+@given(st.text(max_size=30) | st.text("0123456789 -_+\t١", max_size=30))
+def test_an_encoder_reply_of_any_text_is_two_32_bit_counts_or_none(text: str) -> None:
+    counts = parse_encoder_reply(text)
+    assert counts is None or all(-(2**31) <= c < 2**31 for c in counts)
+
+
+@pytest.mark.parametrize("reply", ["1_0 2", "١ 2", "9" * 40 + " 0", "1 2 3", "0x10 2"])
+def test_an_encoder_reply_int_would_take_but_the_firmware_cannot_send_is_refused(
+    reply: str,
+) -> None:
+    # int() took these: "1_0" as 10, Arabic-Indic digits, a 40-digit count (later int64 overflow).
+    assert parse_encoder_reply(reply) is None
+    assert parse_encoder_reply("123 -45") == (123, -45)
