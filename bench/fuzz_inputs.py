@@ -30,8 +30,8 @@ from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 from nav.joystick import parse_events  # noqa: E402
 from rgbdnav.config import load_config  # noqa: E402
 from rgbdnav.ros_params import load_ros_params  # noqa: E402
-from sensors.carmen import read_carmen_log  # noqa: E402
 from sensors.arduino_bridge import parse_encoder_reply  # noqa: E402
+from sensors.carmen import read_carmen_log  # noqa: E402
 from sensors.geo import read_geo_anchor  # noqa: E402
 from sensors.gps import read_gps_txt  # noqa: E402
 from sensors.images import decode_image  # noqa: E402
