@@ -28,6 +28,7 @@ import numpy as np  # noqa: E402
 from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
 from nav.joystick import parse_events  # noqa: E402
+from rgbdnav.commands.export import run_content  # noqa: E402
 from rgbdnav.config import load_config  # noqa: E402
 from rgbdnav.ros_params import load_ros_params  # noqa: E402
 from sensors.arduino_bridge import parse_encoder_reply  # noqa: E402
@@ -220,6 +221,12 @@ def _encoder_reply(data: bytes, tmp: Path) -> str:
     return "ok"
 
 
+def _run_summary(data: bytes, tmp: Path) -> str:
+    (tmp / "run" / "summary.json").write_bytes(data)
+    run_content(tmp / "run", images=True)
+    return "ok"
+
+
 def _ros_params(data: bytes, tmp: Path) -> str:
     (tmp / "p.yaml").write_bytes(data)
     load_ros_params([tmp / "p.yaml"])
@@ -276,6 +283,8 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
     graph = (tmp / "b" / "graph.json").read_bytes()
     (tmp / "m").mkdir()
     (tmp / "g").mkdir()
+    (tmp / "run").mkdir()
+    (tmp / "run" / "fused.tum").write_bytes(b"1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n")
     kitti = b"1 0 0 0.5 0 1 0 0.25 0 0 1 0\n1 0 0 1.5 0 1 0 0.5 0 0 1 0\n"
     (tmp / "kitti.txt").write_bytes(kitti)
     (tmp / "times.txt").write_bytes(b"0.0\n0.1\n")
@@ -315,6 +324,11 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
         "--board spec": (_board_spec, b"thunderborg:/dev/i2c-1@0x15,/dev/ttyUSB0"),
         "ThunderBorg tacho line": (_tacho, b"tacho 12.5 -3\r\n"),
         "Arduino bridge 'e' reply": (_encoder_reply, b"123 -45"),
+        "export: run summary.json": (
+            _run_summary,
+            b'{"command": "odometry", "frame": "base_link", "source": "/nonexistent", '
+            b'"map": {"path": "gone"}, "recording": {"path": "gone"}}',
+        ),
         "--ros-params file": (
             _ros_params,
             b"ekf_filter_node:\n  ros__parameters:\n    frequency: 30.0\n    two_d_mode: true\n"

@@ -14,6 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nav.joystick import parse_events
+from rgbdnav.commands.export import run_content
 from rgbdnav.ros_params import load_ros_params
 from sensors.arduino_bridge import parse_encoder_reply
 from sensors.geo import geo_from_dict
@@ -308,3 +309,43 @@ def test_an_encoder_reply_int_would_take_but_the_firmware_cannot_send_is_refused
     # int() took these: "1_0" as 10, Arabic-Indic digits, a 40-digit count (later int64 overflow).
     assert parse_encoder_reply(reply) is None
     assert parse_encoder_reply("123 -45") == (123, -45)
+
+
+SUMMARY = (
+    b'{"command": "odometry", "frame": "base_link", "source": "/nonexistent", '
+    b'"map": {"path": "gone"}, "recording": {"path": "gone"}}'
+)
+
+
+def _odometry_run(folder: Path, summary: bytes) -> Path:
+    folder.mkdir(exist_ok=True)
+    (folder / "fused.tum").write_text("1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n")
+    (folder / "summary.json").write_bytes(summary)
+    return folder
+
+
+@examples(60)
+@given(mutations(SUMMARY, b'{}[]",:0123456789.-enaifl\\u0/'))
+def test_export_of_a_run_with_a_mutated_summary_reads_or_is_an_error(
+    tmp_path: Path, data: bytes
+) -> None:
+    rejects_cleanly(run_content, _odometry_run(tmp_path / "run", data), True)
+
+
+@pytest.mark.parametrize(
+    "summary",
+    [
+        b"[" * 100_000,  # RecursionError from the JSON decoder
+        b'{"command": "odometry", "source": "/' + b"a" * 5000 + b'"}',  # OSError ENAMETOOLONG
+        b'{"command": "localize", "map": "/' + b"a" * 5000 + b'"}',
+    ],
+)
+def test_export_of_a_run_whose_summary_raised_a_traceback_is_clean(
+    tmp_path: Path, summary: bytes
+) -> None:
+    run = _odometry_run(tmp_path / "run", summary)
+    (run / "trajectory.tum").write_text("1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n")
+    try:
+        run_content(run, True)
+    except RgbdNavError as err:
+        assert "summary" in str(err)
