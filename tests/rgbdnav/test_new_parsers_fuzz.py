@@ -17,6 +17,7 @@ from nav.joystick import parse_events
 from rgbdnav.commands.export import run_content
 from rgbdnav.ros_params import load_ros_params
 from sensors.arduino_bridge import parse_encoder_reply
+from sensors.extrinsics import chain_to_root, quaternion_matrix, robot_mount_from_tf
 from sensors.geo import geo_from_dict
 from sensors.gps import read_gps_txt
 from sensors.motor_board import parse_device_spec
@@ -349,3 +350,47 @@ def test_export_of_a_run_whose_summary_raised_a_traceback_is_clean(
         run_content(run, True)
     except RgbdNavError as err:
         assert "summary" in str(err)
+
+
+finite_or_not = st.floats(allow_nan=True, allow_infinity=True)
+
+
+@examples(100)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["base_link", "base_footprint", "camera_link", "cam_optical", "x"]),
+            st.sampled_from(["base_link", "base_footprint", "camera_link", "cam_optical", "x"]),
+            st.tuples(*[finite_or_not] * 3),
+            st.tuples(*[finite_or_not] * 4),
+        ),
+        max_size=6,
+    )
+)
+def test_a_tf_static_tree_of_any_shape_gives_a_finite_mount_or_a_value_error(edges) -> None:
+    import warnings
+
+    tree = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # NaN in, NaN out: refused below
+        for child, parent, t, q in edges:
+            m = np.eye(4)
+            m[:3, :3], m[:3, 3] = quaternion_matrix(*q), t
+            tree[child] = (parent, m)
+        found = chain_to_root(tree, "cam_optical")
+    if found is None:
+        return
+    try:
+        mount = robot_mount_from_tf(found[1], optical=True)
+    except ValueError:
+        return
+    assert all(np.isfinite(v) for v in mount.values())
+
+
+def test_a_zero_quaternion_in_tf_static_is_refused_not_a_nan_camera_mount() -> None:
+    # Found by fuzzing: a NaN mount passed the "turned too far" check (abs(nan) > x is False).
+    m = np.eye(4)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m[:3, :3] = quaternion_matrix(0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="not finite"):
+        robot_mount_from_tf(m, optical=False)
