@@ -27,12 +27,29 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
+from nav.joystick import parse_events  # noqa: E402
+from rgbdnav.commands.export import run_content  # noqa: E402
 from rgbdnav.config import load_config  # noqa: E402
+from rgbdnav.ros_params import load_ros_params  # noqa: E402
+from sensors.arduino_bridge import parse_encoder_reply  # noqa: E402
 from sensors.carmen import read_carmen_log  # noqa: E402
+from sensors.geo import read_geo_anchor  # noqa: E402
+from sensors.gps import read_gps_txt  # noqa: E402
 from sensors.images import decode_image  # noqa: E402
-from sensors.tum import load_tum_trajectory  # noqa: E402
+from sensors.motor_board import parse_device_spec  # noqa: E402
+from sensors.rosbag_source import parse_sdk_transform  # noqa: E402
+from sensors.thunderborg import parse_tacho_line  # noqa: E402
+from sensors.tum import load_tum_trajectory, read_pose_table  # noqa: E402
 from sensors.types import LaserScan, RgbdNavError, SensorError, parse_stamp  # noqa: E402
-from slam.map_bundle import GraphEdge, MapBundle, load_bundle, load_map_yaml, save_bundle  # noqa: E402
+from slam.fleet import load_fleet  # noqa: E402
+from slam.map_bundle import (  # noqa: E402
+    GraphEdge,
+    MapBundle,
+    decode_pgm,
+    load_bundle,
+    load_map_yaml,
+    save_bundle,
+)
 from slam.occupancy_grid import GridGeometry, OccupancyGrid  # noqa: E402
 
 OUTCOMES = ("ok", "counted skip", "clean error", "traceback", "hang")
@@ -55,6 +72,9 @@ SPECIALS = [
     b"1e12",
     b"{a: 1, a: 2}",
 ]
+
+
+SDK_TRANSFORM = b"rotation=1,0,0,0,1,0,0,0,1;translation=0.015,0,0"
 
 
 class _Hang(Exception):
@@ -122,6 +142,11 @@ def _image(data: bytes, tmp: Path) -> str:
     return "ok"
 
 
+def _pgm(data: bytes, tmp: Path) -> str:
+    decode_pgm(data, "map.pgm")
+    return "ok"
+
+
 def _map_yaml(data: bytes, tmp: Path) -> str:
     (tmp / "m.yaml").write_bytes(data)
     load_map_yaml(tmp / "m.yaml")
@@ -131,6 +156,85 @@ def _map_yaml(data: bytes, tmp: Path) -> str:
 def _graph_json(data: bytes, tmp: Path) -> str:
     (tmp / "b" / "graph.json").write_bytes(data)
     load_bundle(tmp / "b")
+    return "ok"
+
+
+def _fleet(data: bytes, tmp: Path) -> str:
+    (tmp / "fleet.yaml").write_bytes(data)
+    load_fleet(tmp / "fleet.yaml")
+    return "ok"
+
+
+def _geo(data: bytes, tmp: Path) -> str:
+    (tmp / "g" / "geo.yaml").write_bytes(data)
+    read_geo_anchor(tmp / "g")
+    return "ok"
+
+
+def _gps(data: bytes, tmp: Path) -> str:
+    (tmp / "gps.txt").write_bytes(data)
+    read_gps_txt(tmp / "gps.txt")
+    return "ok"
+
+
+def _kitti(data: bytes, tmp: Path) -> str:
+    (tmp / "k.txt").write_bytes(data)
+    read_pose_table(tmp / "k.txt", "kitti", tmp / "times.txt")
+    return "ok"
+
+
+def _kitti_times(data: bytes, tmp: Path) -> str:
+    (tmp / "times_m.txt").write_bytes(data)
+    read_pose_table(tmp / "kitti.txt", "kitti", tmp / "times_m.txt")
+    return "ok"
+
+
+def _euroc(data: bytes, tmp: Path) -> str:
+    (tmp / "data.csv").write_bytes(data)
+    read_pose_table(tmp / "data.csv")
+    return "ok"
+
+
+def _joystick(data: bytes, tmp: Path) -> str:
+    parse_events(data.decode("utf-8", errors="replace"), "events.txt")
+    return "ok"
+
+
+def _board_spec(data: bytes, tmp: Path) -> str:
+    parse_device_spec(data.decode("utf-8", errors="replace"))
+    return "ok"
+
+
+def _tacho(data: bytes, tmp: Path) -> str:
+    rpm = parse_tacho_line(data)
+    if rpm is None:
+        return "counted skip"  # ThunderBorgBoard counts a line it cannot read
+    if not np.isfinite(rpm).all():
+        raise SensorError("a non-finite RPM passed")  # silent: reported as a traceback
+    return "ok"
+
+
+def _encoder_reply(data: bytes, tmp: Path) -> str:
+    counts = parse_encoder_reply(data.decode("ascii", "replace"))  # as the board decodes it
+    if counts is None:
+        raise SensorError("unreadable")  # the board raises MotorBoardError and counts it
+    return "ok"
+
+
+def _run_summary(data: bytes, tmp: Path) -> str:
+    (tmp / "run" / "summary.json").write_bytes(data)
+    run_content(tmp / "run", images=True)
+    return "ok"
+
+
+def _ros_params(data: bytes, tmp: Path) -> str:
+    (tmp / "p.yaml").write_bytes(data)
+    load_ros_params([tmp / "p.yaml"])
+    return "ok"
+
+
+def _sdk_transform(data: bytes, tmp: Path) -> str:
+    parse_sdk_transform(data.decode("utf-8", errors="replace"))
     return "ok"
 
 
@@ -177,6 +281,13 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
         tmp / "b",
     )
     graph = (tmp / "b" / "graph.json").read_bytes()
+    (tmp / "m").mkdir()
+    (tmp / "g").mkdir()
+    (tmp / "run").mkdir()
+    (tmp / "run" / "fused.tum").write_bytes(b"1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n")
+    kitti = b"1 0 0 0.5 0 1 0 0.25 0 0 1 0\n1 0 0 1.5 0 1 0 0.5 0 0 1 0\n"
+    (tmp / "kitti.txt").write_bytes(kitti)
+    (tmp / "times.txt").write_bytes(b"0.0\n0.1\n")
     return {
         "config file (YAML)": (_config, config),
         "--set override": (_override, b"ekf.frequency=30"),
@@ -186,8 +297,44 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
         "image bytes (PNG)": (_image, png),
         "image bytes (JPEG)": (_image, jpg),
         "image bytes (PGM)": (_image, pgm),
+        "PGM ASCII P2 (Nav2 map)": (_pgm, b"P2\n# c\n3 2\n255\n0 254 205\n0 100 255\n"),
+        "PGM 16-bit P5 (Nav2 map)": (
+            _pgm,
+            b"P5\n2 2\n65535\n" + bytes([0, 0, 255, 255, 1, 0, 128, 0]),
+        ),
         "Nav2 map.yaml": (_map_yaml, map_yaml),
         "bundle graph.json": (_graph_json, graph),
+        "fleet.yaml": (
+            _fleet,
+            b"world:\n  geo: {latitude: 52.0, longitude: 4.0}\nrobots:\n  - name: a\n"
+            b"    map: m\n    T_world_map: {x: 1.0, y: -2.0, yaw: 0.5}\n"
+            b"  - {name: b, map: m, geo: {latitude: 52.1, longitude: 4.1}}\n",
+        ),
+        "geo.yaml": (_geo, b"latitude: 52.0\nlongitude: 4.0\naltitude: 3.5\nheading_deg: 90\n"),
+        "gps.txt": (_gps, b"# t lat lon alt sigma_h\n1.0 52.0 4.0 10 3.0\n2.0 52.1 4.1 11 2.5\n"),
+        "KITTI poses": (_kitti, kitti),
+        "KITTI times file": (_kitti_times, b"0.0\n0.1\n"),
+        "EuRoC trajectory": (
+            _euroc,
+            b"#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
+            b"q_RS_y [], q_RS_z []\n1403636579758555392,4.68,-1.78,0.78,0.53,-0.15,-0.82,-0.08\n"
+            b"1403636579763555584,4.69,-1.78,0.78,0.53,-0.15,-0.82,-0.08\n",
+        ),
+        "joystick replay file": (_joystick, b"0.0 1 0 1\n0.5 3 1 -32767\n1.25 1 0 0\n"),
+        "--board spec": (_board_spec, b"thunderborg:/dev/i2c-1@0x15,/dev/ttyUSB0"),
+        "ThunderBorg tacho line": (_tacho, b"tacho 12.5 -3\r\n"),
+        "Arduino bridge 'e' reply": (_encoder_reply, b"123 -45"),
+        "export: run summary.json": (
+            _run_summary,
+            b'{"command": "odometry", "frame": "base_link", "source": "/nonexistent", '
+            b'"map": {"path": "gone"}, "recording": {"path": "gone"}}',
+        ),
+        "--ros-params file": (
+            _ros_params,
+            b"ekf_filter_node:\n  ros__parameters:\n    frequency: 30.0\n    two_d_mode: true\n"
+            b"slam_toolbox:\n  ros__parameters:\n    resolution: 0.05\n",
+        ),
+        "RealSense SDK transform": (_sdk_transform, SDK_TRANSFORM),
     }
 
 
@@ -263,7 +410,8 @@ def main() -> int:
         f"| **all** | {n} | " + " | ".join(f"**{total[o]}**" for o in OUTCOMES) + " | |",
         "",
         "ok and clean error are both right answers (most mutations make an input invalid); a "
-        "counted skip is a CARMEN line dropped and counted in `skipped`. A traceback is any "
+        "counted skip is a CARMEN line dropped and counted in `skipped` or a tacho line counted in "
+        "`tacho_bad_lines`. A traceback is any "
         "exception other than an RgbdNavError; a hang is an input still running after "
         f"{args.timeout:g} s. This cannot see a silent wrong result: those are pinned by the "
         "unit tests named after them.",

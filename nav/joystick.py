@@ -97,6 +97,9 @@ class JoystickTeleop:
         return joystick_speed(fwd, lin) + 0.0, joystick_speed(turn, ang) + 0.0
 
 
+MAX_REPLAY_S = 86400.0  # a day: longer is a typo, not a recording
+
+
 def parse_events(text: str, source: str) -> list[tuple[float, int, int, int]]:
     """A recorded event file: one ``SECONDS TYPE CODE VALUE`` per line (``#`` comments), the
     times from the start, non-decreasing. ConfigError naming the line otherwise."""
@@ -112,6 +115,11 @@ def parse_events(text: str, source: str) -> list[tuple[float, int, int, int]]:
             raise ConfigError(
                 f"{source}:{n}: expected SECONDS TYPE CODE VALUE, got {line!r}"
             ) from None
+        if not 0.0 <= event[0] <= MAX_REPLAY_S:
+            # NaN slips past the "backwards" check and inf sleeps for ever: both refused.
+            raise ConfigError(f"{source}:{n}: time {t!r} is not 0..{MAX_REPLAY_S:g} s")
+        if not all(-(2**31) <= v < 2**31 for v in event[1:]):
+            raise ConfigError(f"{source}:{n}: TYPE CODE VALUE must fit a 32-bit input event")
         if events and event[0] < events[-1][0]:
             raise ConfigError(f"{source}:{n}: time goes backwards")
         events.append(event)

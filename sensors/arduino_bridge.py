@@ -21,6 +21,7 @@ The board has no battery reading.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from typing import Any
@@ -39,6 +40,21 @@ MAX_REPLY = 64  # [bytes]
 def ticks_per_frame(speed: float, robot: RobotConfig, pid_rate: float) -> int:
     """Wheel speed [m/s] -> the firmware's target [ticks per PID frame], rounded."""
     return int(round(speed / robot.metres_per_tick / pid_rate))
+
+
+_COUNT = re.compile(r"-?[0-9]{1,10}")
+
+
+def parse_encoder_reply(text: str) -> tuple[int, int] | None:
+    """``"123 -45"`` (the reply to ``e``) -> (123, -45); None for anything but two ASCII
+    integers in the firmware's ``long`` range (int() would also take "1_0", "٣" or a garbled
+    40-digit count that later overflows an int64 array)."""
+    words = text.split()
+    if len(words) != 2 or not all(_COUNT.fullmatch(w) for w in words):
+        return None
+    left, right = int(words[0]), int(words[1])
+    ok = all(-(2**31) <= c < 2**31 for c in (left, right))
+    return (left, right) if ok else None
 
 
 class ArduinoBridgeBoard(MotorBoard):
@@ -117,11 +133,11 @@ class ArduinoBridgeBoard(MotorBoard):
 
     def ticks(self) -> WheelTicks:
         text = self.command("e")
-        try:
-            left, right = (int(w) for w in text.split())
-        except ValueError:
+        counts = parse_encoder_reply(text)
+        if counts is None:
             self.errors += 1
-            raise MotorBoardError(f"'e': expected two counts, got {text!r}") from None
+            raise MotorBoardError(f"'e': expected two 32-bit counts, got {text[:80]!r}")
+        left, right = counts
         # the firmware reads the counters as the command's last byte arrives
         on_line = 2 * 10 * NS_PER_S // self.baudrate
         return WheelTicks(self._last_sent_ns + on_line, left, right)

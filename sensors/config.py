@@ -13,7 +13,7 @@ import reprlib
 import sys
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar, Union
 
@@ -54,6 +54,24 @@ def short_repr(value: Any) -> str:
     """``repr`` cut to a line: errors quote bad values, which may be huge."""
     text = _REPR.repr(value)
     return text if len(text) <= _QUOTE_LIMIT else text[: _QUOTE_LIMIT - 3] + "..."
+
+
+def unknown_keys(data: Mapping[Any, Any], known: Iterable[str]) -> list[str]:
+    """The keys of a YAML mapping that are not ``known``, as sorted strings: YAML keys may be
+    numbers or null, which cannot be sorted with strings."""
+    return sorted(str(k) for k in set(data) - set(known))
+
+
+def finite_float(value: Any) -> float | None:
+    """``value`` as a float when it is a finite int/float (not a bool), else None: an int too
+    large for a float (YAML reads ``1000...0`` as one) is not a number we can use either."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        out = float(value)
+    except OverflowError:
+        return None
+    return out if math.isfinite(out) else None
 
 
 def _check_scalar(value: Any, tp: Any, path: str) -> Any:

@@ -102,6 +102,8 @@ def robot_mount_from_tf(t_base_camera: np.ndarray, optical: bool) -> dict[str, f
 
     R_base_link = Ry(pitch) Rx(roll) (see :func:`optical_in_base`); a yawed camera is refused.
     """
+    if not np.isfinite(t_base_camera).all():  # a zero quaternion or NaN in /tf_static
+        raise ValueError("the transform is not finite (a zero quaternion or a NaN/inf value)")
     r = t_base_camera[:3, :3]
     r_link = r @ R_LINK_OPTICAL.T if optical else r
     pitch = math.atan2(-r_link[2, 0], math.hypot(r_link[0, 0], r_link[1, 0]))

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from sensors.config import short_repr
+from sensors.config import finite_float, short_repr, unknown_keys
 from sensors.safe_yaml import read_yaml
 from sensors.types import MapError
 
@@ -91,7 +91,7 @@ def geo_from_dict(data: Any, where: str) -> GeoAnchor:
     """A :class:`GeoAnchor` from a YAML mapping; :class:`MapError` naming ``where`` and the key."""
     if not isinstance(data, dict):
         raise MapError(f"{where}: geo must be a mapping with {', '.join(_KEYS)}")
-    unknown = sorted(set(data) - set(_KEYS))
+    unknown = unknown_keys(data, _KEYS)
     if unknown:
         raise MapError(f"{where}: unknown geo key {unknown[0]!r} (known: {', '.join(_KEYS)})")
     values: dict[str, float] = {}
@@ -100,10 +100,12 @@ def geo_from_dict(data: Any, where: str) -> GeoAnchor:
             if key in ("latitude", "longitude"):
                 raise MapError(f"{where}: geo needs {key}")
             continue
-        v = data[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise MapError(f"{where}: geo {key} must be a finite number, got {short_repr(v)}")
-        values[key] = float(v)
+        v = finite_float(data[key])
+        if v is None:
+            raise MapError(
+                f"{where}: geo {key} must be a finite number, got {short_repr(data[key])}"
+            )
+        values[key] = v
     try:
         return GeoAnchor(**values)
     except MapError as err:

@@ -638,6 +638,11 @@ def parse_sdk_transform(text: str) -> tuple[tuple[float, ...], tuple[float, ...]
         raise SensorError(f"RealSense SDK transform {text!r} is unreadable") from err
     if len(rotation) != 9 or len(translation) != 3:
         raise SensorError(f"RealSense SDK transform {text!r} is not 3x3 + 3")
+    rot = np.array(rotation).reshape(3, 3)
+    if not (np.isfinite(rot).all() and np.isfinite(translation).all()) or not np.allclose(
+        rot @ rot.T, np.eye(3), atol=1e-2
+    ):  # NaN / inf or a non-rotation would be taken as the camera extrinsics silently
+        raise SensorError(f"RealSense SDK transform {text[:120]!r} is not a finite rotation")
     return rotation, translation
 
 

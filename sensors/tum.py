@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from sensors.atomic import atomic_write_text
-from sensors.types import NS_PER_S, SensorError, format_stamp, parse_stamp
+from sensors.config import short_repr
+from sensors.types import MAX_STAMP_NS, NS_PER_S, SensorError, format_stamp, parse_stamp
 
 log = logging.getLogger(__name__)
 
@@ -318,8 +319,15 @@ def _read_euroc(path: Path) -> PoseTable:
             raise SensorError(f"{path}:{number}: expected at least {EUROC_POSE_FIELDS} "
                               f"comma-separated fields (timestamp [ns], p x y z, q w x y z), "
                               f"got {len(fields)}")  # fmt: skip
-        if not fields[0].isdigit():
-            raise SensorError(f"{path}:{number}: timestamp {fields[0]!r} is not integer ns")
+        # isascii: str.isdigit() also passes "²" and "٣"; the bound keeps int64 from overflowing
+        stamp = fields[0]
+        if not (stamp.isascii() and stamp.isdigit() and len(stamp) < 20) or (
+            int(stamp) > MAX_STAMP_NS
+        ):
+            raise SensorError(
+                f"{path}:{number}: timestamp {short_repr(fields[0])} is not integer ns "
+                f"(0..{MAX_STAMP_NS})"
+            )
         stamps.append(int(fields[0]))
         values.append(fields[1:EUROC_POSE_FIELDS])
     data = _numbers(path, values, numbers, "EuRoC pose (px py pz qw qx qy qz)").reshape(-1, 7)

@@ -20,14 +20,13 @@ costmap filter info server publishes it). Paths are resolved against the fleet f
 
 from __future__ import annotations
 
-import math
 import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sensors.config import short_repr
+from sensors.config import finite_float, short_repr, unknown_keys
 from sensors.geo import GeoAnchor, geo_from_dict, read_geo_anchor
 from sensors.safe_yaml import read_yaml
 from sensors.types import MapError
@@ -64,22 +63,23 @@ class Fleet:
 def _pose(data: Any, where: str) -> tuple[float, float, float]:
     if not isinstance(data, dict):
         raise MapError(f"{where}: T_world_map must be a mapping {{x, y, yaw}} [m, m, rad]")
-    unknown = sorted(set(data) - set(_POSE_KEYS))
+    unknown = unknown_keys(data, _POSE_KEYS)
     if unknown:
         raise MapError(f"{where}: unknown T_world_map key {unknown[0]!r} (known: x, y, yaw)")
     out = []
     for key in _POSE_KEYS:
-        v = data.get(key, 0.0)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        v = finite_float(data.get(key, 0.0))
+        if v is None:
             raise MapError(
-                f"{where}: T_world_map.{key} must be a finite number, got {short_repr(v)}"
+                f"{where}: T_world_map.{key} must be a finite number, "
+                f"got {short_repr(data.get(key))}"
             )
-        out.append(float(v))
+        out.append(v)
     return out[0], out[1], out[2]
 
 
 def _existing(base: Path, value: Any, where: str, what: str) -> Path:
-    if not isinstance(value, str) or not value:
+    if not isinstance(value, str) or not value or "\0" in value:
         raise MapError(f"{where}: {what} must be a path, got {short_repr(value)}")
     path = (base / value).resolve() if not Path(value).is_absolute() else Path(value)
     if not path.exists():
@@ -91,7 +91,7 @@ def _robot(item: Any, i: int, base: Path, world_geo: GeoAnchor | None, where: st
     at = f"{where}: robots[{i}]"
     if not isinstance(item, dict):
         raise MapError(f"{at} must be a mapping with {', '.join(_ROBOT_KEYS)}")
-    unknown = sorted(set(item) - set(_ROBOT_KEYS))
+    unknown = unknown_keys(item, _ROBOT_KEYS)
     if unknown:
         raise MapError(f"{at}: unknown key {unknown[0]!r} (known: {', '.join(_ROBOT_KEYS)})")
     name = item.get("name")
@@ -122,7 +122,7 @@ def load_fleet(path: str | os.PathLike[str]) -> Fleet:
     doc = read_yaml(path, MapError, "fleet file")
     if not isinstance(doc, dict):
         raise MapError(f"{path}: a fleet file is a mapping with robots: [...]")
-    unknown = sorted(set(doc) - {"world", "robots"})
+    unknown = unknown_keys(doc, ("world", "robots"))
     if unknown:
         raise MapError(f"{path}: unknown key {unknown[0]!r} (known: world, robots)")
     world = doc.get("world") or {}

@@ -206,6 +206,9 @@ def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, i
     if m is None:
         raise MapError(f"{name}: not a PGM (P5 binary or P2 ASCII) image header")
     kind = m.group(1)
+    if any(len(g) > 9 for g in m.groups()[1:]):  # int() refuses > 4300 digits with ValueError
+        raise MapError(f"{name}: PGM header number {short_repr(max(m.groups()[1:], key=len))} "
+                       f"is too large")  # fmt: skip
     width, height, maxval = (int(g) for g in m.groups()[1:])
     if width < 1 or height < 1:
         raise MapError(f"{name}: PGM size {width}x{height} is empty")
@@ -231,7 +234,7 @@ def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, i
                            f"values, found {len(tokens)}")  # fmt: skip
         try:
             pixels = np.array(tokens, dtype=np.int64)
-        except ValueError:
+        except (ValueError, OverflowError):  # OverflowError: a value beyond int64
             raise MapError(
                 f"{name}: ASCII PGM holds a pixel value that is not an integer"
             ) from None

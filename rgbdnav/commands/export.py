@@ -24,6 +24,7 @@ import json
 import logging
 import math
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -91,8 +92,9 @@ def _summary(run: Path) -> dict[str, Any]:
         raise SensorError(f"{run}: not a finished rgbdnav run (no summary.json)")
     try:
         summary = json.loads(file.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise SensorError(f"{file}: unreadable summary ({err})") from err
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        # RecursionError: "[[[[..." nested deeper than the JSON decoder's stack
+        raise SensorError(f"{file}: unreadable summary ({str(err)[:120]})") from None
     if not isinstance(summary, dict):
         raise SensorError(f"{file}: not a run summary (a JSON object)")
     return summary
@@ -166,13 +168,23 @@ def _static(cfg: Any, has_camera: bool) -> list[StaticTransform]:
     return out
 
 
+def _os_ok(check: Callable[[], bool]) -> bool:
+    """``check()`` (a Path's is_file / exists), False rather than OSError for a path a summary
+    names that the OS cannot even look up (too long: ENAMETOOLONG; pathlib ignores only the
+    ENOENT-like errors)."""
+    try:
+        return check()
+    except OSError:
+        return False
+
+
 def _recording_folder(run: Path, summary: dict[str, Any]) -> Path | None:
     """The recording holding the run's camera images: ``live --record``'s, else the source."""
     rec = summary.get("recording")
     candidates = [rec.get("path") if isinstance(rec, dict) else None, summary.get("source")]
     candidates += [str(p.parent) for p in sorted(run.glob("*/rgb.txt"))]
     for c in candidates:
-        if isinstance(c, str) and (Path(c) / "rgb.txt").is_file():
+        if isinstance(c, str) and _os_ok((Path(c) / "rgb.txt").is_file):
             return Path(c)
     return None
 
@@ -257,7 +269,7 @@ def _used_map(summary: dict[str, Any]) -> tuple[Any, np.ndarray | None]:
     path = entry.get("path") if isinstance(entry, dict) else entry
     if not isinstance(path, str):
         return None, None
-    if not Path(path).exists():
+    if not _os_ok(Path(path).exists):
         log.warning("%s: the map this run used is gone; no /map in the bag", path)
         return None, None
     loaded = load_map(Path(path))
