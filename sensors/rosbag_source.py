@@ -1001,7 +1001,12 @@ class RosbagSource(SourceBase):
                 sigma = navsatfix_sigma(m.position_covariance, int(m.position_covariance_type))
                 if not sigma > 0:
                     raise _BadMessage("gps_no_covariance", "NavSatFix with unknown covariance")
-                return (float(m.latitude), float(m.longitude), float(m.altitude), sigma)
+                out = (float(m.latitude), float(m.longitude), float(m.altitude), sigma)
+                if not (all(map(math.isfinite, out)) and abs(out[0]) <= 90 and abs(out[1]) <= 180):
+                    raise _BadMessage(
+                        "gps_bad_fix", "NavSatFix with a non-finite or impossible fix"
+                    )
+                return out
 
             stamps, v = self._read_stamped("gps", fix)
             self._cache["gps"] = check_fixes(

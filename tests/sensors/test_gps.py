@@ -52,6 +52,24 @@ def test_navsatfix_with_a_fix_and_covariance_is_read_the_rest_counted(tmp_path, 
         src.close()
 
 
+def test_a_navsatfix_with_a_nan_or_impossible_fix_is_a_counted_skip(tmp_path) -> None:
+    # One bad fix in a bag must not make the whole GPS stream an error (#16: count, skip, go on).
+    path = bag_path(tmp_path, KINDS[0])
+    with write_bag(path, KINDS[0]) as bag:
+        for k, lat in enumerate([44.98, float("nan"), 123.0, 44.98002]):
+            t = T0 + k * 1000 * MS
+            bag.write(
+                "/gps/fix", "sensor_msgs/msg/NavSatFix", t + MS, _navsatfix(bag, t, lat, 0, 2, 9.0)
+            )
+    src = open_source(path)
+    try:
+        gps = src.gps()
+        assert gps is not None and gps.stamps_ns.tolist() == [T0, T0 + 3000 * MS]
+        assert src.skipped.get("gps_bad_fix") == 2
+    finally:
+        src.close()
+
+
 def test_gps_txt_round_trips_and_refuses_fixes_off_the_globe(tmp_path) -> None:
     stream = GpsStream(
         np.array([T0, T0 + NS_PER_S]),
