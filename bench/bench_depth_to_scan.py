@@ -39,8 +39,9 @@ def render_frames(world_path: Path, frames: int, robot: RobotConfig) -> list[np.
     idx = np.linspace(0, len(traj.t_ns) - 1, frames).round().astype(int)
     renderer = KinectRenderer(world, CameraConfig(), robot, sim, backend="raster")
     rng = np.random.default_rng(0)
-    return [renderer.render(float(traj.x[i]), float(traj.y[i]), float(traj.yaw[i]), rng)[1]
-            for i in idx]  # fmt: skip
+    return [
+        renderer.render(float(traj.x[i]), float(traj.y[i]), float(traj.yaw[i]), rng)[1] for i in idx
+    ]
 
 
 def time_conversion(conv: DepthToScan, depths: list[np.ndarray]) -> dict[str, float]:
@@ -53,8 +54,12 @@ def time_conversion(conv: DepthToScan, depths: list[np.ndarray]) -> dict[str, fl
         kept.append(out.in_band_points)
         valid.append(out.valid_pixels)
     ms = 1e3 * np.array(times)
-    return {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)),
-            "valid": float(np.mean(valid)), "kept": float(np.mean(kept))}  # fmt: skip
+    return {
+        "median": float(np.median(ms)),
+        "p95": float(np.percentile(ms, 95)),
+        "valid": float(np.mean(valid)),
+        "kept": float(np.mean(kept)),
+    }
 
 
 def main() -> None:
@@ -74,17 +79,22 @@ def main() -> None:
     rows = {
         "sorted + reduceat (default)": time_conversion(DepthToScan(k, robot, cfg), depths),
         "np.minimum.at (reference)": time_conversion(
-            DepthToScan(k, robot, cfg, reduction="minimum_at"), depths),
+            DepthToScan(k, robot, cfg, reduction="minimum_at"), depths
+        ),
         "sorted, camera pitched 0.35 rad": time_conversion(DepthToScan(k, tilted, cfg), depths),
         "general path, camera 0.15 m ahead of the axle": time_conversion(
-            DepthToScan(k, ahead, cfg), depths),
-        "sorted, near-cluster averaging 0.01 /m (the rgbd_mapping and live profiles)":
-            time_conversion(DepthToScan(k, robot, averaged), depths),
+            DepthToScan(k, ahead, cfg), depths
+        ),
+        "sorted, near-cluster averaging 0.01 /m (the rgbd_mapping and live profiles)": time_conversion(
+            DepthToScan(k, robot, averaged), depths
+        ),
         "np.minimum.at + bincount averaging (reference)": time_conversion(
-            DepthToScan(k, robot, averaged, reduction="minimum_at"), depths),
+            DepthToScan(k, robot, averaged, reduction="minimum_at"), depths
+        ),
         "sorted, scan_height 10 (upstream-like band)": time_conversion(
-            DepthToScan(k, robot, DepthToScanConfig(scan_height=10)), depths),
-    }  # fmt: skip
+            DepthToScan(k, robot, DepthToScanConfig(scan_height=10)), depths
+        ),
+    }
     lines = "\n".join(
         f"| {name} | {r['median']:.2f} | {r['p95']:.2f} | {r['valid']:.0f} | {r['kept']:.0f} |"
         for name, r in rows.items()

@@ -77,23 +77,39 @@ def report(world: Path, r: dict) -> str:
     front_end = t["mapping_total"] - sum(mapper.values())
     total = r["render_s"] + r["map_s"]
     rows = [
-        ("route", f"{world.name}: {frames} frames, {slam['path_length_m']:.1f} m in {data_s:.1f} s"),
-        ("render (`rgbdnav simulate`)", f"{r['render_s']:.1f} s = {frames / r['render_s']:.1f} "
-         f"frames/s; recording {r['cache_mb']:.0f} MB ({r['cache_mb'] / frames:.2f} MB/frame)"),
-        ("map (`rgbdnav map` on the recording)", f"{r['map_s']:.1f} s wall, of which the frame "
-         f"loop + mapper {t['mapping_total']:.1f} s = **{data_s / t['mapping_total']:.2f}x real "
-         f"time**, grid + bundle {t['grid_and_bundle']:.1f} s"),
+        (
+            "route",
+            f"{world.name}: {frames} frames, {slam['path_length_m']:.1f} m in {data_s:.1f} s",
+        ),
+        (
+            "render (`rgbdnav simulate`)",
+            f"{r['render_s']:.1f} s = {frames / r['render_s']:.1f} "
+            f"frames/s; recording {r['cache_mb']:.0f} MB ({r['cache_mb'] / frames:.2f} MB/frame)",
+        ),
+        (
+            "map (`rgbdnav map` on the recording)",
+            f"{r['map_s']:.1f} s wall, of which the frame "
+            f"loop + mapper {t['mapping_total']:.1f} s = **{data_s / t['mapping_total']:.2f}x real "
+            f"time**, grid + bundle {t['grid_and_bundle']:.1f} s",
+        ),
         ("of the frame loop: front end (decode, VO, depth -> scan, EKF)", f"~{front_end:.1f} s"),
-        ("of the frame loop: mapper stages [s]", ", ".join(f"{k} {v:.1f}" for k, v in
-                                                           mapper.items())),  # fmt: skip
-        ("render share of the world run (render + map)", f"{100 * r['render_s'] / total:.0f} %"
-         f" of {total:.0f} s"),
-        ("ATE RMSE, SE(2)-aligned / start-anchored", f"{slam['ate_rmse_aligned_m']:.4f} m / "
-         f"{slam['ate_rmse_m']:.4f} m (target <= {ATE_TARGET_M} m aligned)"),
+        (
+            "of the frame loop: mapper stages [s]",
+            ", ".join(f"{k} {v:.1f}" for k, v in mapper.items()),
+        ),
+        (
+            "render share of the world run (render + map)",
+            f"{100 * r['render_s'] / total:.0f} % of {total:.0f} s",
+        ),
+        (
+            "ATE RMSE, SE(2)-aligned / start-anchored",
+            f"{slam['ate_rmse_aligned_m']:.4f} m / "
+            f"{slam['ate_rmse_m']:.4f} m (target <= {ATE_TARGET_M} m aligned)",
+        ),
         ("grid vs floor plan IoU (aligned)", f"{grid['iou']:.3f} (target >= {IOU_TARGET})"),
         ("loop closures accepted", str(s["counts"]["loop_closures"]["accepted"])),
         ("peak RSS of the mapping run", f"{s['peak_rss_mb']:.0f} MB"),
-    ]  # fmt: skip
+    ]
     lines = [
         "## House route end to end (`make demo`'s run, render vs mapping)",
         "",

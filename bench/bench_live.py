@@ -59,8 +59,20 @@ def _run(args: list[str]) -> None:
 
 
 def live_run(out: Path, duration_s: float, extra: list[str]) -> dict[str, Any]:
-    _run([str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "--duration",
-          str(duration_s), "-q", *extra])  # fmt: skip
+    _run(
+        [
+            str(RGBDNAV),
+            "live",
+            "--out",
+            str(out),
+            "--sim-world",
+            str(WORLD),
+            "--duration",
+            str(duration_s),
+            "-q",
+            *extra,
+        ]
+    )
     return json.loads((out / "summary.json").read_text())
 
 
@@ -68,8 +80,10 @@ def recorded_run(out: Path, extra: list[str]) -> dict[str, Any]:
     summary = out / "summary.json"
     if not summary.exists():
         _run([str(RGBDNAV), "map", str(WORLD), "--out", str(out), "-q", "--set", NO_GYRO, *extra])
-    return {**json.loads(summary.read_text()), "_dir": out.relative_to(REPO)
-            if out.is_relative_to(REPO) else out}  # fmt: skip
+    return {
+        **json.loads(summary.read_text()),
+        "_dir": out.relative_to(REPO) if out.is_relative_to(REPO) else out,
+    }
 
 
 def _loadavg() -> str:
@@ -111,59 +125,101 @@ def report_live(
     at60 = next((m for t, m in tl if t >= 60), None)
     rss_row = f"{at60} / {tl[-1][1] if tl else None}"
     rows = [
-        ("run", f"{s['wall_s']:.0f} s of `rgbdnav live --camera sim --board sim` (house, route "
-                f"driven on the estimate by the {driver}; the run ends with the route; load "
-                f"before/after: {load})"),
-        ("camera frames rendered / sent", f"{sim.get('frames_rendered')} / "
-                                          f"{c.get('frames_received', 0)} "
-                                          f"({sim.get('frames_dropped_camera')} not taken in time)"),
-        ("camera rate achieved (target 30 Hz; the renderer shares the 2 cores)",
-         f"{(sim.get('frames_rendered') or 0) / max(s['wall_s'], 1e-9):.1f} Hz"),
+        (
+            "run",
+            f"{s['wall_s']:.0f} s of `rgbdnav live --camera sim --board sim` (house, route "
+            f"driven on the estimate by the {driver}; the run ends with the route; load "
+            f"before/after: {load})",
+        ),
+        (
+            "camera frames rendered / sent",
+            f"{sim.get('frames_rendered')} / "
+            f"{c.get('frames_received', 0)} "
+            f"({sim.get('frames_dropped_camera')} not taken in time)",
+        ),
+        (
+            "camera rate achieved (target 30 Hz; the renderer shares the 2 cores)",
+            f"{(sim.get('frames_rendered') or 0) / max(s['wall_s'], 1e-9):.1f} Hz",
+        ),
         ("frames processed by the front end", str(c.get("frames_processed", 0))),
         ("frames dropped in the front end (target 0)", f"{dropped}: {_yes(dropped == 0)}"),
-        ("frame-to-pose latency p50 / p99 / max",
-         f"{lat.get('p50')} / {lat.get('p99')} / {lat.get('max')} ms (targets "
-         f"{LATENCY_P50_TARGET_MS:.0f} / {LATENCY_P99_TARGET_MS:.0f}: "
-         f"{_yes((lat.get('p50') or 1e9) <= LATENCY_P50_TARGET_MS)} / "
-         f"{_yes((lat.get('p99') or 1e9) <= LATENCY_P99_TARGET_MS)})"),
-        ("of which camera -> host (simulated capture: render + transfer), p50",
-         f"{s.get('camera_to_host_ms_p50')} ms"),
+        (
+            "frame-to-pose latency p50 / p99 / max",
+            f"{lat.get('p50')} / {lat.get('p99')} / {lat.get('max')} ms (targets "
+            f"{LATENCY_P50_TARGET_MS:.0f} / {LATENCY_P99_TARGET_MS:.0f}: "
+            f"{_yes((lat.get('p50') or 1e9) <= LATENCY_P50_TARGET_MS)} / "
+            f"{_yes((lat.get('p99') or 1e9) <= LATENCY_P99_TARGET_MS)})",
+        ),
+        (
+            "of which camera -> host (simulated capture: render + transfer), p50",
+            f"{s.get('camera_to_host_ms_p50')} ms",
+        ),
         ("median ms per stage", ", ".join(f"{k} {v}" for k, v in st.items())),
-        ("VO skipped on a frame because another was waiting",
-         f"{c.get('vo_skipped_behind', 0)} frames"),
-        ("CPU", f"host process {s['cpu']['host_cpu_percent']} % of one core; simulated robot "
-                f"{s['cpu']['sim_robot_cpu_s'] / max(s['wall_s'], 1e-9) * 100:.0f} %"),
-        ("peak memory (RSS)", f"host {s['peak_rss_mb']['host']} MB, simulated robot "
-                              f"{s['peak_rss_mb']['sim_robot']} MB"),
+        (
+            "VO skipped on a frame because another was waiting",
+            f"{c.get('vo_skipped_behind', 0)} frames",
+        ),
+        (
+            "CPU",
+            f"host process {s['cpu']['host_cpu_percent']} % of one core; simulated robot "
+            f"{s['cpu']['sim_robot_cpu_s'] / max(s['wall_s'], 1e-9) * 100:.0f} %",
+        ),
+        (
+            "peak memory (RSS)",
+            f"host {s['peak_rss_mb']['host']} MB, simulated robot "
+            f"{s['peak_rss_mb']['sim_robot']} MB",
+        ),
         ("board polls per second", f"{s.get('board_polls_per_s')} (board.poll_rate 50 Hz)"),
-        ("visualisation drawn / dropped", f"{s['visualization']['drawn']} / "
-                                          f"{s['visualization']['dropped']}"),
-        ("SLAM ATE vs truth (live; the final optimised trajectory, as the recorded run "
-         "reports it): SE(2)-aligned (TUM, as `rgbdnav eval`) / from the start pose",
-         f"{ate_al} / {ate} m over {sim.get('true_path_length_m')} m"),
-        ("SLAM ATE vs truth (live, poses as tracked online)",
-         f"{s.get('slam_online_vs_groundtruth', {}).get('ate_rmse_m')} m"),
-        ("odometry (EKF) ATE vs truth (live)",
-         f"{s.get('odometry_vs_groundtruth', {}).get('ate_rmse_m')} m"),
-        (f"route driving ({driver}): waypoints reached / skipped; route finished",
-         f"{c.get('waypoints_reached', 0)} / {skipped}; {s.get('route_finished')}"),
-        ("blocked physics steps in the simulator (of which slid along a wall) / wheel travel "
-         "stalled / collision monitor stops",
-         f"{sim.get('collisions')} ({sim.get('wall_slides')}) / "
-         f"{sim.get('stalled_wheel_travel_m')} m / {c.get('collision_monitor_stops', 0)}"),
-        ("navigation: plans (failed) / median plan ms / costmap builds / median build ms / "
-         "recoveries", nav_row),
+        (
+            "visualisation drawn / dropped",
+            f"{s['visualization']['drawn']} / {s['visualization']['dropped']}",
+        ),
+        (
+            "SLAM ATE vs truth (live; the final optimised trajectory, as the recorded run "
+            "reports it): SE(2)-aligned (TUM, as `rgbdnav eval`) / from the start pose",
+            f"{ate_al} / {ate} m over {sim.get('true_path_length_m')} m",
+        ),
+        (
+            "SLAM ATE vs truth (live, poses as tracked online)",
+            f"{s.get('slam_online_vs_groundtruth', {}).get('ate_rmse_m')} m",
+        ),
+        (
+            "odometry (EKF) ATE vs truth (live)",
+            f"{s.get('odometry_vs_groundtruth', {}).get('ate_rmse_m')} m",
+        ),
+        (
+            f"route driving ({driver}): waypoints reached / skipped; route finished",
+            f"{c.get('waypoints_reached', 0)} / {skipped}; {s.get('route_finished')}",
+        ),
+        (
+            "blocked physics steps in the simulator (of which slid along a wall) / wheel travel "
+            "stalled / collision monitor stops",
+            f"{sim.get('collisions')} ({sim.get('wall_slides')}) / "
+            f"{sim.get('stalled_wheel_travel_m')} m / {c.get('collision_monitor_stops', 0)}",
+        ),
+        (
+            "navigation: plans (failed) / median plan ms / costmap builds / median build ms / "
+            "recoveries",
+            nav_row,
+        ),
         ("host RSS at 60 s / at the end (MB)", rss_row),
-        (f"SLAM ATE vs truth (recorded run of the route without the gyro, `{rec.get('_dir')}`: "
-         "`rgbdnav map scenes/house.yaml --set ekf.imu0_config=[false x 15]`): aligned / from "
-         "the start pose", f"{rec_al} / {rec_ate} m"),
-        ("live / recorded ATE, aligned (target <= 1.2)",
-         "-" if ratio is None else f"{ratio:.2f}: {_yes(ratio <= ATE_RATIO_TARGET)}"),
-        ("live / recorded ATE from the start pose (the map's placement: its heading is set in "
-         "the first metres, before any scan constrains it)",
-         "-" if ratio_start is None else f"{ratio_start:.2f}"),
+        (
+            f"SLAM ATE vs truth (recorded run of the route without the gyro, `{rec.get('_dir')}`: "
+            "`rgbdnav map scenes/house.yaml --set ekf.imu0_config=[false x 15]`): aligned / from "
+            "the start pose",
+            f"{rec_al} / {rec_ate} m",
+        ),
+        (
+            "live / recorded ATE, aligned (target <= 1.2)",
+            "-" if ratio is None else f"{ratio:.2f}: {_yes(ratio <= ATE_RATIO_TARGET)}",
+        ),
+        (
+            "live / recorded ATE from the start pose (the map's placement: its heading is set in "
+            "the first metres, before any scan constrains it)",
+            "-" if ratio_start is None else f"{ratio_start:.2f}",
+        ),
         ("errors", "; ".join(s["errors"]) or "none"),
-    ]  # fmt: skip
+    ]
     lines = [
         f"## Live run on the simulated robot ({duration_s:.0f} s)",
         "",
@@ -228,8 +284,14 @@ def drill_schedule(duration_s: float) -> tuple[list[str], int]:
     cycles = int(duration_s // DRILL_CYCLE_S)
     for k in range(cycles):
         t = k * DRILL_CYCLE_S
-        args += ["--drill", f"unplug_board@{t + 10}", "--drill", f"replug_board@{t + 25}",
-                 "--drill", f"stall_camera@{t + 40}:{DRILL_STALL_S}"]  # fmt: skip
+        args += [
+            "--drill",
+            f"unplug_board@{t + 10}",
+            "--drill",
+            f"replug_board@{t + 25}",
+            "--drill",
+            f"stall_camera@{t + 40}:{DRILL_STALL_S}",
+        ]
     return args, cycles
 
 
@@ -275,8 +337,9 @@ def drill_checks(s: dict[str, Any], cycles: int, bundle_ok: bool) -> list[tuple[
     ]
 
 
-def report_drills(s: dict[str, Any], minutes: float, checks: list[tuple[str, str, bool]],
-                  load: str) -> str:  # fmt: skip
+def report_drills(
+    s: dict[str, Any], minutes: float, checks: list[tuple[str, str, bool]], load: str
+) -> str:
     c, lat = s["counts"], s["latency_ms"] or {}
     lines = [
         f"## Live fault drills ({minutes:.0f} min)",
@@ -303,13 +366,21 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=300.0, help="live run length [s]")
     ap.add_argument("--soak-minutes", type=float, default=None)
     ap.add_argument("--warmup", type=float, default=0.2, help="soak warm-up fraction")
-    ap.add_argument("--recorded", type=Path, default=REPO / "runs" / "demo_nogyro",
-                    help="run directory of the recorded run without the gyro (made if "
-                         "missing)")  # fmt: skip
+    ap.add_argument(
+        "--recorded",
+        type=Path,
+        default=REPO / "runs" / "demo_nogyro",
+        help="run directory of the recorded run without the gyro (made if missing)",
+    )
     ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument("--set", dest="overrides", action="append", default=[],
-                    help="config override for the live run and a recorded run made here "
-                         "(section.key=value; repeatable)")  # fmt: skip
+    ap.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        help="config override for the live run and a recorded run made here "
+        "(section.key=value; repeatable)",
+    )
     ap.add_argument(
         "--drill-minutes",
         type=float,
@@ -340,8 +411,9 @@ def main() -> None:
         sys.exit(0 if all(ok for _, _, ok in checks) else 1)
     if args.soak_minutes:
         load0 = _loadavg()
-        s = live_run(REPO / "runs" / "bench_live_soak", args.soak_minutes * 60,
-                     ["--repeat-route", *extra])  # fmt: skip
+        s = live_run(
+            REPO / "runs" / "bench_live_soak", args.soak_minutes * 60, ["--repeat-route", *extra]
+        )
         publish(
             report_soak(s, args.soak_minutes, args.warmup, f"{load0} / {_loadavg()}"),
             args.out,

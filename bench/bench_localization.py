@@ -94,24 +94,32 @@ def pose_errors(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 def kidnap_stream(
     truth: np.ndarray, stamps: np.ndarray, k: int, j: int, warmup: int, n_after: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A kidnapping in a log: scan indices ``k - warmup .. k - 1`` then ``j .. j + n_after - 1``
     (``j >= 1``), with the (N, 3) path the wheels feel and the (N,) int64 stamps [ns]. After the
     jump the felt increments are the new stretch's ``truth[i - 1]^-1 truth[i]`` composed onto the
     pre-jump pose, and the stamps continue from ``stamps[k - 1]`` with the new stretch's periods."""
     before = np.arange(k - warmup, k)
     after = np.arange(j, min(j + n_after, len(truth)))
-    steps = np.vstack([relative_poses(truth[before[:-1]], truth[before[1:]]),
-                       relative_poses(truth[after - 1], truth[after])])  # fmt: skip
+    steps = np.vstack(
+        [
+            relative_poses(truth[before[:-1]], truth[before[1:]]),
+            relative_poses(truth[after - 1], truth[after]),
+        ]
+    )
     felt = integrate(truth[before[0]], steps)
     t = np.concatenate([stamps[before], stamps[k - 1] + (stamps[after] - stamps[j - 1])])
     return np.concatenate([before, after]), felt, t
 
 
 def draw_kidnappings(
-    path_m: np.ndarray, count: int, min_path_m: float, warmup: int, n_after: int,
+    path_m: np.ndarray,
+    count: int,
+    min_path_m: float,
+    warmup: int,
+    n_after: int,
     rng: np.random.Generator,
-) -> list[tuple[int, int]]:  # fmt: skip
+) -> list[tuple[int, int]]:
     """``count`` (k, j): k a scan with ``warmup`` before it, j a scan with ``n_after`` from it and
     at least ``min_path_m`` of path (cumulative ``path_m`` [m]) away from scan k - 1."""
     n = len(path_m)
@@ -150,20 +158,39 @@ def _kidnappings(
 
     stamps = np.array([s.stamp_ns for s in scans], dtype=np.int64)
     path_m = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))])
-    draws = draw_kidnappings(path_m, count, KIDNAP_MIN_PATH_M, KIDNAP_WARMUP, MAX_KIDNAP_SCANS,
-                             np.random.default_rng(KIDNAP_SEED))  # fmt: skip
+    draws = draw_kidnappings(
+        path_m,
+        count,
+        KIDNAP_MIN_PATH_M,
+        KIDNAP_WARMUP,
+        MAX_KIDNAP_SCANS,
+        np.random.default_rng(KIDNAP_SEED),
+    )
     cases: list[dict[str, Any]] = []
     t_all = time.perf_counter()
     for n_case, (k, j) in enumerate(draws):
         idx, felt, t = kidnap_stream(truth, stamps, k, j, KIDNAP_WARMUP, MAX_KIDNAP_SCANS)
-        odom = corrupt_trajectory(felt, ODOM_SCALE_ERROR, ODOM_YAW_BIAS, ODOM_SIGMA_XY,
-                                  ODOM_SIGMA_YAW, np.random.default_rng(ODOM_SEED + n_case))  # fmt: skip
+        odom = corrupt_trajectory(
+            felt,
+            ODOM_SCALE_ERROR,
+            ODOM_YAW_BIAS,
+            ODOM_SIGMA_XY,
+            ODOM_SIGMA_YAW,
+            np.random.default_rng(ODOM_SEED + n_case),
+        )
         loc = Localizer(model, cfg, initial_pose=truth[idx[0]])
         case: dict[str, Any] = {
-            "k": k, "j": j, "jump_m": float(np.hypot(*(truth[j, :2] - truth[k - 1, :2]))),
-            "path_m": float(abs(path_m[j] - path_m[k - 1])), "lost": None, "lost_s": None,
-            "recovered": None, "confident_wrong": 0, "wrong_low": 0, "pre_jump_ok": True,
-        }  # fmt: skip
+            "k": k,
+            "j": j,
+            "jump_m": float(np.hypot(*(truth[j, :2] - truth[k - 1, :2]))),
+            "path_m": float(abs(path_m[j] - path_m[k - 1])),
+            "lost": None,
+            "lost_s": None,
+            "recovered": None,
+            "confident_wrong": 0,
+            "wrong_low": 0,
+            "pre_jump_ok": True,
+        }
         for m, (i, o, stamp) in enumerate(zip(idx, odom, t, strict=True)):
             r = loc.update(dataclasses.replace(scans[i], stamp_ns=int(stamp)), o)
             n_after = m - KIDNAP_WARMUP + 1  # 1 = the first scan after the jump
@@ -211,18 +238,26 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
     stream = src.laser_poses()
     assert stream is not None
     truth = np.column_stack([stream.x, stream.y, stream.yaw])
-    odom = corrupt_trajectory(truth, ODOM_SCALE_ERROR, ODOM_YAW_BIAS, ODOM_SIGMA_XY,
-                              ODOM_SIGMA_YAW, np.random.default_rng(ODOM_SEED))  # fmt: skip
+    odom = corrupt_trajectory(
+        truth,
+        ODOM_SCALE_ERROR,
+        ODOM_YAW_BIAS,
+        ODOM_SIGMA_XY,
+        ODOM_SIGMA_YAW,
+        np.random.default_rng(ODOM_SEED),
+    )
     cfg = LocalizerConfig()
     t0 = time.perf_counter()
     model = _build_map(scans, truth)
     g = model.grid.geometry
     out: dict[str, Any] = {
-        "name": spec.name, "scans": len(scans), "stamp_source": src.log.stamp_source,
+        "name": spec.name,
+        "scans": len(scans),
+        "stamp_source": src.log.stamp_source,
         "path_m": float(np.hypot(*np.diff(truth[:, :2], axis=0).T).sum()),
         "map_s": time.perf_counter() - t0,
         "map_size_m": (g.width * g.resolution, g.height * g.resolution),
-    }  # fmt: skip
+    }
     # 1. Tracking from the true first pose.
     loc = Localizer(model, cfg, initial_pose=truth[0])
     t0, c0 = time.perf_counter(), time.process_time()
@@ -233,15 +268,20 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
     err = pose_errors(est[tracked], truth[tracked])
     odo_err = pose_errors(odom, truth)
     out["tracking"] = {
-        "tracked": int(tracked.sum()), "lost": loc.stats.lost,
+        "tracked": int(tracked.sum()),
+        "lost": loc.stats.lost,
         "relocalisations": loc.stats.relocalisations,
-        "kidnap_checks": loc.stats.kidnap_checks, "cpu_scans_per_s": len(scans) / track_cpu_s,
-        "pos": percentiles(err[:, 0]), "yaw_deg": percentiles(np.degrees(err[:, 1])),
-        "unseen_pos": percentiles(pose_errors(est[1::2][tracked[1::2]],
-                                              truth[1::2][tracked[1::2]])[:, 0]),
-        "odom_pos": percentiles(odo_err[:, 0]), "odom_final_m": float(odo_err[-1, 0]),
+        "kidnap_checks": loc.stats.kidnap_checks,
+        "cpu_scans_per_s": len(scans) / track_cpu_s,
+        "pos": percentiles(err[:, 0]),
+        "yaw_deg": percentiles(np.degrees(err[:, 1])),
+        "unseen_pos": percentiles(
+            pose_errors(est[1::2][tracked[1::2]], truth[1::2][tracked[1::2]])[:, 0]
+        ),
+        "odom_pos": percentiles(odo_err[:, 0]),
+        "odom_final_m": float(odo_err[-1, 0]),
         "scans_per_s": len(scans) / track_s,
-    }  # fmt: skip
+    }
     # 2. Global relocalisation from random starts, within a time budget.
     rng = np.random.default_rng(STARTS_SEED)
     starts = rng.choice(len(scans) - MAX_RELOC_SCANS, spec.starts, replace=False)
@@ -274,10 +314,17 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
         else:
             miss += 1
     out["reloc"] = {
-        "starts": done, "planned": spec.starts, "ok": ok, "wrong": wrong, "miss": miss,
-        "wrong_err": wrong_err, "seconds": fix_s, "cpu_seconds": fix_cpu_s, "scans": fix_scans,
+        "starts": done,
+        "planned": spec.starts,
+        "ok": ok,
+        "wrong": wrong,
+        "miss": miss,
+        "wrong_err": wrong_err,
+        "seconds": fix_s,
+        "cpu_seconds": fix_cpu_s,
+        "scans": fix_scans,
         "wall_s": time.perf_counter() - t_all,
-    }  # fmt: skip
+    }
     # 3. Kidnappings: the tracked scan stream jumps far along the path, odometry does not.
     out["kidnap"] = _kidnappings(model, cfg, scans, truth, spec.kidnaps)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # [MiB]
@@ -301,9 +348,15 @@ def run_rgbd_kidnaps() -> list[dict[str, Any]]:
         st = kidnap_stream(traj, RGBD_RATE_HZ, at_s, jump_s, RGBD_AFTER_S, seed=n)
         out, _ = run_kidnap(model, cfg, scanner, st)
         j = st.jump_index
-        rows.append({"at_s": at_s, "jump_s": jump_s, "frames": len(st.stamps_ns),
-                     "jump_m": float(np.hypot(*(st.truth[j, :2] - st.truth[j - 1, :2]))),
-                     "outcome": dataclasses.asdict(out)})  # fmt: skip
+        rows.append(
+            {
+                "at_s": at_s,
+                "jump_s": jump_s,
+                "frames": len(st.stamps_ns),
+                "jump_m": float(np.hypot(*(st.truth[j, :2] - st.truth[j - 1, :2]))),
+                "outcome": dataclasses.asdict(out),
+            }
+        )
     return rows
 
 
@@ -369,13 +422,17 @@ def reloc_table(runs: list[dict[str, Any]]) -> str:
     for r in runs:
         g = r["reloc"]
         n = max(g["starts"], 1)
-        starts = f"{g['starts']}" + (f" of {g['planned']} (time budget)" if g["starts"] <
-                                     g["planned"] else "")  # fmt: skip
+        starts = f"{g['starts']}" + (
+            f" of {g['planned']} (time budget)" if g["starts"] < g["planned"] else ""
+        )
         sec = np.array(g["seconds"])
         sc = np.array(g["scans"])
         cpu = np.array(g["cpu_seconds"])
-        sec_txt = (f"**{np.median(sec):.2f} / {sec.max():.2f}** | {np.median(cpu):.2f} / "
-                   f"{cpu.max():.2f}" if len(sec) else "— | —")  # fmt: skip
+        sec_txt = (
+            f"**{np.median(sec):.2f} / {sec.max():.2f}** | {np.median(cpu):.2f} / {cpu.max():.2f}"
+            if len(sec)
+            else "— | —"
+        )
         sc_txt = f"{np.median(sc):.0f} / {sc.max()}" if len(sc) else "—"
         w, h = r["map_size_m"]
         rows.append(
@@ -462,9 +519,12 @@ def main() -> None:
     for name in args.only:
         run = in_fresh_process(CaseSpec(name, args.starts, args.kidnaps))
         runs.append(run)
-        print(f"{name}: tracking {run['scans'] / run['tracking']['scans_per_s']:.1f} s, "
-              f"relocalisation {run['reloc']['wall_s']:.1f} s, "
-              f"kidnapping {run['kidnap']['wall_s']:.1f} s", file=sys.stderr)  # fmt: skip
+        print(
+            f"{name}: tracking {run['scans'] / run['tracking']['scans_per_s']:.1f} s, "
+            f"relocalisation {run['reloc']['wall_s']:.1f} s, "
+            f"kidnapping {run['kidnap']['wall_s']:.1f} s",
+            file=sys.stderr,
+        )
 
     rgbd = ""
     if not args.no_rgbd:

@@ -91,19 +91,25 @@ def integrate(start: np.ndarray, steps: np.ndarray) -> np.ndarray:
 
 
 def corrupt_trajectory(
-    poses: np.ndarray, scale_error: float, yaw_bias_per_m: float, sigma_xy: float,
-    sigma_yaw: float, rng: np.random.Generator,
-) -> np.ndarray:  # fmt: skip
+    poses: np.ndarray,
+    scale_error: float,
+    yaw_bias_per_m: float,
+    sigma_xy: float,
+    sigma_yaw: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """Fake wheel odometry from a (N, 3) trajectory: each step d = p_{k-1}^-1 p_k becomes
     ``((1 + scale) dx + n_x, (1 + scale) dy + n_y, dyaw + bias |d| + n_yaw)``, integrated from
     the first pose."""
     d = relative_poses(poses[:-1], poses[1:])
     dist = np.hypot(d[:, 0], d[:, 1])
-    noisy = np.column_stack([
-        (1.0 + scale_error) * d[:, 0] + rng.normal(0.0, sigma_xy, len(d)),
-        (1.0 + scale_error) * d[:, 1] + rng.normal(0.0, sigma_xy, len(d)),
-        d[:, 2] + yaw_bias_per_m * dist + rng.normal(0.0, sigma_yaw, len(d)),
-    ])  # fmt: skip
+    noisy = np.column_stack(
+        [
+            (1.0 + scale_error) * d[:, 0] + rng.normal(0.0, sigma_xy, len(d)),
+            (1.0 + scale_error) * d[:, 1] + rng.normal(0.0, sigma_xy, len(d)),
+            d[:, 2] + yaw_bias_per_m * dist + rng.normal(0.0, sigma_yaw, len(d)),
+        ]
+    )
     return integrate(poses[0], noisy)
 
 
@@ -181,20 +187,28 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
     stamps = stream.stamps_ns[:: spec.every]
     logged = _poses(stream)[:: spec.every]
     out: dict[str, Any] = {
-        "name": spec.name, "every": spec.every, "overrides": spec.overrides,
-        "scans_in": len(scans), "stamp_source": src.log.stamp_source,
+        "name": spec.name,
+        "every": spec.every,
+        "overrides": spec.overrides,
+        "scans_in": len(scans),
+        "stamp_source": src.log.stamp_source,
         "duration_s": (stamps[-1] - stamps[0]) * 1e-9,
         "path_m": float(np.hypot(*np.diff(logged[:, :2], axis=0).T).sum()),
-    }  # fmt: skip
+    }
     if spec.name == "mit":
         odom = logged  # raw wheel odometry of the laser
     else:
         rng = np.random.default_rng(ODOM_SEED)
-        odom = corrupt_trajectory(logged, ODOM_SCALE_ERROR, ODOM_YAW_BIAS, ODOM_SIGMA_XY,
-                                  ODOM_SIGMA_YAW, rng)  # fmt: skip
+        odom = corrupt_trajectory(
+            logged, ODOM_SCALE_ERROR, ODOM_YAW_BIAS, ODOM_SIGMA_XY, ODOM_SIGMA_YAW, rng
+        )
     result, wall = _run_mapper(scans, odom, spec.overrides)
-    out.update(wall_s=wall, counts=result.counts, timings_s=result.timings_s,
-               scans_used=len(result.scan_stamps_ns))  # fmt: skip
+    out.update(
+        wall_s=wall,
+        counts=result.counts,
+        timings_s=result.timings_s,
+        scans_used=len(result.scan_stamps_ns),
+    )
     if spec.name == "mit":
         from slam.trajectory_eval import read_relations, relations_error
 
@@ -212,22 +226,32 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
         out["before"], out["after"] = _summary(before), _summary(after)
         anchors = np.random.default_rng(RPE_SEED + 1).choice(len(idx), REGION_ANCHORS)
         along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
-        out["broken"] = [(a, b, along[a], along[b]) for a, b in
-                         broken_regions(result.scan_poses, ref, anchors, RPE_BROKEN_M)]  # fmt: skip
+        out["broken"] = [
+            (a, b, along[a], along[b])
+            for a, b in broken_regions(result.scan_poses, ref, anchors, RPE_BROKEN_M)
+        ]
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # [MiB]
     return out
 
 
 def _summary(err: np.ndarray) -> dict[str, float]:
-    return {"t_mean": float(err[:, 0].mean()), "t_median": float(np.median(err[:, 0])),
-            "r_mean": float(err[:, 1].mean()), "r_median": float(np.median(err[:, 1])),
-            "broken": float((err[:, 0] > RPE_BROKEN_M).mean())}  # fmt: skip
+    return {
+        "t_mean": float(err[:, 0].mean()),
+        "t_median": float(np.median(err[:, 0])),
+        "r_mean": float(err[:, 1].mean()),
+        "r_median": float(np.median(err[:, 1])),
+        "broken": float((err[:, 0] > RPE_BROKEN_M).mean()),
+    }
 
 
 def broken_regions(
-    est: np.ndarray, ref: np.ndarray, anchors: np.ndarray, threshold_m: float,
-    min_run: int = 3, max_gap: int = 5,
-) -> list[tuple[int, int]]:  # fmt: skip
+    est: np.ndarray,
+    ref: np.ndarray,
+    anchors: np.ndarray,
+    threshold_m: float,
+    min_run: int = 3,
+    max_gap: int = 5,
+) -> list[tuple[int, int]]:
     """Scan-index spans (first, last) that do not fit the rest of the map: a scan whose median
     pair error against the ``anchors`` exceeds ``threshold_m``; runs closer than ``max_gap`` are
     merged, runs shorter than ``min_run`` dropped."""
@@ -315,13 +339,19 @@ def radish_note(run: dict[str, Any]) -> str:
     regions = ", ".join(
         f"scans {a}-{b} (path {pa:.0f}-{pb:.0f} m)" for a, b, pa, pb in run["broken"]
     )
-    where = (f"scans off the rest of the map by > {RPE_BROKEN_M:g} m (median over "
-             f"{REGION_ANCHORS} partner scans): {regions}" if regions
-             else f"no region off the rest of the map by > {RPE_BROKEN_M:g} m")  # fmt: skip
+    where = (
+        f"scans off the rest of the map by > {RPE_BROKEN_M:g} m (median over "
+        f"{REGION_ANCHORS} partner scans): {regions}"
+        if regions
+        else f"no region off the rest of the map by > {RPE_BROKEN_M:g} m"
+    )
     rejected = run["counts"]["loop_closures"]["rejected_by_reason"]
     why = ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items(), key=lambda t: -t[1]))
-    stamps = "; log has no usable time, stamps synthesised at 5 Hz" if (
-        run["stamp_source"] == "synthesised") else ""  # fmt: skip
+    stamps = (
+        "; log has no usable time, stamps synthesised at 5 Hz"
+        if (run["stamp_source"] == "synthesised")
+        else ""
+    )
     return f"- {_label(run)}: {where}; loop closures rejected: {why or 'none'}{stamps}."
 
 

@@ -77,8 +77,9 @@ def kinect_scan(stamp_ns: int, rng: np.random.Generator) -> LaserScan:
     return LaserScan(stamp_ns, -fov / 2, fov / (n - 1), r, 0.45, 4.5)
 
 
-def costmap_updates(occ: np.ndarray, geo: GridGeometry, cfg: CostmapConfig, reps: int,
-                    rng: np.random.Generator) -> tuple[list[float], list[float]]:  # fmt: skip
+def costmap_updates(
+    occ: np.ndarray, geo: GridGeometry, cfg: CostmapConfig, reps: int, rng: np.random.Generator
+) -> tuple[list[float], list[float]]:
     """[ms] full builds (static + inflation) and incremental scan updates of nav/costmap.py."""
     values = np.where(occ, 100, 0).astype(np.int16)
     full = time_it(lambda: Costmap(geo, cfg, values).master(), reps)
@@ -98,8 +99,9 @@ def costmap_updates(occ: np.ndarray, geo: GridGeometry, cfg: CostmapConfig, reps
     return full, incremental
 
 
-def box_changes(occ: np.ndarray, geo: GridGeometry, cfg: CostmapConfig, count: int,
-                rng: np.random.Generator) -> list[np.ndarray]:  # fmt: skip
+def box_changes(
+    occ: np.ndarray, geo: GridGeometry, cfg: CostmapConfig, count: int, rng: np.random.Generator
+) -> list[np.ndarray]:
     """Costmaps of the room with one 0.3 m box (a chair the camera just saw) at a random free
     place each, inflated: consecutive ones differ in ~2,000 cells, as after a scan update."""
     free = np.argwhere(~occ)
@@ -168,9 +170,13 @@ def bench_planner(
         ok += r.success
         lengths.append(r.length_m)
         settled.append(r.settled_cells)
-    return {"median": float(np.median(times)), "max": float(np.max(times)),
-            "length": float(np.mean(lengths)), "settled": float(np.mean(settled)),
-            "ok": ok}  # fmt: skip
+    return {
+        "median": float(np.median(times)),
+        "max": float(np.max(times)),
+        "length": float(np.mean(lengths)),
+        "settled": float(np.mean(settled)),
+        "ok": ok,
+    }
 
 
 def bench_scenario(args: argparse.Namespace) -> None:
@@ -299,31 +305,56 @@ def main() -> None:
     # 2. Planners.
     rows = {
         "Dijkstra, no smoothing": bench_planner(
-            GridPlanner(PlannerConfig(use_astar=False, smooth_path=False)), cost, geo, pairs,
-            args.reps),
+            GridPlanner(PlannerConfig(use_astar=False, smooth_path=False)),
+            cost,
+            geo,
+            pairs,
+            args.reps,
+        ),
         "A*, no smoothing": bench_planner(
-            GridPlanner(PlannerConfig(use_astar=True, smooth_path=False)), cost, geo, pairs,
-            args.reps),
+            GridPlanner(PlannerConfig(use_astar=True, smooth_path=False)),
+            cost,
+            geo,
+            pairs,
+            args.reps,
+        ),
         "Dijkstra + smoothing" + DEFAULT_MARK * (not PlannerConfig().use_astar): bench_planner(
-            GridPlanner(PlannerConfig(use_astar=False)), cost, geo, pairs, args.reps),
+            GridPlanner(PlannerConfig(use_astar=False)), cost, geo, pairs, args.reps
+        ),
         "A* + smoothing" + DEFAULT_MARK * PlannerConfig().use_astar: bench_planner(
-            GridPlanner(PlannerConfig(use_astar=True)), cost, geo, pairs, args.reps),
-        "Dijkstra + smoothing, a box added to the costmap before each plan" + UNCACHED_MARK * (
-            not PlannerConfig().use_astar): bench_planner(
-            GridPlanner(PlannerConfig(use_astar=False)), cost, geo, pairs, args.reps,
-            changed=with_box),
+            GridPlanner(PlannerConfig(use_astar=True)), cost, geo, pairs, args.reps
+        ),
+        "Dijkstra + smoothing, a box added to the costmap before each plan"
+        + UNCACHED_MARK * (not PlannerConfig().use_astar): bench_planner(
+            GridPlanner(PlannerConfig(use_astar=False)),
+            cost,
+            geo,
+            pairs,
+            args.reps,
+            changed=with_box,
+        ),
         "Dijkstra + smoothing, new costmap each plan": bench_planner(
-            GridPlanner(PlannerConfig(use_astar=False)), cost, geo, pairs, args.reps, True),
-        "A* + smoothing, new costmap each plan" + UNCACHED_MARK * PlannerConfig().use_astar:
-            bench_planner(GridPlanner(PlannerConfig(use_astar=True)), cost, geo, pairs,
-                          args.reps, True),
+            GridPlanner(PlannerConfig(use_astar=False)), cost, geo, pairs, args.reps, True
+        ),
+        "A* + smoothing, new costmap each plan"
+        + UNCACHED_MARK * PlannerConfig().use_astar: bench_planner(
+            GridPlanner(PlannerConfig(use_astar=True)), cost, geo, pairs, args.reps, True
+        ),
         "Dijkstra, no smoothing, short pairs": bench_planner(
-            GridPlanner(PlannerConfig(use_astar=False, smooth_path=False)), cost, geo, short,
-            args.reps),
+            GridPlanner(PlannerConfig(use_astar=False, smooth_path=False)),
+            cost,
+            geo,
+            short,
+            args.reps,
+        ),
         "A*, no smoothing, short pairs": bench_planner(
-            GridPlanner(PlannerConfig(use_astar=True, smooth_path=False)), cost, geo, short,
-            args.reps),
-    }  # fmt: skip
+            GridPlanner(PlannerConfig(use_astar=True, smooth_path=False)),
+            cost,
+            geo,
+            short,
+            args.reps,
+        ),
+    }
     line_ms = time_it(lambda: [plan_straight_line(cost, geo, s, g) for s, g in pairs], args.reps)
     lines = "\n".join(
         f"| {name} | {r['median']:.1f} | {r['max']:.1f} | {r['length']:.2f} | "

@@ -41,8 +41,15 @@ def ensure_recording(path: Path) -> None:
     from sensors.sim.simulator import simulate
 
     print(f"simulating {RECORDING_FRAMES} frames into {path} ...", file=sys.stderr)
-    simulate(REPO / "scenes" / "house.yaml", path, RobotConfig(), CameraConfig(), SimConfig(),
-             seed=0, frames=RECORDING_FRAMES)  # fmt: skip
+    simulate(
+        REPO / "scenes" / "house.yaml",
+        path,
+        RobotConfig(),
+        CameraConfig(),
+        SimConfig(),
+        seed=0,
+        frames=RECORDING_FRAMES,
+    )
 
 
 def best_of(repeat: int, fn: Callable[[], int]) -> tuple[float, int]:
@@ -138,8 +145,10 @@ def main() -> None:
         "| --- | --- | --- | --- | --- |",
     ]
     for name, seconds, scans, beams in carmen:
-        lines.append(f"| {name} | {scans} | {beams} | {seconds * 1e3:.0f} ms | "
-                     f"**{scans / seconds:.0f} scans/s** ({beams / seconds / 1e6:.1f} M beams/s) |")  # fmt: skip
+        lines.append(
+            f"| {name} | {scans} | {beams} | {seconds * 1e3:.0f} ms | "
+            f"**{scans / seconds:.0f} scans/s** ({beams / seconds / 1e6:.1f} M beams/s) |"
+        )
     body = "\n".join(lines) + "\n"
     publish(body, args.out, SECTION)
 

@@ -65,8 +65,15 @@ def bench_render(world_path: Path, frames: int) -> dict[str, float]:
 def bench_simulate(world_path: Path, frames: int) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        summary = simulate(world_path, Path(tmp) / "rec", RobotConfig(), CameraConfig(),
-                           SimConfig(), seed=0, frames=frames)  # fmt: skip
+        summary = simulate(
+            world_path,
+            Path(tmp) / "rec",
+            RobotConfig(),
+            CameraConfig(),
+            SimConfig(),
+            seed=0,
+            frames=frames,
+        )
         wall = time.perf_counter() - t0
     return {"simulate_fps": summary.frames / wall, "simulate_wall_s": wall}
 

@@ -63,21 +63,29 @@ def bench_recording(world: Path, frames: int, cfg: SyncConfig) -> RecordingResul
     sim = SimConfig(stamp_jitter=SIM_JITTER, frame_drop_probability=SIM_DROP)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        summary = simulate(world, Path(tmp) / "rec", RobotConfig(), CameraConfig(), sim,
-                           seed=0, frames=frames)  # fmt: skip
+        summary = simulate(
+            world, Path(tmp) / "rec", RobotConfig(), CameraConfig(), sim, seed=0, frames=frames
+        )
         sim_wall = time.perf_counter() - t0
         rec = Recording.open(Path(tmp) / "rec")
         rgb, depth = rec.rgb_stamps_ns.copy(), rec.depth_stamps_ns.copy()
         wheel_t, left, right = rec.wheels()
     depth = perturb(depth, np.random.default_rng(0))
     slop_ns = round(cfg.slop * NS_PER_S)
-    index, stats = synchronise({"rgb": rgb, "depth": depth}, slop_ns, cfg.queue_size,
-                               warn_fraction=cfg.warn_fraction)  # fmt: skip
+    index, stats = synchronise(
+        {"rgb": rgb, "depth": depth}, slop_ns, cfg.queue_size, warn_fraction=cfg.warn_fraction
+    )
     images = rgb[index["rgb"]]
     gap_ns = round(cfg.max_interpolation_gap * NS_PER_S)
     _, _, ok = interpolate_wheels(wheel_t, left, right, images, gap_ns)
-    return RecordingResult(stats, summary.dropped_frames, sim_wall, int(wheel_t.size),
-                           int(images.size), int(np.count_nonzero(ok)))  # fmt: skip
+    return RecordingResult(
+        stats,
+        summary.dropped_frames,
+        sim_wall,
+        int(wheel_t.size),
+        int(images.size),
+        int(np.count_nonzero(ok)),
+    )
 
 
 def synthetic_streams(total: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -108,16 +116,26 @@ def bench_throughput(cfg: SyncConfig) -> dict[str, float]:
     t0 = time.perf_counter()
     interpolate_wheels(wheel_t, counts, counts, images, 200 * MS)
     interp_wall = time.perf_counter() - t0
-    return {"pushed": pushed, "wall_s": wall, "rate": pushed / wall, "sets": stats.sets,
-            "interp_ms": 1e3 * interp_wall, "interp_images": images.size}  # fmt: skip
+    return {
+        "pushed": pushed,
+        "wall_s": wall,
+        "rate": pushed / wall,
+        "sets": stats.sets,
+        "interp_ms": 1e3 * interp_wall,
+        "interp_images": images.size,
+    }
 
 
 def table(stats: SyncStats) -> str:
-    rows = ["| stream | received | matched | out_of_order | duplicate | stale | unmatched (of which overflow) | matched fraction |",
-            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
+    rows = [
+        "| stream | received | matched | out_of_order | duplicate | stale | unmatched (of which overflow) | matched fraction |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
     for name, s in stats.streams.items():
-        rows.append(f"| {name} | {s.received} | {s.matched} | {s.out_of_order} | {s.duplicate} | "
-                    f"{s.stale} | {s.unmatched} ({s.overflow}) | {100 * s.matched / s.received:.1f} % |")  # fmt: skip
+        rows.append(
+            f"| {name} | {s.received} | {s.matched} | {s.out_of_order} | {s.duplicate} | "
+            f"{s.stale} | {s.unmatched} ({s.overflow}) | {100 * s.matched / s.received:.1f} % |"
+        )
     return "\n".join(rows)
 
 

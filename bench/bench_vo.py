@@ -66,23 +66,42 @@ WIDE = replace(
 # name -> (VoConfig, VoTuning) of the variants compared; the first is the default.
 VARIANTS: dict[str, tuple[VoConfig, VoTuning]] = {
     "orb_pnp default (grid ORB, rigid RANSAC, verified guided matches, RGB-D GN)": (
-        WIDE, VoTuning()),
+        WIDE,
+        VoTuning(),
+    ),
     "plain ORB + EPnP RANSAC 2 px (no grid/mask/refine, FAST 20)": (
         replace(WIDE, pnp_reproj_error=2.0),
-        VoTuning(grid_rows=1, grid_cols=1, detect_factor=1.0, fast_threshold=20, orb_levels=8,
-                 depth_as_mask=False, pnp_method="ransac", refine="none", min_pnp_inliers=20,
-                 level_window=-1)),
+        VoTuning(
+            grid_rows=1,
+            grid_cols=1,
+            detect_factor=1.0,
+            fast_threshold=20,
+            orb_levels=8,
+            depth_as_mask=False,
+            pnp_method="ransac",
+            refine="none",
+            min_pnp_inliers=20,
+            level_window=-1,
+        ),
+    ),
     "default before the speed-up (8 levels in one ORB call, 1.5x detected, level window 1, "
     "3 candidates)": (
-        WIDE, VoTuning(orb_levels=8, orb_split_level=0, detect_factor=1.5, level_window=1,
-                       knn=3)),
+        WIDE,
+        VoTuning(orb_levels=8, orb_split_level=0, detect_factor=1.5, level_window=1, knn=3),
+    ),
     "previous default (AP3P RANSAC, one hypothesis, all levels, ORB mask)": (
-        WIDE, VoTuning(pnp_method="ap3p", min_pnp_inliers=8, level_window=-1,
-                       second_radius_px=0, refine_iterations=6)),
+        WIDE,
+        VoTuning(
+            pnp_method="ap3p",
+            min_pnp_inliers=8,
+            level_window=-1,
+            second_radius_px=0,
+            refine_iterations=6,
+        ),
+    ),
     "default but AP3P RANSAC (OpenCV)": (WIDE, VoTuning(pnp_method="ap3p")),
     "default but MAGSAC (OpenCV)": (WIDE, VoTuning(pnp_method="magsac")),
-    "default, rigid RANSAC without refinement": (
-        WIDE, VoTuning(refine="none", min_pnp_inliers=20)),
+    "default, rigid RANSAC without refinement": (WIDE, VoTuning(refine="none", min_pnp_inliers=20)),
     "default but one hypothesis verified": (WIDE, VoTuning(verify_hypotheses=1)),
     "default but no second guided search": (WIDE, VoTuning(second_radius_px=0)),
     "default but all pyramid levels matched": (WIDE, VoTuning(level_window=-1)),
@@ -90,7 +109,7 @@ VARIANTS: dict[str, tuple[VoConfig, VoTuning]] = {
     "default but 800 features": (replace(WIDE, max_features=800), VoTuning()),
     "default but cross-check": (WIDE, VoTuning(cross_check=True)),
     "open3d_rgbd (hybrid)": (replace(WIDE, method="open3d_rgbd"), VoTuning()),
-}  # fmt: skip
+}
 
 
 class _PermutedPnp:
@@ -127,8 +146,9 @@ def ransac_draw(tuning: VoTuning, seed: int) -> Iterator[VoTuning]:
         vo_module.cv2 = real
 
 
-def bench_draws(cfg: VoConfig, tuning: VoTuning, frames: list, gt: np.ndarray, draws: int
-                ) -> dict[str, float]:  # fmt: skip
+def bench_draws(
+    cfg: VoConfig, tuning: VoTuning, frames: list, gt: np.ndarray, draws: int
+) -> dict[str, float]:
     """Success rate and median error over ``draws`` other RANSAC draws (seeds 1..draws)."""
     success, median, bad = [], [], []
     for seed in range(1, draws + 1):
@@ -137,9 +157,14 @@ def bench_draws(cfg: VoConfig, tuning: VoTuning, frames: list, gt: np.ndarray, d
         success.append(100 * d["success"])
         median.append(d["t_med_cm"])
         bad.append(d["bad_accepted"])
-    return {"success_mean": float(np.mean(success)), "success_min": min(success),
-            "success_max": max(success), "t_med_mean": float(np.mean(median)),
-            "t_med_max": max(median), "bad_mean": float(np.mean(bad))}  # fmt: skip
+    return {
+        "success_mean": float(np.mean(success)),
+        "success_min": min(success),
+        "success_max": max(success),
+        "t_med_mean": float(np.mean(median)),
+        "t_med_max": max(median),
+        "bad_mean": float(np.mean(bad)),
+    }
 
 
 def open3d_motion(
@@ -160,15 +185,22 @@ def open3d_motion(
     def image(rgb: np.ndarray, depth: np.ndarray) -> object:
         d = np.nan_to_num(depth, nan=0.0).astype(np.float32)
         return o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(rgb)), o3d.geometry.Image(d),
-            depth_scale=1.0, depth_trunc=cfg.max_depth, convert_rgb_to_intensity=True,
-        )  # fmt: skip
+            o3d.geometry.Image(np.ascontiguousarray(rgb)),
+            o3d.geometry.Image(d),
+            depth_scale=1.0,
+            depth_trunc=cfg.max_depth,
+            convert_rgb_to_intensity=True,
+        )
 
     opt = o3d.pipelines.odometry.OdometryOption()
     ok, t_src_tgt, info = o3d.pipelines.odometry.compute_rgbd_odometry(
-        image(curr_rgb, curr_depth), image(prev_rgb, prev_depth), intr, np.eye(4),
-        o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(), opt,
-    )  # fmt: skip
+        image(curr_rgb, curr_depth),
+        image(prev_rgb, prev_depth),
+        intr,
+        np.eye(4),
+        o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(),
+        opt,
+    )
     if not ok:
         return _fail("pnp_failed", t0)
     t_pc = np.asarray(t_src_tgt)  # maps current-frame points into the previous frame
@@ -176,8 +208,7 @@ def open3d_motion(
         return _fail("implausible_motion", t0)
     cov = np.linalg.pinv(np.asarray(info))  # (w, v) order per Open3D
     perm = [3, 4, 5, 0, 1, 2]
-    return VoResult(True, "ok", t_pc, 0, cov[np.ix_(perm, perm)],
-                    (time.perf_counter() - t0) * 1e3)  # fmt: skip
+    return VoResult(True, "ok", t_pc, 0, cov[np.ix_(perm, perm)], (time.perf_counter() - t0) * 1e3)
 
 
 def run_method(a: object, b: object, k: np.ndarray, cfg: VoConfig, tuning: VoTuning) -> VoResult:
@@ -191,11 +222,14 @@ def tum_poses(path: Path) -> np.ndarray:
     """TUM ``t tx ty tz qx qy qz qw`` lines -> (N, 4, 4) camera-to-world."""
     d = np.loadtxt(path)
     x, y, z, w = d[:, 4], d[:, 5], d[:, 6], d[:, 7]
-    r = np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)  # fmt: skip
+    r = np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        1,
+    )
     t = np.tile(np.eye(4), (len(d), 1, 1))
     t[:, :3, :3], t[:, :3, 3] = r, d[:, 1:4]
     return t
@@ -214,8 +248,9 @@ def load_cabinet() -> tuple[list, np.ndarray]:
     return frames, tum_poses(CABINET / "truth_cam_poses.txt")
 
 
-def bench_cabinet(cfg: VoConfig, tuning: VoTuning, frames: list, gt: np.ndarray,
-                  repeats: int = 1) -> dict[str, float]:  # fmt: skip
+def bench_cabinet(
+    cfg: VoConfig, tuning: VoTuning, frames: list, gt: np.ndarray, repeats: int = 1
+) -> dict[str, float]:
     from slam.visual_odometry import camera_matrix
 
     k = camera_matrix(frames[0].intrinsics)
@@ -268,9 +303,14 @@ def bench_per_frame(
             prior += res.prior
         wall.append(float(np.median(wall_ms[1:])))
         cpu.append(float(np.median(cpu_ms[1:])))
-    return {"ms_med": float(np.median(wall)), "ms_lo": min(wall), "ms_hi": max(wall),
-            "cpu_ms_med": float(np.median(cpu)), "cpu_ms_lo": min(cpu),
-            "prior": prior / repeats}  # fmt: skip
+    return {
+        "ms_med": float(np.median(wall)),
+        "ms_lo": min(wall),
+        "ms_hi": max(wall),
+        "cpu_ms_med": float(np.median(cpu)),
+        "cpu_ms_lo": min(cpu),
+        "prior": prior / repeats,
+    }
 
 
 def bench_open3d_sequence(cfg: VoConfig, tuning: VoTuning) -> dict[str, float]:
@@ -303,8 +343,12 @@ def bench_open3d_sequence(cfg: VoConfig, tuning: VoTuning) -> dict[str, float]:
         dt_mm.append(1000 * te)
         dr_deg.append(re_)
         inl.append(res.inliers)
-    return {"dt_mm_max": max(dt_mm), "dt_mm_med": float(np.median(dt_mm)),
-            "dr_deg_max": max(dr_deg), "pairs": len(poses) - 1}  # fmt: skip
+    return {
+        "dt_mm_max": max(dt_mm),
+        "dt_mm_med": float(np.median(dt_mm)),
+        "dr_deg_max": max(dr_deg),
+        "pairs": len(poses) - 1,
+    }
 
 
 def bench_sim(
@@ -332,9 +376,14 @@ def bench_sim(
     rng = np.random.default_rng(seed)
     from sensors.types import RgbdFrame
 
-    rendered = [RgbdFrame(int(t_cam[i]), *renderer.render(float(x[i]), float(y[i]),
-                                                           float(yaw[i]), rng),
-                          renderer.intrinsics) for i in range(frames)]  # fmt: skip
+    rendered = [
+        RgbdFrame(
+            int(t_cam[i]),
+            *renderer.render(float(x[i]), float(y[i]), float(yaw[i]), rng),
+            renderer.intrinsics,
+        )
+        for i in range(frames)
+    ]
     run_ms: list[float] = []
     run_cpu: list[float] = []
     all_ms: list[float] = []
@@ -364,23 +413,35 @@ def bench_sim(
     length = float(np.hypot(np.diff(x), np.diff(y)).sum())
     end_err = float(np.hypot(pose[0] - x[-1], pose[1] - y[-1]))
     yaw_err = math.degrees((pose[2] - yaw[-1] + math.pi) % (2 * math.pi) - math.pi)
-    return {"length_m": length, "end_err_m": end_err, "drift_per_10m": 10 * end_err / length,
-            "yaw_err_deg": yaw_err, "fails": fails, "frames": frames,
-            "ms_med": float(np.median(run_ms)), "ms_lo": min(run_ms), "ms_hi": max(run_ms),
-            "cpu_ms_med": float(np.median(run_cpu)), "runs": len(run_ms),
-            "ms_p90": float(np.percentile(all_ms, 90)),
-            "prior": prior, "reasons": reasons}  # fmt: skip
+    return {
+        "length_m": length,
+        "end_err_m": end_err,
+        "drift_per_10m": 10 * end_err / length,
+        "yaw_err_deg": yaw_err,
+        "fails": fails,
+        "frames": frames,
+        "ms_med": float(np.median(run_ms)),
+        "ms_lo": min(run_ms),
+        "ms_hi": max(run_ms),
+        "cpu_ms_med": float(np.median(run_cpu)),
+        "runs": len(run_ms),
+        "ms_p90": float(np.percentile(all_ms, 90)),
+        "prior": prior,
+        "reasons": reasons,
+    }
 
 
 def bench_cor_types(sim_frames: int, world: Path, out: Path | None) -> None:
     """``vo.cor_type`` features vs optical_flow through ``VisualOdometry.process``: the TUM
     cabinet keyframes (0.15 m apart: flow must give way to ORB matching, never accept a wrong
     pose) and a 30 Hz simulated house segment (speed and VO-only drift)."""
-    rows = ["| vo.cor_type | house: ms/frame wall median (p90) | house: CPU ms/frame median | "
-            "house: drift per 10 m | house: yaw error [deg] | house: frames from the last pose | "
-            "cabinet: success | cabinet: median t err [cm] | cabinet: wrong but accepted | "
-            "cabinet: pairs from the last pose |", "| --- | --- | --- | --- | --- | --- | --- | --- | "
-            "--- | --- |"]  # fmt: skip
+    rows = [
+        "| vo.cor_type | house: ms/frame wall median (p90) | house: CPU ms/frame median | "
+        "house: drift per 10 m | house: yaw error [deg] | house: frames from the last pose | "
+        "cabinet: success | cabinet: median t err [cm] | cabinet: wrong but accepted | "
+        "cabinet: pairs from the last pose |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     load_start = os.getloadavg()
     cab = load_cabinet() if CABINET.exists() else None
     for cor in ("features", "optical_flow"):
@@ -389,8 +450,9 @@ def bench_cor_types(sim_frames: int, world: Path, out: Path | None) -> None:
         c = "- | - | - | -"
         if cab is not None:
             frames, gt = cab
-            vo = VisualOdometry(frames[0].intrinsics, replace(cfg, force_3dof=False),
-                                keyframes=False)  # fmt: skip
+            vo = VisualOdometry(
+                frames[0].intrinsics, replace(cfg, force_3dof=False), keyframes=False
+            )
             err, ok, tracked = [], [], 0
             for i, f in enumerate(frames):
                 res = vo.process(f)
@@ -401,11 +463,15 @@ def bench_cor_types(sim_frames: int, world: Path, out: Path | None) -> None:
                 ok.append(res.success)
                 tracked += res.prior
             e, a = np.array(err), np.array(ok)
-            c = (f"{100 * np.mean(e < SUCCESS_M):.0f} % | {100 * np.median(e):.2f} | "
-                 f"{int(np.sum(a & (e >= SUCCESS_M)))} | {tracked} of {len(e)}")  # fmt: skip
-        rows.append(f"| {cor} | {s['ms_med']:.1f} ({s['ms_p90']:.1f}) | {s['cpu_ms_med']:.1f} | "
-                    f"{100 * s['drift_per_10m']:.1f} cm | {s['yaw_err_deg']:.2f} | "
-                    f"{s['prior']} of {s['frames'] - 1} | {c} |")  # fmt: skip
+            c = (
+                f"{100 * np.mean(e < SUCCESS_M):.0f} % | {100 * np.median(e):.2f} | "
+                f"{int(np.sum(a & (e >= SUCCESS_M)))} | {tracked} of {len(e)}"
+            )
+        rows.append(
+            f"| {cor} | {s['ms_med']:.1f} ({s['ms_p90']:.1f}) | {s['cpu_ms_med']:.1f} | "
+            f"{100 * s['drift_per_10m']:.1f} cm | {s['yaw_err_deg']:.2f} | "
+            f"{s['prior']} of {s['frames'] - 1} | {c} |"
+        )
         print(rows[-1], flush=True)
     load = f"{load_start[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
     body = f"""## Visual odometry: ORB matching on every frame vs optical flow between keyframes
@@ -445,10 +511,12 @@ def main() -> None:
         bench_cor_types(args.sim_frames, args.world, args.out)
         return
 
-    lines = ["| method | draws: success mean (range) | draws: median t err mean (max) [cm] | "
-             "draws: wrong but accepted (mean) | seed 0: success | seed 0: median t / r err "
-             "[cm / deg] | ms/pair median (p90) |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    lines = [
+        "| method | draws: success mean (range) | draws: median t err mean (max) [cm] | "
+        "draws: wrong but accepted (mean) | seed 0: success | seed 0: median t / r err "
+        "[cm / deg] | ms/pair median (p90) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
     load_start = os.getloadavg()
     names = list(VARIANTS)
     chosen = [names[int(i)] for i in args.only.split(",")] if args.only else names
@@ -459,9 +527,14 @@ def main() -> None:
             o3d = cfg.method == "open3d_rgbd"  # deterministic and slow: one run
             r = bench_cabinet(cfg, tun, frames, gt, 1 if o3d else args.repeats)
             if o3d or not args.draws:
-                d = {"success_mean": 100 * r["success"], "success_min": 100 * r["success"],
-                     "success_max": 100 * r["success"], "t_med_mean": r["t_med_cm"],
-                     "t_med_max": r["t_med_cm"], "bad_mean": r["bad_accepted"]}  # fmt: skip
+                d = {
+                    "success_mean": 100 * r["success"],
+                    "success_min": 100 * r["success"],
+                    "success_max": 100 * r["success"],
+                    "t_med_mean": r["t_med_cm"],
+                    "t_med_max": r["t_med_cm"],
+                    "bad_mean": r["bad_accepted"],
+                }
             else:
                 d = bench_draws(cfg, tun, frames, gt, args.draws)
             lines.append(
@@ -486,24 +559,28 @@ def main() -> None:
         )
         print(frame_line, flush=True)
         o3d_seq = bench_open3d_sequence(*VARIANTS[names[0]])
-        seq = (f"Open3D 5-frame sequence vs its odometry.log ({o3d_seq['pairs']} pairs): "
-               f"translation difference median {o3d_seq['dt_mm_med']:.2f} mm, max "
-               f"{o3d_seq['dt_mm_max']:.2f} mm; rotation difference max "
-               f"{o3d_seq['dr_deg_max']:.2f} deg.")  # fmt: skip
+        seq = (
+            f"Open3D 5-frame sequence vs its odometry.log ({o3d_seq['pairs']} pairs): "
+            f"translation difference median {o3d_seq['dt_mm_med']:.2f} mm, max "
+            f"{o3d_seq['dt_mm_max']:.2f} mm; rotation difference max "
+            f"{o3d_seq['dr_deg_max']:.2f} deg."
+        )
         print(seq, flush=True)
     else:
         seq = "(real data absent: cabinet and Open3D sequences skipped)"
         frame_line = ""
     s = bench_sim(args.sim_frames, args.world)
-    sim_line = (f"Simulated {args.world.stem} ({s['frames']} frames, {s['length_m']:.1f} m, "
-                f"planar frame-to-keyframe VO only, VoConfig defaults): end error "
-                f"{s['end_err_m'] * 100:.1f} cm = **{100 * s['drift_per_10m']:.1f} cm per 10 m**, "
-                f"yaw error {s['yaw_err_deg']:.2f} deg, {s['fails']} failed frames, "
-                f"**{s['ms_med']:.1f} ms/frame wall** (median over the frames of one run, then over "
-                f"{s['runs']} runs on the same rendered frames: runs {s['ms_lo']:.1f}-"
-                f"{s['ms_hi']:.1f}), {s['cpu_ms_med']:.1f} ms CPU median "
-                f"(30 Hz: the last pose seeded {s['prior']} of {s['frames'] - 1} frames, "
-                f"RANSAC ran on the rest).")  # fmt: skip
+    sim_line = (
+        f"Simulated {args.world.stem} ({s['frames']} frames, {s['length_m']:.1f} m, "
+        f"planar frame-to-keyframe VO only, VoConfig defaults): end error "
+        f"{s['end_err_m'] * 100:.1f} cm = **{100 * s['drift_per_10m']:.1f} cm per 10 m**, "
+        f"yaw error {s['yaw_err_deg']:.2f} deg, {s['fails']} failed frames, "
+        f"**{s['ms_med']:.1f} ms/frame wall** (median over the frames of one run, then over "
+        f"{s['runs']} runs on the same rendered frames: runs {s['ms_lo']:.1f}-"
+        f"{s['ms_hi']:.1f}), {s['cpu_ms_med']:.1f} ms CPU median "
+        f"(30 Hz: the last pose seeded {s['prior']} of {s['frames'] - 1} frames, "
+        f"RANSAC ran on the rest)."
+    )
     load = f"{load_start[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
     body = f"""## Visual odometry
 

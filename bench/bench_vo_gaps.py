@@ -77,8 +77,9 @@ def vo_inputs(rec: Recording, cfg, skip: np.ndarray, spread: bool) -> list[Twist
         if prev is not None and res.success and res.delta_base is not None:
             dt_s = (frame.stamp_ns - prev) / 1e9
             if spread:
-                out += spanning_motion_twists(skipped, frame.stamp_ns, res.delta_base,
-                                              res.covariance, dt_s)  # fmt: skip
+                out += spanning_motion_twists(
+                    skipped, frame.stamp_ns, res.delta_base, res.covariance, dt_s
+                )
             else:
                 out.append(motion_twist(frame.stamp_ns, res.delta_base, res.covariance, dt_s))
         prev, skipped = frame.stamp_ns, []
@@ -104,8 +105,14 @@ def main() -> None:
     rec = Recording.open(recording)
     cfg = load_config([RGBD_PROFILE, LIVE_PROFILE], [NO_GYRO])
     ws, wl, wr = rec.wheels()
-    wheels = wheel_twist_inputs(ws, wl, wr, cfg.robot, WheelErrorModel.from_robot(cfg.robot),
-                                vy_variance=cfg.ekf.odom0_vy_variance)  # fmt: skip
+    wheels = wheel_twist_inputs(
+        ws,
+        wl,
+        wr,
+        cfg.robot,
+        WheelErrorModel.from_robot(cfg.robot),
+        vy_variance=cfg.ekf.odom0_vy_variance,
+    )
     gt = rec.groundtruth_planar()
     if gt is None:
         sys.exit(f"{recording}: no ground truth to score against")

@@ -53,12 +53,24 @@ def run(case: bg.Case, every: int, upto: int | None) -> dict:
         truth = bench_mapper.relative_poses(a[None], b[None])[0]
         err = e.delta - truth
         sigma = np.sqrt(np.diag(np.linalg.inv(e.information)))
-        loops.append([kf_scan[e.i], kf_scan[e.j], float(np.hypot(err[0], err[1])),
-                      float(np.degrees(np.angle(np.exp(1j * err[2])))), *sigma.tolist()])  # fmt: skip
+        loops.append(
+            [
+                kf_scan[e.i],
+                kf_scan[e.j],
+                float(np.hypot(err[0], err[1])),
+                float(np.degrees(np.angle(np.exp(1j * err[2])))),
+                *sigma.tolist(),
+            ]
+        )
     counts = {k: (dict(v) if isinstance(v, dict) else v) for k, v in result.counts.items()}
-    return {"kept": kept, "poses": np.asarray(result.scan_poses).tolist(),
-            "logged": logged[kept].tolist(), "counts": counts, "wall_s": wall,
-            "loops": loops}  # fmt: skip
+    return {
+        "kept": kept,
+        "poses": np.asarray(result.scan_poses).tolist(),
+        "logged": logged[kept].tolist(),
+        "counts": counts,
+        "wall_s": wall,
+        "loops": loops,
+    }
 
 
 def relative_to_first(poses: np.ndarray) -> np.ndarray:
@@ -77,18 +89,24 @@ def main() -> None:
     ref = run(bg.Case(args.log, None), args.every, args.upto)
     cor = run(bg.Case(args.log, args.seed), args.every, args.upto)
     mean, median, rot = bg.global_error(cor, ref)
-    print(f"{args.log} seed {args.seed} every {args.every}: vs reference map mean {mean:.3f} m "
-          f"median {median:.3f} m rot {rot:.2f} deg; reference vs corrected poses "
-          f"{bg.versus_logged(ref):.3f} m; corrupted vs corrected poses "
-          f"{bg.versus_logged(cor):.3f} m")  # fmt: skip
+    print(
+        f"{args.log} seed {args.seed} every {args.every}: vs reference map mean {mean:.3f} m "
+        f"median {median:.3f} m rot {rot:.2f} deg; reference vs corrected poses "
+        f"{bg.versus_logged(ref):.3f} m; corrupted vs corrected poses "
+        f"{bg.versus_logged(cor):.3f} m"
+    )
     for name, r in (("reference", ref), ("corrupted", cor)):
         print(f"{name}: wall {r['wall_s']:.1f} s, counts {json.dumps(r['counts'], default=str)}")
         wrong = [lp for lp in r["loops"] if lp[2] > 0.5 or abs(lp[3]) > 2.0]
-        print(f"  loop closures in the final graph: {len(r['loops'])}, off the corrected poses "
-              f"by > 0.5 m or 2 deg: {len(wrong)}")  # fmt: skip
+        print(
+            f"  loop closures in the final graph: {len(r['loops'])}, off the corrected poses "
+            f"by > 0.5 m or 2 deg: {len(wrong)}"
+        )
         for i, j, et, ey, sx, sy, syaw in wrong[:20]:
-            print(f"    scans {i} -> {j}: off by {et:.2f} m, {ey:+.2f} deg; claimed sigma "
-                  f"{sx:.3f} m, {sy:.3f} m, {np.degrees(syaw):.2f} deg")  # fmt: skip
+            print(
+                f"    scans {i} -> {j}: off by {et:.2f} m, {ey:+.2f} deg; claimed sigma "
+                f"{sx:.3f} m, {sy:.3f} m, {np.degrees(syaw):.2f} deg"
+            )
     common, ia, ib = np.intersect1d(cor["kept"], ref["kept"], return_indices=True)
     a = relative_to_first(np.asarray(cor["poses"])[ia])
     b = relative_to_first(np.asarray(ref["poses"])[ib])
@@ -97,8 +115,10 @@ def main() -> None:
     for lim in (0.5, 1.0, 5.0):
         hit = np.flatnonzero(drift > lim)
         if len(hit):
-            print(f"first scan > {lim} m off (relative to scan 0): scan {common[hit[0]]} "
-                  f"(path {path[hit[0]]:.0f} m)")  # fmt: skip
+            print(
+                f"first scan > {lim} m off (relative to scan 0): scan {common[hit[0]]} "
+                f"(path {path[hit[0]]:.0f} m)"
+            )
     n = len(common)
     pa, pb = np.asarray(cor["poses"])[ia], np.asarray(ref["poses"])[ib]
     sa = bench_mapper.relative_poses(pa[:-1], pa[1:])

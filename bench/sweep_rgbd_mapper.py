@@ -61,9 +61,13 @@ def main() -> None:
     d2s = DepthToScan(intrinsics, cfg.robot, cfg.depth_to_scan)
     scans = [d2s.from_frame(f).scan for f in src.frames()]
     stamps, xyz, quat = load_tum_trajectory(fused_path)
-    ox, oy, oyaw, inside = interpolate_poses(stamps, xyz[:, 0], xyz[:, 1],
-                                             yaw_from_quaternion(quat),
-                                             np.array([s.stamp_ns for s in scans]))  # fmt: skip
+    ox, oy, oyaw, inside = interpolate_poses(
+        stamps,
+        xyz[:, 0],
+        xyz[:, 1],
+        yaw_from_quaternion(quat),
+        np.array([s.stamp_ns for s in scans]),
+    )
     print(f"{len(scans)} scans, {int(inside.sum())} with odometry ({fused_path})")
     # 2. The mapper per variant.
     for variant in args.variants or [""]:
@@ -76,14 +80,17 @@ def main() -> None:
         result = mapper.finish()
         wall = time.perf_counter() - t0
         summary: dict = {}
-        _score_against_truth(result, build_grid(result, vcfg.mapper), src.groundtruth(), scene, vcfg,
-                             summary)  # fmt: skip
+        _score_against_truth(
+            result, build_grid(result, vcfg.mapper), src.groundtruth(), scene, vcfg, summary
+        )
         ate, iou = summary["slam_vs_groundtruth"], summary.get("grid_vs_floor_plan", {})
         loops = result.counts["loop_closures"]
-        print(f"{variant or 'defaults'}: ATE {ate['ate_rmse_m']:.4f} m "
-              f"(aligned {ate['ate_rmse_aligned_m']:.4f}), grid IoU {iou.get('iou', 'n/a')}, "
-              f"{len(result.keyframes)} keyframes, loops {loops['accepted']}/{loops['proposed']}, "
-              f"mapper {wall:.1f} s")  # fmt: skip
+        print(
+            f"{variant or 'defaults'}: ATE {ate['ate_rmse_m']:.4f} m "
+            f"(aligned {ate['ate_rmse_aligned_m']:.4f}), grid IoU {iou.get('iou', 'n/a')}, "
+            f"{len(result.keyframes)} keyframes, loops {loops['accepted']}/{loops['proposed']}, "
+            f"mapper {wall:.1f} s"
+        )
     src.close()
 
 

@@ -34,8 +34,11 @@ def variants() -> list[tuple[str, VoConfig, VoTuning]]:
 
     return [
         ("default", base, VoTuning()),
-        ("before the speed-up: 8 levels, 1 ORB call, 1.5x, level window 1, 3 candidates", base,
-         VoTuning(orb_levels=8, orb_split_level=0, detect_factor=1.5, level_window=1, knn=3)),
+        (
+            "before the speed-up: 8 levels, 1 ORB call, 1.5x, level window 1, 3 candidates",
+            base,
+            VoTuning(orb_levels=8, orb_split_level=0, detect_factor=1.5, level_window=1, knn=3),
+        ),
         ("level window 1", base, VoTuning(level_window=1)),
         ("8 pyramid levels", base, VoTuning(orb_levels=8)),
         ("3 guided-search candidates", base, VoTuning(knn=3)),
@@ -50,7 +53,7 @@ def variants() -> list[tuple[str, VoConfig, VoTuning]]:
         ("depth margin 8 px (into holes)", base, VoTuning(depth_margin_px=8)),
         ("no depth mask", base, VoTuning(depth_as_mask=False)),
         ("AP3P RANSAC (OpenCV)", base, VoTuning(pnp_method="ap3p")),
-    ]  # fmt: skip
+    ]
 
 
 def main() -> None:
@@ -62,20 +65,30 @@ def main() -> None:
     chosen = variants()
     if args.only:
         chosen = [chosen[int(i)] for i in args.only.split(",")]
-    draws_head = (" draws: success mean (range) | draws: median t mean (max) [cm] | draws: wrong "
-                  "but accepted |" if args.draws else "")  # fmt: skip
-    print(f"| setting | seed 0: success | seed 0: median t [cm] | seed 0: median r [deg] | "
-          f"per-frame wall / CPU [ms] |{draws_head}")  # fmt: skip
+    draws_head = (
+        " draws: success mean (range) | draws: median t mean (max) [cm] | draws: wrong "
+        "but accepted |"
+        if args.draws
+        else ""
+    )
+    print(
+        f"| setting | seed 0: success | seed 0: median t [cm] | seed 0: median r [deg] | "
+        f"per-frame wall / CPU [ms] |{draws_head}"
+    )
     print("| --- " * (5 + 3 * bool(args.draws)) + "|")
     for name, cfg, tuning in chosen:
         r = vo_bench.bench_cabinet(cfg, tuning, frames, gt)
         pf = vo_bench.bench_per_frame(cfg, tuning, frames, repeats=2)
-        row = (f"| {name} | {100 * r['success']:.0f} % | {r['t_med_cm']:.2f} | "
-               f"{r['r_med_deg']:.2f} | {pf['ms_med']:.1f} / {pf['cpu_ms_med']:.1f} |")  # fmt: skip
+        row = (
+            f"| {name} | {100 * r['success']:.0f} % | {r['t_med_cm']:.2f} | "
+            f"{r['r_med_deg']:.2f} | {pf['ms_med']:.1f} / {pf['cpu_ms_med']:.1f} |"
+        )
         if args.draws:
             d = vo_bench.bench_draws(cfg, tuning, frames, gt, args.draws)
-            row += (f" {d['success_mean']:.1f} % ({d['success_min']:.0f}-{d['success_max']:.0f})"
-                    f" | {d['t_med_mean']:.2f} ({d['t_med_max']:.2f}) | {d['bad_mean']:.1f} |")  # fmt: skip
+            row += (
+                f" {d['success_mean']:.1f} % ({d['success_min']:.0f}-{d['success_max']:.0f})"
+                f" | {d['t_med_mean']:.2f} ({d['t_med_max']:.2f}) | {d['bad_mean']:.1f} |"
+            )
         print(row, flush=True)
 
 

@@ -31,8 +31,12 @@ import slam.visual_odometry as new  # noqa: E402
 
 def module_at(rev: str, tmp: Path) -> ModuleType:
     """slam/visual_odometry.py as it was at ``rev``, imported under another name."""
-    src = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:slam/visual_odometry.py"],
-                         check=True, capture_output=True, text=True).stdout  # fmt: skip
+    src = subprocess.run(
+        ["git", "-C", str(REPO), "show", f"{rev}:slam/visual_odometry.py"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
     path = tmp / "vo_old.py"
     path.write_text(src)
     spec = importlib.util.spec_from_file_location("vo_old", path)
@@ -51,13 +55,15 @@ def main() -> None:
     frames, _ = b.load_cabinet()
 
     def wall(mod: ModuleType) -> float:
-        vo = mod.VisualOdometry(frames[0].intrinsics, b.WIDE, tuning=mod.VoTuning(),
-                                keyframes=False)  # fmt: skip
+        vo = mod.VisualOdometry(
+            frames[0].intrinsics, b.WIDE, tuning=mod.VoTuning(), keyframes=False
+        )
         return float(np.median([vo.process(f).ms for f in frames][1:]))
 
     def cpu(mod: ModuleType) -> float:
-        vo = mod.VisualOdometry(frames[0].intrinsics, b.WIDE, tuning=mod.VoTuning(),
-                                keyframes=False)  # fmt: skip
+        vo = mod.VisualOdometry(
+            frames[0].intrinsics, b.WIDE, tuning=mod.VoTuning(), keyframes=False
+        )
         ts = []
         for f in frames:
             t = time.process_time()
@@ -68,8 +74,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         old = module_at(args.rev, Path(tmp))
         threads = cv2.getNumThreads()
-        runs: dict[str, list[float]] = {k: [] for k in ("wall old", "wall new", "cpu old",
-                                                       "cpu new")}  # fmt: skip
+        runs: dict[str, list[float]] = {
+            k: [] for k in ("wall old", "wall new", "cpu old", "cpu new")
+        }
         for _ in range(args.reps):
             cv2.setNumThreads(threads)
             runs["wall old"].append(wall(old))

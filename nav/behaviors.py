@@ -45,17 +45,21 @@ class Behavior:
 
     def __post_init__(self) -> None:
         if self.name not in ("clear_costmap", "spin", "wait", "backup"):
-            raise ConfigError(f"unknown behaviour {self.name!r} (clear_costmap, spin, wait, "
-                              f"backup)")  # fmt: skip
+            raise ConfigError(
+                f"unknown behaviour {self.name!r} (clear_costmap, spin, wait, backup)"
+            )
         if not self.time_allowance > 0.0:
-            raise ConfigError(f"{self.name}: time_allowance must be > 0, got "
-                              f"{self.time_allowance}")  # fmt: skip
+            raise ConfigError(f"{self.name}: time_allowance must be > 0, got {self.time_allowance}")
         if self.name == "spin" and not (0.0 < abs(self.target) < math.pi and self.speed > 0.0):
-            raise ConfigError(f"spin: need 0 < |spin_dist| < pi and speed > 0, got "
-                              f"{self.target} rad at {self.speed} rad/s")  # fmt: skip
+            raise ConfigError(
+                f"spin: need 0 < |spin_dist| < pi and speed > 0, got "
+                f"{self.target} rad at {self.speed} rad/s"
+            )
         if self.name == "backup" and not (self.target > 0.0 and self.speed > 0.0):
-            raise ConfigError(f"backup: need backup_dist > 0 and backup_speed > 0, got "
-                              f"{self.target} m at {self.speed} m/s")  # fmt: skip
+            raise ConfigError(
+                f"backup: need backup_dist > 0 and backup_speed > 0, got "
+                f"{self.target} m at {self.speed} m/s"
+            )
         if self.name == "wait" and not self.target > 0.0:
             raise ConfigError(f"wait: wait_duration must be > 0, got {self.target}")
 
@@ -131,8 +135,9 @@ def wait_at_waypoint(pause_s: float) -> Behavior | None:
     """Nav2's WaitAtWaypoint plugin: pause ``waypoint_pause_duration`` [s] (0 = no task)."""
     if pause_s < 0.0:
         raise ConfigError(f"waypoint_pause_duration must be >= 0, got {pause_s}")
-    return None if pause_s == 0.0 else Behavior("wait", target=pause_s,
-                                                time_allowance=pause_s + 1.0)  # fmt: skip
+    return (
+        None if pause_s == 0.0 else Behavior("wait", target=pause_s, time_allowance=pause_s + 1.0)
+    )
 
 
 def waypoints(goals: Sequence[Sequence[float]], task: Behavior | None = None) -> list[Waypoint]:
@@ -164,12 +169,22 @@ class ProgressChecker:
 
     def moved(self, anchor: np.ndarray, pose: np.ndarray) -> bool:
         """Progress: the robot is outside the radius around ``anchor`` (re-anchor there)."""
-        return math.hypot(float(pose[0] - anchor[0]),
-                          float(pose[1] - anchor[1])) > self.required_movement_radius  # fmt: skip
+        return (
+            math.hypot(float(pose[0] - anchor[0]), float(pose[1] - anchor[1]))
+            > self.required_movement_radius
+        )
 
     def stuck(self, since_anchor_s: float) -> bool:
         return since_anchor_s > self.movement_time_allowance
 
 
-__all__ = ["RECOVERY_SEQUENCE", "Behavior", "ProgressChecker", "Waypoint", "behavior_twist",
-           "next_waypoint", "wait_at_waypoint", "waypoints"]  # fmt: skip
+__all__ = [
+    "RECOVERY_SEQUENCE",
+    "Behavior",
+    "ProgressChecker",
+    "Waypoint",
+    "behavior_twist",
+    "next_waypoint",
+    "wait_at_waypoint",
+    "waypoints",
+]

@@ -25,9 +25,15 @@ from slam.geometry import ominus, oplus
 
 
 def limit_twist(
-    points_base: np.ndarray, v: float, w: float, radius: float, stop_distance: float,
-    slowdown_distance: float, slowdown_ratio: float, lateral_margin: float = 0.0,
-) -> tuple[float, float, str]:  # fmt: skip
+    points_base: np.ndarray,
+    v: float,
+    w: float,
+    radius: float,
+    stop_distance: float,
+    slowdown_distance: float,
+    slowdown_ratio: float,
+    lateral_margin: float = 0.0,
+) -> tuple[float, float, str]:
     """(v, w, action) with action "" (free), "slowdown" or "stop"; ``points_base`` (N, 2) [m]."""
     if v <= 0.0 or len(points_base) == 0:
         return v, w, ""
@@ -49,8 +55,10 @@ class ObstacleMemory:
         self._scans: deque[tuple[int, np.ndarray]] = deque()
 
     def add(self, stamp_ns: int, odom_pose: np.ndarray, points_base: np.ndarray) -> None:
-        pts = oplus(np.asarray(odom_pose, dtype=np.float64),
-                    np.column_stack([points_base, np.zeros(len(points_base))]))[:, :2]  # fmt: skip
+        pts = oplus(
+            np.asarray(odom_pose, dtype=np.float64),
+            np.column_stack([points_base, np.zeros(len(points_base))]),
+        )[:, :2]
         self._scans.append((stamp_ns, pts))
         while self._scans and self._scans[0][0] < stamp_ns - self.keep_ns:
             self._scans.popleft()
@@ -59,8 +67,9 @@ class ObstacleMemory:
         if not self._scans:
             return np.zeros((0, 2))
         pts = np.vstack([p for _, p in self._scans])
-        rel = ominus(np.asarray(odom_pose, dtype=np.float64),
-                     np.column_stack([pts, np.zeros(len(pts))]))  # fmt: skip
+        rel = ominus(
+            np.asarray(odom_pose, dtype=np.float64), np.column_stack([pts, np.zeros(len(pts))])
+        )
         return rel[:, :2]
 
 

@@ -261,8 +261,10 @@ class Costmap:
             self._static = np.full(geometry.shape, unknown, dtype=np.uint8)
         else:
             if np.shape(static_values) != geometry.shape:
-                raise MapError(f"static map values {np.shape(static_values)} do not match the "
-                               f"geometry {geometry.shape} (height, width)")  # fmt: skip
+                raise MapError(
+                    f"static map values {np.shape(static_values)} do not match the "
+                    f"geometry {geometry.shape} (height, width)"
+                )
             self._static = static_costs(static_values, config)
         self._obstacles = np.full(geometry.shape, unknown, dtype=np.uint8)
         self._keepout: np.ndarray | None = None
@@ -295,8 +297,12 @@ class Costmap:
         self.revision += 1
         if box is not None and self._master is not None:
             d = self._dirty or box
-            self._dirty = (min(d[0], box[0]), max(d[1], box[1]),
-                           min(d[2], box[2]), max(d[3], box[3]))  # fmt: skip
+            self._dirty = (
+                min(d[0], box[0]),
+                max(d[1], box[1]),
+                min(d[2], box[2]),
+                max(d[3], box[3]),
+            )
 
     def obstacle_count(self) -> int:
         """Cells the obstacle layer currently marks lethal."""
@@ -324,10 +330,13 @@ class Costmap:
         else:
             geometry, values = mask
             if np.shape(values) != geometry.shape:
-                raise MapError(f"keepout mask values {np.shape(values)} do not match its "
-                               f"geometry {geometry.shape} (height, width)")  # fmt: skip
-        costs, covered = resample_nearest(mask_costs(values), geometry, self.geometry,
-                                          NO_INFORMATION)  # fmt: skip
+                raise MapError(
+                    f"keepout mask values {np.shape(values)} do not match its "
+                    f"geometry {geometry.shape} (height, width)"
+                )
+        costs, covered = resample_nearest(
+            mask_costs(values), geometry, self.geometry, NO_INFORMATION
+        )
         if covered == 0:
             g, m = self.geometry, geometry
             raise MapError(

@@ -94,8 +94,9 @@ def passable_mask(costmap: np.ndarray, config: PlannerConfig) -> np.ndarray:
     return ~blocked
 
 
-def cell_traversal_cost(costmap: np.ndarray, config: PlannerConfig,
-                        enterable: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+def cell_traversal_cost(
+    costmap: np.ndarray, config: PlannerConfig, enterable: np.ndarray | None = None
+) -> np.ndarray:
     """(H, W) float64 cost of entering each cell per unit step; +inf where impassable, except
     in ``enterable`` (H, W) bool cells (a start's way out), costed as ``lethal_cost - 1``."""
     c = costmap.astype(np.float64)
@@ -146,8 +147,9 @@ class _PaddedGraph:
         self.rows, self.cols = np.divmod(nodes, w + 2)
         self.weights = np.full((self.n, 8), np.inf)  # node-major edge weights of the CSR
         self._reduced = np.empty((8, self.n))  # direction-major scratch for A*'s weights
-        self.csr = csr_array((self.weights.reshape(-1), self.indices, self.indptr),
-                             shape=(self.n, self.n))  # fmt: skip
+        self.csr = csr_array(
+            (self.weights.reshape(-1), self.indices, self.indptr), shape=(self.n, self.n)
+        )
         self.csr.data = self.weights.reshape(-1)  # a view: refilling the buffer updates it
         self.loaded: object = None  # token of what the buffer holds
 
@@ -176,8 +178,9 @@ class _PaddedGraph:
         cols = np.arange(self.padded[1])[None, :]
         return (neutral_cost * octile_distance(rows, cols, goal[0] + 1, goal[1] + 1)).reshape(-1)
 
-    def _weights(self, step_cost: np.ndarray, m: int,
-                 take: Callable[[np.ndarray, int], np.ndarray]) -> np.ndarray:  # fmt: skip
+    def _weights(
+        self, step_cost: np.ndarray, m: int, take: Callable[[np.ndarray, int], np.ndarray]
+    ) -> np.ndarray:
         """(8, m) edge weights of m nodes: entering cost times step length, +inf where refused;
         ``take(flat_ext, k)`` gives the step-``k`` neighbour's value for each of them. A
         diagonal is refused when it cuts past an impassable cell."""
@@ -208,8 +211,9 @@ class _PaddedGraph:
     def node_weights(self, step_cost: np.ndarray, nodes: np.ndarray) -> np.ndarray:
         """(8, m) columns of :meth:`base_weights` (without escape) for the padded ``nodes``."""
         at = nodes + self.margin
-        return self._weights(step_cost, len(nodes),
-                             lambda flat_ext, k: flat_ext[at + self.offsets[k]])  # fmt: skip
+        return self._weights(
+            step_cost, len(nodes), lambda flat_ext, k: flat_ext[at + self.offsets[k]]
+        )
 
     def load(self, base: np.ndarray, heuristic: np.ndarray | None, token: object) -> None:
         """Fill the CSR weights from (8, n) ``base``; with a ``heuristic`` (n,) reduced,
@@ -439,8 +443,9 @@ def _finish(
 ) -> np.ndarray:
     dense = resample_path(xy, geometry.resolution)
     if smooth and config.smooth_path:
-        repaired = repair_path(smooth_path(xy, costmap, geometry, config), xy, costmap, geometry,
-                               config)  # fmt: skip
+        repaired = repair_path(
+            smooth_path(xy, costmap, geometry, config), xy, costmap, geometry, config
+        )
         smoothed = resample_path(repaired, geometry.resolution)
         # Resampling can cut a corner between two valid smoothed points; the grid path cannot.
         if points_passable(smoothed, costmap, geometry, config).all():
@@ -530,8 +535,11 @@ class GridPlanner:
         finite = self._step_cost[np.isfinite(self._step_cost)]
         self._cheapest = float(finite.min()) if finite.size else 1.0
         changed = None if cached is None else cached != costmap
-        if (cached is not None and changed is not None
-                and changed.sum() <= INCREMENTAL_MAX_CHANGED * changed.size):  # fmt: skip
+        if (
+            cached is not None
+            and changed is not None
+            and changed.sum() <= INCREMENTAL_MAX_CHANGED * changed.size
+        ):
             # In padded node space: the border nodes' edges into the grid change too.
             padded = np.zeros(graph.padded, dtype=bool)
             padded[1:-1, 1:-1] = changed
@@ -572,8 +580,9 @@ class GridPlanner:
             return _fail(g)
         passable = passable_mask(costmap, cfg)
         if costmap[s] == LETHAL_OBSTACLE:
-            return _fail(f"start {s} (row, col) is in an obstacle (lethal cost {costmap[s]}, "
-                         "a wall)")  # fmt: skip
+            return _fail(
+                f"start {s} (row, col) is in an obstacle (lethal cost {costmap[s]}, a wall)"
+            )
         goal_cost = int(costmap[g])
         if goal_cost == LETHAL_OBSTACLE:
             return _fail(f"goal {g} (row, col) is in a lethal cell (a wall)")
@@ -586,11 +595,17 @@ class GridPlanner:
         if not passable[s]:
             escape = escape_region(costmap, passable, s)
             if escape is None:
-                return _fail(f"start {s} (row, col) is in an obstacle (cost {costmap[s]}) and "
-                             "no passable cell is left on the map")  # fmt: skip
+                return _fail(
+                    f"start {s} (row, col) is in an obstacle (cost {costmap[s]}) and "
+                    "no passable cell is left on the map"
+                )
             escape[g] = False  # the goal keeps its own rules (tolerance)
-            log.debug("start %s has cost %d: leaving it through %d cells", s, costmap[s],
-                      int(escape.sum()))  # fmt: skip
+            log.debug(
+                "start %s has cost %d: leaving it through %d cells",
+                s,
+                costmap[s],
+                int(escape.sum()),
+            )
             step_cost = cell_traversal_cost(costmap, cfg, enterable=escape)
             base = graph.base_weights(step_cost, escape)
             cheapest = float(step_cost[np.isfinite(step_cost)].min())

@@ -27,14 +27,24 @@ from sensors.types import ConfigError
 
 # key -> (linear sign, angular sign), teleop_twist_keyboard's moveBindings (x, th)
 MOVE_BINDINGS: dict[str, tuple[int, int]] = {
-    "i": (1, 0), "o": (1, -1), "j": (0, 1), "l": (0, -1), "u": (1, 1),
-    ",": (-1, 0), ".": (-1, 1), "m": (-1, -1),
-}  # fmt: skip
+    "i": (1, 0),
+    "o": (1, -1),
+    "j": (0, 1),
+    "l": (0, -1),
+    "u": (1, 1),
+    ",": (-1, 0),
+    ".": (-1, 1),
+    "m": (-1, -1),
+}
 # key -> (linear factor, angular factor), speedBindings
 SPEED_BINDINGS: dict[str, tuple[float, float]] = {
-    "q": (1.1, 1.1), "z": (0.9, 0.9), "w": (1.1, 1.0), "x": (0.9, 1.0), "e": (1.0, 1.1),
+    "q": (1.1, 1.1),
+    "z": (0.9, 0.9),
+    "w": (1.1, 1.0),
+    "x": (0.9, 1.0),
+    "e": (1.0, 1.1),
     "c": (1.0, 0.9),
-}  # fmt: skip
+}
 
 
 @dataclass(frozen=True)
@@ -60,8 +70,11 @@ def teleop_key(key: str, state: TeleopState) -> tuple[tuple[float, float], Teleo
         state = replace(state, x=x, th=th)
     elif key in SPEED_BINDINGS:
         fs, ft = SPEED_BINDINGS[key]
-        state = replace(state, speed=min(state.speed_limit, state.speed * fs),
-                        turn=min(state.turn_limit, state.turn * ft))  # fmt: skip
+        state = replace(
+            state,
+            speed=min(state.speed_limit, state.speed * fs),
+            turn=min(state.turn_limit, state.turn * ft),
+        )
     else:
         state = replace(state, x=0, th=0)
     return (state.x * state.speed, state.th * state.turn), state
@@ -79,8 +92,10 @@ class JoystickAxis:
         if not 0.0 <= self.dead_zone < 1.0:
             raise ConfigError(f"joystick dead_zone must be in [0, 1), got {self.dead_zone}")
         if not 0.0 <= self.min_speed <= self.max_speed:
-            raise ConfigError(f"joystick speeds need 0 <= min_speed <= max_speed, got "
-                              f"{self.min_speed} and {self.max_speed}")  # fmt: skip
+            raise ConfigError(
+                f"joystick speeds need 0 <= min_speed <= max_speed, got "
+                f"{self.min_speed} and {self.max_speed}"
+            )
 
     @property
     def slope(self) -> float:
@@ -108,5 +123,12 @@ def joystick_twist(
     return joystick_speed(forward, linear), joystick_speed(turn, angular)
 
 
-__all__ = ["MOVE_BINDINGS", "SPEED_BINDINGS", "JoystickAxis", "TeleopState", "joystick_speed",
-           "joystick_twist", "teleop_key"]  # fmt: skip
+__all__ = [
+    "MOVE_BINDINGS",
+    "SPEED_BINDINGS",
+    "JoystickAxis",
+    "TeleopState",
+    "joystick_speed",
+    "joystick_twist",
+    "teleop_key",
+]

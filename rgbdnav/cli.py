@@ -170,8 +170,11 @@ def parse_goals(values: Sequence[str], extra: Sequence[str] = ()) -> list[tuple[
     for value in values:
         parts = value.split(",")
         if len(parts) == 1 and stray and _is_number(stray[0]):
-            log.warning("--goal X Y is deprecated and goes in the next release; write --goal "
-                        "%s,%s", value, stray[0])  # fmt: skip
+            log.warning(
+                "--goal X Y is deprecated and goes in the next release; write --goal %s,%s",
+                value,
+                stray[0],
+            )
             parts.append(stray.pop(0))
         try:
             x, y = (float(v) for v in parts)
@@ -278,9 +281,12 @@ class _Progress:
             )
 
             self._bar = Progress(
-                "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
-                TimeRemainingColumn(), transient=False,
-            )  # fmt: skip
+                "[progress.description]{task.description}",
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeRemainingColumn(),
+                transient=False,
+            )
             self._bar.__enter__()
             self._task = self._bar.add_task(self.description, total=None)
         return self
@@ -423,16 +429,33 @@ def simulate(
     cfg = load_config(config or [], set_ or [])
     t0 = time.perf_counter()
     with _Progress(f"rendering {world.stem}", quiet) as progress:
-        summary = run_simulation(world, out, cfg.robot, cfg.camera, cfg.sim, seed=seed,
-                                 duration_s=duration, frames=frames, trajectory=trajectory,
-                                 progress=progress)  # fmt: skip
+        summary = run_simulation(
+            world,
+            out,
+            cfg.robot,
+            cfg.camera,
+            cfg.sim,
+            seed=seed,
+            duration_s=duration,
+            frames=frames,
+            trajectory=trajectory,
+            progress=progress,
+        )
     wall = time.perf_counter() - t0
     run = RunDir(out)
     run.write_config(cfg)
-    run.write_summary({"command": "simulate", **summary.as_dict(), "wall_time_s": round(wall, 2),
-                       "frames_per_s": round(summary.frames / wall, 2)})  # fmt: skip
-    typer.echo(f"wrote {summary.frames} frames ({summary.path_length_m:.1f} m, "
-               f"{summary.duration_s:.1f} s) to {out} in {wall:.1f} s")  # fmt: skip
+    run.write_summary(
+        {
+            "command": "simulate",
+            **summary.as_dict(),
+            "wall_time_s": round(wall, 2),
+            "frames_per_s": round(summary.frames / wall, 2),
+        }
+    )
+    typer.echo(
+        f"wrote {summary.frames} frames ({summary.path_length_m:.1f} m, "
+        f"{summary.duration_s:.1f} s) to {out} in {wall:.1f} s"
+    )
 
 
 @app.command()
@@ -656,16 +679,30 @@ def navigate(
 
     goal = parse_goals(goal_ or [], ctx.args)
     with _Progress("navigating", quiet) as progress:
-        outputs, summary = run_navigate(map_, goal, sim, out, config or [], set_ or [], start,
-                                        keepout, goal_timeout, max_replans, progress,
-                                        localization=localization, seed=seed,
-                                        waypoint_pause_s=waypoint_pause, rrd=rrd,
-                                        viewer=viewer)  # fmt: skip
+        outputs, summary = run_navigate(
+            map_,
+            goal,
+            sim,
+            out,
+            config or [],
+            set_ or [],
+            start,
+            keepout,
+            goal_timeout,
+            max_replans,
+            progress,
+            localization=localization,
+            seed=seed,
+            waypoint_pause_s=waypoint_pause,
+            rrd=rrd,
+            viewer=viewer,
+        )
     typer.echo(f"result      {describe(summary)}")
     failed = [g for g in summary["goals"] if g["status"] != "reached"]
     for g in failed:
-        typer.echo(f"goal        ({g['goal'][0]:.2f}, {g['goal'][1]:.2f}) {g['status']}: "
-                   f"{g['reason']}")  # fmt: skip
+        typer.echo(
+            f"goal        ({g['goal'][0]:.2f}, {g['goal'][1]:.2f}) {g['status']}: {g['reason']}"
+        )
     _echo_outputs(outputs)
     _write_formats(out, fmt)
     if failed:
@@ -802,12 +839,28 @@ def live(
     if drive != "route":
         _refuse_unused(ctx, f"only with --drive route, not {drive}", "goal", "repeat_route")
     world = sim_world if "sim" in (camera, board) else None
-    opts = LiveOptions(out=out, camera=camera, board=board, world=world,
-                       config_files=config or [], overrides=set_ or [], map_bundle=map_,
-                       duration_s=duration, drive=drive, goals=goals, rrd=rrd, viewer=viewer,
-                       seed=seed, drills=[Drill.parse(d) for d in drill or []],
-                       repeat_route=repeat_route, record=record, joystick=joystick,
-                       initial_pose=initial_pose, robot=robot, start=start)  # fmt: skip
+    opts = LiveOptions(
+        out=out,
+        camera=camera,
+        board=board,
+        world=world,
+        config_files=config or [],
+        overrides=set_ or [],
+        map_bundle=map_,
+        duration_s=duration,
+        drive=drive,
+        goals=goals,
+        rrd=rrd,
+        viewer=viewer,
+        seed=seed,
+        drills=[Drill.parse(d) for d in drill or []],
+        repeat_route=repeat_route,
+        record=record,
+        joystick=joystick,
+        initial_pose=initial_pose,
+        robot=robot,
+        start=start,
+    )
     outputs, summary = run_live(opts)
     _write_formats(out, fmt)
     lat = summary.get("latency_ms") or {"p50": "-", "p99": "-"}
@@ -967,11 +1020,23 @@ def eval_(
     if (reference is None) == (relations is None):
         raise RgbdNavError("give exactly one of --reference GT and --relations FILE")
     if relations is not None:
-        _refuse_unused(ctx, "only with --reference, not --relations", "align", "delta",
-                       "delta_unit", "reference_times")  # fmt: skip
-        summary = run_relations_eval(trajectory, relations, out, max_diff_s=max_diff,
-                                     config_files=config or [], overrides=set_ or [],
-                                     estimate_times=times)  # fmt: skip
+        _refuse_unused(
+            ctx,
+            "only with --reference, not --relations",
+            "align",
+            "delta",
+            "delta_unit",
+            "reference_times",
+        )
+        summary = run_relations_eval(
+            trajectory,
+            relations,
+            out,
+            max_diff_s=max_diff,
+            config_files=config or [],
+            overrides=set_ or [],
+            estimate_times=times,
+        )
         typer.echo(format_relations_report(summary))
         if out is not None:
             typer.echo(f"wrote {out / 'summary.json'}")
@@ -979,10 +1044,18 @@ def eval_(
     if reference is None:  # exactly one of the two, checked above; this narrows the type
         raise RgbdNavError("give --reference GT")
     summary = run_eval(
-        trajectory, reference, out, align=align, max_diff_s=max_diff, delta=delta,
-        delta_unit=delta_unit, config_files=config or [], overrides=set_ or [],
-        estimate_times=times, reference_times=reference_times,
-    )  # fmt: skip
+        trajectory,
+        reference,
+        out,
+        align=align,
+        max_diff_s=max_diff,
+        delta=delta,
+        delta_unit=delta_unit,
+        config_files=config or [],
+        overrides=set_ or [],
+        estimate_times=times,
+        reference_times=reference_times,
+    )
     typer.echo(format_report(summary))
     if out is not None:
         typer.echo(f"wrote {out / 'summary.json'} and {out / 'ate.png'}")

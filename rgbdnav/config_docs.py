@@ -83,8 +83,10 @@ def render_eddie_yaml() -> str:
 
 def shipped_files(config_dir: Path = REPO_CONFIG_DIR) -> dict[Path, str]:
     """Every shipped config file and the text it should hold."""
-    files = {config_dir / f"{name}.yaml": render_section_yaml(name, cls()) for name, cls in
-             SECTIONS.items()}  # fmt: skip
+    files = {
+        config_dir / f"{name}.yaml": render_section_yaml(name, cls())
+        for name, cls in SECTIONS.items()
+    }
     files[config_dir / "robots" / "eddie.yaml"] = render_eddie_yaml()
     return files
 

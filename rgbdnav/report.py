@@ -64,8 +64,9 @@ def plot_trajectories(
 
     if occupied is not None:
         rows, cols = np.nonzero(occupied)
-        centres = np.column_stack([origin[0] + (cols + 0.5) * resolution,
-                                   origin[1] + (rows + 0.5) * resolution])  # fmt: skip
+        centres = np.column_stack(
+            [origin[0] + (cols + 0.5) * resolution, origin[1] + (rows + 0.5) * resolution]
+        )
         px = to_px(centres)
         half = max(1, int(round(resolution * scale / 2)))
         mask = np.zeros(img.shape[:2], np.uint8)
@@ -81,10 +82,19 @@ def plot_trajectories(
             cv2.circle(img, tuple(int(c) for c in px[0]), 6, color, 2, cv2.LINE_AA)
         else:
             label += " (no poses)"
-        cv2.putText(img, label, (MARGIN_PX + 10, 28 + LINE_PX * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.6, color, 2, cv2.LINE_AA)  # fmt: skip
-    cv2.putText(img, title, (MARGIN_PX + 10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.65, (0, 0, 0), 2,
-                cv2.LINE_AA)  # fmt: skip
+        cv2.putText(
+            img,
+            label,
+            (MARGIN_PX + 10, 28 + LINE_PX * (i + 1)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.6,
+            color,
+            2,
+            cv2.LINE_AA,
+        )
+    cv2.putText(
+        img, title, (MARGIN_PX + 10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.65, (0, 0, 0), 2, cv2.LINE_AA
+    )
     # 1 m scale bar, bottom right.
     x1, y1 = size[0] - MARGIN_PX, size[1] - MARGIN_PX // 2
     cv2.line(img, (int(x1 - scale), y1), (x1, y1), (0, 0, 0), 3)
@@ -92,8 +102,12 @@ def plot_trajectories(
     write_png(path, img)
 
 
-def contact_sheet(path: Path, frames: Sequence[tuple[np.ndarray, np.ndarray]],
-                  max_depth_m: float = 5.0, width_px: int = 320) -> None:  # fmt: skip
+def contact_sheet(
+    path: Path,
+    frames: Sequence[tuple[np.ndarray, np.ndarray]],
+    max_depth_m: float = 5.0,
+    width_px: int = 320,
+) -> None:
     """Rows of (RGB, colour-mapped depth) thumbnails; invalid depth is black."""
     rows = []
     for rgb, depth in frames:

@@ -143,15 +143,18 @@ class RerunVisualizer:
 
     def scan(self, stamp_ns: int, points_map: np.ndarray) -> None:
         self._at(stamp_ns)
-        self._rec.log("world/robot/scan", self._rr.Points3D(_xyz(points_map), colors=SCAN_COLOUR,
-                                                            radii=0.02))  # fmt: skip
+        self._rec.log(
+            "world/robot/scan", self._rr.Points3D(_xyz(points_map), colors=SCAN_COLOUR, radii=0.02)
+        )
 
     def pose(self, stamp_ns: int, pose: np.ndarray, trajectory: np.ndarray | None = None) -> None:
         self._at(stamp_ns)
         x, y, yaw = (float(v) for v in pose)
         vec = [[ARROW_LENGTH_M * np.cos(yaw), ARROW_LENGTH_M * np.sin(yaw), 0.0]]
-        self._rec.log("world/robot/pose", self._rr.Arrows3D(origins=[[x, y, 0.0]], vectors=vec,
-                                                            colors=PATH_COLOUR))  # fmt: skip
+        self._rec.log(
+            "world/robot/pose",
+            self._rr.Arrows3D(origins=[[x, y, 0.0]], vectors=vec, colors=PATH_COLOUR),
+        )
         if trajectory is not None and len(trajectory) > 1:
             self._rec.log(
                 "world/robot/trajectory",
@@ -161,24 +164,26 @@ class RerunVisualizer:
     def truth(self, stamp_ns: int, trajectory: np.ndarray) -> None:
         self._at(stamp_ns)
         if len(trajectory) > 1:
-            self._rec.log("world/truth", self._rr.LineStrips3D([_xyz(trajectory)],
-                                                               colors=TRUTH_COLOUR))  # fmt: skip
+            self._rec.log(
+                "world/truth", self._rr.LineStrips3D([_xyz(trajectory)], colors=TRUTH_COLOUR)
+            )
 
     def occupied(self, stamp_ns: int, cells_xy: np.ndarray) -> None:
         self._at(stamp_ns)
-        self._rec.log("world/map", self._rr.Points3D(_xyz(cells_xy), colors=MAP_COLOUR,
-                                                     radii=0.025))  # fmt: skip
+        self._rec.log(
+            "world/map", self._rr.Points3D(_xyz(cells_xy), colors=MAP_COLOUR, radii=0.025)
+        )
 
     def costmap(self, stamp_ns: int, cells_xy: np.ndarray) -> None:
         self._at(stamp_ns)
-        self._rec.log("world/costmap", self._rr.Points3D(_xyz(cells_xy), colors=COSTMAP_COLOUR,
-                                                         radii=0.025))  # fmt: skip
+        self._rec.log(
+            "world/costmap", self._rr.Points3D(_xyz(cells_xy), colors=COSTMAP_COLOUR, radii=0.025)
+        )
 
     def plan(self, stamp_ns: int, path_xy: np.ndarray) -> None:
         self._at(stamp_ns)
         if len(path_xy) > 1:
-            self._rec.log("world/plan", self._rr.LineStrips3D([_xyz(path_xy)],
-                                                              colors=PLAN_COLOUR))  # fmt: skip
+            self._rec.log("world/plan", self._rr.LineStrips3D([_xyz(path_xy)], colors=PLAN_COLOUR))
 
     def close(self) -> None:
         self._rec.flush()
@@ -248,18 +253,24 @@ def make_visualizer(app: str, rrd: Path | None, viewer: bool) -> Visualizer:
     return RerunVisualizer(app, rrd, viewer)
 
 
-def occupied_cells_xy(occupied: np.ndarray, origin_xy: tuple[float, float],
-                      resolution: float) -> np.ndarray:  # fmt: skip
+def occupied_cells_xy(
+    occupied: np.ndarray, origin_xy: tuple[float, float], resolution: float
+) -> np.ndarray:
     """Centres [m] of the True cells of a row-0-at-bottom grid mask."""
     rows, cols = np.nonzero(occupied)
-    return np.column_stack([origin_xy[0] + (cols + 0.5) * resolution,
-                            origin_xy[1] + (rows + 0.5) * resolution])  # fmt: skip
+    return np.column_stack(
+        [origin_xy[0] + (cols + 0.5) * resolution, origin_xy[1] + (rows + 0.5) * resolution]
+    )
 
 
-def log_run(vis: Visualizer, stamps_ns: np.ndarray, poses: np.ndarray,
-            scans_map: list[np.ndarray] | None = None,
-            occupied_xy: np.ndarray | None = None,
-            truth_xy: np.ndarray | None = None) -> None:  # fmt: skip
+def log_run(
+    vis: Visualizer,
+    stamps_ns: np.ndarray,
+    poses: np.ndarray,
+    scans_map: list[np.ndarray] | None = None,
+    occupied_xy: np.ndarray | None = None,
+    truth_xy: np.ndarray | None = None,
+) -> None:
     """An offline run (map, localize) as a rerun time line: pose, path so far and scan per stamp,
     then the final map and truth."""
     for k in range(len(stamps_ns)):

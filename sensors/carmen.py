@@ -609,11 +609,13 @@ class CarmenSource(SourceBase):
         fov = math.degrees(first.angle_increment * (len(first.ranges) - 1))
         span = (lg.scans[-1].stamp_ns - first.stamp_ns) / 1e9
         stamps = "" if lg.stamp_source == "ipc_timestamp" else f", stamps {lg.stamp_source}"
-        return (f"CARMEN log {name}: {len(lg.scans)} laser scans of {'/'.join(map(str, beams))} "
-                f"beams, {fov:.1f} deg at {math.degrees(first.angle_increment):.2f} deg steps "
-                f"from {math.degrees(first.angle_min):.1f} deg, range_max {first.range_max:g} m, "
-                f"{span:.1f} s{stamps}; per-scan odometry from the odom pose fields, "
-                f"{self._odom_text()}{self._skip_text()}")  # fmt: skip
+        return (
+            f"CARMEN log {name}: {len(lg.scans)} laser scans of {'/'.join(map(str, beams))} "
+            f"beams, {fov:.1f} deg at {math.degrees(first.angle_increment):.2f} deg steps "
+            f"from {math.degrees(first.angle_min):.1f} deg, range_max {first.range_max:g} m, "
+            f"{span:.1f} s{stamps}; per-scan odometry from the odom pose fields, "
+            f"{self._odom_text()}{self._skip_text()}"
+        )
 
     def _odom_text(self) -> str:
         return f"{0 if self.log.odom is None else len(self.log.odom.stamps_ns)} ODOM messages"

@@ -35,8 +35,10 @@ class RecordingSource(SourceBase):
         sim = (
             f", simulated world {world} (seed {self.recording.scene.get('seed')})" if world else ""
         )
-        return (f"rgbdnav recording, camera {k.width}x{k.height} fx={k.fx:g} fy={k.fy:g} "
-                f"cx={k.cx:g} cy={k.cy:g}, {len(self.recording)} rgb/depth pairs{sim}")  # fmt: skip
+        return (
+            f"rgbdnav recording, camera {k.width}x{k.height} fx={k.fx:g} fy={k.fy:g} "
+            f"cx={k.cx:g} cy={k.cy:g}, {len(self.recording)} rgb/depth pairs{sim}"
+        )
 
     def stream_stamps(self) -> dict[str, np.ndarray]:
         rec = self.recording

@@ -465,9 +465,10 @@ def match_driver(types: Mapping[str, str]) -> tuple[str, str, tuple[str, str, st
         spaces = sorted(
             t[: -len(rgb)]
             for t, ty in types.items()
-            if t.endswith("/" + rgb) and ty in ROLE_TYPES["rgb"]
+            if t.endswith("/" + rgb)
+            and ty in ROLE_TYPES["rgb"]
             and types.get(t[: -len(rgb)] + depth) in ROLE_TYPES["depth"]
-        )  # fmt: skip
+        )
         if len(spaces) > 1:
             found = ", ".join(ns + depth for ns in spaces)
             raise SensorError(

@@ -81,8 +81,17 @@ def format_stats_table(stats: list[StreamStats]) -> str:
     def num(value: float, digits: int) -> str:
         return "-" if math.isnan(value) else f"{value:.{digits}f}"
 
-    header = ("stream", "count", "duration_s", "rate_hz", "mean_hz", "gaps", "max_gap_s",
-              "non_mono", "dups")  # fmt: skip
+    header = (
+        "stream",
+        "count",
+        "duration_s",
+        "rate_hz",
+        "mean_hz",
+        "gaps",
+        "max_gap_s",
+        "non_mono",
+        "dups",
+    )
     rows = [header] + [
         (
             s.name,

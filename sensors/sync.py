@@ -117,13 +117,28 @@ class SyncStats:
 
     def report(self) -> str:
         """A plain aligned text table, one row per stream, then the set spread."""
-        header = ("stream", "received", "matched", *DROP_REASONS, "(overflow)", "pending",
-                  "matched_%")  # fmt: skip
+        header = (
+            "stream",
+            "received",
+            "matched",
+            *DROP_REASONS,
+            "(overflow)",
+            "pending",
+            "matched_%",
+        )
         rows: list[tuple[str, ...]] = [header]
         for name, s in self.streams.items():
             pct = f"{100 * s.matched / s.received:.1f}" if s.received else "-"
-            counts = (s.received, s.matched, s.out_of_order, s.duplicate, s.stale, s.unmatched,
-                      s.overflow, s.pending)  # fmt: skip
+            counts = (
+                s.received,
+                s.matched,
+                s.out_of_order,
+                s.duplicate,
+                s.stale,
+                s.unmatched,
+                s.overflow,
+                s.pending,
+            )
             rows.append((name, *(str(c) for c in counts), pct))
         lines = format_table(rows)
         if self.sets:
@@ -206,8 +221,9 @@ class ApproximateTimeSync:
         self._cand_end = 0
         self._last_accepted: list[int | None] = [None] * n
         self._last_emitted: list[int | None] = [None] * n
-        self._counts = [dict.fromkeys(("received", "matched", *DROP_REASONS, "overflow"), 0)
-                        for _ in range(n)]  # fmt: skip
+        self._counts = [
+            dict.fromkeys(("received", "matched", *DROP_REASONS, "overflow"), 0) for _ in range(n)
+        ]
         self._sets = 0
         self._spread_sum = 0
         self._spread_max = 0
@@ -218,8 +234,13 @@ class ApproximateTimeSync:
     def from_config(
         cls, stream_names: Iterable[str], cfg: SyncConfig, **kwargs: Any
     ) -> ApproximateTimeSync:
-        return cls(stream_names, cfg.queue_size, round(cfg.slop * NS_PER_S),
-                   warn_fraction=cfg.warn_fraction, **kwargs)  # fmt: skip
+        return cls(
+            stream_names,
+            cfg.queue_size,
+            round(cfg.slop * NS_PER_S),
+            warn_fraction=cfg.warn_fraction,
+            **kwargs,
+        )
 
     # --- public API ---------------------------------------------------------------------------
 
@@ -309,9 +330,12 @@ class ApproximateTimeSync:
             self._warned = True
             log.warning(
                 "sync dropped %d of %d messages (%.1f %% > warn_fraction %.1f %%):\n%s",
-                dropped, received, 100 * dropped / received, 100 * self.warn_fraction,
+                dropped,
+                received,
+                100 * dropped / received,
+                100 * self.warn_fraction,
                 self.stats.report(),
-            )  # fmt: skip
+            )
 
     # --- the ApproximateTime algorithm --------------------------------------------------------
 
@@ -452,8 +476,9 @@ def synchronise(
     """
     names = list(streams)
     arrays = [np.asarray(streams[n], dtype=np.int64).reshape(-1) for n in names]
-    sync = ApproximateTimeSync(names, queue_size, slop_ns, age_penalty=age_penalty,
-                               warn_fraction=warn_fraction)  # fmt: skip
+    sync = ApproximateTimeSync(
+        names, queue_size, slop_ns, age_penalty=age_penalty, warn_fraction=warn_fraction
+    )
     keys = [np.maximum.accumulate(a) if a.size else a for a in arrays]
     stamps = np.concatenate(arrays) if arrays else np.zeros(0, dtype=np.int64)
     stream_id = np.concatenate([np.full(a.size, k) for k, a in enumerate(arrays)])
@@ -461,8 +486,9 @@ def synchronise(
     order = np.argsort(np.concatenate(keys), kind="stable")
 
     sets: list[MatchedSet] = []
-    for k, t, j in zip(stream_id[order].tolist(), stamps[order].tolist(), local[order].tolist(),
-                       strict=True):  # fmt: skip
+    for k, t, j in zip(
+        stream_id[order].tolist(), stamps[order].tolist(), local[order].tolist(), strict=True
+    ):
         sets.extend(sync.push(names[k], t, j))
     sets.extend(sync.flush())
     index = {n: np.array([s.payload(n) for s in sets], dtype=np.int64) for n in names}

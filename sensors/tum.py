@@ -200,16 +200,19 @@ def write_tum_poses(path: str | os.PathLike[str], stamps_ns: np.ndarray, poses: 
 def planar_tum_row(stamp_ns: int, x: float, y: float, yaw: float) -> str:
     """One line of :func:`write_tum_trajectory`'s format, for a trajectory written as it
     grows (e.g. the live run's streamed tracks)."""
-    return (f"{format_stamp(int(stamp_ns))} {float(x)!r} {float(y)!r} 0.0 0.0 0.0 "
-            f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n")  # fmt: skip
+    return (
+        f"{format_stamp(int(stamp_ns))} {float(x)!r} {float(y)!r} 0.0 0.0 0.0 "
+        f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n"
+    )
 
 
 # --- TUM, KITTI and EuRoC/ASL trajectories ---------------------------------------------------
 
 TRAJECTORY_FORMATS = ("tum", "kitti", "euroc")
 KITTI_FIELDS = 12
-EUROC_HEADER = ("#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],"
-                "q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []")  # fmt: skip
+EUROC_HEADER = (
+    "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
+)
 EUROC_POSE_FIELDS = 8  # stamp, position, quaternion w x y z
 
 
@@ -282,8 +285,10 @@ def _read_kitti(path: Path, times: Path | None) -> PoseTable:
     tokens = [r.split() for r in rows]
     for toks, number in zip(tokens, numbers, strict=True):
         if len(toks) != KITTI_FIELDS:
-            raise SensorError(f"{path}:{number}: expected {KITTI_FIELDS} fields (KITTI 3x4 "
-                              f"pose, row-major), got {len(toks)}")  # fmt: skip
+            raise SensorError(
+                f"{path}:{number}: expected {KITTI_FIELDS} fields (KITTI 3x4 "
+                f"pose, row-major), got {len(toks)}"
+            )
     m = _numbers(path, tokens, numbers, "KITTI pose (12 numbers)").reshape(-1, 3, 4)
     times = times or kitti_times_file(path)
     if times is None:
@@ -303,8 +308,10 @@ def _read_kitti(path: Path, times: Path | None) -> PoseTable:
     det = np.linalg.det(m[:, :, :3]) if len(m) else np.ones(0)
     bad = np.flatnonzero(np.abs(det - 1.0) > 1e-3)
     if bad.size:
-        raise SensorError(f"{path}:{numbers[bad[0]]}: the 3x3 part is not a rotation "
-                          f"(determinant {det[bad[0]]:.4g})")  # fmt: skip
+        raise SensorError(
+            f"{path}:{numbers[bad[0]]}: the 3x3 part is not a rotation "
+            f"(determinant {det[bad[0]]:.4g})"
+        )
     quat = Rotation.from_matrix(m[:, :, :3]).as_quat() if len(m) else np.zeros((0, 4))
     poses = np.concatenate([m[:, :, 3], quat], axis=1)
     return PoseTable(path, "kitti", stamps, poses, np.array(numbers, np.int64))
@@ -316,9 +323,11 @@ def _read_euroc(path: Path) -> PoseTable:
     for row, number in zip(rows, numbers, strict=True):
         fields = [f.strip() for f in row.split(",")]
         if len(fields) < EUROC_POSE_FIELDS:
-            raise SensorError(f"{path}:{number}: expected at least {EUROC_POSE_FIELDS} "
-                              f"comma-separated fields (timestamp [ns], p x y z, q w x y z), "
-                              f"got {len(fields)}")  # fmt: skip
+            raise SensorError(
+                f"{path}:{number}: expected at least {EUROC_POSE_FIELDS} "
+                f"comma-separated fields (timestamp [ns], p x y z, q w x y z), "
+                f"got {len(fields)}"
+            )
         # isascii: str.isdigit() also passes "²" and "٣"; the bound keeps int64 from overflowing
         stamp = fields[0]
         if not (stamp.isascii() and stamp.isdigit() and len(stamp) < 20) or (
@@ -408,8 +417,10 @@ def write_trajectory(
         return [path, times]
     if fmt == "euroc":
         wxyz = np.concatenate([xyz, quat[:, [3, 0, 1, 2]]], axis=1)
-        lines = [f"{int(t)}," + ",".join(repr(float(v)) for v in r)
-                 for t, r in zip(stamps_ns, wxyz, strict=True)]  # fmt: skip
+        lines = [
+            f"{int(t)}," + ",".join(repr(float(v)) for v in r)
+            for t, r in zip(stamps_ns, wxyz, strict=True)
+        ]
         atomic_write_text(path, EUROC_HEADER + "\n" + "".join(r + "\n" for r in lines))
         return [path]
     raise SensorError(f"trajectory format {fmt!r}: use one of {', '.join(TRAJECTORY_FORMATS)}")

@@ -364,9 +364,11 @@ class TumFolderSource(SourceBase):
             else f", ground truth {self._groundtruth_file.name}"
         )
         note = f", {self.stamps_note}" if self.stamps_note else ""
-        return (f"{self.variant}, camera {k.width}x{k.height} fx={k.fx:g} fy={k.fy:g} cx={k.cx:g} "
-                f"cy={k.cy:g} depth scale {k.depth_scale:g}/m (intrinsics from "
-                f"{self.intrinsics_source}), {len(self)} rgb/depth pairs{note}{gt}")  # fmt: skip
+        return (
+            f"{self.variant}, camera {k.width}x{k.height} fx={k.fx:g} fy={k.fy:g} cx={k.cx:g} "
+            f"cy={k.cy:g} depth scale {k.depth_scale:g}/m (intrinsics from "
+            f"{self.intrinsics_source}), {len(self)} rgb/depth pairs{note}{gt}"
+        )
 
     def stream_stamps(self) -> dict[str, np.ndarray]:
         out = {"rgb": self._rgb.stamps_ns, "depth": self._depth.stamps_ns}

@@ -16,10 +16,22 @@ from sensors.config import param
 
 # robot_localization state order, used by every 15-element vector below.
 STATE_NAMES = (
-    "x", "y", "z", "roll", "pitch", "yaw",
-    "vx", "vy", "vz", "vroll", "vpitch", "vyaw",
-    "ax", "ay", "az",
-)  # fmt: skip
+    "x",
+    "y",
+    "z",
+    "roll",
+    "pitch",
+    "yaw",
+    "vx",
+    "vy",
+    "vz",
+    "vroll",
+    "vpitch",
+    "vyaw",
+    "ax",
+    "ay",
+    "az",
+)
 STATE_SIZE = len(STATE_NAMES)
 
 # robot_localization defaults a rejection threshold to numeric_limits<double>::max() (never
@@ -39,10 +51,12 @@ class EkfConfig:
     """Planar EKF with robot_localization semantics (ekf_localization_node parameter names)."""
 
     frequency: float = param(
-        30.0, unit="Hz", gt=0.0,
+        30.0,
+        unit="Hz",
+        gt=0.0,
         doc="filter rate: a wheel reading or VO motion spanning longer than 1/frequency is "
         "fused spread over its span at this rate (slam.ekf.interval_twists)",
-    )  # fmt: skip
+    )
     sensor_timeout: float = param(
         0.1, unit="s", gt=0.0, doc="predict without correction after this long without data"
     )
@@ -133,12 +147,11 @@ class EkfConfig:
     # the EKF on the simulated house route: ATE 2.45 m with upstream's values, 1.30 m with these
     # (`rgbdnav odometry scenes/house.yaml --no-vo --set ekf.imu0_config=[false,...]`).
     process_noise_covariance: tuple[float, ...] = param(
-        (0.05, 0.05, 0.06, 0.03, 0.03, 0.06, 0.5, 0.5, 0.04, 0.01, 0.01, 2.0, 0.01, 0.01,
-         0.015),
+        (0.05, 0.05, 0.06, 0.03, 0.03, 0.06, 0.5, 0.5, 0.04, 0.01, 0.01, 2.0, 0.01, 0.01, 0.015),
         ge=0.0,
         length=STATE_SIZE,
         doc="diagonal of Q per second, robot_localization order",
-    )  # fmt: skip
+    )
     initial_estimate_covariance: tuple[float, ...] = param(
         (1e-9,) * STATE_SIZE,
         ge=0.0,
@@ -415,10 +428,12 @@ class DepthToScanConfig:
         0.017453292519943295, unit="rad", gt=0.0, doc="beam spacing (pi/180, as upstream)"
     )
     scan_time: float = param(
-        0.033, unit="s", ge=0.0,
+        0.033,
+        unit="s",
+        ge=0.0,
         doc="time between scans: informational, as upstream's LaserScan.scan_time (accepted so "
         "depthimage_to_laserscan configs load; scans carry their own stamps)",
-    )  # fmt: skip
+    )
     return_averaging_window: float = param(
         0.0,
         unit="1/m",

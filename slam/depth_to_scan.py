@@ -56,8 +56,9 @@ def row_band(height_px: int, cy: float, scan_height: int) -> tuple[int, int]:
     return start, min(start + scan_height, height_px)
 
 
-def pixel_rays(intrinsics: CameraIntrinsics, rows: tuple[int, int], r_base_opt: np.ndarray
-               ) -> np.ndarray:  # fmt: skip
+def pixel_rays(
+    intrinsics: CameraIntrinsics, rows: tuple[int, int], r_base_opt: np.ndarray
+) -> np.ndarray:
     """(N, 3) float64 rays in base_link for the pixels of ``rows``, row-major, scaled so the
     optical z component is 1 (the point at depth z is ``t + z * ray``)."""
     k = intrinsics
@@ -66,8 +67,9 @@ def pixel_rays(intrinsics: CameraIntrinsics, rows: tuple[int, int], r_base_opt: 
     return d_opt.reshape(-1, 3) @ r_base_opt.T
 
 
-def linear_interval(slope: np.ndarray, offset: float, lo: float, hi: float
-                    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def linear_interval(
+    slope: np.ndarray, offset: float, lo: float, hi: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-element interval of z with ``lo <= offset + z * slope <= hi`` (empty: z_lo > z_hi)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         a = (lo - offset) / slope
@@ -93,8 +95,9 @@ def nearest_per_beam_reference(beam: np.ndarray, range_m: np.ndarray, n_beams: i
     return out
 
 
-def nearest_per_beam_sorted(range_sorted_m: np.ndarray, starts: np.ndarray, beams: np.ndarray,
-                            n_beams: int) -> np.ndarray:  # fmt: skip
+def nearest_per_beam_sorted(
+    range_sorted_m: np.ndarray, starts: np.ndarray, beams: np.ndarray, n_beams: int
+) -> np.ndarray:
     """Fast kernel: ranges already grouped by beam (group i starts at ``starts[i]`` and belongs
     to ``beams[i]``; no group is empty); +inf where a beam has no group or no return."""
     out = np.full(n_beams, _F32_INF, np.float32)
@@ -103,8 +106,9 @@ def nearest_per_beam_sorted(range_sorted_m: np.ndarray, starts: np.ndarray, beam
     return out
 
 
-def near_cluster_mean(beam: np.ndarray, range_m: np.ndarray, nearest: np.ndarray,
-                      window_per_m2: float) -> np.ndarray:  # fmt: skip
+def near_cluster_mean(
+    beam: np.ndarray, range_m: np.ndarray, nearest: np.ndarray, window_per_m2: float
+) -> np.ndarray:
     """Mean range per beam of the returns within ``window_per_m2 * r^2`` of the beam's nearest
     one (``nearest``, +inf where empty).
 
@@ -120,8 +124,13 @@ def near_cluster_mean(beam: np.ndarray, range_m: np.ndarray, nearest: np.ndarray
     return np.where(count > 0, total / np.maximum(count, 1), nearest).astype(np.float32)
 
 
-def near_cluster_mean_sorted(range_sorted_m: np.ndarray, starts: np.ndarray, beams: np.ndarray,
-                             n_beams: int, window_per_m2: float) -> np.ndarray:  # fmt: skip
+def near_cluster_mean_sorted(
+    range_sorted_m: np.ndarray,
+    starts: np.ndarray,
+    beams: np.ndarray,
+    n_beams: int,
+    window_per_m2: float,
+) -> np.ndarray:
     """:func:`near_cluster_mean` of ranges already grouped by beam (the layout of
     :func:`nearest_per_beam_sorted`, +inf where a pixel does not count), without a per-pixel
     gather or mask: with L the group's window limit, the returns inside it (r <= L) sum to
@@ -167,9 +176,13 @@ class DepthToScan:
     ``reduceat``) or "minimum_at" (the reference ``np.minimum.at``); both give identical scans.
     """
 
-    def __init__(self, intrinsics: CameraIntrinsics, robot: RobotConfig,
-                 cfg: DepthToScanConfig | None = None,
-                 reduction: Literal["sorted", "minimum_at"] = "sorted") -> None:  # fmt: skip
+    def __init__(
+        self,
+        intrinsics: CameraIntrinsics,
+        robot: RobotConfig,
+        cfg: DepthToScanConfig | None = None,
+        reduction: Literal["sorted", "minimum_at"] = "sorted",
+    ) -> None:
         cfg = cfg or DepthToScanConfig()
         if reduction not in ("sorted", "minimum_at"):
             raise DepthToScanError(f"reduction: {reduction!r} is not 'sorted' or 'minimum_at'")
@@ -265,8 +278,9 @@ class DepthToScan:
         # 4. Nearest return per beam.
         window = self.cfg.return_averaging_window
         if self.reduction == "sorted" and window > 0:
-            ranges = near_cluster_mean_sorted(r, self._starts, self._group_beam, self.n_beams,
-                                              window)  # fmt: skip
+            ranges = near_cluster_mean_sorted(
+                r, self._starts, self._group_beam, self.n_beams, window
+            )
         elif self.reduction == "sorted":
             ranges = nearest_per_beam_sorted(r, self._starts, self._group_beam, self.n_beams)
         else:

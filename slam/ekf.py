@@ -223,15 +223,25 @@ DEFAULT_WHEEL_ERROR = WheelErrorModel()
 def motion_twist(stamp_ns: int, delta: Pose2, covariance: np.ndarray, dt_s: float) -> TwistInput:
     """A planar motion (dx, dy, dyaw) measured over ``dt_s`` (e.g. one VO frame pair) as a
     body twist: v = delta / dt, its covariance scaled by 1 / dt^2."""
-    return TwistInput(stamp_ns, delta.x / dt_s, delta.y / dt_s, delta.yaw / dt_s,
-                      np.asarray(covariance, dtype=np.float64) / dt_s**2)  # fmt: skip
+    return TwistInput(
+        stamp_ns,
+        delta.x / dt_s,
+        delta.y / dt_s,
+        delta.yaw / dt_s,
+        np.asarray(covariance, dtype=np.float64) / dt_s**2,
+    )
 
 
 MAX_SPREAD_STEPS = 8  # a gap is cut into at most this many steps (interval_twists)
 
 
-def interval_twists(start_ns: int, end_ns: int, mean: TwistInput, marks_ns: Sequence[int] = (),
-                    max_step_s: float | None = None) -> list[TwistInput]:  # fmt: skip
+def interval_twists(
+    start_ns: int,
+    end_ns: int,
+    mean: TwistInput,
+    marks_ns: Sequence[int] = (),
+    max_step_s: float | None = None,
+) -> list[TwistInput]:
     """A body twist ``mean`` measured as the mean velocity over ``(start_ns, end_ns]`` (with the
     covariance of that mean) as one twist per step of the interval: at every stamp of
     ``marks_ns`` inside it and at ``end_ns``, with any gap longer than ``max_step_s`` between
@@ -261,9 +271,14 @@ def interval_twists(start_ns: int, end_ns: int, mean: TwistInput, marks_ns: Sequ
     return [replace(mean, stamp_ns=s, covariance=cov) for s in stamps]
 
 
-def spanning_motion_twists(skipped_ns: Sequence[int], stamp_ns: int, delta: Pose2,
-                           covariance: np.ndarray, dt_s: float,
-                           max_step_s: float | None = None) -> list[TwistInput]:  # fmt: skip
+def spanning_motion_twists(
+    skipped_ns: Sequence[int],
+    stamp_ns: int,
+    delta: Pose2,
+    covariance: np.ndarray,
+    dt_s: float,
+    max_step_s: float | None = None,
+) -> list[TwistInput]:
     """A planar motion measured over ``dt_s`` that spans frames it skipped (``skipped_ns``, the
     stamps in between; a live front end behind skips VO on frames) as the span's mean velocity
     at each skipped stamp and at ``stamp_ns`` (:func:`interval_twists`; also every
@@ -272,8 +287,7 @@ def spanning_motion_twists(skipped_ns: Sequence[int], stamp_ns: int, delta: Pose
     one twist at the span's end and 0.123 m this way (0.134 m with VO on every frame):
     ``bench/bench_vo_gaps.py``."""
     one = motion_twist(stamp_ns, delta, covariance, dt_s)
-    return interval_twists(stamp_ns - round(dt_s * NS_PER_S), stamp_ns, one, skipped_ns,
-                           max_step_s)  # fmt: skip
+    return interval_twists(stamp_ns - round(dt_s * NS_PER_S), stamp_ns, one, skipped_ns, max_step_s)
 
 
 def wheel_twist_inputs(
@@ -487,14 +501,18 @@ class PlanarEkf:
         self.gyro_z_variance = gyro_z_variance  # [(rad/s)^2] ImuSample carries no covariance
         # The gyro bias is a random walk: without it a biased gyro, trusted for yaw rate, turns
         # the whole fused heading (robot_localization has no such state; users subtract it).
-        self.Q = np.diag(np.append(
-            np.asarray(cfg.process_noise_covariance, dtype=np.float64)[list(PLANAR_INDEX)],
-            cfg.imu0_gyro_bias_process_noise,
-        ))  # fmt: skip
-        self.P0 = np.diag(np.append(
-            np.asarray(cfg.initial_estimate_covariance, dtype=np.float64)[list(PLANAR_INDEX)],
-            cfg.imu0_gyro_bias_initial_variance,
-        ))  # fmt: skip
+        self.Q = np.diag(
+            np.append(
+                np.asarray(cfg.process_noise_covariance, dtype=np.float64)[list(PLANAR_INDEX)],
+                cfg.imu0_gyro_bias_process_noise,
+            )
+        )
+        self.P0 = np.diag(
+            np.append(
+                np.asarray(cfg.initial_estimate_covariance, dtype=np.float64)[list(PLANAR_INDEX)],
+                cfg.imu0_gyro_bias_initial_variance,
+            )
+        )
         self.x = np.zeros(STATE_DIM) if x0 is None else np.asarray(x0, dtype=np.float64).copy()
         self.P = self.P0.copy()
         self.t_ns: int | None = None  # time of the last processed measurement
@@ -528,13 +546,21 @@ class PlanarEkf:
             # A gyro measures vyaw (+ its bias) only: the nan rows are never fused.
             cov = np.diag([1.0, 1.0, self.gyro_z_variance])
             z = np.array([math.nan, math.nan, msg.gyro_z])
-            made = self._make(sensor, msg.stamp_ns, "twist", spec.twist_mask, z, cov,
-                              spec.twist_threshold)  # fmt: skip
+            made = self._make(
+                sensor, msg.stamp_ns, "twist", spec.twist_mask, z, cov, spec.twist_threshold
+            )
             return [dataclasses.replace(m, gyro=True) for m in made]
         if isinstance(msg, TwistInput):
             z = np.array([msg.vx, msg.vy, msg.vyaw])
-            return self._make(sensor, msg.stamp_ns, "twist", spec.twist_mask, z,
-                              _cov3(msg.covariance), spec.twist_threshold)  # fmt: skip
+            return self._make(
+                sensor,
+                msg.stamp_ns,
+                "twist",
+                spec.twist_mask,
+                z,
+                _cov3(msg.covariance),
+                spec.twist_threshold,
+            )
         if not isinstance(msg, PoseInput):
             raise EkfError(f"{sensor}: cannot fuse a {type(msg).__name__}")
         cov = _cov3(msg.covariance)
@@ -575,9 +601,14 @@ class PlanarEkf:
 
     @staticmethod
     def _make(
-        sensor: str, stamp_ns: int, kind: str, mask: np.ndarray, z: np.ndarray, R: np.ndarray,
+        sensor: str,
+        stamp_ns: int,
+        kind: str,
+        mask: np.ndarray,
+        z: np.ndarray,
+        R: np.ndarray,
         threshold: float,
-    ) -> list[Measurement]:  # fmt: skip
+    ) -> list[Measurement]:
         rows = np.flatnonzero(mask & np.isfinite(z))  # nan/inf values are excluded, as upstream
         if rows.size == 0:
             return []
@@ -599,8 +630,9 @@ class PlanarEkf:
             self.t_ns = m.stamp_ns
             self._history.append(_Entry(m.stamp_ns, self.x.copy(), self.P.copy(), m, True))
             st.fused += 1
-            return UpdateResult(m.stamp_ns, m.sensor, m.kind, True, math.nan, len(m.idx),
-                                "initialised")  # fmt: skip
+            return UpdateResult(
+                m.stamp_ns, m.sensor, m.kind, True, math.nan, len(m.idx), "initialised"
+            )
         dt = (m.stamp_ns - self.t_ns) / NS_PER_S
         x, P = (self.x, self.P) if dt <= 0 else predict(self.x, self.P, dt, self.Q)
         H = _observation(m)
@@ -615,8 +647,9 @@ class PlanarEkf:
             st.rejected += 1
         self.t_ns = max(self.t_ns, m.stamp_ns)
         self._history.append(_Entry(m.stamp_ns, self.x.copy(), self.P.copy(), m, accepted))
-        return UpdateResult(m.stamp_ns, m.sensor, m.kind, accepted, nis, len(m.idx),
-                            "" if accepted else "rejected")  # fmt: skip
+        return UpdateResult(
+            m.stamp_ns, m.sensor, m.kind, accepted, nis, len(m.idx), "" if accepted else "rejected"
+        )
 
     def _prune_history(self) -> None:
         """Keep the states needed to revert up to history_length back (plus one before it)."""
@@ -669,8 +702,11 @@ class PlanarEkf:
                 res = self._refilter(m)
                 if res is None:
                     st.dropped_late += 1
-                    out.append(UpdateResult(m.stamp_ns, sensor, m.kind, False, math.nan,
-                                            len(m.idx), "dropped_late"))  # fmt: skip
+                    out.append(
+                        UpdateResult(
+                            m.stamp_ns, sensor, m.kind, False, math.nan, len(m.idx), "dropped_late"
+                        )
+                    )
                     continue
                 out.extend(res)
             else:
@@ -684,8 +720,15 @@ class PlanarEkf:
         compare with (no state yet, older than the history): :meth:`process` then decides."""
         spec = self.specs[sensor]
         z = np.array([msg.vx, msg.vy, msg.vyaw])
-        made = self._make(sensor, msg.stamp_ns, "twist", spec.twist_mask, z,
-                          _cov3(msg.covariance), spec.twist_threshold)  # fmt: skip
+        made = self._make(
+            sensor,
+            msg.stamp_ns,
+            "twist",
+            spec.twist_mask,
+            z,
+            _cov3(msg.covariance),
+            spec.twist_threshold,
+        )
         if not made or self.t_ns is None:
             return True, math.nan
         m = made[0]
@@ -704,15 +747,22 @@ class PlanarEkf:
         leaves the filter as it was (reason "span_rejected")."""
         if len(pieces) > 1:
             last = pieces[-1]
-            mean = TwistInput(last.stamp_ns, last.vx, last.vy, last.vyaw,
-                              np.asarray(last.covariance) / len(pieces), last.valid)  # fmt: skip
+            mean = TwistInput(
+                last.stamp_ns,
+                last.vx,
+                last.vy,
+                last.vyaw,
+                np.asarray(last.covariance) / len(pieces),
+                last.valid,
+            )
             ok, nis = self.twist_gate(sensor, mean) if mean.valid else (True, math.nan)
             if not ok:
                 st = self._stats[sensor]
                 st.received += 1
                 st.rejected += 1
-                return [UpdateResult(mean.stamp_ns, sensor, "twist", False, nis, 0,
-                                     "span_rejected")]  # fmt: skip
+                return [
+                    UpdateResult(mean.stamp_ns, sensor, "twist", False, nis, 0, "span_rejected")
+                ]
         return [r for p in pieces for r in self.process(sensor, p)]
 
     def _mark_seen(self, sensor: str, stamp_ns: int) -> None:
@@ -753,9 +803,11 @@ class PlanarEkf:
         if self.is_timed_out(stamp_ns):
             self.timed_out_outputs += 1
         return Odometry2D(
-            int(stamp_ns), Pose2(float(x[X]), float(x[Y]), float(x[YAW])),
-            (float(x[VX]), float(x[VYAW])), P[:3, :3].copy(),
-        )  # fmt: skip
+            int(stamp_ns),
+            Pose2(float(x[X]), float(x[Y]), float(x[YAW])),
+            (float(x[VX]), float(x[VYAW])),
+            P[:3, :3].copy(),
+        )
 
     @property
     def stats(self) -> EkfStats:
@@ -832,9 +884,28 @@ def fuse(
 
 
 __all__ = [
-    "EkfError", "EkfStats", "FuseResult", "Measurement", "PlanarEkf", "PoseInput", "SensorSpec",
-    "TwistInput", "UpdateResult", "angle_residual", "fuse", "innovate", "passes_gate",
-    "pose_update", "predict", "se2_between", "sensor_specs", "transition", "update",
-    "wheel_twist_inputs", "wrap_angle", "interval_twists", "spanning_motion_twists",
+    "EkfError",
+    "EkfStats",
+    "FuseResult",
+    "Measurement",
+    "PlanarEkf",
+    "PoseInput",
+    "SensorSpec",
+    "TwistInput",
+    "UpdateResult",
+    "angle_residual",
+    "fuse",
+    "innovate",
+    "passes_gate",
+    "pose_update",
+    "predict",
+    "se2_between",
+    "sensor_specs",
+    "transition",
+    "update",
+    "wheel_twist_inputs",
+    "wrap_angle",
+    "interval_twists",
+    "spanning_motion_twists",
     "motion_twist",
-]  # fmt: skip
+]

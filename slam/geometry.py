@@ -24,8 +24,9 @@ def compose(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pose 1 (+) pose 2: pose 2, given in frame 1, expressed where frame 1 is expressed.
     Yaw is summed, not wrapped, so a chain of compositions stays continuous."""
-    ax, ay, ayaw, bx, by, byaw = (np.asarray(v, dtype=np.float64)
-                                  for v in (x1, y1, yaw1, x2, y2, yaw2))  # fmt: skip
+    ax, ay, ayaw, bx, by, byaw = (
+        np.asarray(v, dtype=np.float64) for v in (x1, y1, yaw1, x2, y2, yaw2)
+    )
     c, s = np.cos(ayaw), np.sin(ayaw)
     return ax + c * bx - s * by, ay + s * bx + c * by, ayaw + byaw
 
@@ -41,9 +42,14 @@ def oplus(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     """a (+) b for pose arrays (..., 3) of (x, y, yaw) that broadcast together, yaw wrapped."""
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack([a[..., 0] + c * b[..., 0] - s * b[..., 1],
-                     a[..., 1] + s * b[..., 0] + c * b[..., 1],
-                     wrap_angle(a[..., 2] + b[..., 2])], axis=-1)  # fmt: skip
+    return np.stack(
+        [
+            a[..., 0] + c * b[..., 0] - s * b[..., 1],
+            a[..., 1] + s * b[..., 0] + c * b[..., 1],
+            wrap_angle(a[..., 2] + b[..., 2]),
+        ],
+        axis=-1,
+    )
 
 
 def ominus(a: ArrayLike, b: ArrayLike) -> np.ndarray:
@@ -51,8 +57,7 @@ def ominus(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])],
-                    axis=-1)  # fmt: skip
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
 
 
 def path_length(xy: ArrayLike) -> float:

@@ -86,13 +86,15 @@ def motion_noise(u: np.ndarray, config: LocalizerConfig) -> np.ndarray:
     return np.diag([var_t, var_t, var_r])
 
 
-def predict(x: np.ndarray, p: np.ndarray, u: np.ndarray, q_u: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def predict(
+    x: np.ndarray, p: np.ndarray, u: np.ndarray, q_u: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """x' = x (+) u; P' = F P F^T + G Q_u G^T with F = d(x (+) u)/dx = [[1, 0, -s u_x - c u_y],
     [0, 1, c u_x - s u_y], [0, 0, 1]] and G = d(x (+) u)/du = blockdiag(R(yaw), 1)."""
     c, s = math.cos(x[2]), math.sin(x[2])
-    f = np.array([[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]],
-                  [0.0, 0.0, 1.0]])  # fmt: skip
+    f = np.array(
+        [[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]], [0.0, 0.0, 1.0]]
+    )
     g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     p_new = f @ p @ f.T + g @ q_u @ g.T
     return oplus(x, u), 0.5 * (p_new + p_new.T)
@@ -157,34 +159,46 @@ class MapModel:
 
     @classmethod
     def from_grid(
-        cls, grid: OccupancyGrid, config: LocalizerConfig, occupied_thresh: float = 0.65,
+        cls,
+        grid: OccupancyGrid,
+        config: LocalizerConfig,
+        occupied_thresh: float = 0.65,
         free_thresh: float = 0.25,
-    ) -> MapModel:  # fmt: skip
+    ) -> MapModel:
         """Raises :class:`MapError` for a map without occupied cells or without free space."""
         geom = grid.geometry
         occ = grid.occupied_mask(occupied_thresh)
         free = grid.free_mask(free_thresh) & ~occ
         n_occ, n_free = int(np.count_nonzero(occ)), int(np.count_nonzero(free))
         if n_occ < MIN_MAP_POINTS:
-            raise MapError(f"the map has {n_occ} occupied cells (occupied_thresh "
-                           f"{occupied_thresh}); need at least {MIN_MAP_POINTS} to localise "
-                           f"against")  # fmt: skip
+            raise MapError(
+                f"the map has {n_occ} occupied cells (occupied_thresh "
+                f"{occupied_thresh}); need at least {MIN_MAP_POINTS} to localise "
+                f"against"
+            )
         if n_free == 0:
-            raise MapError(f"the map has no free cells (free_thresh {free_thresh}): there is "
-                           f"nowhere the robot could be")  # fmt: skip
+            raise MapError(
+                f"the map has no free cells (free_thresh {free_thresh}): there is "
+                f"nowhere the robot could be"
+            )
         rows, cols = np.nonzero(occ)
         pts = np.column_stack(geom.cell_to_world(rows, cols))
         window_cells = 2 * config.linear_search_window / geom.resolution + 1
         n_levels = int(math.ceil(math.log2(window_cells))) + 1
-        fine = build_likelihood_field(pts, geom.resolution, config.sigma_hit,
-                                      config.linear_search_window, n_levels)  # fmt: skip
+        fine = build_likelihood_field(
+            pts, geom.resolution, config.sigma_hit, config.linear_search_window, n_levels
+        )
         # ICP's reference: the cells a scan can hit (beside a non-occupied one), with normals
         # from the grid's structure tensor: nearest-neighbour PCA finds no line in a wall two
         # or more cells thick (a CAD floor plan, a thick Nav2 wall) and ICP would get nothing.
         ref = build_grid_reference(occ, (geom.origin_x, geom.origin_y), geom.resolution)
         gfield = build_global_field(grid, occ, free, config)
-        log.debug("map model: %d occupied, %d free cells; global field %.1f MB", n_occ, n_free,
-                  gfield.nbytes / 1e6)  # fmt: skip
+        log.debug(
+            "map model: %d occupied, %d free cells; global field %.1f MB",
+            n_occ,
+            n_free,
+            gfield.nbytes / 1e6,
+        )
         return cls(grid, pts, fine, ref, gfield, free, occ)
 
     def score(self, points: np.ndarray, pose: np.ndarray) -> float:
@@ -230,8 +244,10 @@ def build_global_field(
         rows, cols = np.nonzero(mask)
         x, y = geom.cell_to_world(rows, cols)
         out = np.zeros((hp, wp), np.uint8)
-        out[np.floor((y - origin[1]) / res).astype(np.int64),
-            np.floor((x - origin[0]) / res).astype(np.int64)] = 1  # fmt: skip
+        out[
+            np.floor((y - origin[1]) / res).astype(np.int64),
+            np.floor((x - origin[0]) / res).astype(np.int64),
+        ] = 1
         return out
 
     occ_c = coarse(occupied)
@@ -284,10 +300,16 @@ def _global_scores(
 
 
 def global_search(
-    gf: GlobalField, points: np.ndarray, angle_step_rad: float, min_score: float,
-    candidate_ratio: float, max_hypotheses: int, separation_m: float, separation_rad: float,
+    gf: GlobalField,
+    points: np.ndarray,
+    angle_step_rad: float,
+    min_score: float,
+    candidate_ratio: float,
+    max_hypotheses: int,
+    separation_m: float,
+    separation_rad: float,
     region: tuple[float, float, float] | None = None,
-) -> tuple[list[GlobalCandidate], int]:  # fmt: skip
+) -> tuple[list[GlobalCandidate], int]:
     """Distinct lattice poses of scan ``points`` (N, 2, scan frame) over every free cell of the
     map and a full turn, best first, with the number of blocks and leaves scored.
 
@@ -309,14 +331,16 @@ def global_search(
     c_, s_ = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
     qx = c_ * pts[:, 0] - s_ * pts[:, 1]
     qy = s_ * pts[:, 0] + c_ * pts[:, 1]
-    offsets = (np.floor(0.5 + qy / res).astype(np.int32) * np.int32(wp)
-               + np.floor(0.5 + qx / res).astype(np.int32))  # fmt: skip
+    offsets = np.floor(0.5 + qy / res).astype(np.int32) * np.int32(wp) + np.floor(
+        0.5 + qx / res
+    ).astype(np.int32)
     flats = [lv.ravel() for lv in gf.levels]
     # 3b. Top-level blocks that hold a free cell, at every angle.
     mh, mw = gf.map_cells
     step = 2**top
-    grid_r, grid_c = np.meshgrid(np.arange(gf.pad, gf.pad + mh, step),
-                                 np.arange(gf.pad, gf.pad + mw, step), indexing="ij")  # fmt: skip
+    grid_r, grid_c = np.meshgrid(
+        np.arange(gf.pad, gf.pad + mh, step), np.arange(gf.pad, gf.pad + mw, step), indexing="ij"
+    )
     br, bc = grid_r.ravel(), grid_c.ravel()
     keep = gf.free[top][br, bc]
     if region is not None:  # the block's centre within radius + half its diagonal
@@ -345,8 +369,9 @@ def global_search(
     #     give max_hypotheses picks, the leaves below it cannot change them: the lower
     #     thresholds (and the blocks only they would open) are never needed. Blocks pruned at a
     #     threshold wait at their level, so lowering it resumes rather than restarts.
-    pending: list[tuple[np.ndarray, ...]] = [(np.zeros(0, np.int64),) * 3 + (np.zeros(0),)
-                                             for _ in range(top)]  # fmt: skip
+    pending: list[tuple[np.ndarray, ...]] = [
+        (np.zeros(0, np.int64),) * 3 + (np.zeros(0),) for _ in range(top)
+    ]
     pending.append((a, r, c, bound))
     cands: list[GlobalCandidate] = []
     for ratio in _threshold_ratios(candidate_ratio):
@@ -361,8 +386,12 @@ def global_search(
             bound = _global_scores(flats[lvl - 1], offsets, a, r, c, wp)
             evaluated += len(a)
             pa, pr, pc, pb = pending[lvl - 1]
-            pending[lvl - 1] = (np.concatenate([pa, a]), np.concatenate([pr, r]),
-                                np.concatenate([pc, c]), np.concatenate([pb, bound]))  # fmt: skip
+            pending[lvl - 1] = (
+                np.concatenate([pa, a]),
+                np.concatenate([pr, r]),
+                np.concatenate([pc, c]),
+                np.concatenate([pb, bound]),
+            )
         a, r, c, score = pending[0]
         if len(score):
             best = max(best, float(score.max()))  # an exact leaf beats the greedy one
@@ -371,15 +400,25 @@ def global_search(
         if region is not None:
             lx, ly = gf.origin[0] + (c + 0.5) * res, gf.origin[1] + (r + 0.5) * res
             keep &= np.hypot(lx - region[0], ly - region[1]) <= region[2]
-        cands = _suppress(gf, yaws, a[keep], r[keep], c[keep], score[keep], max_hypotheses,
-                          separation_m, separation_rad)  # fmt: skip
+        cands = _suppress(
+            gf,
+            yaws,
+            a[keep],
+            r[keep],
+            c[keep],
+            score[keep],
+            max_hypotheses,
+            separation_m,
+            separation_rad,
+        )
         if len(cands) >= max_hypotheses:
             break
     return cands, evaluated
 
 
-def _children(gf: GlobalField, lvl: int, a: np.ndarray, r: np.ndarray, c: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+def _children(
+    gf: GlobalField, lvl: int, a: np.ndarray, r: np.ndarray, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The level ``lvl - 1`` sub-blocks (same angle) of level-``lvl`` blocks that hold a free
     cell."""
     h = 2 ** (lvl - 1)
@@ -396,9 +435,16 @@ def _threshold_ratios(candidate_ratio: float) -> list[float]:
 
 
 def _suppress(
-    gf: GlobalField, yaws: np.ndarray, a: np.ndarray, r: np.ndarray, c: np.ndarray,
-    score: np.ndarray, max_hypotheses: int, separation_m: float, separation_rad: float,
-) -> list[GlobalCandidate]:  # fmt: skip
+    gf: GlobalField,
+    yaws: np.ndarray,
+    a: np.ndarray,
+    r: np.ndarray,
+    c: np.ndarray,
+    score: np.ndarray,
+    max_hypotheses: int,
+    separation_m: float,
+    separation_rad: float,
+) -> list[GlobalCandidate]:
     """Greedy non-maximum suppression of lattice leaves into distinct hypotheses, best first."""
     res = gf.resolution
     x = gf.origin[0] + (c + 0.5) * res
@@ -409,8 +455,9 @@ def _suppress(
     while alive.any() and len(out) < max_hypotheses:
         i = int(np.flatnonzero(alive)[np.argmax(score[alive])])
         out.append(GlobalCandidate(np.array([x[i], y[i], float(yaw[i])]), float(score[i])))
-        near = ((np.hypot(x - x[i], y - y[i]) <= separation_m)
-                & (np.abs(wrap_angle(yaw - yaw[i])) <= separation_rad))  # fmt: skip
+        near = (np.hypot(x - x[i], y - y[i]) <= separation_m) & (
+            np.abs(wrap_angle(yaw - yaw[i])) <= separation_rad
+        )
         alive &= ~near
     return out
 
@@ -429,22 +476,37 @@ class MatchOutcome:
 
 
 def match_scan(
-    model: MapModel, points: np.ndarray, prior: np.ndarray, config: LocalizerConfig,
-    linear_window: float | None = None, angular_window: float | None = None,
-) -> MatchOutcome:  # fmt: skip
+    model: MapModel,
+    points: np.ndarray,
+    prior: np.ndarray,
+    config: LocalizerConfig,
+    linear_window: float | None = None,
+    angular_window: float | None = None,
+) -> MatchOutcome:
     """ICP from ``prior``; when it does not hold, a correlative search around ``prior`` then ICP.
     A match is ok when its confidence reaches ``min_score``."""
     cfg = config
     lin = cfg.linear_search_window if linear_window is None else linear_window
     ang = cfg.angular_search_window if angular_window is None else angular_window
     if len(points) < MIN_SCAN_POINTS:
-        return MatchOutcome(False, f"too few scan points ({len(points)})", prior,
-                            np.eye(3) * UNKNOWN_VARIANCE, 0.0, "none")  # fmt: skip
+        return MatchOutcome(
+            False,
+            f"too few scan points ({len(points)})",
+            prior,
+            np.eye(3) * UNKNOWN_VARIANCE,
+            0.0,
+            "none",
+        )
 
     def icp(start: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, bool]:
-        res = icp_refine(model.reference, points, start, cfg.icp_max_correspondence_distance,
-                         max_iterations=cfg.icp_max_iterations,
-                         min_sigma_m=cfg.scan_match_min_sigma)  # fmt: skip
+        res = icp_refine(
+            model.reference,
+            points,
+            start,
+            cfg.icp_max_correspondence_distance,
+            max_iterations=cfg.icp_max_iterations,
+            min_sigma_m=cfg.scan_match_min_sigma,
+        )
         if not (np.all(np.isfinite(res.pose)) and math.isfinite(res.rmse)):
             return start, np.eye(3) * UNKNOWN_VARIANCE, model.score(points, start), False
         return res.pose, res.covariance, model.score(points, res.pose), res.converged
@@ -464,8 +526,9 @@ def match_scan(
     # 4b. Exact correlative search in the window, then ICP from its best lattice pose. Only
     #     poses inside the window compete: ICP can slide far off (a mirror-image room) and the
     #     filter would follow a confident jump.
-    coarse = correlative_match(model.field, points, prior, lin, ang,
-                               min(cfg.angular_search_step, ang))  # fmt: skip
+    coarse = correlative_match(
+        model.field, points, prior, lin, ang, min(cfg.angular_search_step, ang)
+    )
     start = coarse.pose if coarse.score > 0.0 else prior
     pose2, cov2, score2, converged2 = icp(start)
     candidates = [(score, pose, cov)] if converged and within(pose) else []
@@ -474,18 +537,26 @@ def match_scan(
     elif coarse.score > 0.0:
         candidates.append((coarse.score, coarse.pose, cov2))  # ICP slid off: the lattice pose
     if not candidates:
-        return MatchOutcome(False, "no match inside the search window", prior, cov, 0.0,
-                            "correlative")  # fmt: skip
+        return MatchOutcome(
+            False, "no match inside the search window", prior, cov, 0.0, "correlative"
+        )
     score, pose, cov = max(candidates, key=lambda c: c[0])
     if score < cfg.min_score:
-        return MatchOutcome(False, f"match score {score:.2f} below min_score {cfg.min_score}",
-                            pose, cov, score, "correlative")  # fmt: skip
+        return MatchOutcome(
+            False,
+            f"match score {score:.2f} below min_score {cfg.min_score}",
+            pose,
+            cov,
+            score,
+            "correlative",
+        )
     return MatchOutcome(True, "", pose, cov, score, "correlative")
 
 
 def _floored(cov: np.ndarray) -> np.ndarray:
-    return cov + np.diag([MIN_MATCH_SIGMA[0] ** 2, MIN_MATCH_SIGMA[0] ** 2,
-                          MIN_MATCH_SIGMA[1] ** 2])  # fmt: skip
+    return cov + np.diag(
+        [MIN_MATCH_SIGMA[0] ** 2, MIN_MATCH_SIGMA[0] ** 2, MIN_MATCH_SIGMA[1] ** 2]
+    )
 
 
 # 5. The localiser ------------------------------------------------------------------------------
@@ -598,9 +669,13 @@ class Localizer:
     def set_initial_pose(self, pose: np.ndarray, covariance: np.ndarray | None = None) -> None:
         """Start tracking from ``pose`` (like RViz's /initialpose); checked on the next scan."""
         self._pose = np.asarray(pose, dtype=np.float64).copy()
-        self._cov = (np.diag([self.config.linear_search_window**2] * 2
-                             + [self.config.angular_search_window**2])
-                     if covariance is None else np.asarray(covariance, float))  # fmt: skip
+        self._cov = (
+            np.diag(
+                [self.config.linear_search_window**2] * 2 + [self.config.angular_search_window**2]
+            )
+            if covariance is None
+            else np.asarray(covariance, float)
+        )
         self._status = "tracking"
         self._initial_check = True
         self._jump = None
@@ -636,21 +711,30 @@ class Localizer:
         pts = scan_points(scan, self.config.laser_max_range)
         return voxel_filter(pts, self.config.scan_voxel_size)
 
-    def _result(self, stamp: int, odom: np.ndarray, reason: str, confidence: float,
-                status: Status | None = None) -> LocalizationResult:  # fmt: skip
+    def _result(
+        self,
+        stamp: int,
+        odom: np.ndarray,
+        reason: str,
+        confidence: float,
+        status: Status | None = None,
+    ) -> LocalizationResult:
         pose = self._pose if self._pose is not None else np.zeros(3)
         return LocalizationResult(
-            stamp_ns=stamp, pose=pose.copy(), covariance=self._cov.copy(),
-            confidence=float(confidence), status=status or self._status, reason=reason,
+            stamp_ns=stamp,
+            pose=pose.copy(),
+            covariance=self._cov.copy(),
+            confidence=float(confidence),
+            status=status or self._status,
+            reason=reason,
             map_to_odom=oplus(pose, inverse(odom)),
-        )  # fmt: skip
+        )
 
     def update(self, scan: LaserScan, odom_pose: np.ndarray) -> LocalizationResult:
         """One scan with the odometry pose of its frame (see the module docstring)."""
         odom = np.asarray(odom_pose, dtype=np.float64)
         if odom.shape != (3,) or not np.all(np.isfinite(odom)):
-            return self._result(scan.stamp_ns, np.zeros(3), "rejected: non-finite odometry",
-                                0.0)  # fmt: skip
+            return self._result(scan.stamp_ns, np.zeros(3), "rejected: non-finite odometry", 0.0)
         if self._last_stamp is not None and scan.stamp_ns <= self._last_stamp:
             return self._result(scan.stamp_ns, odom, "rejected: time not increasing", 0.0)
         self.stats.scans += 1
@@ -679,11 +763,15 @@ class Localizer:
             where = self.model.cell_class(self._pose[:2])
             # Unknown is allowed: a depth camera never sees the floor under its own start.
             if where in ("occupied", "outside"):
-                return self._declare_lost(stamp, odom, f"initial pose rejected: it lies in "
-                                          f"{where} space; relocalising globally")  # fmt: skip
+                return self._declare_lost(
+                    stamp,
+                    odom,
+                    f"initial pose rejected: it lies in {where} space; relocalising globally",
+                )
         # 2. Skip matching until the robot has moved (AMCL update_min_d / update_min_a).
         still = self._match_pose is not None and not moved_enough(
-            self._match_pose, self._pose, cfg.update_min_d, cfg.update_min_a)  # fmt: skip
+            self._match_pose, self._pose, cfg.update_min_d, cfg.update_min_a
+        )
         if still:
             conf = self.model.score(pts, self._pose)
             return self._result(stamp, odom, "not moved enough to match", conf)
@@ -699,8 +787,12 @@ class Localizer:
         # What a jump hypothesis must explain too, and what match_recent stacks.
         self._remember(odom, pts, stack=False)
         if not match.ok and checking:
-            return self._declare_lost(stamp, odom, f"initial pose rejected: {match.reason}; "
-                                      f"relocalising globally", match.score)  # fmt: skip
+            return self._declare_lost(
+                stamp,
+                odom,
+                f"initial pose rejected: {match.reason}; relocalising globally",
+                match.score,
+            )
         gated = False
         if match.ok:
             # 3. Fuse the prediction and the match -- unless the match lies beyond the gate: a
@@ -708,9 +800,11 @@ class Localizer:
             #    answer must not move the estimate. It becomes a jump hypothesis, propagated by
             #    odometry (see _jump_hypothesis); meanwhile the covariance grows with odometry.
             r_cov, _ = release_degenerate_axis(
-                match.covariance + np.diag([cfg.match_sigma_floor**2] * 2
-                                           + [cfg.match_sigma_floor_yaw**2]),
-                cfg.scan_match_degeneracy_ratio, UNKNOWN_VARIANCE)  # fmt: skip
+                match.covariance
+                + np.diag([cfg.match_sigma_floor**2] * 2 + [cfg.match_sigma_floor_yaw**2]),
+                cfg.scan_match_degeneracy_ratio,
+                UNKNOWN_VARIANCE,
+            )
             d2 = mahalanobis2(self._pose, self._cov, match.pose, r_cov)
             if cfg.match_gate > 0.0 and d2 > cfg.match_gate**2:
                 reason = self._jump_hypothesis(match, r_cov, d2, odom)
@@ -722,8 +816,9 @@ class Localizer:
                 reason = f"matched ({match.method})"
         else:
             reason = f"match rejected: {match.reason}; dead reckoning"
-        self._gated_streak = self._gated_streak + 1 if gated else (0 if match.ok else
-                                                                   self._gated_streak)  # fmt: skip
+        self._gated_streak = (
+            self._gated_streak + 1 if gated else (0 if match.ok else self._gated_streak)
+        )
         conf = self.model.score(pts, self._pose)
         # 4. Kidnapped? A sudden drop in confidence searches the whole map on this scan; a pose
         #    elsewhere that fits clearly better means the robot is not where we track it.
@@ -740,22 +835,27 @@ class Localizer:
             if (
                 stamp - self._low_since
             ) * 1e-9 >= cfg.lost_time and self._low_scans >= cfg.lost_min_scans:
-                why = (f"confidence {conf:.2f} below lost_score {cfg.lost_score} or matches "
-                       f"rejected for {cfg.lost_time} s ({self._low_scans} scans)")  # fmt: skip
+                why = (
+                    f"confidence {conf:.2f} below lost_score {cfg.lost_score} or matches "
+                    f"rejected for {cfg.lost_time} s ({self._low_scans} scans)"
+                )
                 sigma = position_sigma(self._cov)
                 if sigma >= cfg.dead_reckoning_max_sigma:
                     return self._declare_lost(stamp, odom, why, conf)
                 # Odometry still vouches for the pose: keep predicting from it (AMCL never
                 # stops); the covariance grows until dead_reckoning_max_sigma says lost.
-                reason = (f"{reason}; {why}: dead reckoning, position sigma {sigma:.2f} m < "
-                          f"dead_reckoning_max_sigma {cfg.dead_reckoning_max_sigma}")  # fmt: skip
+                reason = (
+                    f"{reason}; {why}: dead reckoning, position sigma {sigma:.2f} m < "
+                    f"dead_reckoning_max_sigma {cfg.dead_reckoning_max_sigma}"
+                )
         else:
             self._low_since = None
             self._low_scans = 0
         return self._result(stamp, odom, reason, conf)
 
-    def _jump_hypothesis(self, match: MatchOutcome, r_cov: np.ndarray, d2: float,
-                         odom: np.ndarray) -> str:  # fmt: skip
+    def _jump_hypothesis(
+        self, match: MatchOutcome, r_cov: np.ndarray, d2: float, odom: np.ndarray
+    ) -> str:
         """A gated match: start or extend the jump hypothesis; jump to it when it is confirmed
         by ``jump_confirm_scans`` consecutive gated matches that agree with each other (each
         within the gate of the previous one propagated by odometry) and by independent
@@ -767,8 +867,10 @@ class Localizer:
         cfg = self.config
         self.stats.gated += 1
         jump = self._jump
-        if jump is not None and mahalanobis2(jump.pose, jump.covariance, match.pose,
-                                             r_cov) <= cfg.match_gate**2:  # fmt: skip
+        if (
+            jump is not None
+            and mahalanobis2(jump.pose, jump.covariance, match.pose, r_cov) <= cfg.match_gate**2
+        ):
             jump.unique += 1
         else:
             jump = _Hypothesis(match.pose, r_cov, unique=1)
@@ -776,9 +878,11 @@ class Localizer:
         jump.scores.append(match.score)
         self._jump = jump
         d = ominus(self._pose, match.pose) if self._pose is not None else np.zeros(3)
-        what = (f"match ({match.method}) {math.hypot(d[0], d[1]):.2f} m / "
-                f"{math.degrees(abs(d[2])):.0f} deg from the prediction, Mahalanobis "
-                f"{math.sqrt(d2):.1f} > match_gate {cfg.match_gate}")  # fmt: skip
+        what = (
+            f"match ({match.method}) {math.hypot(d[0], d[1]):.2f} m / "
+            f"{math.degrees(abs(d[2])):.0f} deg from the prediction, Mahalanobis "
+            f"{math.sqrt(d2):.1f} > match_gate {cfg.match_gate}"
+        )
         if cfg.jump_confirm_scans == 0:
             return f"{what}: not fused (jumps off: waiting for the covariance to admit it)"
         if jump.unique < cfg.jump_confirm_scans:
@@ -789,15 +893,18 @@ class Localizer:
             return f"{what}: jump hypothesis held back, no earlier scans to check it against"
         s_jump, s_pred = self.model.score(before, jump.pose), self.model.score(before, self._pose)
         if s_jump * cfg.relocalization_ambiguity_ratio < s_pred:
-            return (f"{what}: jump hypothesis held back, the earlier scans fit it {s_jump:.2f} "
-                    f"against {s_pred:.2f} at the prediction")  # fmt: skip
+            return (
+                f"{what}: jump hypothesis held back, the earlier scans fit it {s_jump:.2f} "
+                f"against {s_pred:.2f} at the prediction"
+            )
         # Jump: the prediction's covariance grown by the innovation (so the jump lies within
         # one sigma of it), then fused as usual; an axis the match cannot see (released as
         # degenerate) keeps the prediction.
         nu = jump.pose - self._pose
         nu[2] = wrap_angle(nu[2])
-        self._pose, self._cov = kalman_update(self._pose, self._cov + np.outer(nu, nu),
-                                              jump.pose, jump.covariance)  # fmt: skip
+        self._pose, self._cov = kalman_update(
+            self._pose, self._cov + np.outer(nu, nu), jump.pose, jump.covariance
+        )
         self._match_pose = self._pose.copy()
         self._jump = None
         self.stats.jumps += 1
@@ -830,26 +937,35 @@ class Localizer:
         match = match_scan(self.model, cloud, self._pose, self.config)
         if not match.ok:
             conf = self.model.score(cloud, self._pose)
-            return self._result(stamp, odom, f"wide match of {n} scans rejected: {match.reason}",
-                                conf)  # fmt: skip
+            return self._result(
+                stamp, odom, f"wide match of {n} scans rejected: {match.reason}", conf
+            )
         cfg = self.config
         r_cov, _ = release_degenerate_axis(
-            match.covariance + np.diag([cfg.match_sigma_floor**2] * 2
-                                       + [cfg.match_sigma_floor_yaw**2]),
-            cfg.scan_match_degeneracy_ratio, UNKNOWN_VARIANCE)  # fmt: skip
+            match.covariance
+            + np.diag([cfg.match_sigma_floor**2] * 2 + [cfg.match_sigma_floor_yaw**2]),
+            cfg.scan_match_degeneracy_ratio,
+            UNKNOWN_VARIANCE,
+        )
         nu = match.pose - self._pose
         nu[2] = wrap_angle(nu[2])
-        self._pose, self._cov = kalman_update(self._pose, self._cov + np.outer(nu, nu),
-                                              match.pose, r_cov)  # fmt: skip
+        self._pose, self._cov = kalman_update(
+            self._pose, self._cov + np.outer(nu, nu), match.pose, r_cov
+        )
         self._match_pose = self._pose.copy()
         self._jump = None
         d = math.hypot(nu[0], nu[1])
-        return self._result(stamp, odom, f"wide match of {n} scans ({match.method}): moved "
-                            f"{d:.2f} m / {math.degrees(abs(nu[2])):.1f} deg",
-                            self.model.score(cloud, self._pose))  # fmt: skip
+        return self._result(
+            stamp,
+            odom,
+            f"wide match of {n} scans ({match.method}): moved "
+            f"{d:.2f} m / {math.degrees(abs(nu[2])):.1f} deg",
+            self.model.score(cloud, self._pose),
+        )
 
-    def _kidnap_check(self, stamp: int, pts: np.ndarray, conf: float
-                      ) -> tuple[list[_Hypothesis], str] | None:  # fmt: skip
+    def _kidnap_check(
+        self, stamp: int, pts: np.ndarray, conf: float
+    ) -> tuple[list[_Hypothesis], str] | None:
         """The relocalisation hypotheses and a reason when this scan's confidence fell below
         ``kidnap_check_ratio`` x the median of the last ``kidnap_check_scans`` tracked scans and
         the global search finds a pose that scores ``global_localization_min_score``, more than
@@ -871,16 +987,24 @@ class Localizer:
         # Clearly better: beyond the ambiguity ratio of the tracked pose, and within it of the
         # confidence tracking had (a drop in a poorly mapped stretch can leave a far corridor
         # fitting better than the right pose, though not as well as the map fitted before).
-        floor = max(cfg.global_localization_min_score, conf / cfg.relocalization_ambiguity_ratio,
-                    cfg.relocalization_ambiguity_ratio * ref)  # fmt: skip
+        floor = max(
+            cfg.global_localization_min_score,
+            conf / cfg.relocalization_ambiguity_ratio,
+            cfg.relocalization_ambiguity_ratio * ref,
+        )
         better = [h for h in hyps if h.mean_score > floor and not _agree(h.pose, self._pose, cfg)]
         if not better:
             return None
         d = ominus(self._pose, better[0].pose)
         # The tracked pose stays a hypothesis: if the drop was an occlusion it can win again.
-        tracked = _Hypothesis(self._pose.copy(), self._cov.copy(), [conf],
-                              window=cfg.relocalization_verification_scans,
-                              tracked=True, since_ns=stamp)  # fmt: skip
+        tracked = _Hypothesis(
+            self._pose.copy(),
+            self._cov.copy(),
+            [conf],
+            window=cfg.relocalization_verification_scans,
+            tracked=True,
+            since_ns=stamp,
+        )
         return _merge([*hyps, tracked], cfg), (
             f"kidnapped? confidence fell to {conf:.2f} from a median {ref:.2f}; a pose "
             f"{math.hypot(d[0], d[1]):.2f} m / {math.degrees(abs(d[2])):.0f} deg away scores "
@@ -888,9 +1012,13 @@ class Localizer:
         )
 
     def _declare_lost(
-        self, stamp: int, odom: np.ndarray, reason: str, conf: float = 0.0,
+        self,
+        stamp: int,
+        odom: np.ndarray,
+        reason: str,
+        conf: float = 0.0,
         hypotheses: list[_Hypothesis] | None = None,
-    ) -> LocalizationResult:  # fmt: skip
+    ) -> LocalizationResult:
         self.stats.lost += 1
         self._status = "lost"
         self._hypotheses = hypotheses or []
@@ -910,8 +1038,9 @@ class Localizer:
 
     # 5b. Global relocalisation -----------------------------------------------------------------
 
-    def _search(self, pts: np.ndarray, rival_of: np.ndarray | None = None, ratio: float = 1.0
-                ) -> tuple[list[_Hypothesis], str]:  # fmt: skip
+    def _search(
+        self, pts: np.ndarray, rival_of: np.ndarray | None = None, ratio: float = 1.0
+    ) -> tuple[list[_Hypothesis], str]:
         """Global search on this scan; each distinct candidate refined on the fine field. With
         ``rival_of`` (a leader's or the tracked pose) only places whose coarse score reaches
         ``ratio`` x that pose's are wanted, which prunes the search from its first level."""
@@ -926,25 +1055,42 @@ class Localizer:
             lead = coarse_score(gf, gpts, rival_of)
             min_score = max(min_score, ratio * lead)
         cands, _ = global_search(
-            gf, gpts, cfg.global_search_angular_resolution,
-            min_score, cfg.global_search_candidate_ratio,
-            cfg.global_search_max_hypotheses, cfg.relocalization_agreement_distance,
-            cfg.relocalization_agreement_angle, self._gps_region(),
-        )  # fmt: skip
+            gf,
+            gpts,
+            cfg.global_search_angular_resolution,
+            min_score,
+            cfg.global_search_candidate_ratio,
+            cfg.global_search_max_hypotheses,
+            cfg.relocalization_agreement_distance,
+            cfg.relocalization_agreement_angle,
+            self._gps_region(),
+        )
         if not cands:
-            return [], (f"no global candidate reaches global_search_min_score "
-                        f"{cfg.global_search_min_score}")  # fmt: skip
+            return [], (
+                f"no global candidate reaches global_search_min_score {cfg.global_search_min_score}"
+            )
         hyps: list[_Hypothesis] = []
         best_score = 0.0
         for cand in cands:
-            m = match_scan(self.model, pts, cand.pose, cfg,
-                           linear_window=1.5 * self.model.global_field.resolution,
-                           angular_window=cfg.global_search_angular_resolution)  # fmt: skip
+            m = match_scan(
+                self.model,
+                pts,
+                cand.pose,
+                cfg,
+                linear_window=1.5 * self.model.global_field.resolution,
+                angular_window=cfg.global_search_angular_resolution,
+            )
             best_score = max(best_score, m.score)
             if m.score < cfg.global_localization_min_score:
                 continue
-            hyps.append(_Hypothesis(m.pose, _floored(m.covariance), [m.score],
-                                    window=cfg.relocalization_verification_scans))  # fmt: skip
+            hyps.append(
+                _Hypothesis(
+                    m.pose,
+                    _floored(m.covariance),
+                    [m.score],
+                    window=cfg.relocalization_verification_scans,
+                )
+            )
         hyps = _merge(hyps, cfg)
         if not hyps:
             return [], (
@@ -1000,9 +1146,16 @@ class Localizer:
         rivals = [h for h in hyps[1:] if h.rivals(best, cfg.relocalization_ambiguity_ratio)]
         if not best.agreed or rivals:
             best.unique = 0
-        elif best.unique == 0 or best.counted_at is None or moved_enough(
-                best.counted_at, odom, cfg.relocalization_update_min_d,
-                cfg.relocalization_update_min_a):  # fmt: skip
+        elif (
+            best.unique == 0
+            or best.counted_at is None
+            or moved_enough(
+                best.counted_at,
+                odom,
+                cfg.relocalization_update_min_d,
+                cfg.relocalization_update_min_a,
+            )
+        ):
             best.unique += 1
             best.counted_at = odom.copy()
         for h in hyps[1:]:
@@ -1017,9 +1170,15 @@ class Localizer:
             and held.mean_score >= cfg.global_localization_min_score
             and held.rivals(best, cfg.relocalization_ambiguity_ratio)
         ):
-            return self._accept(stamp, odom, pts, held, f"relocalised: the pose tracked before "
-                                f"the kidnap check holds (mean score {held.mean_score:.2f}, "
-                                f"best elsewhere {best.mean_score:.2f})")  # fmt: skip
+            return self._accept(
+                stamp,
+                odom,
+                pts,
+                held,
+                f"relocalised: the pose tracked before "
+                f"the kidnap check holds (mean score {held.mean_score:.2f}, "
+                f"best elsewhere {best.mean_score:.2f})",
+            )
         if rivals:
             self._contested = True
             self._since_search += 1
@@ -1028,16 +1187,26 @@ class Localizer:
                 # max_hypotheses on the searched scan): search the current scan again and let
                 # its places compete too.
                 self._add_searched(pts, hyps)
-            return self._result(stamp, odom, f"relocalising: ambiguous, {len(rivals) + 1} "
-                                f"hypotheses score within {cfg.relocalization_ambiguity_ratio} "
-                                f"of the best ({best.mean_score:.2f})", 0.0)  # fmt: skip
+            return self._result(
+                stamp,
+                odom,
+                f"relocalising: ambiguous, {len(rivals) + 1} "
+                f"hypotheses score within {cfg.relocalization_ambiguity_ratio} "
+                f"of the best ({best.mean_score:.2f})",
+                0.0,
+            )
         weak = best.evidence is not None and best.evidence < cfg.global_localization_min_score
         if best.unique < n_needed or best.mean_score < cfg.global_localization_min_score or weak:
-            return self._result(stamp, odom, f"relocalising: {len(hyps)} hypotheses, best "
-                                f"unique on {best.unique}/{n_needed} scans (one counts per "
-                                f"{cfg.relocalization_update_min_d} m or "
-                                f"{cfg.relocalization_update_min_a} rad of motion), mean score "
-                                f"{best.mean_score:.2f}", 0.0)  # fmt: skip
+            return self._result(
+                stamp,
+                odom,
+                f"relocalising: {len(hyps)} hypotheses, best "
+                f"unique on {best.unique}/{n_needed} scans (one counts per "
+                f"{cfg.relocalization_update_min_d} m or "
+                f"{cfg.relocalization_update_min_a} rad of motion), mean score "
+                f"{best.mean_score:.2f}",
+                0.0,
+            )
         # 4. A leader left alone because its rivals died was only compared with the places the
         #    first search found: search this scan again before trusting it (with a narrow
         #    depth camera the true place can rank below max_hypotheses on the first scan).
@@ -1050,16 +1219,25 @@ class Localizer:
             if strong:
                 # Not accepted on this scan; the next one decides (the streak stands).
                 self._hypotheses = _merge([*hyps, *new], cfg)
-                return self._result(stamp, odom, f"relocalising: a new search finds "
-                                    f"{len(strong)} other place(s) fitting this scan within "
-                                    f"{cfg.relocalization_ambiguity_ratio} of the leader "
-                                    f"({last:.2f})", 0.0)  # fmt: skip
+                return self._result(
+                    stamp,
+                    odom,
+                    f"relocalising: a new search finds "
+                    f"{len(strong)} other place(s) fitting this scan within "
+                    f"{cfg.relocalization_ambiguity_ratio} of the leader "
+                    f"({last:.2f})",
+                    0.0,
+                )
         # 5. Accept the one verified hypothesis and track from it.
-        return self._accept(stamp, odom, pts, best, f"relocalised: unique on {best.unique} "
-                            f"scans, mean score {best.mean_score:.2f}")  # fmt: skip
+        return self._accept(
+            stamp,
+            odom,
+            pts,
+            best,
+            f"relocalised: unique on {best.unique} scans, mean score {best.mean_score:.2f}",
+        )
 
-    def _remember(self, odom: np.ndarray, pts: np.ndarray, stack: bool = True
-                  ) -> np.ndarray | None:  # fmt: skip
+    def _remember(self, odom: np.ndarray, pts: np.ndarray, stack: bool = True) -> np.ndarray | None:
         """Add this scan to the history and (``stack``) return the history's points in this
         scan's frame (odometry-stacked, voxel-filtered); None for a single scan. The history
         keeps the scans within ``relocalization_history_m`` of this one (straight-line odometry
@@ -1094,8 +1272,9 @@ class Localizer:
         cap = 2 * cfg.global_search_max_hypotheses
         self._hypotheses = merged[:cap] + [h for h in merged[cap:] if h.tracked]
 
-    def _accept(self, stamp: int, odom: np.ndarray, pts: np.ndarray, h: _Hypothesis,
-                reason: str) -> LocalizationResult:  # fmt: skip
+    def _accept(
+        self, stamp: int, odom: np.ndarray, pts: np.ndarray, h: _Hypothesis, reason: str
+    ) -> LocalizationResult:
         self._pose, self._cov = h.pose.copy(), h.covariance.copy()
         self._status = "tracking"
         self._hypotheses = []
@@ -1126,14 +1305,18 @@ def _covers(a: np.ndarray, b: np.ndarray, config: LocalizerConfig) -> bool:
     which it searches on every scan, and as far again): a searched place there is no new
     place (along a corridor it is the same place, slid)."""
     d = ominus(a, b)
-    return (math.hypot(d[0], d[1]) <= 2 * config.linear_search_window
-            and abs(d[2]) <= config.angular_search_window)  # fmt: skip
+    return (
+        math.hypot(d[0], d[1]) <= 2 * config.linear_search_window
+        and abs(d[2]) <= config.angular_search_window
+    )
 
 
 def _agree(a: np.ndarray, b: np.ndarray, config: LocalizerConfig) -> bool:
     d = ominus(a, b)
-    return (math.hypot(d[0], d[1]) <= config.relocalization_agreement_distance
-            and abs(d[2]) <= config.relocalization_agreement_angle)  # fmt: skip
+    return (
+        math.hypot(d[0], d[1]) <= config.relocalization_agreement_distance
+        and abs(d[2]) <= config.relocalization_agreement_angle
+    )
 
 
 __all__ = [

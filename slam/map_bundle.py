@@ -155,8 +155,10 @@ def parse_map_yaml(path: str | os.PathLike[str], inside_folder: bool = False) ->
     image_rel = Path(image_text)
     if inside_folder:
         if image_rel.is_absolute():
-            raise MapError(f"{path}: image path {image_text!r} is absolute; a bundle needs a "
-                           f"file inside its folder")  # fmt: skip
+            raise MapError(
+                f"{path}: image path {image_text!r} is absolute; a bundle needs a "
+                f"file inside its folder"
+            )
         folder = path.parent.resolve()
         if not (folder / image_rel).resolve().is_relative_to(folder):
             raise MapError(f"{path}: image path {image_text!r} leaves the bundle folder")
@@ -176,8 +178,9 @@ def parse_map_yaml(path: str | os.PathLike[str], inside_folder: bool = False) ->
     occ = _number(doc, "occupied_thresh", path)
     free = _number(doc, "free_thresh", path)
     if not (0.0 <= free <= 1.0 and 0.0 <= occ <= 1.0):
-        raise MapError(f"{path}: thresholds must lie in [0, 1], got free_thresh {free}, "
-                       f"occupied_thresh {occ}")  # fmt: skip
+        raise MapError(
+            f"{path}: thresholds must lie in [0, 1], got free_thresh {free}, occupied_thresh {occ}"
+        )
     if free >= occ:
         raise MapError(f"{path}: free_thresh ({free}) must be below occupied_thresh ({occ})")
     mode = doc.get("mode", "trinary")
@@ -188,12 +191,21 @@ def parse_map_yaml(path: str | os.PathLike[str], inside_folder: bool = False) ->
         raise MapError(f"{path}: missing key 'negate'")
     if negate not in (0, 1):  # True/False compare equal to 1/0, as map_io accepts both
         raise MapError(f"{path}: 'negate' must be 0 or 1, got {negate!r}")
-    return MapYaml(image, mode, resolution, (float(origin[0]), float(origin[1]),
-                   float(origin[2])), bool(negate), occ, free)  # fmt: skip
+    return MapYaml(
+        image,
+        mode,
+        resolution,
+        (float(origin[0]), float(origin[1]), float(origin[2])),
+        bool(negate),
+        occ,
+        free,
+    )
 
 
-_PGM_HEADER = re.compile(rb"P([25])(?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)"
-                         rb"(?:\s+|#[^\n]*\n)+(\d+)\s")  # fmt: skip
+_PGM_HEADER = re.compile(
+    rb"P([25])(?:\s+|#[^\n]*\n)+(\d+)(?:\s+|#[^\n]*\n)+(\d+)"
+    rb"(?:\s+|#[^\n]*\n)+(\d+)\s"
+)
 _PGM_COMMENT = re.compile(rb"#[^\n]*")
 _MAX_16BIT = 65535
 
@@ -207,8 +219,9 @@ def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, i
         raise MapError(f"{name}: not a PGM (P5 binary or P2 ASCII) image header")
     kind = m.group(1)
     if any(len(g) > 9 for g in m.groups()[1:]):  # int() refuses > 4300 digits with ValueError
-        raise MapError(f"{name}: PGM header number {short_repr(max(m.groups()[1:], key=len))} "
-                       f"is too large")  # fmt: skip
+        raise MapError(
+            f"{name}: PGM header number {short_repr(max(m.groups()[1:], key=len))} is too large"
+        )
     width, height, maxval = (int(g) for g in m.groups()[1:])
     if width < 1 or height < 1:
         raise MapError(f"{name}: PGM size {width}x{height} is empty")
@@ -224,14 +237,17 @@ def decode_pgm(data: bytes, name: str | os.PathLike[str]) -> tuple[np.ndarray, i
     if kind == b"5":
         need = width * height * dtype.itemsize
         if len(body) != need:
-            raise MapError(f"{name}: PGM {width}x{height} needs {need} bytes of pixels, "
-                           f"found {len(body)}")  # fmt: skip
+            raise MapError(
+                f"{name}: PGM {width}x{height} needs {need} bytes of pixels, found {len(body)}"
+            )
         pixels = np.frombuffer(body, dtype=dtype)
     else:
         tokens = _PGM_COMMENT.sub(b" ", body).split()
         if len(tokens) != width * height:
-            raise MapError(f"{name}: ASCII PGM {width}x{height} needs {width * height} pixel "
-                           f"values, found {len(tokens)}")  # fmt: skip
+            raise MapError(
+                f"{name}: ASCII PGM {width}x{height} needs {width * height} pixel "
+                f"values, found {len(tokens)}"
+            )
         try:
             pixels = np.array(tokens, dtype=np.int64)
         except (ValueError, OverflowError):  # OverflowError: a value beyond int64
@@ -320,16 +336,23 @@ def unrotate_grid(
     corners = rot @ np.array([[0.0, w, 0.0, w], [0.0, 0.0, h, h]]) * resolution
     lo = corners.min(axis=1)
     # Snap to whole cells of the rotated corners' extent (a 1e-9 cell slack for round-off).
-    out_w, out_h = (int(math.ceil((hi - low) / resolution - 1e-9))
-                    for low, hi in zip(lo, corners.max(axis=1), strict=True))  # fmt: skip
+    out_w, out_h = (
+        int(math.ceil((hi - low) / resolution - 1e-9))
+        for low, hi in zip(lo, corners.max(axis=1), strict=True)
+    )
     new_ox, new_oy = ox + float(lo[0]), oy + float(lo[1])
     # Output cell (x, y) centre in the map frame -> source cell coordinates (centre-integer).
     d = np.array([new_ox - ox, new_oy - oy]) / resolution + 0.5
     inverse = np.hstack([rot.T, (rot.T @ d - 0.5)[:, None]])
     shifted = (values.astype(np.int16) + 1).astype(np.uint8)  # -1..100 -> 0..101, 0 = unknown
-    out = cv2.warpAffine(shifted, inverse, (max(out_w, 1), max(out_h, 1)),
-                         flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)  # fmt: skip
+    out = cv2.warpAffine(
+        shifted,
+        inverse,
+        (max(out_w, 1), max(out_h, 1)),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
     out = (out.astype(np.int16) - 1).astype(np.int8)
     # Nearest sampling can step over a one-cell obstacle at a non-right angle: every cell with
     # some occupancy also marks the output cell that holds its centre (never less occupied).
@@ -348,8 +371,15 @@ def _grid_from_yaml(meta: MapYaml) -> OccupancyGrid:
     ox, oy, yaw = meta.origin
     if yaw != 0.0:
         values, ox, oy = unrotate_grid(values, meta.resolution, meta.origin)
-        log.info("%s: origin yaw %.4f rad; resampled into an axis-aligned %dx%d grid at (%.3f, "
-                 "%.3f)", meta.image, yaw, values.shape[1], values.shape[0], ox, oy)  # fmt: skip
+        log.info(
+            "%s: origin yaw %.4f rad; resampled into an axis-aligned %dx%d grid at (%.3f, %.3f)",
+            meta.image,
+            yaw,
+            values.shape[1],
+            values.shape[0],
+            ox,
+            oy,
+        )
     h, w = values.shape
     geom = GridGeometry(meta.resolution, ox, oy, w, h)
     return OccupancyGrid.from_occupancy_values(geom, values)
@@ -398,8 +428,9 @@ def save_map_yaml(
     image = image or path.with_suffix(".pgm").name
     if Path(image).name != image:
         raise MapError(f"image {image!r} must be a bare file name beside {path.name}")
-    atomic_write_bytes(path.parent / image,
-                       encode_pgm(trinary_pixels(grid, occupied_thresh, free_thresh)))  # fmt: skip
+    atomic_write_bytes(
+        path.parent / image, encode_pgm(trinary_pixels(grid, occupied_thresh, free_thresh))
+    )
     atomic_write_text(path, _map_yaml_text(grid, image))
 
 
@@ -418,19 +449,39 @@ def _json_default(obj: Any) -> Any:
 
 def _graph_json(bundle: MapBundle, created: str) -> str:
     keyframes = [
-        {"id": int(i), "stamp_ns": int(t), "pose": [float(v) for v in p],
-         "odom_pose": [float(v) for v in o]}
-        for i, t, p, o in zip(bundle.keyframe_ids, bundle.keyframe_stamps_ns,
-                              bundle.keyframe_poses, bundle.keyframe_odom_poses, strict=True)
-    ]  # fmt: skip
+        {
+            "id": int(i),
+            "stamp_ns": int(t),
+            "pose": [float(v) for v in p],
+            "odom_pose": [float(v) for v in o],
+        }
+        for i, t, p, o in zip(
+            bundle.keyframe_ids,
+            bundle.keyframe_stamps_ns,
+            bundle.keyframe_poses,
+            bundle.keyframe_odom_poses,
+            strict=True,
+        )
+    ]
     edges = [
-        {"kind": e.kind, "from": e.from_id, "to": e.to_id, "delta": list(e.delta),
-         "information": [list(row) for row in e.information]}
+        {
+            "kind": e.kind,
+            "from": e.from_id,
+            "to": e.to_id,
+            "delta": list(e.delta),
+            "information": [list(row) for row in e.information],
+        }
         for e in bundle.edges
-    ]  # fmt: skip
-    doc = {"schema_version": SCHEMA_VERSION, "frame": "map", "keyframes": keyframes,
-           "edges": edges, "config": bundle.config, "source": bundle.source,
-           "created": created}  # fmt: skip
+    ]
+    doc = {
+        "schema_version": SCHEMA_VERSION,
+        "frame": "map",
+        "keyframes": keyframes,
+        "edges": edges,
+        "config": bundle.config,
+        "source": bundle.source,
+        "created": created,
+    }
     try:
         return json.dumps(doc, indent=1, allow_nan=False, default=_json_default) + "\n"
     except ValueError as err:
@@ -469,8 +520,9 @@ def _parse_graph(path: Path) -> dict[str, Any]:
         raise MapError(f"{path}: expected a JSON object")
     version = doc.get("schema_version")
     if version != SCHEMA_VERSION:
-        raise MapError(f"{path}: schema_version {version!r} is not supported (expected "
-                       f"{SCHEMA_VERSION})")  # fmt: skip
+        raise MapError(
+            f"{path}: schema_version {version!r} is not supported (expected {SCHEMA_VERSION})"
+        )
     kfs = doc.get("keyframes")
     edges = doc.get("edges")
     if not isinstance(kfs, list) or not isinstance(edges, list):
@@ -520,15 +572,25 @@ def _parse_graph(path: Path) -> dict[str, Any]:
 
 # --- scans.npz / grid.npz ----------------------------------------------------------------------
 
-_SCAN_KEYS = ("ranges", "offsets", "angle_min", "angle_increment", "range_min", "range_max",
-              "stamp_ns")  # fmt: skip
+_SCAN_KEYS = (
+    "ranges",
+    "offsets",
+    "angle_min",
+    "angle_increment",
+    "range_min",
+    "range_max",
+    "stamp_ns",
+)
 
 
 def _scans_arrays(scans: Sequence[LaserScan]) -> dict[str, np.ndarray]:
     counts = np.array([len(s.ranges) for s in scans], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    ranges = (np.concatenate([np.asarray(s.ranges, np.float32) for s in scans])
-              if scans else np.zeros(0, np.float32))  # fmt: skip
+    ranges = (
+        np.concatenate([np.asarray(s.ranges, np.float32) for s in scans])
+        if scans
+        else np.zeros(0, np.float32)
+    )
     return {
         "ranges": ranges,
         "offsets": offsets,
@@ -575,11 +637,16 @@ def _parse_scans(path: Path) -> tuple[LaserScan, ...]:
             raise MapError(f"{path}: '{key}' of scan {int(bad[0])} is not a finite number")
     ranges = a["ranges"].astype(np.float32, copy=False)
     return tuple(
-        LaserScan(int(a["stamp_ns"][i]), float(a["angle_min"][i]), float(a["angle_increment"][i]),
-                  ranges[offsets[i]:offsets[i + 1]].copy(), float(a["range_min"][i]),
-                  float(a["range_max"][i]))
+        LaserScan(
+            int(a["stamp_ns"][i]),
+            float(a["angle_min"][i]),
+            float(a["angle_increment"][i]),
+            ranges[offsets[i] : offsets[i + 1]].copy(),
+            float(a["range_min"][i]),
+            float(a["range_max"][i]),
+        )
         for i in range(k)
-    )  # fmt: skip
+    )
 
 
 def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
@@ -609,11 +676,16 @@ def save_bundle(bundle: MapBundle, path: str | os.PathLike[str]) -> None:
     """Write ``bundle`` as the folder ``path``, replacing an existing one only when complete."""
     path = Path(path)
     k = len(bundle.keyframe_ids)
-    sizes = (len(bundle.keyframe_stamps_ns), len(bundle.keyframe_poses),
-             len(bundle.keyframe_odom_poses), len(bundle.scans))  # fmt: skip
+    sizes = (
+        len(bundle.keyframe_stamps_ns),
+        len(bundle.keyframe_poses),
+        len(bundle.keyframe_odom_poses),
+        len(bundle.scans),
+    )
     if any(n != k for n in sizes):
-        raise MapError(f"bundle has {k} keyframe ids but (stamps, poses, odom poses, scans) = "
-                       f"{sizes}")  # fmt: skip
+        raise MapError(
+            f"bundle has {k} keyframe ids but (stamps, poses, odom poses, scans) = {sizes}"
+        )
     if path.exists() and not path.is_dir():
         raise MapError(f"{path}: exists and is not a bundle folder")
     created = bundle.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -624,8 +696,13 @@ def save_bundle(bundle: MapBundle, path: str | os.PathLike[str]) -> None:
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    log.info("saved map bundle %s (%d keyframes, %dx%d cells)", path, k,
-             bundle.grid.geometry.width, bundle.grid.geometry.height)  # fmt: skip
+    log.info(
+        "saved map bundle %s (%d keyframes, %dx%d cells)",
+        path,
+        k,
+        bundle.grid.geometry.width,
+        bundle.grid.geometry.height,
+    )
 
 
 def _member(folder: Path, name: str) -> Path:
@@ -647,16 +724,23 @@ def _bundle_grid(folder: Path, occupied_thresh: float, free_thresh: float) -> Oc
     a = _load_npz(grid_path, ("log_odds", "observed"))
     geom = from_image.geometry
     if a["log_odds"].shape != geom.shape or a["observed"].shape != geom.shape:
-        raise MapError(f"{grid_path}: log_odds {a['log_odds'].shape} does not match "
-                       f"{meta.image.name} ({geom.height}, {geom.width})")  # fmt: skip
+        raise MapError(
+            f"{grid_path}: log_odds {a['log_odds'].shape} does not match "
+            f"{meta.image.name} ({geom.height}, {geom.width})"
+        )
     if a["log_odds"].dtype != np.float32 or a["observed"].dtype != np.bool_:
         raise MapError(f"{grid_path}: need float32 log_odds and bool observed")
     precise = OccupancyGrid(geom, a["log_odds"], a["observed"])
     # A map edited in an image editor after saving: the image is what the user wants.
-    if not np.array_equal(precise.trinary(occupied_thresh, free_thresh),
-                          from_image.trinary(occupied_thresh, free_thresh)):  # fmt: skip
-        log.warning("%s differs from %s (edited?); using the image and ignoring the log-odds",
-                    meta.image, grid_path)  # fmt: skip
+    if not np.array_equal(
+        precise.trinary(occupied_thresh, free_thresh),
+        from_image.trinary(occupied_thresh, free_thresh),
+    ):
+        log.warning(
+            "%s differs from %s (edited?); using the image and ignoring the log-odds",
+            meta.image,
+            grid_path,
+        )
         return from_image
     return precise
 
@@ -673,17 +757,23 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
     """Read and validate a bundle folder written by :func:`save_bundle` (or by hand)."""
     folder = Path(path)
     if not folder.is_dir() and (aside := interrupted_replacement(folder)) is not None:
-        log.warning("%s: missing; loading %s, the bundle a save interrupted between its two "
-                    "renames had moved aside", folder, aside.name)  # fmt: skip
+        log.warning(
+            "%s: missing; loading %s, the bundle a save interrupted between its two "
+            "renames had moved aside",
+            folder,
+            aside.name,
+        )
         folder = aside
     if not folder.is_dir():
         raise MapError(f"{folder}: missing map bundle folder")
     graph = _parse_graph(_member(folder, GRAPH_JSON))
     scans = _parse_scans(_member(folder, SCANS_NPZ))
     if len(scans) != len(graph["ids"]):
-        raise MapError(f"keyframe count mismatch: {folder / GRAPH_JSON} has "
-                       f"{len(graph['ids'])} keyframes, {folder / SCANS_NPZ} has "
-                       f"{len(scans)} scans")  # fmt: skip
+        raise MapError(
+            f"keyframe count mismatch: {folder / GRAPH_JSON} has "
+            f"{len(graph['ids'])} keyframes, {folder / SCANS_NPZ} has "
+            f"{len(scans)} scans"
+        )
     config = graph["config"]
     where = f"{folder / GRAPH_JSON}: config"
     occupied = _config_probability(config, "occupied_thresh", 0.65, where)
@@ -694,11 +784,23 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
     made_at = config.get("resolution")
     if isinstance(made_at, (int, float)) and not isinstance(made_at, bool):
         if not math.isclose(made_at, grid.geometry.resolution, rel_tol=1e-6):
-            raise MapError(f"{folder / MAP_YAML}: resolution {grid.geometry.resolution:g} m "
-                           f"disagrees with {made_at:g} m the map was built at ({GRAPH_JSON}); "
-                           f"the scans would not fit the grid")  # fmt: skip
-    return MapBundle(grid, graph["ids"], graph["stamps"], graph["poses"], graph["odom"],
-                     graph["edges"], scans, config, graph["source"], graph["created"])  # fmt: skip
+            raise MapError(
+                f"{folder / MAP_YAML}: resolution {grid.geometry.resolution:g} m "
+                f"disagrees with {made_at:g} m the map was built at ({GRAPH_JSON}); "
+                f"the scans would not fit the grid"
+            )
+    return MapBundle(
+        grid,
+        graph["ids"],
+        graph["stamps"],
+        graph["poses"],
+        graph["odom"],
+        graph["edges"],
+        scans,
+        config,
+        graph["source"],
+        graph["created"],
+    )
 
 
 # A plain map.yaml is already thresholded into nav_msgs percentages (100 occupied, 0 free,

@@ -76,8 +76,10 @@ def odometry_covariance(delta: np.ndarray, config: MapperConfig) -> np.ndarray:
     """Diagonal covariance of an odometry increment, growing with distance and turn."""
     dist = math.hypot(delta[0], delta[1])
     s_xy = max(config.odom_translation_noise * dist, ODOM_MIN_SIGMA[0])
-    s_yaw = max(config.odom_rotation_noise * abs(delta[2])
-                + config.odom_rotation_noise_per_meter * dist, ODOM_MIN_SIGMA[1])  # fmt: skip
+    s_yaw = max(
+        config.odom_rotation_noise * abs(delta[2]) + config.odom_rotation_noise_per_meter * dist,
+        ODOM_MIN_SIGMA[1],
+    )
     return np.diag([s_xy**2, s_xy**2, s_yaw**2])
 
 
@@ -90,11 +92,13 @@ def fuse_with_odometry(
     c, s = math.cos(prior[2]), math.sin(prior[2])
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     p_cov = rot @ prior_cov_robot @ rot.T
-    r_cov, degenerate = release_degenerate_axis(match.covariance, degeneracy_ratio,
-                                                UNOBSERVED_VARIANCE)  # fmt: skip
+    r_cov, degenerate = release_degenerate_axis(
+        match.covariance, degeneracy_ratio, UNOBSERVED_VARIANCE
+    )
     pose, cov = pose_update(prior, p_cov, match.pose, r_cov)
-    return MatchOutcome(match.ok, match.reason, pose, cov, match.response,
-                        match.inlier_fraction, degenerate)  # fmt: skip
+    return MatchOutcome(
+        match.ok, match.reason, pose, cov, match.response, match.inlier_fraction, degenerate
+    )
 
 
 # 2. Records ------------------------------------------------------------------------------------
@@ -294,8 +298,12 @@ class Mapper:
         self.matches[match.reason or "matched"] += 1
         if match.ok:
             step = ominus(self._track_odom, odom)
-            match = fuse_with_odometry(prior, odometry_covariance(step, self.config), match,
-                                       self.config.scan_match_degeneracy_ratio)  # fmt: skip
+            match = fuse_with_odometry(
+                prior,
+                odometry_covariance(step, self.config),
+                match,
+                self.config.scan_match_degeneracy_ratio,
+            )
         pose = match.pose if match.ok else prior
         if is_keyframe:
             older = self._revisit(pose) if match.ok and self.config.revisit_distance > 0 else None
@@ -392,34 +400,56 @@ class Mapper:
         return _LocalMap(fld, ref)
 
     def _match(
-        self, kf: Keyframe, prior: np.ndarray, local: _LocalMap | None, linear_window: float,
-        angular_window: float, angle_step: float, min_response: float, penalise: bool,
-        huber_m: float, min_coarse: float = 0.0,
-    ) -> MatchOutcome:  # fmt: skip
+        self,
+        kf: Keyframe,
+        prior: np.ndarray,
+        local: _LocalMap | None,
+        linear_window: float,
+        angular_window: float,
+        angle_step: float,
+        min_response: float,
+        penalise: bool,
+        huber_m: float,
+        min_coarse: float = 0.0,
+    ) -> MatchOutcome:
         cfg = self.config
         if len(kf.match_points) < MIN_SCAN_POINTS:
             return MatchOutcome(False, "too few scan points", prior, np.eye(3), 0.0, 0.0)
         if local is None:
             return MatchOutcome(False, "too few map points", prior, np.eye(3), 0.0, 0.0)
         penalties = (
-            {"distance_variance_penalty": cfg.distance_variance_penalty,
-             "angle_variance_penalty": cfg.angle_variance_penalty,
-             "minimum_distance_penalty": cfg.minimum_distance_penalty,
-             "minimum_angle_penalty": cfg.minimum_angle_penalty}
-            if penalise else {}
-        )  # fmt: skip
+            {
+                "distance_variance_penalty": cfg.distance_variance_penalty,
+                "angle_variance_penalty": cfg.angle_variance_penalty,
+                "minimum_distance_penalty": cfg.minimum_distance_penalty,
+                "minimum_angle_penalty": cfg.minimum_angle_penalty,
+            }
+            if penalise
+            else {}
+        )
         coarse = correlative_match(
-            local.field, kf.match_points, prior, linear_window, angular_window, angle_step,
-            min_score=min_coarse, **penalties,
-        )  # fmt: skip
+            local.field,
+            kf.match_points,
+            prior,
+            linear_window,
+            angular_window,
+            angle_step,
+            min_score=min_coarse,
+            **penalties,
+        )
         if coarse.score < min_coarse or coarse.score == 0.0:
-            return MatchOutcome(False, "coarse response below threshold", prior, np.eye(3),
-                                coarse.score, 0.0)  # fmt: skip
+            return MatchOutcome(
+                False, "coarse response below threshold", prior, np.eye(3), coarse.score, 0.0
+            )
         icp = icp_refine(
-            local.reference, kf.match_points, coarse.pose, cfg.icp_max_correspondence_distance,
-            max_iterations=cfg.icp_max_iterations, min_sigma_m=cfg.scan_match_min_sigma,
+            local.reference,
+            kf.match_points,
+            coarse.pose,
+            cfg.icp_max_correspondence_distance,
+            max_iterations=cfg.icp_max_iterations,
+            min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=huber_m,
-        )  # fmt: skip
+        )
         if not np.all(np.isfinite(icp.pose)) or icp.rmse == math.inf:
             return MatchOutcome(False, "ICP failed", prior, np.eye(3), coarse.score, 0.0)
         response = _response(local.field, kf.match_points, icp.pose)
@@ -431,8 +461,9 @@ class Mapper:
             reason = "ICP left the correlative optimum"
         else:
             reason = ""
-        return MatchOutcome(reason == "", reason, icp.pose, icp.covariance, response,
-                            icp.inlier_fraction)  # fmt: skip
+        return MatchOutcome(
+            reason == "", reason, icp.pose, icp.covariance, response, icp.inlier_fraction
+        )
 
     def _icp_first(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome | None:
         """Most scans follow odometry closely: ICP straight from the prior, accepted when it
@@ -443,15 +474,22 @@ class Mapper:
         if local is None or len(kf.match_points) < MIN_SCAN_POINTS:
             return None
         icp = icp_refine(
-            local.reference, kf.match_points, prior, cfg.icp_max_correspondence_distance,
-            max_iterations=cfg.icp_max_iterations, min_sigma_m=cfg.scan_match_min_sigma,
+            local.reference,
+            kf.match_points,
+            prior,
+            cfg.icp_max_correspondence_distance,
+            max_iterations=cfg.icp_max_iterations,
+            min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=cfg.icp_huber_width,
-        )  # fmt: skip
+        )
         step = icp.pose - prior
-        inside = (math.hypot(step[0], step[1]) <= cfg.correlation_search_space_dimension / 4
-                  and abs(wrap_angle(step[2])) <= cfg.coarse_search_angle_offset / 2)  # fmt: skip
-        if not (icp.converged and inside
-                and icp.inlier_fraction >= cfg.icp_first_min_inlier_fraction):  # fmt: skip
+        inside = (
+            math.hypot(step[0], step[1]) <= cfg.correlation_search_space_dimension / 4
+            and abs(wrap_angle(step[2])) <= cfg.coarse_search_angle_offset / 2
+        )
+        if not (
+            icp.converged and inside and icp.inlier_fraction >= cfg.icp_first_min_inlier_fraction
+        ):
             return None
         response = _response(local.field, kf.match_points, icp.pose)
         if response < cfg.link_match_minimum_response_fine:
@@ -466,27 +504,36 @@ class Mapper:
             if anchor == n - 1:  # the recent chain
                 recent = list(range(max(0, n - cfg.scan_buffer_size), n))
             else:  # re-anchored on an older keyframe: the keyframes nearest it
-                nearest = np.argsort(np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T),
-                                     kind="stable")[: cfg.scan_buffer_size]  # fmt: skip
+                nearest = np.argsort(
+                    np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T), kind="stable"
+                )[: cfg.scan_buffer_size]
                 recent = sorted(int(i) for i in nearest)
-            ids = [i for i in recent if np.hypot(*(poses[i, :2] - poses[anchor, :2]))
-                   <= cfg.scan_buffer_maximum_scan_distance]  # fmt: skip
+            ids = [
+                i
+                for i in recent
+                if np.hypot(*(poses[i, :2] - poses[anchor, :2]))
+                <= cfg.scan_buffer_maximum_scan_distance
+            ]
             self._local = self._build_local(
-                self._world_points(ids, poses), cfg.correlation_search_space_dimension / 2,
+                self._world_points(ids, poses),
+                cfg.correlation_search_space_dimension / 2,
                 cfg.correlation_search_space_resolution,
                 cfg.correlation_search_space_smear_deviation,
-            )  # fmt: skip
+            )
         fast = self._icp_first(kf, prior)
         if fast is not None:
             return fast
         return self._match(
-            kf, prior, self._local,
+            kf,
+            prior,
+            self._local,
             linear_window=cfg.correlation_search_space_dimension / 2,
             angular_window=cfg.coarse_search_angle_offset,
             angle_step=cfg.coarse_angle_resolution,
             min_response=cfg.link_match_minimum_response_fine,
-            penalise=True, huber_m=cfg.icp_huber_width,
-        )  # fmt: skip
+            penalise=True,
+            huber_m=cfg.icp_huber_width,
+        )
 
     # 3c. Continuing a saved map ----------------------------------------------------------------
 
@@ -500,18 +547,29 @@ class Mapper:
         keyframes extend the same graph."""
         m = cls(config)
         loc_cfg = localizer or LocalizerConfig()
-        model = MapModel.from_grid(bundle.grid, loc_cfg, bundle.occupied_thresh,
-                                   bundle.free_thresh)  # fmt: skip
+        model = MapModel.from_grid(bundle.grid, loc_cfg, bundle.occupied_thresh, bundle.free_thresh)
         m._localizer = Localizer(model, loc_cfg)
         poses = np.asarray(bundle.keyframe_poses, dtype=np.float64).reshape(-1, 3)
         if len(poses) == 0:
             raise MapError("the map bundle has no keyframes to continue from")
-        edges = [Edge(id=n, kind=e.kind, i=e.from_id, j=e.to_id,  # type: ignore[arg-type]
-                      delta=np.asarray(e.delta, float), information=np.asarray(e.information),
-                      robust=e.kind == "loop")
-                 for n, e in enumerate(bundle.edges)]  # fmt: skip
-        m.graph = PoseGraph.from_arrays(poses, edges, robust_kernel=config.robust_kernel,
-                                        robust_kernel_width=config.robust_kernel_width)  # fmt: skip
+        edges = [
+            Edge(
+                id=n,
+                kind=e.kind,
+                i=e.from_id,
+                j=e.to_id,  # type: ignore[arg-type]
+                delta=np.asarray(e.delta, float),
+                information=np.asarray(e.information),
+                robust=e.kind == "loop",
+            )
+            for n, e in enumerate(bundle.edges)
+        ]
+        m.graph = PoseGraph.from_arrays(
+            poses,
+            edges,
+            robust_kernel=config.robust_kernel,
+            robust_kernel_width=config.robust_kernel_width,
+        )
         for k, scan in enumerate(bundle.scans):
             kf = m._make_keyframe(scan, np.asarray(bundle.keyframe_odom_poses[k], float))
             step = 0.0 if k == 0 else float(np.hypot(*(poses[k, :2] - poses[k - 1, :2])))
@@ -531,30 +589,43 @@ class Mapper:
         kf = self._make_keyframe(scan, odom)
         poses = self.graph.poses()
         j = int(np.argmin(np.hypot(*(poses[:, :2] - res.pose[:2]).T)))
-        near = np.flatnonzero(np.hypot(*(poses[:, :2] - poses[j, :2]).T)
-                              <= cfg.scan_buffer_maximum_scan_distance)  # fmt: skip
+        near = np.flatnonzero(
+            np.hypot(*(poses[:, :2] - poses[j, :2]).T) <= cfg.scan_buffer_maximum_scan_distance
+        )
         lin = cfg.correlation_search_space_dimension / 2
-        local = self._build_local(self._world_points([int(i) for i in near], poses), lin,
-                                  cfg.correlation_search_space_resolution,
-                                  cfg.correlation_search_space_smear_deviation)  # fmt: skip
-        match = self._match(kf, res.pose, local, linear_window=lin,
-                            angular_window=cfg.coarse_search_angle_offset,
-                            angle_step=cfg.coarse_angle_resolution,
-                            min_response=cfg.loop_match_minimum_response_fine,
-                            penalise=True, huber_m=cfg.loop_icp_huber_width)  # fmt: skip
+        local = self._build_local(
+            self._world_points([int(i) for i in near], poses),
+            lin,
+            cfg.correlation_search_space_resolution,
+            cfg.correlation_search_space_smear_deviation,
+        )
+        match = self._match(
+            kf,
+            res.pose,
+            local,
+            linear_window=lin,
+            angular_window=cfg.coarse_search_angle_offset,
+            angle_step=cfg.coarse_angle_resolution,
+            min_response=cfg.loop_match_minimum_response_fine,
+            penalise=True,
+            huber_m=cfg.loop_icp_huber_width,
+        )
         pose, cov = (match.pose, match.covariance) if match.ok else (res.pose, res.covariance)
         node = self.graph.add_node(pose)
-        loop_cov = cov + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
-                                  LOOP_MIN_SIGMA[1] ** 2])  # fmt: skip
+        loop_cov = cov + np.diag(
+            [LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[1] ** 2]
+        )
         self.graph.add_edge(j, node, ominus(poses[j], pose), loop_cov, kind="loop")
         self.graph.update()
         self._append_keyframe(kf, 0.0, pose, True)
         self._relocalise = False
         self._localizer = None
-        self.relocalised = {"keyframe": j, "confidence": round(float(res.confidence), 4),
-                            "scans_before": int(self.skipped["before relocalisation in the "
-                                                            "saved map"]),
-                            "pose": [round(float(v), 4) for v in pose]}  # fmt: skip
+        self.relocalised = {
+            "keyframe": j,
+            "confidence": round(float(res.confidence), 4),
+            "scans_before": int(self.skipped["before relocalisation in the saved map"]),
+            "pose": [round(float(v), 4) for v in pose],
+        }
         return self._record(scan.stamp_ns, odom, self.graph.pose(node))
 
     # 3d. Loop closure ---------------------------------------------------------------------------
@@ -570,7 +641,8 @@ class Mapper:
         poses = self.graph.poses()[:n]
         dist = np.hypot(*(poses[:, :2] - pose[:2]).T)
         near = (dist <= cfg.revisit_distance) & (
-            np.abs(wrap_angle(poses[:, 2] - pose[2])) <= cfg.revisit_heading)  # fmt: skip
+            np.abs(wrap_angle(poses[:, 2] - pose[2])) <= cfg.revisit_heading
+        )
         near[self._anchor] = False
         cands = np.flatnonzero(near)
         if len(cands) == 0:
@@ -610,31 +682,48 @@ class Mapper:
         path = self._path_between(k, older)
         sigma = cfg.loop_search_drift_rate * path  # [m]
         dist = np.hypot(*(poses[older, :2] - poses[k, :2]).T)
-        radius = np.minimum(cfg.loop_search_maximum_distance + LOOP_SIGMA_GATE * sigma,
-                            cfg.loop_search_space_dimension / 2)  # fmt: skip
+        radius = np.minimum(
+            cfg.loop_search_maximum_distance + LOOP_SIGMA_GATE * sigma,
+            cfg.loop_search_space_dimension / 2,
+        )
         near = dist <= radius
         if not near.any():
             return
         j = int(older[near][np.argmin(dist[near])])
         half = cfg.loop_match_minimum_chain_size // 2
-        ids = [i for i in range(max(0, j - half), min(k - cfg.loop_match_minimum_chain_size,
-                                                    j + half + 1))]  # fmt: skip
+        ids = [
+            i
+            for i in range(
+                max(0, j - half), min(k - cfg.loop_match_minimum_chain_size, j + half + 1)
+            )
+        ]
         sig_j = float(sigma[j])
-        lin = float(np.clip(LOOP_SIGMA_GATE * sig_j, LOOP_MIN_LINEAR_WINDOW,
-                            cfg.loop_search_space_dimension / 2))  # fmt: skip
+        lin = float(
+            np.clip(
+                LOOP_SIGMA_GATE * sig_j, LOOP_MIN_LINEAR_WINDOW, cfg.loop_search_space_dimension / 2
+            )
+        )
         yaw_sigma = cfg.loop_search_heading_drift_rate * float(path[j])
         ang = float(np.clip(LOOP_SIGMA_GATE * yaw_sigma, LOOP_MIN_ANGULAR_WINDOW, math.pi))
         self.loops.proposed += 1
         local = self._build_local(
-            self._world_points(ids, poses), lin, cfg.loop_search_space_resolution,
+            self._world_points(ids, poses),
+            lin,
+            cfg.loop_search_space_resolution,
             max(cfg.loop_search_space_smear_deviation, cfg.loop_search_space_resolution),
-        )  # fmt: skip
+        )
         match = self._match(
-            kf, poses[k], local, linear_window=lin, angular_window=ang,
+            kf,
+            poses[k],
+            local,
+            linear_window=lin,
+            angular_window=ang,
             angle_step=cfg.coarse_angle_resolution,
-            min_response=cfg.loop_match_minimum_response_fine, penalise=False,
-            huber_m=cfg.loop_icp_huber_width, min_coarse=cfg.loop_match_minimum_response_coarse,
-        )  # fmt: skip
+            min_response=cfg.loop_match_minimum_response_fine,
+            penalise=False,
+            huber_m=cfg.loop_icp_huber_width,
+            min_coarse=cfg.loop_match_minimum_response_coarse,
+        )
         if not match.ok:
             self.loops.rejected[match.reason] += 1
             return
@@ -644,28 +733,37 @@ class Mapper:
             # A wide window can hold an aliased twin of the place (a corridor's next door):
             # a match that is not clearly better than its best rival is no evidence.
             best = _response(local.field, kf.match_points, match.pose)
-            rival = rival_score(local.field, kf.match_points, match.pose, lin,
-                                cfg.loop_match_ambiguity_distance)  # fmt: skip
+            rival = rival_score(
+                local.field, kf.match_points, match.pose, lin, cfg.loop_match_ambiguity_distance
+            )
             if ang > ROTATED_RIVAL_WINDOW:
                 # A window this wide in yaw also holds the place turned a quarter or a half (a
                 # square junction): the match must beat its own turned twins too.
-                turned = rival_score(local.field, kf.match_points, match.pose, lin, -1.0,
-                                     angles_rad=ROTATED_RIVAL_ANGLES)  # fmt: skip
+                turned = rival_score(
+                    local.field,
+                    kf.match_points,
+                    match.pose,
+                    lin,
+                    -1.0,
+                    angles_rad=ROTATED_RIVAL_ANGLES,
+                )
                 rival = max(rival, turned)
             if rival > cfg.loop_match_maximum_ambiguity * best:
                 self.loops.rejected["ambiguous (a rival pose scores as well)"] += 1
                 log.debug("loop %d-%d ambiguous: rival %.3f vs %.3f", j, k, rival, best)
                 return
-        loop_cov = match.covariance + np.diag([LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2,
-                                               LOOP_MIN_SIGMA[1] ** 2])  # fmt: skip
+        loop_cov = match.covariance + np.diag(
+            [LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[1] ** 2]
+        )
         if rival > cfg.loop_match_hold_ambiguity * best:
             # Nearly ambiguous: no evidence to bend the graph with now, a vote at the end.
             reason = "nearly ambiguous (held for the final vote)"
             self.loops.rejected[reason] += 1
             self._held.append(_Held(j, k, ominus(poses[j], match.pose), loop_cov, reason))
             return
-        edge = self.graph.add_edge(j, k, ominus(poses[j], match.pose), loop_cov, kind="loop",
-                                   robust=True)  # fmt: skip
+        edge = self.graph.add_edge(
+            j, k, ominus(poses[j], match.pose), loop_cov, kind="loop", robust=True
+        )
         self.graph.update(extra_iterations=LOOP_EXTRA_ITERATIONS)
         chi2 = self.graph.edge_chi2(edge)
         if chi2 > cfg.loop_closure_max_chi2:
@@ -732,9 +830,12 @@ class Mapper:
         kf_stamps = np.array([k.stamp_ns for k in self.keyframes], dtype=np.int64)
         # Only a next keyframe that was itself scan-matched, made from this one after the scan,
         # shares the scans' tracking frame (not one made on an earlier pass, when re-anchored).
-        has_next = ((kf + 1 < len(poses)) & np.asarray(self._kf_matched)[nxt]
-                    & (np.asarray(self._kf_parent)[nxt] == kf)
-                    & (kf_stamps[nxt] >= stamps))  # fmt: skip
+        has_next = (
+            (kf + 1 < len(poses))
+            & np.asarray(self._kf_matched)[nxt]
+            & (np.asarray(self._kf_parent)[nxt] == kf)
+            & (kf_stamps[nxt] >= stamps)
+        )
         track = self._scan_track.array
         kf_track = np.asarray(self._kf_track)
         from_next = oplus(poses[nxt], ominus(kf_track[nxt], track))
@@ -829,10 +930,14 @@ def _relative_delta(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def edge_dict(edge: Edge) -> dict[str, Any]:
     """A graph edge as graph.json stores it."""
-    return {"kind": edge.kind, "from": edge.i, "to": edge.j,
-            "delta": [float(v) for v in edge.delta],
-            "information": np.asarray(edge.information, dtype=float).tolist(),
-            "robust": edge.robust}  # fmt: skip
+    return {
+        "kind": edge.kind,
+        "from": edge.i,
+        "to": edge.j,
+        "delta": [float(v) for v in edge.delta],
+        "information": np.asarray(edge.information, dtype=float).tolist(),
+        "robust": edge.robust,
+    }
 
 
 def _response(fld: LikelihoodField, points: np.ndarray, pose: np.ndarray) -> float:

@@ -24,8 +24,7 @@ def interpolate_poses(
     tq = np.asarray(t_query, dtype=np.float64)
     inside = (tq >= t_ref[0]) & (tq <= t_ref[-1])
     yaw_u = np.unwrap(yaw)
-    return (np.interp(tq, t_ref, x), np.interp(tq, t_ref, y),
-            np.interp(tq, t_ref, yaw_u), inside)  # fmt: skip
+    return (np.interp(tq, t_ref, x), np.interp(tq, t_ref, y), np.interp(tq, t_ref, yaw_u), inside)
 
 
 def align_se2(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -308,8 +308,15 @@ def integrate_scans(
         initial.observed.astype(np.uint8) if initial else np.zeros(geometry.shape, dtype=np.uint8)
     )
     for pose, scan in zip(poses, scans, strict=True):
-        _integrate_one(geometry, log_odds, observed, _scan_rays(pose, scan, config.max_laser_range),
-                       delta_lut, l_min, l_max)  # fmt: skip
+        _integrate_one(
+            geometry,
+            log_odds,
+            observed,
+            _scan_rays(pose, scan, config.max_laser_range),
+            delta_lut,
+            l_min,
+            l_max,
+        )
     return OccupancyGrid(geometry, log_odds, observed.astype(bool))
 
 

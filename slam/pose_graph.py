@@ -657,9 +657,14 @@ class PoseGraph:
                 raise PoseGraphError(f"pose {k}: {err}") from None
         for e in edges:
             graph.add_edge(
-                e.i, e.j, e.delta, kind=e.kind, robust=e.robust,
-                information=e.information, edge_id=e.id,
-            )  # fmt: skip
+                e.i,
+                e.j,
+                e.delta,
+                kind=e.kind,
+                robust=e.robust,
+                information=e.information,
+                edge_id=e.id,
+            )
         if update:
             graph.update()
         return graph

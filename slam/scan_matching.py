@@ -169,8 +169,13 @@ def build_likelihood_field(
         cols_max[:, -half:] = prev[:, -half:]
         np.maximum(cols_max[:-half], cols_max[half:], out=pooled[:-half])
         pooled[-half:] = cols_max[-half:]
-    return LikelihoodField(origin=origin, resolution=resolution, levels=levels,
-                           flat_levels=flat, max_window_cells=max_cells)  # fmt: skip
+    return LikelihoodField(
+        origin=origin,
+        resolution=resolution,
+        levels=levels,
+        flat_levels=flat,
+        max_window_cells=max_cells,
+    )
 
 
 # 3. Correlative search (batched branch-and-bound) ----------------------------------------------
@@ -185,9 +190,8 @@ class CorrelativeResult:
 
 
 def _block_scores(
-    flat_level: np.ndarray, w: int, base: np.ndarray, a: np.ndarray, di: np.ndarray,
-    dj: np.ndarray
-) -> np.ndarray:  # fmt: skip
+    flat_level: np.ndarray, w: int, base: np.ndarray, a: np.ndarray, di: np.ndarray, dj: np.ndarray
+) -> np.ndarray:
     """Mean of a level over the points of angle ``a[c]`` shifted by (di[c], dj[c]) cells.
 
     ``base`` (A, N) holds each point's flat cell index at shift (0, 0), or the start of the zero
@@ -245,8 +249,10 @@ def correlative_match(
     n_cells = 2 * n_half + 1  # leaf offsets 0..n_cells-1 per axis (minus n_half in metres)
     h, w = field.field.shape
     if n_cells > field.max_window_cells:
-        raise ValueError(f"search window of {n_cells} cells exceeds the field's margin "
-                         f"({field.max_window_cells} cells)")  # fmt: skip
+        raise ValueError(
+            f"search window of {n_cells} cells exceeds the field's margin "
+            f"({field.max_window_cells} cells)"
+        )
     # Points that some shift would move off the grid (unmapped territory beyond the margin,
     # where the field is 0 anyway) point at the zero tail.
     on_grid = (rows >= 0) & (cols >= 0) & (rows + n_cells <= h) & (cols + n_cells <= w)
@@ -255,8 +261,9 @@ def correlative_match(
     step = 2**top
     # 3b. All top-level blocks: (angle, row offset, col offset).
     starts = np.arange(0, n_cells, step)
-    a, di, dj = (v.ravel() for v in np.meshgrid(np.arange(len(yaws)), starts, starts,
-                                                indexing="ij"))  # fmt: skip
+    a, di, dj = (
+        v.ravel() for v in np.meshgrid(np.arange(len(yaws)), starts, starts, indexing="ij")
+    )
     bound = _block_scores(field.flat_levels[top], w, base, a, di, dj)
     evaluated = len(a)
 
@@ -279,8 +286,11 @@ def correlative_match(
         evaluated += len(ci)
         k = int(np.argmax(sc))
         gi, gj = int(ci[k]), int(cj[k])
-    raw = float(_block_scores(field.flat_levels[0], w, base, np.array([ga]), np.array([gi]),
-                              np.array([gj]))[0])  # fmt: skip
+    raw = float(
+        _block_scores(
+            field.flat_levels[0], w, base, np.array([ga]), np.array([gi]), np.array([gj])
+        )[0]
+    )
     pen = raw * float(penalty(np.array([ga]), np.array([gi]), np.array([gj]))[0])
     best_leaf = (pen, ga, gi, gj, raw) if pen >= min_score else (min_score, -1, 0, 0, 0.0)
     # 3d. Level by level: drop blocks whose bound cannot beat the best leaf, split the rest.
@@ -294,8 +304,13 @@ def correlative_match(
             pen_scores = bound * penalty(a, di, dj)
             k = int(np.argmax(pen_scores))
             if pen_scores[k] > best_leaf[0]:
-                best_leaf = (float(pen_scores[k]), int(a[k]), int(di[k]), int(dj[k]),
-                             float(bound[k]))  # fmt: skip
+                best_leaf = (
+                    float(pen_scores[k]),
+                    int(a[k]),
+                    int(di[k]),
+                    int(dj[k]),
+                    float(bound[k]),
+                )
             break
         half = 2 ** (lvl - 1)
         a = np.repeat(a, 4)
@@ -307,10 +322,19 @@ def correlative_match(
         evaluated += len(a)
     pen, ba, bi, bj, raw = best_leaf
     if ba < 0:
-        return CorrelativeResult(pose=np.asarray(prior, float).copy(), score=0.0,
-                                 penalised_score=0.0, evaluated=evaluated)  # fmt: skip
-    pose = np.array([prior[0] + (bj - n_half) * res, prior[1] + (bi - n_half) * res,
-                     float(wrap_angle(prior[2] + dyaw[ba]))])  # fmt: skip
+        return CorrelativeResult(
+            pose=np.asarray(prior, float).copy(),
+            score=0.0,
+            penalised_score=0.0,
+            evaluated=evaluated,
+        )
+    pose = np.array(
+        [
+            prior[0] + (bj - n_half) * res,
+            prior[1] + (bi - n_half) * res,
+            float(wrap_angle(prior[2] + dyaw[ba])),
+        ]
+    )
     return CorrelativeResult(pose=pose, score=raw, penalised_score=pen, evaluated=evaluated)
 
 
@@ -441,14 +465,17 @@ def build_grid_reference(
     img = cv2.GaussianBlur(occ.astype(np.float32), (0, 0), GRID_GRADIENT_SIGMA_CELLS)
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)  # along columns = +x
     gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)  # along rows = +y (row 0 at the bottom)
-    jxx, jxy, jyy = (cv2.GaussianBlur(g, (0, 0), GRID_TENSOR_SIGMA_CELLS)[rows, cols]
-                     for g in (gx * gx, gx * gy, gy * gy))  # fmt: skip
+    jxx, jxy, jyy = (
+        cv2.GaussianBlur(g, (0, 0), GRID_TENSOR_SIGMA_CELLS)[rows, cols]
+        for g in (gx * gx, gx * gy, gy * gy)
+    )
     phi = 0.5 * np.arctan2(2 * jxy, jxx - jyy)  # dominant gradient direction = the normal
     coherence = np.hypot(jxx - jyy, 2 * jxy) / np.maximum(jxx + jyy, 1e-12)
     linear = coherence >= (1 - PLANARITY_MAX) / (1 + PLANARITY_MAX)
     normals = np.where(linear[:, None], np.column_stack([np.cos(phi), np.sin(phi)]), 0.0)
-    pts = np.column_stack([origin_xy[0] + (cols + 0.5) * resolution,
-                           origin_xy[1] + (rows + 0.5) * resolution])  # fmt: skip
+    pts = np.column_stack(
+        [origin_xy[0] + (cols + 0.5) * resolution, origin_xy[1] + (rows + 0.5) * resolution]
+    )
     # Where the surface cells themselves form a line (a one-cell wall, as scans draw them), the
     # local PCA normal follows it more closely than the smoothed tensor (measured: a 3 cm bias
     # on mapped grids otherwise); the tensor fills in where PCA sees a blob.

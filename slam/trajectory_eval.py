@@ -71,8 +71,10 @@ def quaternion_from_rotation(rot: np.ndarray) -> np.ndarray:
     r = np.asarray(rot, dtype=np.float64)
     m00, m11, m22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
     # 4 q_k^2 for k = w, x, y, z: pick the largest to divide by.
-    cand = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22,
-                     1 - m00 + m11 - m22, 1 - m00 - m11 + m22], axis=-1)  # fmt: skip
+    cand = np.stack(
+        [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22],
+        axis=-1,
+    )
     k = np.argmax(cand, axis=-1)
     s = 2.0 * np.sqrt(np.maximum(np.take_along_axis(cand, k[..., None], -1)[..., 0], 1e-300))
     d_zy = r[..., 2, 1] - r[..., 1, 2]
@@ -81,12 +83,15 @@ def quaternion_from_rotation(rot: np.ndarray) -> np.ndarray:
     s_xy = r[..., 0, 1] + r[..., 1, 0]
     s_xz = r[..., 0, 2] + r[..., 2, 0]
     s_yz = r[..., 1, 2] + r[..., 2, 1]
-    by_k = np.stack([
-        np.stack([d_zy, d_xz, d_yx, 0.25 * s * s], -1),  # w largest
-        np.stack([0.25 * s * s, s_xy, s_xz, d_zy], -1),  # x largest
-        np.stack([s_xy, 0.25 * s * s, s_yz, d_xz], -1),  # y largest
-        np.stack([s_xz, s_yz, 0.25 * s * s, d_yx], -1),  # z largest
-    ], axis=-2)  # fmt: skip
+    by_k = np.stack(
+        [
+            np.stack([d_zy, d_xz, d_yx, 0.25 * s * s], -1),  # w largest
+            np.stack([0.25 * s * s, s_xy, s_xz, d_zy], -1),  # x largest
+            np.stack([s_xy, 0.25 * s * s, s_yz, d_xz], -1),  # y largest
+            np.stack([s_xz, s_yz, 0.25 * s * s, d_yx], -1),  # z largest
+        ],
+        axis=-2,
+    )
     q = np.take_along_axis(by_k, k[..., None, None], -2)[..., 0, :] / s[..., None]
     return q * np.where(q[..., 3:] < 0, -1.0, 1.0)
 
@@ -237,15 +242,28 @@ class ErrorStats:
         e = np.asarray(errors, dtype=np.float64)
         if e.size == 0:
             raise TrajectoryEvalError("no errors to summarise")
-        return cls(count=int(e.size), rmse=float(np.sqrt(np.mean(e**2))), mean=float(e.mean()),
-                   median=float(np.median(e)), std=float(e.std()), min=float(e.min()),
-                   max=float(e.max()))  # fmt: skip
+        return cls(
+            count=int(e.size),
+            rmse=float(np.sqrt(np.mean(e**2))),
+            mean=float(e.mean()),
+            median=float(np.median(e)),
+            std=float(e.std()),
+            min=float(e.min()),
+            max=float(e.max()),
+        )
 
     def scaled(self, factor: float) -> ErrorStats:
         """The same statistics in another unit (e.g. rad -> deg)."""
         f = float(factor)
-        return ErrorStats(self.count, f * self.rmse, f * self.mean, f * self.median, f * self.std,
-                          f * self.min, f * self.max)  # fmt: skip
+        return ErrorStats(
+            self.count,
+            f * self.rmse,
+            f * self.mean,
+            f * self.median,
+            f * self.std,
+            f * self.min,
+            f * self.max,
+        )
 
     def as_dict(self) -> dict[str, float | int]:
         return dict(vars(self))
@@ -342,10 +360,17 @@ def evaluate(
         trans, rot = rpe_errors(aligned, ref, pi, pj)
         rpe_t, rpe_r = ErrorStats.of(trans), ErrorStats.of(rot)
     return TrajectoryEvaluation(
-        matched=int(ie.size), alignment=alignment, ate=ErrorStats.of(ate), rpe_trans=rpe_t,
-        rpe_rot=rpe_r, ate_per_pose_m=ate, est_aligned_xyz=aligned[:, :3, 3],
-        ref_xyz=ref[:, :3, 3], est_index=ie, ref_index=ir,
-    )  # fmt: skip
+        matched=int(ie.size),
+        alignment=alignment,
+        ate=ErrorStats.of(ate),
+        rpe_trans=rpe_t,
+        rpe_rot=rpe_r,
+        ate_per_pose_m=ate,
+        est_aligned_xyz=aligned[:, :3, 3],
+        ref_xyz=ref[:, :3, 3],
+        est_index=ie,
+        ref_index=ir,
+    )
 
 
 # 6. Relations metric (Kümmerle et al. 2009) ---------------------------------------------------

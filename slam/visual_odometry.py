@@ -185,9 +185,11 @@ def _bucket(
 
 def _orb(n: int, tuning: VoTuning, levels: int) -> cv2.ORB:
     return cv2.ORB_create(  # type: ignore[attr-defined]
-        nfeatures=n, scaleFactor=tuning.orb_scale, nlevels=levels,
+        nfeatures=n,
+        scaleFactor=tuning.orb_scale,
+        nlevels=levels,
         fastThreshold=tuning.fast_threshold,
-    )  # fmt: skip
+    )
 
 
 _WORKER: list[ThreadPoolExecutor] = []  # one worker thread, made on first use
@@ -202,8 +204,7 @@ def _worker() -> ThreadPoolExecutor:
     return _WORKER[0]
 
 
-def _keypoints(kps: Sequence[Any], desc: Any, scale: float, level0: int
-               ) -> tuple[np.ndarray, ...]:  # fmt: skip
+def _keypoints(kps: Sequence[Any], desc: Any, scale: float, level0: int) -> tuple[np.ndarray, ...]:
     """OpenCV keypoints -> (uv (N, 2) [px] times ``scale``, pyramid level (N,) plus ``level0``,
     response (N,), descriptors (N, 32))."""
     if desc is None or len(kps) == 0:
@@ -213,8 +214,9 @@ def _keypoints(kps: Sequence[Any], desc: Any, scale: float, level0: int
     return uv, attr[:, 0].astype(int) + level0, attr[:, 1], desc
 
 
-def _detect(gray: np.ndarray, mask: np.ndarray | None, n: int, tuning: VoTuning
-            ) -> tuple[np.ndarray, ...]:  # fmt: skip
+def _detect(
+    gray: np.ndarray, mask: np.ndarray | None, n: int, tuning: VoTuning
+) -> tuple[np.ndarray, ...]:
     """ORB keypoints and descriptors: (uv (N, 2) [px], pyramid level (N,), response (N,),
     descriptors (N, 32)). One call per pyramid part builds its levels once; describing the
     keypoints the bucketing drops costs less than a second pyramid (detect + compute).
@@ -236,8 +238,9 @@ def _detect(gray: np.ndarray, mask: np.ndarray | None, n: int, tuning: VoTuning
     return tuple(np.concatenate([a, b]) for a, b in zip(low, up, strict=True))
 
 
-def _detect_upper(gray: np.ndarray, mask: np.ndarray | None, n: int, tuning: VoTuning
-                  ) -> tuple[Any, Any]:  # fmt: skip
+def _detect_upper(
+    gray: np.ndarray, mask: np.ndarray | None, n: int, tuning: VoTuning
+) -> tuple[Any, Any]:
     """ORB levels [s, L) of ``gray`` (s = ``orb_split_level``) with ``n`` features: the level-s
     image and mask built as ORB builds them (successive linear resizes; the mask thresholded to
     full-weight pixels). Runs in the worker thread, resizes included (0.9 ms per frame)."""
@@ -312,8 +315,9 @@ def extract_features(
         if not found:  # texture off depth (near floor, far wall) would take ORB's budget
             uv, octave, response, desc = _detect(gray, mask, n, tuning)
     if len(uv) == 0:
-        return Features(np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 32), np.uint8),
-                        np.zeros((0, 3)))  # fmt: skip
+        return Features(
+            np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 32), np.uint8), np.zeros((0, 3))
+        )
     keep = np.arange(len(uv))
     if len(uv) > cfg.max_features:
         keep = _bucket(uv, response, gray.shape[:2], cfg.max_features, tuning)
@@ -352,8 +356,9 @@ def hamming_knn(a: np.ndarray, b: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     return dist.astype(np.int64), idx.astype(np.int64)
 
 
-def knn_candidates(prev: Features, curr: Features, k: int, level_window: int = -1
-                   ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def knn_candidates(
+    prev: Features, curr: Features, k: int, level_window: int = -1
+) -> tuple[np.ndarray, np.ndarray]:
     """(N, k) indices into curr and (N, k) Hamming distances, best first; -1 / inf padding.
 
     With ``level_window >= 0`` a previous keypoint is compared only with current keypoints at
@@ -381,8 +386,13 @@ def knn_candidates(prev: Features, curr: Features, k: int, level_window: int = -
     return idx, dist
 
 
-def match(prev: Features, curr: Features, nndr: float, cross_check: bool,
-          cand: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:  # fmt: skip
+def match(
+    prev: Features,
+    curr: Features,
+    nndr: float,
+    cross_check: bool,
+    cand: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """(M, 2) index pairs (prev, curr): ratio test, optionally mutual best matches only."""
     if len(prev) < 2 or len(curr) < 2:
         return np.zeros((0, 2), int)
@@ -397,9 +407,16 @@ def match(prev: Features, curr: Features, nndr: float, cross_check: bool,
     return pairs
 
 
-def guided_matches(t_cp: np.ndarray, prev_xyz: np.ndarray, curr_uv: np.ndarray, idx: np.ndarray,
-                   dist: np.ndarray, k: np.ndarray, radius_px: float, max_hamming: int
-                   ) -> np.ndarray:  # fmt: skip
+def guided_matches(
+    t_cp: np.ndarray,
+    prev_xyz: np.ndarray,
+    curr_uv: np.ndarray,
+    idx: np.ndarray,
+    dist: np.ndarray,
+    k: np.ndarray,
+    radius_px: float,
+    max_hamming: int,
+) -> np.ndarray:
     """Re-match with the PnP motion: per previous point, the best of its k descriptor candidates
     that lands within ``radius_px`` of its projection; one previous point per current
     keypoint (the closest descriptor wins). Returns (M, 2) (prev, curr) index pairs."""
@@ -427,9 +444,13 @@ def guided_matches(t_cp: np.ndarray, prev_xyz: np.ndarray, curr_uv: np.ndarray, 
 
 
 def _residuals(
-    t_cp: np.ndarray, p_prev: np.ndarray, obs: np.ndarray, has_z: np.ndarray, k: np.ndarray,
+    t_cp: np.ndarray,
+    p_prev: np.ndarray,
+    obs: np.ndarray,
+    has_z: np.ndarray,
+    k: np.ndarray,
     bf: float,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray]:
     """Unweighted residuals (N, 3) [px] and Jacobians (N, 3, 6) w.r.t. a left perturbation.
 
     ``obs`` holds (u, v, u_r) of the current frame; the u_r residual is zeroed where the current
@@ -463,8 +484,9 @@ def _residuals(
     return r, j
 
 
-def _whitened(t_cp: np.ndarray, p_prev: np.ndarray, obs: np.ndarray, iw: np.ndarray,
-              k: np.ndarray, bf: float) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def _whitened(
+    t_cp: np.ndarray, p_prev: np.ndarray, obs: np.ndarray, iw: np.ndarray, k: np.ndarray, bf: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Fast :func:`_residuals` (cross-checked in the tests): residuals (3, N) and Jacobians
     (6, 3, N) (parameter-major: every write below is one contiguous row) over (u, v, u_r), rows
     already divided by their sigma (``iw`` (3, N) = 1/sigma, 0 for a missing u_r). ``obs``
@@ -499,10 +521,17 @@ def _whitened(t_cp: np.ndarray, p_prev: np.ndarray, obs: np.ndarray, iw: np.ndar
 
 
 def refine_rgbd(
-    t_cp: np.ndarray, p_prev: np.ndarray, uv_curr: np.ndarray, z_curr: np.ndarray,
-    octave: np.ndarray, k: np.ndarray, tuning: VoTuning, iterations: int | None = None,
-    gate_from: int = 2, covariance: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:  # fmt: skip
+    t_cp: np.ndarray,
+    p_prev: np.ndarray,
+    uv_curr: np.ndarray,
+    z_curr: np.ndarray,
+    octave: np.ndarray,
+    k: np.ndarray,
+    tuning: VoTuning,
+    iterations: int | None = None,
+    gate_from: int = 2,
+    covariance: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Gauss-Newton with Huber weights on (u, v, u_r) residuals; inliers are re-selected by the
     chi-square gate from iteration ``gate_from`` on (once a rough start has settled).
 
@@ -511,8 +540,9 @@ def refine_rgbd(
     """
     bf = k[0, 0] * KINECT_BASELINE
     has_z = np.isfinite(z_curr)
-    obs = np.stack([uv_curr[:, 0], uv_curr[:, 1],
-                    uv_curr[:, 0] - bf / np.where(has_z, z_curr, 1.0)])  # fmt: skip
+    obs = np.stack(
+        [uv_curr[:, 0], uv_curr[:, 1], uv_curr[:, 0] - bf / np.where(has_z, z_curr, 1.0)]
+    )
     px = tuning.pixel_sigma * tuning.orb_scale ** octave.astype(float)  # coarser: worse
     iw = np.stack([1.0 / px, 1.0 / px, has_z / np.hypot(px, tuning.disparity_sigma)])
     gate = np.where(has_z, CHI2_3DOF_95, CHI2_2DOF_95) * CHI2_GATE_SCALE
@@ -604,15 +634,24 @@ def to_planar(
 # --------------------------------------------------------------------------------------------
 
 
-def _fail(reason: str, t0: float, n_match: int = 0, inliers: int = 0, planar: bool = False
-          ) -> VoResult:  # fmt: skip
+def _fail(
+    reason: str, t0: float, n_match: int = 0, inliers: int = 0, planar: bool = False
+) -> VoResult:
     n = 3 if planar else 6
-    return VoResult(False, reason, np.eye(4), inliers, np.full((n, n), np.inf),
-                    (time.perf_counter() - t0) * 1e3, n_match)  # fmt: skip
+    return VoResult(
+        False,
+        reason,
+        np.eye(4),
+        inliers,
+        np.full((n, n), np.inf),
+        (time.perf_counter() - t0) * 1e3,
+        n_match,
+    )
 
 
-def kabsch(p: np.ndarray, q: np.ndarray, w: np.ndarray | None = None
-           ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def kabsch(
+    p: np.ndarray, q: np.ndarray, w: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Batched weighted least-squares rigid motion ``q ~ R p + t`` (Kabsch).
 
     p, q (H, n, 3) or broadcastable; w (H, n) weights or None. Returns R (H, 3, 3), t (H, 3):
@@ -640,9 +679,14 @@ def _uniform_samples(seed: int, count: int) -> np.ndarray:
 
 
 def rigid_ransac(
-    p: np.ndarray, q: np.ndarray, uv: np.ndarray, scale: np.ndarray, k: np.ndarray,
-    thr_px: float, tuning: VoTuning,
-) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    p: np.ndarray,
+    q: np.ndarray,
+    uv: np.ndarray,
+    scale: np.ndarray,
+    k: np.ndarray,
+    thr_px: float,
+    tuning: VoTuning,
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Motion hypotheses from matched 3D points p (prev) and q (curr) by 3-point rigid samples.
 
     Samples whose side lengths disagree beyond the depth noise cannot be all inliers and are
@@ -689,8 +733,9 @@ def rigid_ransac(
     def score(r: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         qq = np.matmul(r, pt) + t[:, :, None]  # (H, 3, n)
         iz = 1.0 / np.maximum(qq[:, 2], 1e-6)
-        e2 = ((qq[:, 0] * iz * fx + cx - uv[:, 0]) ** 2
-              + (qq[:, 1] * iz * fy + cy - uv[:, 1]) ** 2) * inv_s2  # fmt: skip
+        e2 = (
+            (qq[:, 0] * iz * fx + cx - uv[:, 0]) ** 2 + (qq[:, 1] * iz * fy + cy - uv[:, 1]) ** 2
+        ) * inv_s2
         return np.minimum(e2, 1.0).sum(1), e2 < 1.0
 
     cost, inl = score(r, t)
@@ -725,23 +770,34 @@ _PNP_FLAGS = {
 
 
 def initial_motions(
-    obj: np.ndarray, img: np.ndarray, curr_xyz: np.ndarray, curr_octave: np.ndarray,
-    k: np.ndarray, cfg: VoConfig, tuning: VoTuning,
-) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    obj: np.ndarray,
+    img: np.ndarray,
+    curr_xyz: np.ndarray,
+    curr_octave: np.ndarray,
+    k: np.ndarray,
+    cfg: VoConfig,
+    tuning: VoTuning,
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Candidate (T_curr_prev, inlier indices), best first, from matched previous 3D points
     ``obj`` and current pixels ``img`` (with the current 3D points where depth exists)."""
     if tuning.pnp_method == "rigid":
         has = np.flatnonzero(np.isfinite(curr_xyz[:, 2]))
         scale = tuning.orb_scale ** curr_octave[has].astype(float)
-        hyps = rigid_ransac(obj[has], curr_xyz[has], img[has], scale, k, cfg.pnp_reproj_error,
-                            tuning)  # fmt: skip
+        hyps = rigid_ransac(
+            obj[has], curr_xyz[has], img[has], scale, k, cfg.pnp_reproj_error, tuning
+        )
         return [(t, has[m]) for t, m in hyps]
     try:
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            obj, img, k, None, iterationsCount=cfg.ransac_iterations,
-            reprojectionError=cfg.pnp_reproj_error, confidence=tuning.ransac_confidence,
+            obj,
+            img,
+            k,
+            None,
+            iterationsCount=cfg.ransac_iterations,
+            reprojectionError=cfg.pnp_reproj_error,
+            confidence=tuning.ransac_confidence,
             flags=_PNP_FLAGS[tuning.pnp_method],
-        )  # fmt: skip
+        )
     except cv2.error as err:
         log.debug("solvePnPRansac failed: %s", err)
         return []
@@ -753,10 +809,21 @@ def initial_motions(
     return [(t_cp, inl.ravel())]
 
 
-def _refine(t_cp: np.ndarray, inl: np.ndarray, sub: Features, curr: Features, pairs: np.ndarray,
-            cand: tuple[np.ndarray, np.ndarray], k: np.ndarray, cfg: VoConfig, tuning: VoTuning,
-            radius_px: float, max_hamming: int, second: bool = False, covariance: bool = True,
-            ) -> tuple[np.ndarray, int, np.ndarray | None, int]:  # fmt: skip
+def _refine(
+    t_cp: np.ndarray,
+    inl: np.ndarray,
+    sub: Features,
+    curr: Features,
+    pairs: np.ndarray,
+    cand: tuple[np.ndarray, np.ndarray],
+    k: np.ndarray,
+    cfg: VoConfig,
+    tuning: VoTuning,
+    radius_px: float,
+    max_hamming: int,
+    second: bool = False,
+    covariance: bool = True,
+) -> tuple[np.ndarray, int, np.ndarray | None, int]:
     """Step 5 for one initial motion: (T_curr_prev, inliers, covariance or None, matches)."""
     ip, ic = pairs[:, 0], pairs[:, 1]
     if tuning.refine == "none":
@@ -772,9 +839,15 @@ def _refine(t_cp: np.ndarray, inl: np.ndarray, sub: Features, curr: Features, pa
         err = np.linalg.norm(proj - curr.uv[ic], axis=1)
         sel = np.flatnonzero(err < 3 * cfg.pnp_reproj_error)
         gi, gc = ip[sel], ic[sel]
-        t_cp, mask, cov = refine_rgbd(t_cp, sub.xyz[gi], curr.uv[gc], np.full(len(gc), np.nan),
-                                      curr.octave[gc], k, replace(tuning, refine_iterations=1)
-                                      )  # fmt: skip
+        t_cp, mask, cov = refine_rgbd(
+            t_cp,
+            sub.xyz[gi],
+            curr.uv[gc],
+            np.full(len(gc), np.nan),
+            curr.octave[gc],
+            k,
+            replace(tuning, refine_iterations=1),
+        )
         return t_cp, int(mask.sum()), cov, len(pairs)
     # 5a. Guided search: many more correspondences than the ratio test lets through.
     gp = guided_matches(t_cp, sub.xyz, curr.uv, *cand, k, radius_px, max_hamming)
@@ -782,17 +855,30 @@ def _refine(t_cp: np.ndarray, inl: np.ndarray, sub: Features, curr: Features, pa
     # 5b. Gauss-Newton on the reprojection + disparity residuals.
     # The second search starts from a refined motion: gate at once, fewer steps.
     t_cp, mask, cov = refine_rgbd(
-        t_cp, sub.xyz[gi], curr.uv[gc], curr.xyz[gc, 2], curr.octave[gc], k, tuning,
-        tuning.second_iterations if second else None, 0 if second else 2, covariance,
-    )  # fmt: skip
+        t_cp,
+        sub.xyz[gi],
+        curr.uv[gc],
+        curr.xyz[gc, 2],
+        curr.octave[gc],
+        k,
+        tuning,
+        tuning.second_iterations if second else None,
+        0 if second else 2,
+        covariance,
+    )
     return t_cp, int(mask.sum()), cov, max(len(pairs), len(gp))
 
 
 def motion_from_features(
-    prev: Features, curr: Features, k: np.ndarray, cfg: VoConfig, tuning: VoTuning,
-    t_base_opt: np.ndarray | None = None, t0: float | None = None,
+    prev: Features,
+    curr: Features,
+    k: np.ndarray,
+    cfg: VoConfig,
+    tuning: VoTuning,
+    t_base_opt: np.ndarray | None = None,
+    t0: float | None = None,
     t_seed: np.ndarray | None = None,
-) -> VoResult:  # fmt: skip
+) -> VoResult:
     """Steps 3-6 of the pipeline on already extracted features. ``t_seed`` (T_curr_prev, e.g.
     the last frame's pose) is refined first, through the same guided search; RANSAC runs only
     if its inliers fall below ``prior_min_inlier_ratio`` of its guided matches."""
@@ -802,8 +888,9 @@ def motion_from_features(
         return _fail("too_few_features", t0, planar=planar)
     # 3. Match the previous keypoints that have depth.
     with_depth = np.flatnonzero(np.isfinite(prev.xyz[:, 2]))
-    sub = Features(prev.uv[with_depth], prev.octave[with_depth], prev.desc[with_depth],
-                   prev.xyz[with_depth])  # fmt: skip
+    sub = Features(
+        prev.uv[with_depth], prev.octave[with_depth], prev.desc[with_depth], prev.xyz[with_depth]
+    )
     cand = knn_candidates(sub, curr, max(2, tuning.knn), tuning.level_window)
     pairs = match(sub, curr, cfg.cor_nndr, tuning.cross_check, cand)
     n_match = len(pairs)
@@ -812,17 +899,39 @@ def motion_from_features(
     ip, ic = pairs[:, 0], pairs[:, 1]
     second = tuning.refine == "rgbd" and tuning.second_radius_px > 0  # recomputes covariances
     if t_seed is not None and tuning.refine == "rgbd":
-        seeded = _refine(t_seed, np.zeros(0, int), sub, curr, pairs, cand, k, cfg, tuning,
-                         tuning.guided_radius_px, tuning.guided_max_hamming,
-                         covariance=not second)  # fmt: skip
+        seeded = _refine(
+            t_seed,
+            np.zeros(0, int),
+            sub,
+            curr,
+            pairs,
+            cand,
+            k,
+            cfg,
+            tuning,
+            tuning.guided_radius_px,
+            tuning.guided_max_hamming,
+            covariance=not second,
+        )
         if seeded[1] >= max(cfg.min_inliers, tuning.prior_min_inlier_ratio * seeded[3]):
-            res = _verified([seeded], sub, curr, pairs, cand, k, cfg, tuning, second,
-                            t_base_opt if planar else None, t0, prior=True)  # fmt: skip
+            res = _verified(
+                [seeded],
+                sub,
+                curr,
+                pairs,
+                cand,
+                k,
+                cfg,
+                tuning,
+                second,
+                t_base_opt if planar else None,
+                t0,
+                prior=True,
+            )
             if res.success:  # else (the second search lost it, a sanity test): RANSAC decides
                 return res
     # 4. Robust initial motions: 3D points of the previous frame seen in the current frame.
-    hyps = initial_motions(sub.xyz[ip], curr.uv[ic], curr.xyz[ic], curr.octave[ic], k, cfg,
-                           tuning)  # fmt: skip
+    hyps = initial_motions(sub.xyz[ip], curr.uv[ic], curr.xyz[ic], curr.octave[ic], k, cfg, tuning)
     if not hyps:
         return _fail("pnp_failed", t0, n_match, planar=planar)
     # The guided search + refinement must still reach min_inliers; the seed may be smaller.
@@ -842,18 +951,41 @@ def motion_from_features(
             np.linalg.norm(t[:3, 3] - r[0][:3, 3]) < tuning.distinct_m for r in refined
         ):
             continue
-        refined.append(_refine(t, inl, sub, curr, pairs, cand, k, cfg, tuning,
-                               tuning.guided_radius_px, tuning.guided_max_hamming,
-                               covariance=not second))  # fmt: skip
-    return _verified(refined, sub, curr, pairs, cand, k, cfg, tuning, second,
-                     t_base_opt if planar else None, t0)  # fmt: skip
+        refined.append(
+            _refine(
+                t,
+                inl,
+                sub,
+                curr,
+                pairs,
+                cand,
+                k,
+                cfg,
+                tuning,
+                tuning.guided_radius_px,
+                tuning.guided_max_hamming,
+                covariance=not second,
+            )
+        )
+    return _verified(
+        refined, sub, curr, pairs, cand, k, cfg, tuning, second, t_base_opt if planar else None, t0
+    )
 
 
-def _verified(refined: list[tuple[np.ndarray, int, np.ndarray | None, int]], sub: Features,
-              curr: Features, pairs: np.ndarray, cand: tuple[np.ndarray, np.ndarray],
-              k: np.ndarray, cfg: VoConfig, tuning: VoTuning, second: bool,
-              t_base_opt: np.ndarray | None, t0: float, prior: bool = False,
-              ) -> VoResult:  # fmt: skip
+def _verified(
+    refined: list[tuple[np.ndarray, int, np.ndarray | None, int]],
+    sub: Features,
+    curr: Features,
+    pairs: np.ndarray,
+    cand: tuple[np.ndarray, np.ndarray],
+    k: np.ndarray,
+    cfg: VoConfig,
+    tuning: VoTuning,
+    second: bool,
+    t_base_opt: np.ndarray | None,
+    t0: float,
+    prior: bool = False,
+) -> VoResult:
     """Step 5's close calls decided by the second, narrower search around each refined motion
     (``second``); the most inliers win and go to the tests of step 6."""
     if second:
@@ -863,26 +995,48 @@ def _verified(refined: list[tuple[np.ndarray, int, np.ndarray | None, int]], sub
                 kept.append(r)
         top = kept[0][1]
         refined = [
-            (*_refine(t, np.zeros(0, int), sub, curr, pairs, cand, k, cfg, tuning,
-                      tuning.second_radius_px, tuning.second_max_hamming, True)[:3], m)
-            for t, n, _, m in kept if n >= tuning.close_call * top
-        ]  # fmt: skip
+            (
+                *_refine(
+                    t,
+                    np.zeros(0, int),
+                    sub,
+                    curr,
+                    pairs,
+                    cand,
+                    k,
+                    cfg,
+                    tuning,
+                    tuning.second_radius_px,
+                    tuning.second_max_hamming,
+                    True,
+                )[:3],
+                m,
+            )
+            for t, n, _, m in kept
+            if n >= tuning.close_call * top
+        ]
     t_cp, n_inl, cov_cp, n_match = max(refined, key=lambda r: r[1])
     res = _accept(t_cp, n_inl, cov_cp, n_match, cfg, tuning, t_base_opt, t0)
     return replace(res, prior=True) if prior and res.success else res
 
 
-def _accept(t_cp: np.ndarray, n_inl: int, cov_cp: np.ndarray | None, n_match: int,
-            cfg: VoConfig, tuning: VoTuning, t_base_opt: np.ndarray | None, t0: float,
-            ) -> VoResult:  # fmt: skip
+def _accept(
+    t_cp: np.ndarray,
+    n_inl: int,
+    cov_cp: np.ndarray | None,
+    n_match: int,
+    cfg: VoConfig,
+    tuning: VoTuning,
+    t_base_opt: np.ndarray | None,
+    t0: float,
+) -> VoResult:
     """Step 6: inlier and motion sanity tests, covariance of T_prev_curr, planar projection."""
     planar = t_base_opt is not None
     if n_inl < cfg.min_inliers or n_inl < tuning.min_inlier_ratio * n_match:
         return _fail("too_few_inliers", t0, n_match, n_inl, planar=planar)
     # 6. Motion sanity.
     t_pc = inverse(t_cp)
-    if (np.linalg.norm(t_pc[:3, 3]) > cfg.max_translation
-            or rotation_angle(t_pc) > cfg.max_rotation):  # fmt: skip
+    if np.linalg.norm(t_pc[:3, 3]) > cfg.max_translation or rotation_angle(t_pc) > cfg.max_rotation:
         return _fail("implausible_motion", t0, n_match, n_inl, planar=planar)
     if cov_cp is None:
         cov6 = np.diag([1e-4] * 3 + [1e-4] * 3)  # no refinement: a conservative 1 cm / 0.6 deg
@@ -937,9 +1091,16 @@ def _with_depth(f: Features) -> Features:
     return Features(f.uv[keep], f.octave[keep], f.desc[keep], f.xyz[keep])
 
 
-def window_matches(t_cp: np.ndarray, prev: Features, curr: Features, curr_tree: cKDTree,
-                   k: np.ndarray, radius_px: float, max_hamming: int, level_window: int
-                   ) -> np.ndarray:  # fmt: skip
+def window_matches(
+    t_cp: np.ndarray,
+    prev: Features,
+    curr: Features,
+    curr_tree: cKDTree,
+    k: np.ndarray,
+    radius_px: float,
+    max_hamming: int,
+    level_window: int,
+) -> np.ndarray:
     """Search by projection: every previous 3D point projected by ``t_cp`` is matched to the
     current keypoint within ``radius_px`` of its projection (and ``level_window`` pyramid
     levels) with the smallest Hamming distance, at most ``max_hamming``; one previous point per
@@ -969,9 +1130,14 @@ def window_matches(t_cp: np.ndarray, prev: Features, curr: Features, curr_tree: 
 
 
 def motion_from_prior(
-    prev: Features, curr: Features, t_cp_prior: np.ndarray, k: np.ndarray, cfg: VoConfig,
-    tuning: VoTuning, t0: float | None = None,
-) -> VoResult | None:  # fmt: skip
+    prev: Features,
+    curr: Features,
+    t_cp_prior: np.ndarray,
+    k: np.ndarray,
+    cfg: VoConfig,
+    tuning: VoTuning,
+    t0: float | None = None,
+) -> VoResult | None:
     """Steps 3-6 around a predicted motion ``t_cp_prior`` (T_curr_prev), as ORB-SLAM tracks a
     keyframe from the last pose: window search around the predicted projections (instead of
     the global Hamming k-NN and RANSAC), then the refinement, second search and tests of the
@@ -984,16 +1150,31 @@ def motion_from_prior(
         return None
     tree = cKDTree(curr.uv)
     found = 0
-    t_cp, radius, max_ham, its, gate_from = t_cp_prior, tuning.prior_radius_px, \
-        tuning.guided_max_hamming, None, 2  # fmt: skip
+    t_cp, radius, max_ham, its, gate_from = (
+        t_cp_prior,
+        tuning.prior_radius_px,
+        tuning.guided_max_hamming,
+        None,
+        2,
+    )
     for step in range(2 if tuning.second_radius_px > 0 else 1):
         pairs = window_matches(t_cp, sub, curr, tree, k, radius, max_ham, tuning.level_window)
         if len(pairs) < cfg.min_inliers:
             return None
         gi, gc = pairs[:, 0], pairs[:, 1]
         last = step == 1 or tuning.second_radius_px <= 0
-        t_cp, mask, cov = refine_rgbd(t_cp, sub.xyz[gi], curr.uv[gc], curr.xyz[gc, 2],
-                                      curr.octave[gc], k, tuning, its, gate_from, last)  # fmt: skip
+        t_cp, mask, cov = refine_rgbd(
+            t_cp,
+            sub.xyz[gi],
+            curr.uv[gc],
+            curr.xyz[gc, 2],
+            curr.octave[gc],
+            k,
+            tuning,
+            its,
+            gate_from,
+            last,
+        )
         n_inl = int(mask.sum())
         if n_inl < tuning.prior_min_inlier_ratio * len(pairs):
             return None
@@ -1018,10 +1199,18 @@ def prior_error_px(t_pred: np.ndarray, t_est: np.ndarray, fx: float, depth_m: fl
 
 
 def motion_from_flow(
-    kf: Features, idx: np.ndarray, uv_last: np.ndarray, gray_kf: np.ndarray,
-    gray: np.ndarray, depth_m: np.ndarray, t_cp_pred: np.ndarray, k: np.ndarray,
-    cfg: VoConfig, tuning: VoTuning, t0: float | None = None,
-) -> tuple[VoResult, np.ndarray, np.ndarray]:  # fmt: skip
+    kf: Features,
+    idx: np.ndarray,
+    uv_last: np.ndarray,
+    gray_kf: np.ndarray,
+    gray: np.ndarray,
+    depth_m: np.ndarray,
+    t_cp_pred: np.ndarray,
+    k: np.ndarray,
+    cfg: VoConfig,
+    tuning: VoTuning,
+    t0: float | None = None,
+) -> tuple[VoResult, np.ndarray, np.ndarray]:
     """Keyframe-relative motion from the keyframe's 3D points ``kf.xyz[idx]`` tracked by
     pyramidal Lucas-Kanade from the keyframe's image ``gray_kf`` into this one, each search
     starting where the point was in the last frame (``uv_last``; RTAB-Map's flow with an
@@ -1043,24 +1232,38 @@ def motion_from_flow(
     if len(uv_last) < cfg.min_inliers:  # (OpenCV returns None for no points at all)
         return _fail("too_few_matches", t0, n_kf, len(uv_last)), *none
     win = (cfg.cor_flow_win_size, cfg.cor_flow_win_size)
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.cor_flow_iterations,
-            cfg.cor_flow_eps)  # fmt: skip
+    crit = (
+        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
+        cfg.cor_flow_iterations,
+        cfg.cor_flow_eps,
+    )
     pts, status, _ = cv2.calcOpticalFlowPyrLK(
-        gray_kf, gray, kf.uv[idx].astype(np.float32).reshape(-1, 1, 2),
-        uv_last.reshape(-1, 1, 2).copy(), winSize=win, maxLevel=cfg.cor_flow_max_level,
-        criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )  # type: ignore[call-overload]  # fmt: skip
+        gray_kf,
+        gray,
+        kf.uv[idx].astype(np.float32).reshape(-1, 1, 2),
+        uv_last.reshape(-1, 1, 2).copy(),
+        winSize=win,
+        maxLevel=cfg.cor_flow_max_level,
+        criteria=crit,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )  # type: ignore[call-overload]
     uv = pts.reshape(-1, 2).astype(np.float64)
     h, w = depth_m.shape[:2]
-    ok = (status.ravel() == 1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (
-        uv[:, 1] <= h - 1)  # fmt: skip
+    ok = (
+        (status.ravel() == 1)
+        & (uv[:, 0] >= 0)
+        & (uv[:, 0] <= w - 1)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] <= h - 1)
+    )
     idx, uv = idx[ok], uv[ok]
     if len(idx) < cfg.min_inliers:
         return _fail("too_few_matches", t0, n_kf, len(idx)), *none
     z = _lookup(depth_m, uv).astype(np.float64)
     z = np.where(np.isfinite(z) & (z >= cfg.min_depth) & (z <= cfg.max_depth), z, np.nan)
-    t_cp, inl, cov = refine_rgbd(t_cp_pred, kf.xyz[idx], uv, z, np.zeros(len(idx), int), k,
-                                 tuning, gate_from=1)  # fmt: skip
+    t_cp, inl, cov = refine_rgbd(
+        t_cp_pred, kf.xyz[idx], uv, z, np.zeros(len(idx), int), k, tuning, gate_from=1
+    )
     if inl.sum() < tuning.prior_min_inlier_ratio * len(uv_last):  # a jump flow cannot follow
         return _fail("too_few_inliers", t0, n_kf, int(inl.sum())), *none
     res = _accept(t_cp, int(inl.sum()), cov, n_kf, cfg, tuning, None, t0)
@@ -1108,9 +1311,14 @@ class VisualOdometry:
     0.12 m with this prior, as without one).
     """
 
-    def __init__(self, intrinsics: CameraIntrinsics, cfg: VoConfig | None = None,
-                 robot: RobotConfig | None = None, tuning: VoTuning | None = None,
-                 keyframes: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        intrinsics: CameraIntrinsics,
+        cfg: VoConfig | None = None,
+        robot: RobotConfig | None = None,
+        tuning: VoTuning | None = None,
+        keyframes: bool = True,
+    ) -> None:
         self.cfg = cfg or VoConfig()
         if self.cfg.method not in ("orb_pnp", "depth_icp"):
             raise ConfigError(
@@ -1188,50 +1396,86 @@ class VisualOdometry:
         if self._kf is None:
             self._new_keyframe(self._features(frame) if feats is None else feats, gray)
             n = 3 if self.t_base_opt is not None else 6
-            return VoResult(False, "no_previous_frame", np.eye(4), 0, np.full((n, n), np.inf),
-                            (time.perf_counter() - t0) * 1e3)  # fmt: skip
+            return VoResult(
+                False,
+                "no_previous_frame",
+                np.eye(4),
+                0,
+                np.full((n, n), np.inf),
+                (time.perf_counter() - t0) * 1e3,
+            )
         # The keyframe may be up to a keyframe span behind: widen the sanity limits for the
         # keyframe-relative estimate and apply the configured ones to the frame-to-frame motion.
-        cfg6 = replace(self.cfg, force_3dof=False,
-                       max_translation=self.cfg.max_translation + self.cfg.keyframe_translation,
-                       max_rotation=self.cfg.max_rotation + self.cfg.keyframe_rotation)  # fmt: skip
+        cfg6 = replace(
+            self.cfg,
+            force_3dof=False,
+            max_translation=self.cfg.max_translation + self.cfg.keyframe_translation,
+            max_rotation=self.cfg.max_rotation + self.cfg.keyframe_rotation,
+        )
         t_kf_pred = self._kf.T_kf_last  # the last frame's pose: the prediction
         res, tracks, lost = None, None, False
         if gray is not None and self._tracks is not None and self._gray is not None:
-            res, *tracks = motion_from_flow(self._kf.features, *self._tracks, self._gray, gray,
-                                            frame.depth_m, inverse(t_kf_pred), self.k, cfg6,
-                                            self.tuning, t0)  # fmt: skip
+            res, *tracks = motion_from_flow(
+                self._kf.features,
+                *self._tracks,
+                self._gray,
+                gray,
+                frame.depth_m,
+                inverse(t_kf_pred),
+                self.k,
+                cfg6,
+                self.tuning,
+                t0,
+            )
             res = replace(res, prior=True) if res.success else None
             lost = res is None  # the keyframe's points are lost: match globally, start anew
         elif self._prior_holds and self.tuning.prior_radius_px > 0:
             assert feats is not None
-            res = motion_from_prior(self._kf.features, feats, inverse(t_kf_pred), self.k, cfg6,
-                                    self.tuning, t0)  # fmt: skip
+            res = motion_from_prior(
+                self._kf.features, feats, inverse(t_kf_pred), self.k, cfg6, self.tuning, t0
+            )
             res = None if res is None else replace(res, prior=True)
         if res is None:
             feats = self._features(frame) if feats is None else feats
             seed = self._prior_holds and self.tuning.prior_seed
-            res = motion_from_features(self._kf.features, feats, self.k, cfg6, self.tuning, None,
-                                       t0, inverse(t_kf_pred) if seed else None)  # fmt: skip
+            res = motion_from_features(
+                self._kf.features,
+                feats,
+                self.k,
+                cfg6,
+                self.tuning,
+                None,
+                t0,
+                inverse(t_kf_pred) if seed else None,
+            )
             # Try the prior next time only if it would have hit this frame's window.
-            self._prior_holds = res.success and prior_error_px(
-                t_kf_pred, res.T_prev_curr, self.k[0, 0], self._kf.depth_m
-            ) < self.tuning.prior_max_error_px  # fmt: skip
+            self._prior_holds = (
+                res.success
+                and prior_error_px(t_kf_pred, res.T_prev_curr, self.k[0, 0], self._kf.depth_m)
+                < self.tuning.prior_max_error_px
+            )
         if res.success:
             t_kf_curr = res.T_prev_curr
             t_last_curr = inverse(self._kf.T_kf_last) @ t_kf_curr
-            if (np.linalg.norm(t_last_curr[:3, 3]) > self.cfg.max_translation
-                    or rotation_angle(t_last_curr) > self.cfg.max_rotation):  # fmt: skip
-                res = replace(res, success=False, reason="implausible_motion",
-                              T_prev_curr=np.eye(4))  # fmt: skip
+            if (
+                np.linalg.norm(t_last_curr[:3, 3]) > self.cfg.max_translation
+                or rotation_angle(t_last_curr) > self.cfg.max_rotation
+            ):
+                res = replace(
+                    res, success=False, reason="implausible_motion", T_prev_curr=np.eye(4)
+                )
         if not res.success:
             self._new_keyframe(self._features(frame) if feats is None else feats, gray)
             self._prior_holds = False
             return self._finish(res, None, t0)
-        new_kf = (not self.keyframes or lost or res.inlier_ratio < self.cfg.keyframe_thr
-                  or res.inliers < self.tuning.keyframe_inliers
-                  or np.linalg.norm(t_kf_curr[:3, 3]) > self.cfg.keyframe_translation
-                  or rotation_angle(t_kf_curr) > self.cfg.keyframe_rotation)  # fmt: skip
+        new_kf = (
+            not self.keyframes
+            or lost
+            or res.inlier_ratio < self.cfg.keyframe_thr
+            or res.inliers < self.tuning.keyframe_inliers
+            or np.linalg.norm(t_kf_curr[:3, 3]) > self.cfg.keyframe_translation
+            or rotation_angle(t_kf_curr) > self.cfg.keyframe_rotation
+        )
         if new_kf:
             self._new_keyframe(self._features(frame) if feats is None else feats, gray)
         else:

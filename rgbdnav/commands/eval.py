@@ -95,11 +95,15 @@ def evaluate_files(
         raise TrajectoryEvalError(f"--max-diff must be > 0 s, got {max_diff_s}")
     try:
         return evaluate(
-            estimate.stamps_ns, poses_from_tum(estimate.xyz, estimate.quat_xyzw),
-            reference.stamps_ns, poses_from_tum(reference.xyz, reference.quat_xyzw),
-            align_mode=cast(AlignMode, align), max_diff_ns=max_diff_ns, delta=delta,
+            estimate.stamps_ns,
+            poses_from_tum(estimate.xyz, estimate.quat_xyzw),
+            reference.stamps_ns,
+            poses_from_tum(reference.xyz, reference.quat_xyzw),
+            align_mode=cast(AlignMode, align),
+            max_diff_ns=max_diff_ns,
+            delta=delta,
             delta_unit=cast(DeltaUnit, delta_unit),
-        )  # fmt: skip
+        )
     except TrajectoryEvalError as err:
         raise TrajectoryEvalError(
             f"{estimate.path} ({_span(estimate)}) vs {reference.path} ({_span(reference)}), "
@@ -107,8 +111,15 @@ def evaluate_files(
         ) from err
 
 
-def summary_of(result: TrajectoryEvaluation, estimate: Trajectory, reference: Trajectory,
-               align: str, max_diff_s: float, delta: float, delta_unit: str) -> dict:  # fmt: skip
+def summary_of(
+    result: TrajectoryEvaluation,
+    estimate: Trajectory,
+    reference: Trajectory,
+    align: str,
+    max_diff_s: float,
+    delta: float,
+    delta_unit: str,
+) -> dict:
     """The summary.json content; flat ``ate_rmse_m`` etc. for scripts, full statistics nested."""
     summary: dict = {
         "command": "eval",
@@ -119,7 +130,7 @@ def summary_of(result: TrajectoryEvaluation, estimate: Trajectory, reference: Tr
         "repeated_stamps": {
             "estimate": estimate.repeated_stamps,
             "reference": reference.repeated_stamps,
-        },  # fmt: skip
+        },
         "matched": result.matched,
         "max_diff_s": max_diff_s,
         "align": align,
@@ -152,8 +163,10 @@ def format_report(summary: dict) -> str:
     per = f"per {summary['rpe_delta']:g} {summary['rpe_delta_unit']}"
     if "rpe_trans_m" in summary:
         t, r = summary["rpe_trans_m"], summary["rpe_rot_deg"]
-        out.append(f"RPE [m]     rmse {t['rmse']:.6f}  mean {t['mean']:.6f}  max {t['max']:.6f}"
-                   f"  ({t['count']} pairs, {per})")  # fmt: skip
+        out.append(
+            f"RPE [m]     rmse {t['rmse']:.6f}  mean {t['mean']:.6f}  max {t['max']:.6f}"
+            f"  ({t['count']} pairs, {per})"
+        )
         out.append(f"RPE [deg]   rmse {r['rmse']:.4f}  mean {r['mean']:.4f}  max {r['max']:.4f}")
     else:
         out.append(f"RPE         no pose pairs {per}: the trajectory is shorter than the delta")
@@ -239,8 +252,14 @@ def run_relations_eval(
     relations = read_relations(relations_path)
     poses = np.column_stack([estimate.xyz[:, :2], yaw_from_quaternion(estimate.quat_xyzw)])
     try:
-        metric = relations_error(estimate.stamps_ns, poses, relations.t1_ns, relations.t2_ns,
-                                 relations.xyyaw, max_diff_ns)  # fmt: skip
+        metric = relations_error(
+            estimate.stamps_ns,
+            poses,
+            relations.t1_ns,
+            relations.t2_ns,
+            relations.xyyaw,
+            max_diff_ns,
+        )
     except TrajectoryEvalError as err:
         raise TrajectoryEvalError(
             f"{estimate.path} ({_span(estimate)}) vs {relations.path}, "

@@ -99,25 +99,39 @@ def episodes(results: Sequence[LocalizationResult]) -> tuple[list[dict], list[di
         if r.status != "tracking" and start is None:
             start, start_kind = k, ("lost" if r.status == "lost" else "start of run")
         elif r.status == "tracking" and start is not None:
-            relocs.append({"scan": k, "stamp_s": r.stamp_ns / NS_PER_S, "scans": k - start + 1,
-                           "after": start_kind, "reason": r.reason})  # fmt: skip
+            relocs.append(
+                {
+                    "scan": k,
+                    "stamp_s": r.stamp_ns / NS_PER_S,
+                    "scans": k - start + 1,
+                    "after": start_kind,
+                    "reason": r.reason,
+                }
+            )
             if lost and start_kind == "lost":
                 lost[-1]["scans_to_relocalise"] = k - start + 1
             start = None
         prev = r.status
     tail = None
     if start is not None:
-        tail = {"since_scan": start, "scans": len(results) - start, "after": start_kind,
-                "last_reason": results[-1].reason}  # fmt: skip
+        tail = {
+            "since_scan": start,
+            "scans": len(results) - start,
+            "after": start_kind,
+            "last_reason": results[-1].reason,
+        }
     return lost, relocs, tail
 
 
 def _stats(values: np.ndarray, digits: int = 4) -> dict[str, float | int | None]:
     if len(values) == 0:
         return {"count": 0, "median": None, "p95": None, "max": None}
-    return {"count": len(values), "median": round(float(np.median(values)), digits),
-            "p95": round(float(np.percentile(values, 95)), digits),
-            "max": round(float(values.max()), digits)}  # fmt: skip
+    return {
+        "count": len(values),
+        "median": round(float(np.median(values)), digits),
+        "p95": round(float(np.percentile(values, 95)), digits),
+        "max": round(float(values.max()), digits),
+    }
 
 
 def errors_against_truth(
@@ -137,8 +151,8 @@ def errors_against_truth(
         "tracked_but_wrong": wrong,
         "wrong_means": f"> {WRONG_POSITION_M} m or > {np.degrees(WRONG_HEADING_RAD):.0f} deg",
         "note": "assumes the map frame is the ground truth's frame (true for maps that "
-                "rgbdnav map built from a recording of the same world)",
-    }  # fmt: skip
+        "rgbdnav map built from a recording of the same world)",
+    }
 
 
 def _stamp_text(stamp_ns: int) -> str:
@@ -150,8 +164,11 @@ def csv_text(results: Sequence[LocalizationResult]) -> str:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_HEADER)
     for r in results:
-        pose = [f"{r.pose[0]:.6f}", f"{r.pose[1]:.6f}", f"{r.pose[2]:.6f}"] if has_pose(r) else [
-            "", "", ""]  # fmt: skip
+        pose = (
+            [f"{r.pose[0]:.6f}", f"{r.pose[1]:.6f}", f"{r.pose[2]:.6f}"]
+            if has_pose(r)
+            else ["", "", ""]
+        )
         w.writerow([_stamp_text(r.stamp_ns), *pose, f"{r.confidence:.4f}", r.status, r.reason])
     return buf.getvalue()
 
@@ -191,20 +208,30 @@ def run_localize(
         # depth->scan with the RGB-D profile, as the map was made
         _, config_files, cfg, extrinsics = source_config(src, config_files, overrides)
         t_model = time.perf_counter()
-        model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
-                                   loaded.free_thresh)  # fmt: skip
+        model = MapModel.from_grid(
+            loaded.grid, cfg.localizer, loaded.occupied_thresh, loaded.free_thresh
+        )
         model_s = time.perf_counter() - t_model
         g = loaded.grid.geometry
         summary: dict[str, Any] = {
-            "command": "localize", "source": str(source_path), "source_kind": src.describe(),
-            "config_files": [str(p) for p in config_files], "extrinsics": extrinsics,
-            "map": {"path": str(map_path), "kind": loaded.kind, "resolution": g.resolution,
-                    "width": g.width, "height": g.height, "origin": [g.origin_x, g.origin_y],
-                    "occupied_thresh": loaded.occupied_thresh,
-                    "free_thresh": loaded.free_thresh,
-                    "occupied_cells": int(np.count_nonzero(model.occupied)),
-                    "free_cells": int(np.count_nonzero(model.free))},
-        }  # fmt: skip
+            "command": "localize",
+            "source": str(source_path),
+            "source_kind": src.describe(),
+            "config_files": [str(p) for p in config_files],
+            "extrinsics": extrinsics,
+            "map": {
+                "path": str(map_path),
+                "kind": loaded.kind,
+                "resolution": g.resolution,
+                "width": g.width,
+                "height": g.height,
+                "origin": [g.origin_x, g.origin_y],
+                "occupied_thresh": loaded.occupied_thresh,
+                "free_thresh": loaded.free_thresh,
+                "occupied_cells": int(np.count_nonzero(model.occupied)),
+                "free_cells": int(np.count_nonzero(model.free)),
+            },
+        }
         if init is not None:
             summary["initial_pose"] = {"pose": init.tolist(), "cell": model.cell_class(init[:2])}
         run = RunDir(out)
@@ -240,8 +267,9 @@ def run_localize(
         posed = [r for r in results if has_pose(r)]
         stamps = np.array([r.stamp_ns for r in posed], dtype=np.int64)
         poses = np.array([r.pose for r in posed], dtype=np.float64).reshape(-1, 3)
-        write_tum_trajectory(run.file("trajectory.tum"), stamps, poses[:, 0], poses[:, 1],
-                             poses[:, 2])  # fmt: skip
+        write_tum_trajectory(
+            run.file("trajectory.tum"), stamps, poses[:, 0], poses[:, 1], poses[:, 2]
+        )
         outputs["trajectory"] = run.file("trajectory.tum")
         atomic_write_text(run.file("localization.csv"), csv_text(results))
         outputs["per-scan"] = run.file("localization.csv")
@@ -251,30 +279,43 @@ def run_localize(
         conf = np.array([r.confidence for r in posed])
         scans_to_reloc = np.array([e["scans"] for e in relocs], dtype=np.float64)
         duration_s = (results[-1].stamp_ns - results[0].stamp_ns) / NS_PER_S
-        summary.update({
-            "frame": frame,
-            "counts": {"scans": len(results),
-                       **{s: statuses.count(s) for s in ("tracking", "lost", "relocalising")},
-                       "with_pose": len(posed), "without_pose": len(results) - len(posed),
-                       "rejected": sum(r.reason.startswith("rejected") for r in results)},
-            "lost_episodes": {"count": len(lost), "episodes": lost[:EPISODES_LISTED]},
-            "relocalisations": {"count": len(relocs),
-                                "scans_to_relocalise": _stats(scans_to_reloc, 1),
-                                "events": relocs[:EPISODES_LISTED]},
-            "unresolved_at_end": tail,
-            "confidence_when_tracking": {**_stats(conf),
-                                         "p05": (round(float(np.percentile(conf, 5)), 4)
-                                                 if len(conf) else None)},
-            "localizer": {"global_searches": loc.stats.global_searches,
-                          "kidnap_checks": loc.stats.kidnap_checks,
-                          "matches": loc.stats.matches},
-            "timings_s": {"map_model": round(model_s, 3), "localisation": round(update_s, 3),
-                          "wall": round(time.perf_counter() - t0, 3)},
-            "scans_per_s": round(len(results) / update_s, 1) if update_s > 0 else None,
-            "data_duration_s": round(duration_s, 3),
-            "real_time_factor": round(duration_s / update_s, 2) if update_s > 0 else None,
-            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        })  # fmt: skip
+        summary.update(
+            {
+                "frame": frame,
+                "counts": {
+                    "scans": len(results),
+                    **{s: statuses.count(s) for s in ("tracking", "lost", "relocalising")},
+                    "with_pose": len(posed),
+                    "without_pose": len(results) - len(posed),
+                    "rejected": sum(r.reason.startswith("rejected") for r in results),
+                },
+                "lost_episodes": {"count": len(lost), "episodes": lost[:EPISODES_LISTED]},
+                "relocalisations": {
+                    "count": len(relocs),
+                    "scans_to_relocalise": _stats(scans_to_reloc, 1),
+                    "events": relocs[:EPISODES_LISTED],
+                },
+                "unresolved_at_end": tail,
+                "confidence_when_tracking": {
+                    **_stats(conf),
+                    "p05": (round(float(np.percentile(conf, 5)), 4) if len(conf) else None),
+                },
+                "localizer": {
+                    "global_searches": loc.stats.global_searches,
+                    "kidnap_checks": loc.stats.kidnap_checks,
+                    "matches": loc.stats.matches,
+                },
+                "timings_s": {
+                    "map_model": round(model_s, 3),
+                    "localisation": round(update_s, 3),
+                    "wall": round(time.perf_counter() - t0, 3),
+                },
+                "scans_per_s": round(len(results) / update_s, 1) if update_s > 0 else None,
+                "data_duration_s": round(duration_s, 3),
+                "real_time_factor": round(duration_s / update_s, 2) if update_s > 0 else None,
+                "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            }
+        )
         paths = [("localised", poses[:, 0], poses[:, 1])]
         gt = src.groundtruth()
         if gt is not None and gt.frame == "base_link" and frame == "base_link":
@@ -287,9 +328,14 @@ def run_localize(
             cx = g.origin_x + g.width * g.resolution / 2
             cy = g.origin_y + g.height * g.resolution / 2
             paths = [("no pose established", np.array([cx]), np.array([cy]))]
-        plot_trajectories(run.file("map.png"), paths, f"{source_path.name} in {map_path.name}",
-                          occupied=model.occupied, origin=(g.origin_x, g.origin_y),
-                          resolution=g.resolution)  # fmt: skip
+        plot_trajectories(
+            run.file("map.png"),
+            paths,
+            f"{source_path.name} in {map_path.name}",
+            occupied=model.occupied,
+            origin=(g.origin_x, g.origin_y),
+            resolution=g.resolution,
+        )
         outputs["picture"] = run.file("map.png")
         if gps is not None:
             summary["gps"] = _gps_chart(
@@ -392,17 +438,28 @@ def _gps_chart(
     }
 
 
-def _visualize(vis: Visualizer, stamps: np.ndarray, poses: np.ndarray,
-               scans_map: list[np.ndarray], occupied: np.ndarray, grid: OccupancyGrid,
-               gt: PoseStream | None) -> None:  # fmt: skip
+def _visualize(
+    vis: Visualizer,
+    stamps: np.ndarray,
+    poses: np.ndarray,
+    scans_map: list[np.ndarray],
+    occupied: np.ndarray,
+    grid: OccupancyGrid,
+    gt: PoseStream | None,
+) -> None:
     """The tracked poses and their scans on rerun's time line, the map's occupied cells (and
     the ground truth when the source has it)."""
     if isinstance(vis, NullVisualizer) or not len(stamps):
         return
     g = grid.geometry
-    log_run(vis, stamps, poses, scans_map,
-            occupied_cells_xy(occupied, (g.origin_x, g.origin_y), g.resolution),
-            None if gt is None else np.column_stack([gt.x, gt.y]))  # fmt: skip
+    log_run(
+        vis,
+        stamps,
+        poses,
+        scans_map,
+        occupied_cells_xy(occupied, (g.origin_x, g.origin_y), g.resolution),
+        None if gt is None else np.column_stack([gt.x, gt.y]),
+    )
 
 
 def describe(summary: dict[str, Any]) -> str:
@@ -410,8 +467,10 @@ def describe(summary: dict[str, Any]) -> str:
     c = summary["counts"]
     rel = summary["relocalisations"]
     conf = summary["confidence_when_tracking"]["median"]
-    text = (f"tracked {c['tracking']}/{c['scans']} scans, {rel['count']} relocalisation(s), "
-            f"{summary['lost_episodes']['count']} lost episode(s)")  # fmt: skip
+    text = (
+        f"tracked {c['tracking']}/{c['scans']} scans, {rel['count']} relocalisation(s), "
+        f"{summary['lost_episodes']['count']} lost episode(s)"
+    )
     if conf is not None:
         text += f", median confidence {conf:.2f}"
     tail = summary["unresolved_at_end"]
@@ -420,5 +479,13 @@ def describe(summary: dict[str, Any]) -> str:
     return text
 
 
-__all__ = ["LoadedMap", "csv_text", "describe", "episodes", "errors_against_truth", "has_pose",
-           "load_map", "run_localize"]  # fmt: skip
+__all__ = [
+    "LoadedMap",
+    "csv_text",
+    "describe",
+    "episodes",
+    "errors_against_truth",
+    "has_pose",
+    "load_map",
+    "run_localize",
+]

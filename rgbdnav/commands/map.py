@@ -62,8 +62,12 @@ def run_map(
         scene, config_files, cfg, extrinsics = source_config(src, config_files, overrides)
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
-        summary: dict = {"command": "map", "source": str(source_path),
-                         "source_kind": src.describe(), "extrinsics": extrinsics}  # fmt: skip
+        summary: dict = {
+            "command": "map",
+            "source": str(source_path),
+            "source_kind": src.describe(),
+            "extrinsics": extrinsics,
+        }
         mapper_cfg = cfg.mapper
         if continue_bundle is not None:
             previous = load_bundle(continue_bundle)
@@ -87,8 +91,9 @@ def run_map(
             raise SensorError(f"{source_path}: no usable scans to map")
         # 1. Trajectory: one pose per accepted scan.
         p = result.scan_poses
-        write_tum_trajectory(run.file("trajectory.tum"), result.scan_stamps_ns, p[:, 0], p[:, 1],
-                             p[:, 2])  # fmt: skip
+        write_tum_trajectory(
+            run.file("trajectory.tum"), result.scan_stamps_ns, p[:, 0], p[:, 1], p[:, 2]
+        )
         outputs["trajectory"] = run.file("trajectory.tum")
         # 2. Occupancy grid from the optimised keyframes, and the bundle.
         t_grid = time.perf_counter()
@@ -99,17 +104,26 @@ def run_map(
         grid_s = time.perf_counter() - t_grid
         duration_s = (last_ns - first_ns) / 1e9 if first_ns is not None and last_ns else 0.0
         wall = time.perf_counter() - t0
-        summary.update({
-            "frame": frame,
-            "counts": result.counts,
-            "timings_s": {**result.timings_s, "mapping_total": round(mapping_s, 3),
-                          "grid_and_bundle": round(grid_s, 3), "wall": round(wall, 3)},
-            "data_duration_s": round(duration_s, 3),
-            "real_time_factor": round(duration_s / mapping_s, 2) if mapping_s > 0 else None,
-            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-            "grid": {"resolution": grid.geometry.resolution, "width": grid.geometry.width,
-                     "height": grid.geometry.height},
-        })  # fmt: skip
+        summary.update(
+            {
+                "frame": frame,
+                "counts": result.counts,
+                "timings_s": {
+                    **result.timings_s,
+                    "mapping_total": round(mapping_s, 3),
+                    "grid_and_bundle": round(grid_s, 3),
+                    "wall": round(wall, 3),
+                },
+                "data_duration_s": round(duration_s, 3),
+                "real_time_factor": round(duration_s / mapping_s, 2) if mapping_s > 0 else None,
+                "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                "grid": {
+                    "resolution": grid.geometry.resolution,
+                    "width": grid.geometry.width,
+                    "height": grid.geometry.height,
+                },
+            }
+        )
         paths = [("SLAM", p[:, 0], p[:, 1])]
         gt = src.groundtruth()
         if gt is not None and gt.frame == "base_link" and frame == "base_link":
@@ -117,9 +131,14 @@ def run_map(
             paths.insert(0, ("ground truth", gt.x, gt.y))
         occ = grid.occupied_mask(cfg.mapper.occupied_thresh)
         g = grid.geometry
-        plot_trajectories(run.file("map.png"), paths, f"{source_path.name}: map",
-                          occupied=occ, origin=(g.origin_x, g.origin_y),
-                          resolution=g.resolution)  # fmt: skip
+        plot_trajectories(
+            run.file("map.png"),
+            paths,
+            f"{source_path.name}: map",
+            occupied=occ,
+            origin=(g.origin_x, g.origin_y),
+            resolution=g.resolution,
+        )
         outputs["picture"] = run.file("map.png")
         summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
         outputs["summary"] = run.write_summary(summary)
@@ -132,18 +151,30 @@ def run_map(
         src.close()
 
 
-def _visualize(vis: Visualizer, result: MapperResult, occupied: np.ndarray, g: GridGeometry,
-               gt: PoseStream | None) -> None:  # fmt: skip
+def _visualize(
+    vis: Visualizer,
+    result: MapperResult,
+    occupied: np.ndarray,
+    g: GridGeometry,
+    gt: PoseStream | None,
+) -> None:
     """The run on rerun's time line: each keyframe's scan at its optimised pose, the path, the
     final map (and the ground truth when the source has it)."""
     if isinstance(vis, NullVisualizer):
         return
     kf_stamps = np.array([k.stamp_ns for k in result.keyframes], dtype=np.int64)
-    scans = [transform_points(p, scan_points(k.scan)) for k, p in
-             zip(result.keyframes, result.poses, strict=True)]  # fmt: skip
-    log_run(vis, kf_stamps, np.asarray(result.poses).reshape(-1, 3), scans,
-            occupied_cells_xy(occupied, (g.origin_x, g.origin_y), g.resolution),
-            None if gt is None else np.column_stack([gt.x, gt.y]))  # fmt: skip
+    scans = [
+        transform_points(p, scan_points(k.scan))
+        for k, p in zip(result.keyframes, result.poses, strict=True)
+    ]
+    log_run(
+        vis,
+        kf_stamps,
+        np.asarray(result.poses).reshape(-1, 3),
+        scans,
+        occupied_cells_xy(occupied, (g.origin_x, g.origin_y), g.resolution),
+        None if gt is None else np.column_stack([gt.x, gt.y]),
+    )
     if len(result.scan_stamps_ns):
         p = result.scan_poses
         vis.pose(int(result.scan_stamps_ns[-1]), p[-1], p[:, :2])
@@ -165,9 +196,13 @@ def occupancy_iou(
 
 
 def _score_against_truth(
-    result: MapperResult, grid: OccupancyGrid, gt: PoseStream, scene: dict, cfg: Config,
+    result: MapperResult,
+    grid: OccupancyGrid,
+    gt: PoseStream,
+    scene: dict,
+    cfg: Config,
     summary: dict,
-) -> None:  # fmt: skip
+) -> None:
     p = result.scan_poses
     summary["slam_vs_groundtruth"] = drift_summary(
         result.scan_stamps_ns, (p[:, 0], p[:, 1], p[:, 2]), gt.stamps_ns, (gt.x, gt.y, gt.yaw)
@@ -192,20 +227,28 @@ def _score_against_truth(
         summary["grid_vs_floor_plan_aligned"] = {
             **occupancy_iou(mapped, _true_surface(plan, grid, rot, t), IOU_TOLERANCE_CELLS),
             "tolerance_cells": IOU_TOLERANCE_CELLS,
-            "alignment": {"yaw_deg": round(math.degrees(math.atan2(rot[1, 0], rot[0, 0])), 4),
-                          "x_m": round(float(t[0]), 4), "y_m": round(float(t[1]), 4)},
+            "alignment": {
+                "yaw_deg": round(math.degrees(math.atan2(rot[1, 0], rot[0, 0])), 4),
+                "x_m": round(float(t[0]), 4),
+                "y_m": round(float(t[1]), 4),
+            },
             "truth": "as grid_vs_floor_plan, after the trajectory's SE(2) alignment",
-        }  # fmt: skip
+        }
 
 
-def _true_surface(plan: FloorPlan, grid: OccupancyGrid, rot: np.ndarray | None = None,
-                  t: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+def _true_surface(
+    plan: FloorPlan, grid: OccupancyGrid, rot: np.ndarray | None = None, t: np.ndarray | None = None
+) -> np.ndarray:
     """The floor plan's surface cells (occupied next to free) the robot observed, rasterised
     into the map's grid; with (rot, t) mapping map to world (``world = rot @ map + t``)."""
     g = grid.geometry
     rows, cols = np.nonzero(plan.occupied)
-    xy = np.column_stack([plan.origin_x + (cols + 0.5) * plan.resolution,
-                          plan.origin_y + (rows + 0.5) * plan.resolution])  # fmt: skip
+    xy = np.column_stack(
+        [
+            plan.origin_x + (cols + 0.5) * plan.resolution,
+            plan.origin_y + (rows + 0.5) * plan.resolution,
+        ]
+    )
     if rot is not None and t is not None:
         xy = (xy - t) @ rot  # world -> map
     r, c = g.world_to_cell(xy[:, 0], xy[:, 1])

@@ -66,8 +66,9 @@ class Scenario:
     overrides: tuple[str, ...] = ()  # --set style config overrides
 
 
-def _number(data: Mapping[str, Any], key: str, default: float, where: str, lo: float = 0.0
-            ) -> float:  # fmt: skip
+def _number(
+    data: Mapping[str, Any], key: str, default: float, where: str, lo: float = 0.0
+) -> float:
     v = data.get(key, default)
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < lo:
         raise ConfigError(f"{where}: {key} must be a number >= {lo}, got {v!r}")
@@ -79,8 +80,19 @@ def load_scenario(path: Path) -> Scenario:
     data = read_yaml(path, ConfigError, "scenario")
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path}: a scenario is a mapping")
-    known = {"world", "goals", "seed", "furniture_shift", "furniture_yaw", "goal_clearance",
-             "goal_separation", "goal_tolerance", "keepout", "set", "description"}  # fmt: skip
+    known = {
+        "world",
+        "goals",
+        "seed",
+        "furniture_shift",
+        "furniture_yaw",
+        "goal_clearance",
+        "goal_separation",
+        "goal_tolerance",
+        "keepout",
+        "set",
+        "description",
+    }
     unknown = sorted(set(data) - known)
     if unknown:
         raise ConfigError(f"{path}: {unknown[0]}: unknown key (valid: {', '.join(sorted(known))})")
@@ -91,24 +103,35 @@ def load_scenario(path: Path) -> Scenario:
     world_from_dict(world, str(world_path))  # validate now
     boxes = []
     for i, k in enumerate(data.get("keepout") or []):
-        if (not isinstance(k, list) or len(k) != 4
-                or not all(isinstance(v, int | float) for v in k) or k[0] >= k[2]
-                or k[1] >= k[3]):  # fmt: skip
-            raise ConfigError(f"{path}: keepout[{i}] must be [x_min, y_min, x_max, y_max] with "
-                              f"min < max, got {k!r}")  # fmt: skip
+        if (
+            not isinstance(k, list)
+            or len(k) != 4
+            or not all(isinstance(v, int | float) for v in k)
+            or k[0] >= k[2]
+            or k[1] >= k[3]
+        ):
+            raise ConfigError(
+                f"{path}: keepout[{i}] must be [x_min, y_min, x_max, y_max] with "
+                f"min < max, got {k!r}"
+            )
         boxes.append((float(k[0]), float(k[1]), float(k[2]), float(k[3])))
     goals = int(_number(data, "goals", 20, str(path), 1))
     sets = data.get("set") or []
     if not isinstance(sets, list) or not all(isinstance(v, str) and "=" in v for v in sets):
         raise ConfigError(f"{path}: set must be a list of section.key=value strings")
     return Scenario(
-        world_path, world, goals, int(_number(data, "seed", 0, str(path))),
+        world_path,
+        world,
+        goals,
+        int(_number(data, "seed", 0, str(path))),
         _number(data, "furniture_shift", 0.3, str(path)),
         _number(data, "furniture_yaw", 0.3, str(path)),
         _number(data, "goal_clearance", 0.45, str(path)),
-        _number(data, "goal_separation", 2.0, str(path)), tuple(boxes),
-        _number(data, "goal_tolerance", 0.25, str(path)), tuple(sets),
-    )  # fmt: skip
+        _number(data, "goal_separation", 2.0, str(path)),
+        tuple(boxes),
+        _number(data, "goal_tolerance", 0.25, str(path)),
+        tuple(sets),
+    )
 
 
 # 1. Pure pieces ------------------------------------------------------------------------------
@@ -185,8 +208,14 @@ def goal_candidates(
     d_keep = dist(keepout) if keepout.any() else np.full(keepout.shape, np.inf)
     margin = inscribed_m + 0.5 * resolution
     reach = _reachable((d_map > margin) & (d_world > margin) & ~keepout, *start_cell)
-    return (map_free & reach & (d_map >= clearance_m) & (d_world >= clearance_m)
-            & (d_unknown >= clearance_m) & (d_keep >= clearance_m))  # fmt: skip
+    return (
+        map_free
+        & reach
+        & (d_map >= clearance_m)
+        & (d_world >= clearance_m)
+        & (d_unknown >= clearance_m)
+        & (d_keep >= clearance_m)
+    )
 
 
 def draw_goals(
@@ -208,8 +237,10 @@ def draw_goals(
     for k in range(n):
         far = np.hypot(xs - prev[0], ys - prev[1]) >= separation_m
         if not far.any():
-            raise ConfigError(f"goal {k}: no candidate cell is {separation_m} m from "
-                              f"({prev[0]:.2f}, {prev[1]:.2f})")  # fmt: skip
+            raise ConfigError(
+                f"goal {k}: no candidate cell is {separation_m} m from "
+                f"({prev[0]:.2f}, {prev[1]:.2f})"
+            )
         i = int(rng.choice(np.flatnonzero(far)))
         prev = (round(float(xs[i]), 3), round(float(ys[i]), 3))
         goals.append(prev)
@@ -237,9 +268,13 @@ def floor_plan_map(scenario: Scenario, path: Path, resolution: float = 0.05) -> 
 
 
 def prepare(
-    scenario: Scenario, map_path: Path, out: Path, n_goals: int | None = None,
-    config_files: Sequence[Path] = (), overrides: Sequence[str] = (),
-) -> tuple[Path, Path, list[tuple[float, float]]]:  # fmt: skip
+    scenario: Scenario,
+    map_path: Path,
+    out: Path,
+    n_goals: int | None = None,
+    config_files: Sequence[Path] = (),
+    overrides: Sequence[str] = (),
+) -> tuple[Path, Path, list[tuple[float, float]]]:
     """Write the moved world and the keepout mask into ``out/scenario`` and draw the goals;
     (world path, keepout map.yaml, goals)."""
     rng = np.random.default_rng(scenario.seed)
@@ -255,18 +290,31 @@ def prepare(
         raise ConfigError(f"the world's start {start[:2]} is outside the map {map_path}")
     grid = loaded.grid
     cand = goal_candidates(
-        grid.free_mask(loaded.free_thresh), grid.occupied_mask(loaded.occupied_thresh),
-        _resample(floor_plan(world, resolution=geo.resolution), geo), keep.occupied_mask(),
-        (start_cell[0], start_cell[1]), geo.resolution, scenario.goal_clearance,
+        grid.free_mask(loaded.free_thresh),
+        grid.occupied_mask(loaded.occupied_thresh),
+        _resample(floor_plan(world, resolution=geo.resolution), geo),
+        keep.occupied_mask(),
+        (start_cell[0], start_cell[1]),
+        geo.resolution,
+        scenario.goal_clearance,
         inscribed_radius(cfg.costmap),
-    )  # fmt: skip
-    goals = draw_goals(cand, geo, rng, scenario.goals if n_goals is None else n_goals,
-                       (start[0], start[1]), scenario.goal_separation)  # fmt: skip
+    )
+    goals = draw_goals(
+        cand,
+        geo,
+        rng,
+        scenario.goals if n_goals is None else n_goals,
+        (start[0], start[1]),
+        scenario.goal_separation,
+    )
     d = out / "scenario"
     d.mkdir(parents=True, exist_ok=True)
     world_path = d / "world_moved.yaml"
-    atomic_write_text(world_path, "# furniture moved relative to the map (seed "
-                      f"{scenario.seed})\n" + yaml.safe_dump(moved, sort_keys=False))  # fmt: skip
+    atomic_write_text(
+        world_path,
+        "# furniture moved relative to the map (seed "
+        f"{scenario.seed})\n" + yaml.safe_dump(moved, sort_keys=False),
+    )
     keepout_path = d / "keepout.yaml"
     save_map_yaml(keep, keepout_path)
     atomic_write_text(d / "goals.json", json.dumps(goals) + "\n")
@@ -295,11 +343,17 @@ def scenario_figures(summary: Mapping[str, Any], tolerance_m: float) -> dict[str
         "localization": summary["localization"]["mode"],
         "position_error_m": summary["localization"]["position_error_m"],
         "recoveries": summary["recoveries"],
-        "failures": [{"goal": g["goal"], "status": g["status"], "reason": g["reason"],
-                      "final_error_m": g.get("final_error_m")}
-                     for g in goals
-                     if not (g["status"] == "reached" and g["final_error_m"] <= tolerance_m)],
-    }  # fmt: skip
+        "failures": [
+            {
+                "goal": g["goal"],
+                "status": g["status"],
+                "reason": g["reason"],
+                "final_error_m": g.get("final_error_m"),
+            }
+            for g in goals
+            if not (g["status"] == "reached" and g["final_error_m"] <= tolerance_m)
+        ],
+    }
 
 
 def run_scenario(
@@ -317,21 +371,43 @@ def run_scenario(
 
     scenario = load_scenario(scenario_path)
     overrides = [*scenario.overrides, *overrides]
-    world_path, keepout_path, goals = prepare(scenario, map_path, out, n_goals, config_files,
-                                              overrides)  # fmt: skip
-    outputs, summary = run_navigate(map_path, goals, world_path, out, config_files, overrides,
-                                    keepout_path=keepout_path, progress=progress,
-                                    localization=localization, seed=scenario.seed)  # fmt: skip
-    summary["scenario"] = {"file": str(scenario_path), "seed": scenario.seed,
-                           "furniture_shift_m": scenario.furniture_shift,
-                           "furniture_yaw_rad": scenario.furniture_yaw,
-                           "keepout_zones": [list(k) for k in scenario.keepout],
-                           "overrides": list(scenario.overrides),
-                           **scenario_figures(summary, scenario.goal_tolerance)}  # fmt: skip
+    world_path, keepout_path, goals = prepare(
+        scenario, map_path, out, n_goals, config_files, overrides
+    )
+    outputs, summary = run_navigate(
+        map_path,
+        goals,
+        world_path,
+        out,
+        config_files,
+        overrides,
+        keepout_path=keepout_path,
+        progress=progress,
+        localization=localization,
+        seed=scenario.seed,
+    )
+    summary["scenario"] = {
+        "file": str(scenario_path),
+        "seed": scenario.seed,
+        "furniture_shift_m": scenario.furniture_shift,
+        "furniture_yaw_rad": scenario.furniture_yaw,
+        "keepout_zones": [list(k) for k in scenario.keepout],
+        "overrides": list(scenario.overrides),
+        **scenario_figures(summary, scenario.goal_tolerance),
+    }
     RunDir(out).write_summary(summary)
     return outputs, summary
 
 
-__all__ = ["Scenario", "draw_goals", "floor_plan_map", "goal_candidates",
-           "keepout_grid", "load_scenario", "move_furniture", "prepare", "run_scenario",
-           "scenario_figures"]  # fmt: skip
+__all__ = [
+    "Scenario",
+    "draw_goals",
+    "floor_plan_map",
+    "goal_candidates",
+    "keepout_grid",
+    "load_scenario",
+    "move_furniture",
+    "prepare",
+    "run_scenario",
+    "scenario_figures",
+]

@@ -94,8 +94,17 @@ log = logging.getLogger(__name__)
 
 LOCALIZATION_MODES: tuple[str, ...] = ("groundtruth", "localizer")
 SCAN_COLUMNS_PER_BEAM = 2  # [px] image columns per simulated scan beam (640 px -> 320 beams)
-CSV_HEADER = ("t_s", "goal", "status", "cmd_v_mps", "cmd_w_radps", "smoothed_v_mps",
-              "smoothed_w_radps", "gospd_left", "gospd_right")  # fmt: skip
+CSV_HEADER = (
+    "t_s",
+    "goal",
+    "status",
+    "cmd_v_mps",
+    "cmd_w_radps",
+    "smoothed_v_mps",
+    "smoothed_w_radps",
+    "gospd_left",
+    "gospd_right",
+)
 
 
 # 1. Ground truth of the simulation ----------------------------------------------------------
@@ -210,8 +219,9 @@ class _Sim:
             from scipy.ndimage import distance_transform_edt
 
             mask = keepout.occupied_mask()
-            self.keepout_dist = np.asarray(distance_transform_edt(~mask)) * \
-                keepout.geometry.resolution  # fmt: skip
+            self.keepout_dist = (
+                np.asarray(distance_transform_edt(~mask)) * keepout.geometry.resolution
+            )
         self.next_scan_ns = 0
         self.cmd = (0.0, 0.0)  # the navigator's command before smoothing (v, w)
         self.vel = (0.0, 0.0)  # smoothed command being executed (v, w)
@@ -255,15 +265,17 @@ class _Sim:
         cam, sim = self.cfg.camera, self.cfg.sim
         true_laser = oplus(self.pose, self.T_base_laser)
         ranges = cast_scan(self.plan, true_laser, self.angles, cam.depth_min, cam.depth_max)
-        sigma = depth_range_sigma(ranges, cam.disparity_focal, cam.baseline,
-                                  sim.disparity_noise, sim.disparity_subpixel)  # fmt: skip
+        sigma = depth_range_sigma(
+            ranges, cam.disparity_focal, cam.baseline, sim.disparity_noise, sim.disparity_subpixel
+        )
         finite = np.isfinite(ranges)
         ranges[finite] += (sigma[finite] * self.rng.standard_normal(int(finite.sum()))).astype(
             np.float32
         )
         inc = float(self.angles[1] - self.angles[0])
-        scan = LaserScan(self.t_ns, float(self.angles[0]), inc, ranges, cam.depth_min,
-                         cam.depth_max)  # fmt: skip
+        scan = LaserScan(
+            self.t_ns, float(self.angles[0]), inc, ranges, cam.depth_min, cam.depth_max
+        )
         if self.localizer is not None:
             self.localize(scan)
         self.costmap.update_scan(scan, Pose2(*oplus(self.estimate, self.T_base_laser).tolist()))
@@ -292,8 +304,9 @@ class _Sim:
             # localiser back on the odometry-propagated pose, with the covariance it last had
             # (a fresh, search-window-wide one would let the next match, maybe of moved
             # furniture, pull the estimate anywhere inside the window).
-            self.localizer.set_initial_pose(oplus(self.estimate, self.T_base_laser),
-                                            self.loc_covariance)  # fmt: skip
+            self.localizer.set_initial_pose(
+                oplus(self.estimate, self.T_base_laser), self.loc_covariance
+            )
             self.reseeds += 1
 
     # 3b. The navigator's pose corrector (nav.navigator.PoseCorrector): goal settles.
@@ -358,8 +371,9 @@ class _Sim:
         self.log.stamps_ns.append(self.t_ns)
         self.log.poses.append(self.pose.copy())
         self.log.estimates.append(self.estimate)
-        self.log.rows.append((self.t_ns / NS_PER_S, goal, status, *self.cmd, *self.vel,
-                              *self.drive.sent))  # fmt: skip
+        self.log.rows.append(
+            (self.t_ns / NS_PER_S, goal, status, *self.cmd, *self.vel, *self.drive.sent)
+        )
 
     def stop(self, goal: int) -> None:
         """Command zero and let the smoother and the board bring the wheels to rest."""
@@ -422,7 +436,7 @@ class _Sim:
             driven_m=round(path_length(driven), 3),
             final_error_m=round(float(np.hypot(*(self.pose[:2] - np.asarray(goal)))), 3),
             estimated_error_m=round(float(np.hypot(*(est[:2] - np.asarray(goal)))), 3),
-        )  # fmt: skip
+        )
         return outcome
 
 
@@ -447,8 +461,9 @@ def commands_csv(
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_HEADER)
     for t, goal, status, cv, cw, sv, sw, gl, gr in rows:
-        w.writerow([f"{t:.3f}", goal, status, f"{cv:.4f}", f"{cw:.4f}", f"{sv:.4f}", f"{sw:.4f}",
-                    gl, gr])  # fmt: skip
+        w.writerow(
+            [f"{t:.3f}", goal, status, f"{cv:.4f}", f"{cw:.4f}", f"{sv:.4f}", f"{sw:.4f}", gl, gr]
+        )
     return buf.getvalue()
 
 
@@ -461,9 +476,11 @@ def pose_errors(truth: np.ndarray, estimate: np.ndarray) -> tuple[np.ndarray, np
 def _stats(a: np.ndarray, digits: int = 3) -> dict[str, float | None]:
     if len(a) == 0:
         return {"mean": None, "p95": None, "max": None}
-    return {"mean": round(float(a.mean()), digits),
-            "p95": round(float(np.percentile(a, 95)), digits),
-            "max": round(float(a.max()), digits)}  # fmt: skip
+    return {
+        "mean": round(float(a.mean()), digits),
+        "p95": round(float(np.percentile(a, 95)), digits),
+        "max": round(float(a.max()), digits),
+    }
 
 
 def navigate_settings(
@@ -476,17 +493,25 @@ def navigate_settings(
     """The ``navigate`` section with the command line's explicit values on top; ConfigError
     naming the option on a bad value."""
     base = cfg.navigate
-    given: dict[str, Any] = {"localization": localization, "goal_timeout": goal_timeout_s,
-             "max_replans": max_replans, "waypoint_pause_duration": waypoint_pause_s}  # fmt: skip
+    given: dict[str, Any] = {
+        "localization": localization,
+        "goal_timeout": goal_timeout_s,
+        "max_replans": max_replans,
+        "waypoint_pause_duration": waypoint_pause_s,
+    }
     nav: NavigateConfig = replace(base, **{k: v for k, v in given.items() if v is not None})
     if nav.localization not in LOCALIZATION_MODES:
-        raise ConfigError(f"--localization must be one of {', '.join(LOCALIZATION_MODES)}, got "
-                          f"{nav.localization!r}")  # fmt: skip
+        raise ConfigError(
+            f"--localization must be one of {', '.join(LOCALIZATION_MODES)}, got "
+            f"{nav.localization!r}"
+        )
     if not nav.waypoint_pause_duration >= 0.0:
         raise ConfigError(f"--waypoint-pause must be >= 0, got {nav.waypoint_pause_duration}")
     if not nav.goal_timeout > 0.0 or nav.max_replans < 0:
-        raise ConfigError(f"need --goal-timeout > 0 and --max-replans >= 0, got "
-                          f"{nav.goal_timeout} and {nav.max_replans}")  # fmt: skip
+        raise ConfigError(
+            f"need --goal-timeout > 0 and --max-replans >= 0, got "
+            f"{nav.goal_timeout} and {nav.max_replans}"
+        )
     return nav
 
 
@@ -526,21 +551,25 @@ def run_navigate(
     s = np.asarray(world.start if start is None else start, dtype=np.float64)
     if s.shape != (3,) or not np.all(np.isfinite(s)):
         raise ConfigError(f"--start needs three finite numbers X Y YAW, got {list(s.ravel())}")
-    costmap = Costmap.from_grid(loaded.grid, cfg.costmap, loaded.occupied_thresh,
-                                loaded.free_thresh)  # fmt: skip
+    costmap = Costmap.from_grid(
+        loaded.grid, cfg.costmap, loaded.occupied_thresh, loaded.free_thresh
+    )
     keepout = None
     if keepout_path is not None:
         keepout = load_map_yaml(keepout_path)
         costmap.set_keepout(keepout)
     localizer = None
     if nav.localization == "localizer":
-        model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
-                                   loaded.free_thresh)  # fmt: skip
+        model = MapModel.from_grid(
+            loaded.grid, cfg.localizer, loaded.occupied_thresh, loaded.free_thresh
+        )
         localizer = Localizer(model, cfg.localizer)
     sim = _Sim(cfg, fp, costmap, s, localizer, keepout, np.random.default_rng(seed), nav)
     if clearance_at(fp, sim.dist, s[0], s[1]) < sim.radius:
-        raise MapError(f"start ({s[0]:.2f}, {s[1]:.2f}) puts the robot inside an obstacle of "
-                       f"the world {world_path}")  # fmt: skip
+        raise MapError(
+            f"start ({s[0]:.2f}, {s[1]:.2f}) puts the robot inside an obstacle of "
+            f"the world {world_path}"
+        )
     run = RunDir(out)
     outputs = {"config": run.write_config(cfg)}
 
@@ -550,8 +579,7 @@ def run_navigate(
     route = waypoints(goal_list, wait_at_waypoint(nav.waypoint_pause_duration))
     for k, wp in enumerate(route):
         goal = (wp.x, wp.y)
-        if next_waypoint([o["status"] for o in outcomes], len(route),
-                         nav.stop_on_failure) is None:  # fmt: skip
+        if next_waypoint([o["status"] for o in outcomes], len(route), nav.stop_on_failure) is None:
             outcomes.append(
                 {
                     "goal": list(goal),
@@ -564,8 +592,13 @@ def run_navigate(
             continue
         problem = goal_problem(goal, costmap, loaded, keepout, cfg.planner.allow_unknown)
         if problem is not None:
-            outcome = {"goal": list(goal), "status": "refused", "reason": problem, "replans": 0,
-                       "recoveries": []}  # fmt: skip
+            outcome = {
+                "goal": list(goal),
+                "status": "refused",
+                "reason": problem,
+                "replans": 0,
+                "recoveries": [],
+            }
         else:
             outcome = sim.drive_to(k, goal)
         sim.stop(k)  # refused or not, the robot ends every goal at rest
@@ -586,20 +619,35 @@ def run_navigate(
     atomic_write_text(run.file("commands.csv"), commands_csv(sim.log.rows))
     outputs["commands"] = run.file("commands.csv")
     g = loaded.grid.geometry
-    paths = [(f"plan {i + 1}", o["first_plan"][:, 0], o["first_plan"][:, 1])
-             for i, o in enumerate(outcomes) if "first_plan" in o]  # fmt: skip
+    paths = [
+        (f"plan {i + 1}", o["first_plan"][:, 0], o["first_plan"][:, 1])
+        for i, o in enumerate(outcomes)
+        if "first_plan" in o
+    ]
     paths.append(("driven (true)", poses[:, 0], poses[:, 1]))
     if localizer is not None:
         paths.append(("estimated (localiser)", estimates[:, 0], estimates[:, 1]))
-    plot_trajectories(run.file("map.png"), paths, f"navigate in {map_path.name}",
-                      occupied=loaded.grid.occupied_mask(loaded.occupied_thresh),
-                      origin=(g.origin_x, g.origin_y), resolution=g.resolution)  # fmt: skip
+    plot_trajectories(
+        run.file("map.png"),
+        paths,
+        f"navigate in {map_path.name}",
+        occupied=loaded.grid.occupied_mask(loaded.occupied_thresh),
+        origin=(g.origin_x, g.origin_y),
+        resolution=g.resolution,
+    )
     outputs["picture"] = run.file("map.png")
     velocity_chart(run.file("velocity.png"), sim.log.rows, cfg.smoother)
     outputs["velocity chart"] = run.file("velocity.png")
     if rrd is not None or viewer:
-        _visualize(make_visualizer("navigate", rrd, viewer), stamps, poses, estimates, outcomes,
-                   loaded, costmap)  # fmt: skip
+        _visualize(
+            make_visualizer("navigate", rrd, viewer),
+            stamps,
+            poses,
+            estimates,
+            outcomes,
+            loaded,
+            costmap,
+        )
         if rrd is not None:
             outputs["rerun recording"] = rrd
     for o in outcomes:
@@ -609,32 +657,48 @@ def run_navigate(
     sim_s = sim.t_ns / NS_PER_S
     wall_s = time.perf_counter() - wall0
     summary: dict[str, Any] = {
-        "command": "navigate", "map": str(map_path), "map_kind": loaded.kind,
-        "world": str(world_path), "keepout": None if keepout_path is None else str(keepout_path),
-        "start": s.tolist(), "seed": seed, "navigate": asdict(nav),
+        "command": "navigate",
+        "map": str(map_path),
+        "map_kind": loaded.kind,
+        "world": str(world_path),
+        "keepout": None if keepout_path is None else str(keepout_path),
+        "start": s.tolist(),
+        "seed": seed,
+        "navigate": asdict(nav),
         "localization": {
             "mode": nav.localization,
-            "description": ("the localiser (scan-to-map tracking from the given start pose) "
-                            "fused with wheel odometry from the board's encoder counts (match "
-                            f"gate {cfg.localizer.match_gate} sigma, jump confirmation "
-                            f"{cfg.localizer.jump_confirm_scans} scans, dead reckoning up to "
-                            f"{cfg.localizer.dead_reckoning_max_sigma} m sigma)"
-                            + ("" if nav.global_relocalization else
-                               ", and a localiser that loses track is put back on the "
-                               "odometry pose (no global relocalisation while driving)")
-                            + ("" if nav.goal_settle_spin == 0.0 else
-                               f"; settles (a {nav.goal_settle_spin:g} rad turn in place and a "
-                               "match of its scans stacked) at each goal"
-                               + ("" if nav.settle_on_gated_scans == 0 else
-                                  f" and after {nav.settle_on_gated_scans} gated matches in a "
-                                  "row"))
-                            if localizer is not None else
-                            "ground truth: the navigator is given the true simulated pose"),
-            "position_error_m": _stats(err_m), "heading_error_deg": _stats(np.degrees(err_yaw),
-                                                                           2),
+            "description": (
+                "the localiser (scan-to-map tracking from the given start pose) "
+                "fused with wheel odometry from the board's encoder counts (match "
+                f"gate {cfg.localizer.match_gate} sigma, jump confirmation "
+                f"{cfg.localizer.jump_confirm_scans} scans, dead reckoning up to "
+                f"{cfg.localizer.dead_reckoning_max_sigma} m sigma)"
+                + (
+                    ""
+                    if nav.global_relocalization
+                    else ", and a localiser that loses track is put back on the "
+                    "odometry pose (no global relocalisation while driving)"
+                )
+                + (
+                    ""
+                    if nav.goal_settle_spin == 0.0
+                    else f"; settles (a {nav.goal_settle_spin:g} rad turn in place and a "
+                    "match of its scans stacked) at each goal"
+                    + (
+                        ""
+                        if nav.settle_on_gated_scans == 0
+                        else f" and after {nav.settle_on_gated_scans} gated matches in a row"
+                    )
+                )
+                if localizer is not None
+                else "ground truth: the navigator is given the true simulated pose"
+            ),
+            "position_error_m": _stats(err_m),
+            "heading_error_deg": _stats(np.degrees(err_yaw), 2),
             "scans": {st: statuses.count(st) for st in ("tracking", "lost", "relocalising")},
-            "confidence_mean": (round(float(np.mean(sim.log.loc_confidence)), 3)
-                                if sim.log.loc_confidence else None),
+            "confidence_mean": (
+                round(float(np.mean(sim.log.loc_confidence)), 3) if sim.log.loc_confidence else None
+            ),
             "odometry_distance_m": round(sim.odometry.distance_m, 3),
             "matches_gated": 0 if localizer is None else localizer.stats.gated,
             "tracking_jumps_rejected": 0 if localizer is None else localizer.stats.gated,
@@ -643,32 +707,49 @@ def run_navigate(
             "settles": sum(len(o.get("settles", [])) for o in outcomes),
         },
         "goals": outcomes,
-        "counts": {st: sum(o["status"] == st for o in outcomes)
-                   for st in ("reached", "failed", "refused", "skipped")},
-        "collisions": {"events": sim.collision_events, "steps": sim.collision_steps,
-                       "seconds": round(sim.collision_steps * sim.dt_ns / NS_PER_S, 2),
-                       "robot_radius_m": sim.radius,
-                       "min_clearance_m": round(sim.min_clearance, 3)},
-        "keepout_entries": {"events": sim.keepout_events, "steps": sim.keepout_steps,
-                            "min_distance_m": (round(sim.min_keepout_distance, 3)
-                                               if math.isfinite(sim.min_keepout_distance)
-                                               else None)},
+        "counts": {
+            st: sum(o["status"] == st for o in outcomes)
+            for st in ("reached", "failed", "refused", "skipped")
+        },
+        "collisions": {
+            "events": sim.collision_events,
+            "steps": sim.collision_steps,
+            "seconds": round(sim.collision_steps * sim.dt_ns / NS_PER_S, 2),
+            "robot_radius_m": sim.radius,
+            "min_clearance_m": round(sim.min_clearance, 3),
+        },
+        "keepout_entries": {
+            "events": sim.keepout_events,
+            "steps": sim.keepout_steps,
+            "min_distance_m": (
+                round(sim.min_keepout_distance, 3)
+                if math.isfinite(sim.min_keepout_distance)
+                else None
+            ),
+        },
         "recoveries": sum(len(o["recoveries"]) for o in outcomes),
         "path_length_m": round(path_length(poses[:, :2]), 3),
         "sim_time_s": round(sim_s, 2),
         "scans": sim.scans,
         "gospd_lines": sim.drive.gospd_lines,
-        "rates_hz": {"controller": cfg.follower.controller_frequency,
-                     "smoother": cfg.smoother.smoothing_frequency,
-                     "costmap": cfg.costmap.update_frequency},
-        "control": {"steps": sim.navigator.controller_cycles,
-                    "ms_per_step": (round(1e3 * sim.control_s / sim.navigator.controller_cycles,
-                                          3) if sim.navigator.controller_cycles else None),
-                    "what": "wall time per controller cycle incl. due scans: localiser, "
-                            "costmap update, path check, follower"},
+        "rates_hz": {
+            "controller": cfg.follower.controller_frequency,
+            "smoother": cfg.smoother.smoothing_frequency,
+            "costmap": cfg.costmap.update_frequency,
+        },
+        "control": {
+            "steps": sim.navigator.controller_cycles,
+            "ms_per_step": (
+                round(1e3 * sim.control_s / sim.navigator.controller_cycles, 3)
+                if sim.navigator.controller_cycles
+                else None
+            ),
+            "what": "wall time per controller cycle incl. due scans: localiser, "
+            "costmap update, path check, follower",
+        },
         "wall_s": round(wall_s, 3),
         "real_time_factor": round(sim_s / wall_s, 1) if wall_s > 0 else None,
-    }  # fmt: skip
+    }
     outputs["summary"] = run.write_summary(summary)
     return outputs, summary
 
@@ -685,11 +766,18 @@ def _visualize(
     """The run on rerun's time line: the estimated pose and path (world/robot), the true path
     (world/truth), each goal's first plan, the map and the final costmap's lethal cells."""
     try:
-        log_run(vis, stamps, estimates, None,
-                occupied_cells_xy(loaded.grid.occupied_mask(loaded.occupied_thresh),
-                                  (loaded.grid.geometry.origin_x, loaded.grid.geometry.origin_y),
-                                  loaded.grid.geometry.resolution),
-                poses[:, :2])  # fmt: skip
+        log_run(
+            vis,
+            stamps,
+            estimates,
+            None,
+            occupied_cells_xy(
+                loaded.grid.occupied_mask(loaded.occupied_thresh),
+                (loaded.grid.geometry.origin_x, loaded.grid.geometry.origin_y),
+                loaded.grid.geometry.resolution,
+            ),
+            poses[:, :2],
+        )
         t_end = int(stamps[-1]) if len(stamps) else 0
         for o in outcomes:
             if "first_plan" in o:
@@ -705,11 +793,13 @@ def describe(summary: dict[str, Any]) -> str:
     """One line for the terminal."""
     c = summary["counts"]
     n = len(summary["goals"])
-    return (f"{c['reached']}/{n} goals reached, {c['failed']} failed, {c['refused']} refused; "
-            f"{summary['collisions']['events']} collision(s), "
-            f"{summary['keepout_entries']['events']} keepout entr(ies), "
-            f"{summary['path_length_m']:.2f} m in {summary['sim_time_s']:.1f} s simulated "
-            f"({summary['localization']['mode']} localisation)")  # fmt: skip
+    return (
+        f"{c['reached']}/{n} goals reached, {c['failed']} failed, {c['refused']} refused; "
+        f"{summary['collisions']['events']} collision(s), "
+        f"{summary['keepout_entries']['events']} keepout entr(ies), "
+        f"{summary['path_length_m']:.2f} m in {summary['sim_time_s']:.1f} s simulated "
+        f"({summary['localization']['mode']} localisation)"
+    )
 
 
 __all__ = [

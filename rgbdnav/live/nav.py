@@ -61,9 +61,14 @@ class MapSnapshot:
 def nav_geometry(points_xy: np.ndarray, resolution: float, margin: float) -> GridGeometry:
     """The grid covering ``points_xy`` (N, 2) [m] grown by ``margin`` [m]."""
     p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
-    return GridGeometry.from_bounds(float(p[:, 0].min()), float(p[:, 1].min()),
-                                    float(p[:, 0].max()), float(p[:, 1].max()),
-                                    resolution=resolution, margin=margin)  # fmt: skip
+    return GridGeometry.from_bounds(
+        float(p[:, 0].min()),
+        float(p[:, 1].min()),
+        float(p[:, 0].max()),
+        float(p[:, 1].max()),
+        resolution=resolution,
+        margin=margin,
+    )
 
 
 def near_edge(geometry: GridGeometry, xy: np.ndarray, slack: float) -> bool:
@@ -83,16 +88,20 @@ def live_nav_config(cfg: Config) -> Config:
     v, w = lc.max_linear_speed, lc.max_angular_speed
     fol = cfg.follower
     desired = min(fol.desired_linear_vel, v)
-    follower = replace(fol, desired_linear_vel=desired,
-                       regulated_linear_scaling_min_speed=min(
-                           fol.regulated_linear_scaling_min_speed, desired),
-                       rotate_to_heading_angular_vel=min(fol.rotate_to_heading_angular_vel, w),
-                       controller_frequency=lc.control_rate)  # fmt: skip
+    follower = replace(
+        fol,
+        desired_linear_vel=desired,
+        regulated_linear_scaling_min_speed=min(fol.regulated_linear_scaling_min_speed, desired),
+        rotate_to_heading_angular_vel=min(fol.rotate_to_heading_angular_vel, w),
+        controller_frequency=lc.control_rate,
+    )
     sm = cfg.smoother
-    smoother = replace(sm, smoothing_frequency=lc.control_rate,
-                       max_velocity=(min(sm.max_velocity[0], v), 0.0, min(sm.max_velocity[2], w)),
-                       min_velocity=(max(sm.min_velocity[0], -v), 0.0,
-                                     max(sm.min_velocity[2], -w)))  # fmt: skip
+    smoother = replace(
+        sm,
+        smoothing_frequency=lc.control_rate,
+        max_velocity=(min(sm.max_velocity[0], v), 0.0, min(sm.max_velocity[2], w)),
+        min_velocity=(max(sm.min_velocity[0], -v), 0.0, max(sm.min_velocity[2], -w)),
+    )
     navigate = replace(
         cfg.navigate, goal_timeout=lc.waypoint_timeout, replan_frequency=1.0 / lc.replan_period
     )
@@ -169,9 +178,15 @@ class LiveNavigator:
     and a planner thread makes the plans.
     """
 
-    def __init__(self, cfg: Config, route: np.ndarray, start_pose: np.ndarray,
-                 repeat: bool = False, static_map: tuple[OccupancyGrid, float, float] | None = None,
-                 plan_in_thread: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cfg: Config,
+        route: np.ndarray,
+        start_pose: np.ndarray,
+        repeat: bool = False,
+        static_map: tuple[OccupancyGrid, float, float] | None = None,
+        plan_in_thread: bool = True,
+    ) -> None:
         self.cfg = live_nav_config(cfg)
         self.route = np.asarray(route, dtype=np.float64).reshape(-1, 2)
         self.repeat = repeat
@@ -195,14 +210,16 @@ class LiveNavigator:
         pts = np.vstack([np.asarray(start_pose, dtype=np.float64)[:2], self.route])
         if static_map is not None:
             g = static_map[0].geometry
-            corners = np.array([[g.origin_x, g.origin_y],
-                                [g.origin_x + g.width * g.resolution,
-                                 g.origin_y + g.height * g.resolution]])  # fmt: skip
+            corners = np.array(
+                [
+                    [g.origin_x, g.origin_y],
+                    [g.origin_x + g.width * g.resolution, g.origin_y + g.height * g.resolution],
+                ]
+            )
             pts = np.vstack([pts, corners])
         self.geometry = nav_geometry(pts, self.cfg.costmap.resolution, cfg.live.nav_map_margin)
         self._last_scan_ns = -(2**62)
-        self._builder = threading.Thread(target=self._build_loop, name="live-nav-map",
-                                         daemon=True)  # fmt: skip
+        self._builder = threading.Thread(target=self._build_loop, name="live-nav-map", daemon=True)
         planner = GridPlanner(self.cfg.planner)
         self.planning: ThreadPlanning | ImmediatePlanning = (
             ThreadPlanning(planner) if plan_in_thread else ImmediatePlanning(planner)
@@ -279,13 +296,15 @@ class LiveNavigator:
             try:
                 grid = self._integrate(snap)
             except Exception as err:  # a bad snapshot must not end the builder: counted, logged
-                log.warning("live navigation: map snapshot not integrated (%s: %s)",
-                            type(err).__name__, err)  # fmt: skip
+                log.warning(
+                    "live navigation: map snapshot not integrated (%s: %s)", type(err).__name__, err
+                )
                 with self._lock:
                     self._counts["nav_map_build_errors"] += 1
                 continue
-            cm = self._costmap_from_grid(grid, self.cfg.mapper.occupied_thresh,
-                                         self.cfg.mapper.free_thresh)  # fmt: skip
+            cm = self._costmap_from_grid(
+                grid, self.cfg.mapper.occupied_thresh, self.cfg.mapper.free_thresh
+            )
             self.build_ms.append(1e3 * (time.perf_counter() - t0))
             with self._lock:
                 self._built = cm
@@ -306,8 +325,13 @@ class LiveNavigator:
             if np.all(np.hypot(d[:, 0], d[:, 1]) <= tol) and np.all(turned <= yaw_tol):
                 if len(old) == len(poses):
                     return last[0]
-                grid = integrate_scans(geom, poses[len(old):], snap.scans[len(old):],
-                                       self.cfg.mapper, initial=last[0])  # fmt: skip
+                grid = integrate_scans(
+                    geom,
+                    poses[len(old) :],
+                    snap.scans[len(old) :],
+                    self.cfg.mapper,
+                    initial=last[0],
+                )
                 self._last_grid = (grid, np.vstack([old, poses[len(old) :]]))
                 self._counts["nav_map_builds_incremental"] += 1
                 return grid
@@ -315,8 +339,9 @@ class LiveNavigator:
         self._last_grid = (grid, poses.copy())
         return grid
 
-    def _costmap_from_grid(self, grid: OccupancyGrid, occupied_thresh: float,
-                           free_thresh: float) -> Costmap:  # fmt: skip
+    def _costmap_from_grid(
+        self, grid: OccupancyGrid, occupied_thresh: float, free_thresh: float
+    ) -> Costmap:
         values = grid_values(grid, self.cfg.costmap, occupied_thresh, free_thresh)
         if grid.geometry != self.geometry:
             values, _ = resample_nearest(values, grid.geometry, self.geometry, UNKNOWN)
@@ -336,11 +361,15 @@ class LiveNavigator:
     def _regrow(self, xy: np.ndarray) -> None:
         """The robot or a goal neared the costmap's edge: cover it (a new, larger costmap)."""
         g = self.geometry
-        corners = np.array([[g.origin_x, g.origin_y],
-                            [g.origin_x + g.width * g.resolution,
-                             g.origin_y + g.height * g.resolution]])  # fmt: skip
-        self.geometry = nav_geometry(np.vstack([corners, xy]), g.resolution,
-                                     self.cfg.live.nav_map_margin)  # fmt: skip
+        corners = np.array(
+            [
+                [g.origin_x, g.origin_y],
+                [g.origin_x + g.width * g.resolution, g.origin_y + g.height * g.resolution],
+            ]
+        )
+        self.geometry = nav_geometry(
+            np.vstack([corners, xy]), g.resolution, self.cfg.live.nav_map_margin
+        )
         self._counts["nav_costmap_regrown"] += 1
         if self._static is not None:
             self._install(self._costmap_from_grid(*self._static))
@@ -409,9 +438,11 @@ class LiveNavigator:
     def stats(self) -> dict[str, object]:
         """Counts and timings for the run's summary."""
         out: dict[str, object] = dict(sorted(self.counts.items()))
-        for name, ms in (("nav_plan_ms_median", self.plan_ms),
-                         ("nav_map_build_ms_median", self.build_ms),
-                         ("nav_tick_ms_median", self.tick_ms)):  # fmt: skip
+        for name, ms in (
+            ("nav_plan_ms_median", self.plan_ms),
+            ("nav_map_build_ms_median", self.build_ms),
+            ("nav_tick_ms_median", self.tick_ms),
+        ):
             if ms:
                 out[name] = round(float(np.median(np.fromiter(ms, float))), 2)
         out["nav_tick_ms_max"] = round(self.tick_ms_max, 2)

@@ -52,8 +52,9 @@ class LiveRecorder:
             return
         if self._writer is None:  # the intrinsics come with the first frame
             try:
-                self._writer = RecordingWriter(self.path, frame.intrinsics, self.scene,
-                                               rgb_compression=0)  # fmt: skip
+                self._writer = RecordingWriter(
+                    self.path, frame.intrinsics, self.scene, rgb_compression=0
+                )
             except SensorError as err:
                 self._fail(str(err))
                 return
@@ -90,9 +91,12 @@ class LiveRecorder:
         if self._thread is not None:
             self._q.put(None)
             self._thread.join()
-        out: dict[str, Any] = {"path": str(self.path), "frames": self.frames,
-                               "frames_dropped": self.frames_dropped,
-                               "wheel_readings": len(self._ticks)}  # fmt: skip
+        out: dict[str, Any] = {
+            "path": str(self.path),
+            "frames": self.frames,
+            "frames_dropped": self.frames_dropped,
+            "wheel_readings": len(self._ticks),
+        }
         writer = self._writer
         if writer is None:
             out["error"] = self._error or "no camera frame arrived: nothing recorded"

@@ -186,8 +186,14 @@ class _Shared:
 # --- driving ----------------------------------------------------------------------------------
 
 
-def route_command(pose: np.ndarray, target: np.ndarray, max_v: float, max_w: float,
-                  turn_in_place: float, heading_gain: float) -> tuple[float, float]:  # fmt: skip
+def route_command(
+    pose: np.ndarray,
+    target: np.ndarray,
+    max_v: float,
+    max_w: float,
+    turn_in_place: float,
+    heading_gain: float,
+) -> tuple[float, float]:
     """(v, w) towards ``target``: turn in place while the heading error exceeds
     ``turn_in_place`` [rad], otherwise drive while steering, slowing with cos(error)."""
     dx, dy = float(target[0] - pose[0]), float(target[1] - pose[1])
@@ -217,8 +223,9 @@ class LiveRun:
         # Frames reach the EKF later than wheel ticks (render, queue, VO): it must re-filter
         # lagged data (robot_localization's smooth_lagged_data) instead of dropping it.
         history = max(cfg.ekf.history_length, cfg.live.ekf_history_length)
-        self.cfg: Config = replace(cfg, ekf=replace(cfg.ekf, smooth_lagged_data=True,
-                                                    history_length=history))  # fmt: skip
+        self.cfg: Config = replace(
+            cfg, ekf=replace(cfg.ekf, smooth_lagged_data=True, history_length=history)
+        )
         self.config_files = files
         if opts.drive not in ("route", "idle", "teleop"):
             raise ConfigError(f"--drive {opts.drive!r}: expected route, teleop or idle")
@@ -244,8 +251,10 @@ class LiveRun:
         self.latency_ms = Reservoir(lc.stats_reservoir, 1)  # frame stamp -> pose out
         self.arrival_ms = Reservoir(lc.stats_reservoir, 2)  # frame stamp -> frame in this process
         self.rss_timeline = Timeline()  # (seconds into the run, MB)
-        self.stage_ms = {k: Reservoir(lc.stats_reservoir, 3 + i) for i, k in
-                         enumerate(("wheels_ekf", "vo", "depth_to_scan", "mapper"))}  # fmt: skip
+        self.stage_ms = {
+            k: Reservoir(lc.stats_reservoir, 3 + i)
+            for i, k in enumerate(("wheels_ekf", "vo", "depth_to_scan", "mapper"))
+        }
         self.errors: list[str] = []
         self.run = RunDir(opts.out)
         self.odom_track = TrackWriter(self.run.file("odom.tum"), lc.track_decimation)
@@ -296,15 +305,22 @@ class LiveRun:
         """``scene.yaml`` of a ``--record`` recording: what ``map``/``odometry`` need to read
         it as this robot saw it, and the simulated world to score a map against."""
         cfg, opts = self.cfg, self.opts
-        scene: dict[str, Any] = {"generator": "rgbdnav live", "camera_source": opts.camera,
-                                 "groundtruth_frame": "base_link",
-                                 "robot": section_to_dict(cfg.robot),
-                                 "camera": section_to_dict(cfg.camera)}  # fmt: skip
+        scene: dict[str, Any] = {
+            "generator": "rgbdnav live",
+            "camera_source": opts.camera,
+            "groundtruth_frame": "base_link",
+            "robot": section_to_dict(cfg.robot),
+            "camera": section_to_dict(cfg.camera),
+        }
         if opts.camera == "sim" and opts.world is not None:
             world = Path(opts.world)
-            scene |= {"world": world.stem, "world_file": str(world),
-                      "world_description": yaml.safe_load(world.read_text()), "seed": opts.seed,
-                      "sim": section_to_dict(cfg.sim)}  # fmt: skip
+            scene |= {
+                "world": world.stem,
+                "world_file": str(world),
+                "world_description": yaml.safe_load(world.read_text()),
+                "seed": opts.seed,
+                "sim": section_to_dict(cfg.sim),
+            }
         return scene
 
     def _robot_frame(self) -> dict[str, Any]:
@@ -332,8 +348,11 @@ class LiveRun:
                 check_start(world, opts.start, "--start")
                 world = replace(world, start=opts.start)
             self.start_pose = np.array(world.start, dtype=np.float64)
-            self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2) if opts.goals \
-                else world.route  # fmt: skip
+            self.route = (
+                np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2)
+                if opts.goals
+                else world.route
+            )
             self.sim = SimRobot(
                 opts.world,  # type: ignore[arg-type]
                 cfg.robot,
@@ -350,10 +369,14 @@ class LiveRun:
             self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2)
         if opts.drive != "idle" and cfg.live.route_driver == "nav" and len(self.route):
             loaded = self._loaded_map
-            static = None if loaded is None else (loaded.grid, loaded.occupied_thresh,
-                                                  loaded.free_thresh)  # fmt: skip
-            self.navigator = LiveNavigator(cfg, self.route, self.start_pose, opts.repeat_route,
-                                           static)  # fmt: skip
+            static = (
+                None
+                if loaded is None
+                else (loaded.grid, loaded.occupied_thresh, loaded.free_thresh)
+            )
+            self.navigator = LiveNavigator(
+                cfg, self.route, self.start_pose, opts.repeat_route, static
+            )
             self.navigator.start()
         spec = sim_port if opts.board == "sim" else opts.board
         if opts.board != "none":
@@ -361,8 +384,9 @@ class LiveRun:
             self.board = self._opened.board
             if self.sim is not None and self.sim.wheels is not None:
                 # The simulated robot moves by this emulator's wheels (--board emulator:KIND).
-                threading.Thread(target=self._turn_sim_wheels, name="sim-wheels",
-                                 daemon=True).start()  # fmt: skip
+                threading.Thread(
+                    target=self._turn_sim_wheels, name="sim-wheels", daemon=True
+                ).start()
             if cfg.live.board_kill_switch:
                 # The board's own failsafe stops the motors if this host dies or the cable
                 # goes; the driver's watchdog covers a host that lives but stops commanding.
@@ -370,8 +394,9 @@ class LiveRun:
                     log.info("failsafe: %s", self.board.arm_failsafe(cfg.live.board_kill_switch))
                 except SensorError as err:
                     log.warning("could not arm the board's failsafe: %s", err)
-            self.poller = OdometryPoller(self.board, cfg.board, callback=self.ticks_q.put,
-                                         read_speed_heading=False)  # fmt: skip
+            self.poller = OdometryPoller(
+                self.board, cfg.board, callback=self.ticks_q.put, read_speed_heading=False
+            )
         if opts.camera == "sim":
             return self._sim_frames()
         # realtime: a device recording plays at its own pace, stamped like a camera.
@@ -447,8 +472,9 @@ class LiveRun:
                 if not stalled and not self.stop.is_set():
                     stalled = True
                     self.counts.inc("camera_stalls")
-                    log.warning("no camera frame for %.1f s: mapping paused",
-                                cfg.live.camera_stall_timeout)  # fmt: skip
+                    log.warning(
+                        "no camera frame for %.1f s: mapping paused", cfg.live.camera_stall_timeout
+                    )
                 continue
             if frame is None:
                 break
@@ -555,7 +581,7 @@ class LiveRun:
                 self.mapper is not None
                 and time.monotonic() - self._last_checkpoint >= cfg.live.checkpoint_period
             ):
-                self.checkpoint(final=False)  # fmt: skip
+                self.checkpoint(final=False)
 
     def _hand_map_to_navigator(self) -> None:
         """Every ``live.nav_map_period``: the mapper's keyframes (poses and scans, no copy of
@@ -578,8 +604,11 @@ class LiveRun:
         period = 1.0 / lc.control_rate
         i = 0
         failing = False
-        teleop = TeleopState(speed=lc.max_linear_speed, turn=lc.max_angular_speed,
-                             speed_limit=self.cfg.robot.max_wheel_speed)  # fmt: skip
+        teleop = TeleopState(
+            speed=lc.max_linear_speed,
+            turn=lc.max_angular_speed,
+            speed_limit=self.cfg.robot.max_wheel_speed,
+        )
         manual_twist, last_key = (0.0, 0.0), -math.inf
         blocked_since: float | None = None
         guard = ""
@@ -615,8 +644,9 @@ class LiveRun:
                     v, w = manual_twist
             elif self.navigator is not None:
                 pose = self.shared.pose_in_map()
-                v, w = self.navigator.tick(time.monotonic_ns(),
-                                           pose if self.shared.tracking else None)  # fmt: skip
+                v, w = self.navigator.tick(
+                    time.monotonic_ns(), pose if self.shared.tracking else None
+                )
                 self.route_done = self.navigator.done
             elif self.opts.drive == "route":
                 pose = self.shared.pose_in_map()
@@ -629,29 +659,44 @@ class LiveRun:
                         self.counts.inc("waypoints_reached")
                         self.route_done = i >= len(self.route) and not self.opts.repeat_route
                     elif self.shared.tracking:
-                        v, w = route_command(pose, self.route[i], lc.max_linear_speed,
-                                             lc.max_angular_speed, lc.turn_in_place_angle,
-                                             lc.heading_gain)  # fmt: skip
+                        v, w = route_command(
+                            pose,
+                            self.route[i],
+                            lc.max_linear_speed,
+                            lc.max_angular_speed,
+                            lc.turn_in_place_angle,
+                            lc.heading_gain,
+                        )
             # 2. The collision monitor has the last word: stop before what the camera saw.
             with self.shared.lock:
                 odom = self.shared.odom
                 pts = None if odom is None else self.shared.obstacles.points_in_base(odom)
             if pts is not None:
-                v, w, action = limit_twist(pts, v, w, self.cfg.robot.radius,
-                                           lc.collision_stop_distance,
-                                           lc.collision_slowdown_distance,
-                                           lc.collision_slowdown_ratio,
-                                           lc.collision_lateral_margin)  # fmt: skip
+                v, w, action = limit_twist(
+                    pts,
+                    v,
+                    w,
+                    self.cfg.robot.radius,
+                    lc.collision_stop_distance,
+                    lc.collision_slowdown_distance,
+                    lc.collision_slowdown_ratio,
+                    lc.collision_lateral_margin,
+                )
                 if action == "stop" and guard != "stop":
                     self.counts.inc("collision_monitor_stops")
                 guard = action
                 now = time.monotonic()
-                if action == "stop" and self.mode == "auto" and self.navigator is None \
-                        and i < len(self.route):  # fmt: skip
+                if (
+                    action == "stop"
+                    and self.mode == "auto"
+                    and self.navigator is None
+                    and i < len(self.route)
+                ):
                     blocked_since = now if blocked_since is None else blocked_since
                     if now - blocked_since > lc.blocked_timeout:
-                        log.warning("waypoint %d blocked for %.0f s: skipped", i,
-                                    lc.blocked_timeout)  # fmt: skip
+                        log.warning(
+                            "waypoint %d blocked for %.0f s: skipped", i, lc.blocked_timeout
+                        )
                         self.counts.inc("waypoints_skipped_blocked")
                         i, blocked_since = i + 1, None
                         self.route_done = i >= len(self.route) and not self.opts.repeat_route
@@ -716,8 +761,11 @@ class LiveRun:
             self._last_checkpoint = time.monotonic()
             self.counts.inc("checkpoints")
             self.last_result, self.last_grid = result, grid
-            log.info("map checkpoint: %d keyframes in %.2f s", len(result.keyframes),
-                     time.perf_counter() - t0)  # fmt: skip
+            log.info(
+                "map checkpoint: %d keyframes in %.2f s",
+                len(result.keyframes),
+                time.perf_counter() - t0,
+            )
             g = grid.geometry
             occ = grid.occupied_mask(self.cfg.mapper.occupied_thresh)
             self.vis.occupied(
@@ -759,8 +807,9 @@ class LiveRun:
 
             loaded = load_map(opts.map_bundle)
             self._loaded_map = loaded
-            model = MapModel.from_grid(loaded.grid, cfg.localizer, loaded.occupied_thresh,
-                                       loaded.free_thresh)  # fmt: skip
+            model = MapModel.from_grid(
+                loaded.grid, cfg.localizer, loaded.occupied_thresh, loaded.free_thresh
+            )
             self.localizer = Localizer(model, cfg.localizer)
         else:
             self.mapper = Mapper(cfg.mapper)
@@ -775,8 +824,9 @@ class LiveRun:
         outputs.update(self._write_outputs(wall, cpu0, sim_stats))
         return outputs
 
-    def _run_threads(self, t0: float, progress: Callable[[float, float], None] | None
-                     ) -> tuple[Any, float]:  # fmt: skip
+    def _run_threads(
+        self, t0: float, progress: Callable[[float, float], None] | None
+    ) -> tuple[Any, float]:
         """Start the devices and threads, wait for the end, stop everything; (the simulated
         robot's stats or None, wall seconds)."""
         restore = self._install_signal_handlers()
@@ -804,11 +854,14 @@ class LiveRun:
                 specs.append(("joystick", self._joystick_loop, ()))
             if self.opts.drive != "idle" and _interactive():
                 specs.append(("keyboard", self._keyboard_loop, ()))
-                log.info("keys: teleop_twist_keyboard (u i o / j k l / m , .), Tab switches "
-                         "manual/auto, Ctrl-C ends the run")  # fmt: skip
+                log.info(
+                    "keys: teleop_twist_keyboard (u i o / j k l / m , .), Tab switches "
+                    "manual/auto, Ctrl-C ends the run"
+                )
             for name, fn, args in specs:
-                th = threading.Thread(target=self._guard, args=(name, fn, *args), name=name,
-                                      daemon=True)  # fmt: skip
+                th = threading.Thread(
+                    target=self._guard, args=(name, fn, *args), name=name, daemon=True
+                )
                 th.start()
                 threads.append(th)
             self._devices_up_at = time.monotonic()
@@ -818,8 +871,9 @@ class LiveRun:
             for th in threads:
                 th.join(timeout=JOIN_TIMEOUT_S)
                 if th.is_alive():
-                    self.errors.append(f"thread {th.name} did not finish within "
-                                       f"{JOIN_TIMEOUT_S:.0f} s")  # fmt: skip
+                    self.errors.append(
+                        f"thread {th.name} did not finish within {JOIN_TIMEOUT_S:.0f} s"
+                    )
             if self.poller is not None:
                 self.poller.stop()
             if self._opened is not None:
@@ -917,13 +971,20 @@ class LiveRun:
             # The map's own trajectory: every scan placed by the final, optimised graph (what a
             # recorded run reports); trajectory.tum holds the poses as tracked online.
             p = result.scan_poses
-            write_tum_trajectory(run.file("trajectory_optimised.tum"), result.scan_stamps_ns,
-                                 p[:, 0], p[:, 1], p[:, 2])  # fmt: skip
+            write_tum_trajectory(
+                run.file("trajectory_optimised.tum"),
+                result.scan_stamps_ns,
+                p[:, 0],
+                p[:, 1],
+                p[:, 2],
+            )
             outputs["optimised trajectory"] = run.file("trajectory_optimised.tum")
             tracks["slam"] = np.column_stack([result.scan_stamps_ns.astype(np.float64), p])
-            mapper_counts = {k: result.counts[k] for k in ("scans", "scans_used", "keyframes",
-                                                           "revisits", "loop_closures")
-                             if k in result.counts}  # fmt: skip
+            mapper_counts = {
+                k: result.counts[k]
+                for k in ("scans", "scans_used", "keyframes", "revisits", "loop_closures")
+                if k in result.counts
+            }
         elif self.localizer is not None:
             tracks["slam"] = tracks["slam_online"]
         if self.odom_track.count:
@@ -988,7 +1049,7 @@ class LiveRun:
                     1,
                 ),
                 "sim_robot_cpu_s": round(kids.ru_utime + kids.ru_stime, 2),
-            },  # fmt: skip
+            },
             "peak_rss_mb": {
                 "host": round(cpu1.ru_maxrss / 1024, 1),
                 "sim_robot": round(kids.ru_maxrss / 1024, 1),
@@ -1005,12 +1066,14 @@ class LiveRun:
             summary["recording"] = recording
         if self.poller is not None:
             ps = self.poller.stats()
-            summary["board_link"] = {"port": str(self.board.url) if self.board else None,
-                                "polls": ps.polls, "errors": ps.errors,
-                                "board": self.board.kind if self.board else None,
-                                "late_replies_dropped": getattr(self.board,
-                                                                "late_replies_dropped", 0),
-                                "last_error": ps.last_error}  # fmt: skip
+            summary["board_link"] = {
+                "port": str(self.board.url) if self.board else None,
+                "polls": ps.polls,
+                "errors": ps.errors,
+                "board": self.board.kind if self.board else None,
+                "late_replies_dropped": getattr(self.board, "late_replies_dropped", 0),
+                "last_error": ps.last_error,
+            }
         if sim_stats is not None:
             summary["sim_robot"] = {
                 "frames_rendered": sim_stats.frames_rendered,
@@ -1021,7 +1084,7 @@ class LiveRun:
                 "stalled_wheel_travel_m": round(sim_stats.stalled_travel_m, 3),
                 "board_disconnects": sim_stats.board_disconnects,
                 "true_path_length_m": round(path_length(truth[:, 1:3]), 3),
-            }  # fmt: skip
+            }
             summary["route_finished"] = self.route_done
         ekf_stats = getattr(self, "ekf_stats", None)
         if ekf_stats is not None:

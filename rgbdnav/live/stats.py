@@ -76,8 +76,7 @@ class TrackWriter:
     writes them) and a thinned in-memory track for pictures. Rows are flushed to the OS at
     least every ``TRACK_FLUSH_PERIOD_S``, so a process killed with -9 leaves what it tracked."""
 
-    def __init__(self, path: Path, spacing_m: float,
-                 capacity: int = DEFAULT_TRACK_POINTS) -> None:  # fmt: skip
+    def __init__(self, path: Path, spacing_m: float, capacity: int = DEFAULT_TRACK_POINTS) -> None:
         self.path = path
         self.spacing_m = spacing_m
         self.capacity = capacity
@@ -122,8 +121,9 @@ class TrackWriter:
 def load_track(path: Path) -> np.ndarray:
     """(N, 4) stamp [ns], x, y, yaw of a planar TUM trajectory."""
     t_ns, xyz, quat = load_tum_trajectory(path)
-    return np.column_stack([t_ns.astype(np.float64), xyz[:, 0], xyz[:, 1],
-                            yaw_from_quaternion(quat)])  # fmt: skip
+    return np.column_stack(
+        [t_ns.astype(np.float64), xyz[:, 0], xyz[:, 1], yaw_from_quaternion(quat)]
+    )
 
 
 class Timeline:

@@ -144,10 +144,21 @@ class _StallingEmulator(EddieEmulator):
             self._right.pos -= right
 
 
-def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: SimConfig,
-              seed: int, start: tuple[float, float, float] | None, port_link: str,
-              truth_path: str, ring_name: str, wheels_name: str | None, frames: Any,
-              control: Any, replies: Any) -> None:  # fmt: skip
+def _simulate(
+    world_path: str,
+    robot: RobotConfig,
+    camera: CameraConfig,
+    sim: SimConfig,
+    seed: int,
+    start: tuple[float, float, float] | None,
+    port_link: str,
+    truth_path: str,
+    ring_name: str,
+    wheels_name: str | None,
+    frames: Any,
+    control: Any,
+    replies: Any,
+) -> None:
     from scipy.ndimage import distance_transform_edt
 
     from sensors.sim.motion import blocked_step, gauss_markov_step
@@ -194,8 +205,9 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
 
     stats = SimRobotStats()
     truth_file = open(truth_path, "w", buffering=1 << 16)  # closed when the loop ends
-    truth_file.write(f"# planar trajectory (z = 0, rotation about z)\n"
-                     f"# {' '.join(TRAJECTORY_COLUMNS)}\n")  # fmt: skip
+    truth_file.write(
+        f"# planar trajectory (z = 0, rotation about z)\n# {' '.join(TRAJECTORY_COLUMNS)}\n"
+    )
     x, y, yaw = world.start
     slip = np.zeros(2)
     prev = positions()
@@ -223,8 +235,9 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
                 stall_until_ns = time.monotonic_ns() + int(order[1] * 1e9)
         # 2. Move the robot by what the wheels did since the last frame.
         now = positions()
-        slip = gauss_markov_step(slip, sim.wheel_slip, sim.slip_correlation_time,
-                                 period_ns / 1e9, rng.standard_normal(2))  # fmt: skip
+        slip = gauss_markov_step(
+            slip, sim.wheel_slip, sim.slip_correlation_time, period_ns / 1e9, rng.standard_normal(2)
+        )
         per_pos = metres * (1.0 + slip)  # [m per encoder position] left, right
         travel = (now - prev) * per_pos  # [m] left, right
         pose, enc_l, enc_r, outcome = blocked_step(
@@ -244,8 +257,10 @@ def _simulate(world_path: str, robot: RobotConfig, camera: CameraConfig, sim: Si
         prev = now
         # 3. Image the world at the capture time, unless the camera is stalled.
         stamp = time.monotonic_ns()
-        truth_file.write(f"{format_stamp(stamp)} {x!r} {y!r} 0.0 0.0 0.0 "
-                         f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n")  # fmt: skip
+        truth_file.write(
+            f"{format_stamp(stamp)} {x!r} {y!r} 0.0 0.0 0.0 "
+            f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n"
+        )
         stats.truth_poses += 1
         if stamp < stall_until_ns:
             stats.stalled_frames += 1
@@ -294,8 +309,11 @@ class SimRobot:
         self.world_path = str(world_path)
         self.robot, self.camera, self.sim, self.seed = robot, camera, sim, seed
         self.port_link = str(port_link)
-        self.truth_path = Path(truth_path) if truth_path is not None else \
-            Path(port_link).with_name("groundtruth.tum")  # fmt: skip
+        self.truth_path = (
+            Path(truth_path)
+            if truth_path is not None
+            else Path(port_link).with_name("groundtruth.tum")
+        )
         ctx = mp.get_context("spawn")  # the host has threads: never fork it
         self._ring = _FrameRing(camera.width, camera.height)
         # external_wheels: the host's board emulator writes the wheel travel [positions] here
@@ -311,13 +329,25 @@ class SimRobot:
         self._control: Any = ctx.Queue()
         self._replies: Any = ctx.Queue()
         self._proc = ctx.Process(
-            target=_child, name="rgbdnav-sim-robot", daemon=True,
-            args=(self.world_path, robot, camera, sim, seed, start, self.port_link,
-                  str(self.truth_path), self._ring.shm.name,
-                  None if self.wheels_shm is None else self.wheels_shm.name, self._frames,
-                  self._control,
-                  self._replies),
-        )  # fmt: skip
+            target=_child,
+            name="rgbdnav-sim-robot",
+            daemon=True,
+            args=(
+                self.world_path,
+                robot,
+                camera,
+                sim,
+                seed,
+                start,
+                self.port_link,
+                str(self.truth_path),
+                self._ring.shm.name,
+                None if self.wheels_shm is None else self.wheels_shm.name,
+                self._frames,
+                self._control,
+                self._replies,
+            ),
+        )
         self.intrinsics: CameraIntrinsics | None = None
         self._stats: SimRobotStats | None = None
         self._error: str | None = None
@@ -404,8 +434,9 @@ class SimRobot:
         if self._stats is None:
             if self._proc.pid is None:
                 raise SensorError("the simulated robot was never started, so it has no counts")
-            why = self._error.splitlines()[0] if self._error else (
-                f"exit code {self._proc.exitcode}")  # fmt: skip
+            why = (
+                self._error.splitlines()[0] if self._error else (f"exit code {self._proc.exitcode}")
+            )
             raise SensorError(f"the simulated robot failed: {why}")
         return self._stats
 

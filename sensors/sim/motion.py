@@ -88,9 +88,16 @@ def drive_route(world: World, sim: SimConfig) -> Trajectory:
                 v_cmd = 0.0
             else:
                 # Brake so the robot arrives slowly where the next leg needs a sharp turn.
-                turn_next = i + 1 < len(route) and abs(_wrap(
-                    math.atan2(route[i + 1, 1] - route[i, 1], route[i + 1, 0] - route[i, 0])
-                    - math.atan2(dy, dx))) > TURN_IN_PLACE_ANGLE  # fmt: skip
+                turn_next = (
+                    i + 1 < len(route)
+                    and abs(
+                        _wrap(
+                            math.atan2(route[i + 1, 1] - route[i, 1], route[i + 1, 0] - route[i, 0])
+                            - math.atan2(dy, dx)
+                        )
+                    )
+                    > TURN_IN_PLACE_ANGLE
+                )
                 reach = dist if (turn_next or i + 1 == len(route)) else math.inf
                 v_cmd = min(sim.max_linear_speed, math.sqrt(2 * sim.max_linear_accel * reach))
                 v_cmd *= math.cos(err)
@@ -137,8 +144,10 @@ def replay_tum(path: str | Path, robot: RobotConfig, sim: SimConfig) -> Trajecto
     k = max(1, int(round(REPLAY_SMOOTHING / dt)))
     if k > 1 and len(t) > 2 * k:
         kernel = np.ones(k) / k
-        x, y, th = (np.convolve(np.pad(a, (k // 2, k - 1 - k // 2), mode="edge"), kernel, "valid")
-                    for a in (x, y, th))  # fmt: skip
+        x, y, th = (
+            np.convolve(np.pad(a, (k // 2, k - 1 - k // 2), mode="edge"), kernel, "valid")
+            for a in (x, y, th)
+        )
     v, w = body_velocities(x, y, th, dt)
     return Trajectory(np.round(t * NS_PER_S).astype(np.int64), x, y, th, v, w)
 
@@ -200,8 +209,9 @@ def diff_drive_step(
     ds = 0.5 * (d_left + d_right)
     dth = (d_right - d_left) / track_width
     mid = pose[2] + 0.5 * dth
-    return np.array([pose[0] + ds * math.cos(mid), pose[1] + ds * math.sin(mid),
-                     float(_wrap(pose[2] + dth))])  # fmt: skip
+    return np.array(
+        [pose[0] + ds * math.cos(mid), pose[1] + ds * math.sin(mid), float(_wrap(pose[2] + dth))]
+    )
 
 
 def gauss_markov_step(

@@ -82,8 +82,9 @@ class EmulatedDrive:
             self.speeds = now
             ground = positions * self.true_m_per_position * (1.0 + self.slip)
             self.pose = diff_drive_step(self.pose, ground[0], ground[1], self.true_track)
-            self.slip = gauss_markov_step(self.slip, sim.wheel_slip, sim.slip_correlation_time, h,
-                                          self.rng.standard_normal(2))  # fmt: skip
+            self.slip = gauss_markov_step(
+                self.slip, sim.wheel_slip, sim.slip_correlation_time, h, self.rng.standard_normal(2)
+            )
 
     def ticks(self) -> WheelTicks:
         """Cumulative encoder counts now, as DIST reports them."""

@@ -112,8 +112,9 @@ def build_scene_faces(world: World, atlas_names: tuple[str, ...]) -> SceneFaces:
     x0, y0, x1, y1 = world.bounds(margin=1.0)
     h = world.ceiling_height
     corners_2d = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
-    plane = np.vstack([np.column_stack([corners_2d, np.zeros(4)]),
-                       np.column_stack([corners_2d, np.full(4, h)])])  # fmt: skip
+    plane = np.vstack(
+        [np.column_stack([corners_2d, np.zeros(4)]), np.column_stack([corners_2d, np.full(4, h)])]
+    )
     add_quad(plane, (0, 1, 2, 3), world.floor.texture, world.floor.scale)
     add_quad(plane, (4, 7, 6, 5), world.ceiling.texture, world.ceiling.scale)
     return SceneFaces(
@@ -184,8 +185,9 @@ def _clip_near(poly: np.ndarray, z_near: float) -> np.ndarray:
     return np.array(out)
 
 
-def rasterize(faces: SceneFaces, table: np.ndarray, r_wo: np.ndarray, t_wo: np.ndarray,
-              cam: CameraConfig) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def rasterize(
+    faces: SceneFaces, table: np.ndarray, r_wo: np.ndarray, t_wo: np.ndarray, cam: CameraConfig
+) -> tuple[np.ndarray, np.ndarray]:
     """Z-buffered scan conversion of the visible faces.
 
     Returns (inverse depth 1/z (H, W) float32, 0 = nothing; face index (H, W) int32, F = none).
@@ -196,9 +198,13 @@ def rasterize(faces: SceneFaces, table: np.ndarray, r_wo: np.ndarray, t_wo: np.n
 
 
 def _scan_convert(
-    faces: SceneFaces, table: np.ndarray, r_wo: np.ndarray, t_wo: np.ndarray, cam: CameraConfig,
+    faces: SceneFaces,
+    table: np.ndarray,
+    r_wo: np.ndarray,
+    t_wo: np.ndarray,
+    cam: CameraConfig,
     face_dtype: np.dtype,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`rasterize` with the face index in ``face_dtype`` (uint8 when F + 1 <= 256: the
     renderer's shading reads it with cv2.LUT, and a byte per pixel is cheaper to write)."""
     h, w = cam.height, cam.width
@@ -285,14 +291,26 @@ class KinectRenderer:
     :meth:`render`, so the same seed and poses give identical images.
     """
 
-    def __init__(self, world: World, camera: CameraConfig, robot: RobotConfig, sim: SimConfig,
-                 noise_seed: int = 0, backend: str | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        world: World,
+        camera: CameraConfig,
+        robot: RobotConfig,
+        sim: SimConfig,
+        noise_seed: int = 0,
+        backend: str | None = None,
+    ) -> None:
         self.camera, self.robot, self.sim = camera, robot, sim
         self.backend = backend or sim.renderer
         self.intrinsics = CameraIntrinsics(
-            camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
+            camera.width,
+            camera.height,
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
             camera.depth_scale,
-        )  # fmt: skip
+        )
         self.atlas: TextureAtlas = build_atlas(world_textures(world))
         self.faces = build_scene_faces(world, self.atlas.names)
         self._scene = None
@@ -409,12 +427,14 @@ class KinectRenderer:
         if self._fast_shading:
             rgb = self._shade(invz, face, table, rgb_noise)
         else:
-            rgb = self._shade_reference(invz.ravel(), face.ravel().astype(np.intp), table,
-                                        rgb_noise)  # fmt: skip
+            rgb = self._shade_reference(
+                invz.ravel(), face.ravel().astype(np.intp), table, rgb_noise
+            )
         return rgb.reshape(h, w, 3), pending.result()
 
-    def _shade(self, invz: np.ndarray, face: np.ndarray, table: np.ndarray,
-               noise_start: int) -> np.ndarray:  # fmt: skip
+    def _shade(
+        self, invz: np.ndarray, face: np.ndarray, table: np.ndarray, noise_start: int
+    ) -> np.ndarray:
         """:meth:`_shade_reference`, bit for bit, at under half the cost: invz (H, W) float32,
         face (H, W) uint8. Per-face coefficients are read with cv2.LUT on the uint8 face index
         (about 2x faster than np.take), the texture coordinates come out already in finest-level
@@ -436,8 +456,9 @@ class KinectRenderer:
             self._finish(albedo, light8, noise_start + 4 * pixels.start, out=rgb[rows])
         return rgb
 
-    def _shade_band(self, invz: np.ndarray, face: np.ndarray, lut: np.ndarray,
-                    pixels: slice) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    def _shade_band(
+        self, invz: np.ndarray, face: np.ndarray, lut: np.ndarray, pixels: slice
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Albedo (rows, W, 4) and light (rows, W) uint8 of one band of rows; ``pixels`` is the
         band's range in the flattened image."""
         shape = invz.shape
@@ -476,8 +497,10 @@ class KinectRenderer:
         texels *= dir_norm2
         texels *= coef(MIP_K)
         exponent = (texels.view(np.uint32) >> FLOAT32_EXPONENT_SHIFT).astype(np.uint8)
-        key = cv2.add(cv2.LUT(face, self._texture_key_lut).reshape(-1),
-                      cv2.LUT(exponent, self._level_lut).reshape(-1))  # fmt: skip
+        key = cv2.add(
+            cv2.LUT(face, self._texture_key_lut).reshape(-1),
+            cv2.LUT(exponent, self._level_lut).reshape(-1),
+        )
         # 4. Atlas address: origin + ((ty & 511) >> L << (9 + L)) + (tx & 511), one gather.
         row = tex_y.astype(np.int32)
         row <<= TEXTURE_BITS
@@ -505,8 +528,13 @@ class KinectRenderer:
         np.copyto(light8, np.uint8(0), where=nothing.reshape(shape))
         return albedo, light8
 
-    def _finish(self, albedo: np.ndarray, light8: np.ndarray, noise_start: int,
-                out: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    def _finish(
+        self,
+        albedo: np.ndarray,
+        light8: np.ndarray,
+        noise_start: int,
+        out: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Albedo (H, W, 4) uint8 x light (H, W) uint8 / 255, plus sensor noise -> RGB (of the
         whole image or of a band of its rows)."""
         h, w = light8.shape
@@ -518,8 +546,9 @@ class KinectRenderer:
         shaded = cv2.subtract(cv2.add(shaded, plus), minus)
         return cv2.cvtColor(shaded, cv2.COLOR_RGBA2RGB, dst=out)
 
-    def _shade_reference(self, invz: np.ndarray, face: np.ndarray, table: np.ndarray,
-                         noise_start: int) -> np.ndarray:  # fmt: skip
+    def _shade_reference(
+        self, invz: np.ndarray, face: np.ndarray, table: np.ndarray, noise_start: int
+    ) -> np.ndarray:
         """The readable shading kernel :meth:`_shade` reproduces bit for bit: invz (N,) float32,
         face (N,) intp. Also the path for worlds too big for 8-bit face indices."""
         g = np.take(table[:SHADING_ROWS], face, axis=1)  # (10, N): one gather for all of them
@@ -561,8 +590,14 @@ class KinectRenderer:
             self._kinect_depth_band(invz[rows], noise[rows], kept[rows], edges[rows], depth[rows])
         return depth
 
-    def _kinect_depth_band(self, invz: np.ndarray, noise: np.ndarray, kept: np.ndarray,
-                           edges: np.ndarray, depth: np.ndarray) -> None:  # fmt: skip
+    def _kinect_depth_band(
+        self,
+        invz: np.ndarray,
+        noise: np.ndarray,
+        kept: np.ndarray,
+        edges: np.ndarray,
+        depth: np.ndarray,
+    ) -> None:
         """:meth:`_kinect_depth` of one band of rows, given its depth-edge mask, into ``depth``."""
         cam, sim = self.camera, self.sim
         fb = np.float32(cam.disparity_focal * cam.baseline)  # [px m]
@@ -619,8 +654,14 @@ class KinectRenderer:
             reach = math.ceil(shift) + 2
             # min(u_p[:, j + 1 : j + 1 + reach]), written in place
             kernel = np.ones((1, reach), np.uint8)
-            cv2.erode(u_p[:, 1:], kernel, dst=min_to_right[:, :-1], anchor=(0, 0),
-                      borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)  # fmt: skip
+            cv2.erode(
+                u_p[:, 1:],
+                kernel,
+                dst=min_to_right[:, :-1],
+                anchor=(0, 0),
+                borderType=cv2.BORDER_CONSTANT,
+                borderValue=np.inf,
+            )
         else:
             np.minimum.accumulate(u_p[:, :0:-1], axis=1, out=min_to_right[:, -2::-1])
         min_to_right += 0.5

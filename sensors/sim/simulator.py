@@ -186,6 +186,11 @@ def simulate(
         wheel_samples=len(wheel_t),
         imu_samples=len(imu_t) if sim.gyro_enabled else 0,
     )
-    log.info("simulated %s: %d frames, %.1f m in %.1f s", world.name, summary.frames,
-             summary.path_length_m, summary.duration_s)  # fmt: skip
+    log.info(
+        "simulated %s: %d frames, %.1f m in %.1f s",
+        world.name,
+        summary.frames,
+        summary.path_length_m,
+        summary.duration_s,
+    )
     return summary

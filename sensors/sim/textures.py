@@ -168,5 +168,6 @@ def build_atlas(names: tuple[str, ...]) -> TextureAtlas:
             first_row = 1 << (level - 1)
             texels[t, 1, first_row :: 1 << level] = np.repeat(_with_alpha(img), 1 << level, axis=1)
             origin[t, level] = (2 * t + 1) * grid + first_row * TEXTURE_SIZE
-    return TextureAtlas(names, texels.reshape(-1, 4).view(np.uint32).ravel(),
-                        origin.astype(np.int32))  # fmt: skip
+    return TextureAtlas(
+        names, texels.reshape(-1, 4).view(np.uint32).ravel(), origin.astype(np.int32)
+    )

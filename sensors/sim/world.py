@@ -219,9 +219,19 @@ def _geo(data: Any, source: str) -> GeoAnchor | None:
 
 def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
     known = {
-        "name", "description", "wall_thickness", "wall_height", "door_height", "floor",
-        "ceiling", "walls", "furniture", "start", "route", "geo",
-    }  # fmt: skip
+        "name",
+        "description",
+        "wall_thickness",
+        "wall_height",
+        "door_height",
+        "floor",
+        "ceiling",
+        "walls",
+        "furniture",
+        "start",
+        "route",
+        "geo",
+    }
     unknown = sorted(set(data) - known)
     if unknown:
         raise WorldError(f"{source}: {unknown[0]}: unknown key (valid: {', '.join(sorted(known))})")
@@ -249,17 +259,26 @@ def world_from_dict(data: Mapping[str, Any], source: str = "<world>") -> World:
         z0 = _num(f, "elevation", where, 0.0)
         boxes.append(
             Box(
-                cx, cy, length / 2, width / 2, _num(f, "yaw", where, 0.0), z0, z0 + height,
-                str(f.get("texture", "wood")), _num(f, "texture_scale", where, 1.0, True),
+                cx,
+                cy,
+                length / 2,
+                width / 2,
+                _num(f, "yaw", where, 0.0),
+                z0,
+                z0 + height,
+                str(f.get("texture", "wood")),
+                _num(f, "texture_scale", where, 1.0, True),
                 str(f.get("name", f"furniture{i}")),
             )
-        )  # fmt: skip
+        )
     start = _vec(data, "start", 3, source)
     route_raw = data.get("route")
     if not isinstance(route_raw, list) or not route_raw:
         raise WorldError(f"{source}: route: expected a non-empty list of [x, y] waypoints")
-    route = np.array([_vec({"p": p}, "p", 2, f"{source}: route[{i}]") for i, p in
-                      enumerate(route_raw)], dtype=np.float64)  # fmt: skip
+    route = np.array(
+        [_vec({"p": p}, "p", 2, f"{source}: route[{i}]") for i, p in enumerate(route_raw)],
+        dtype=np.float64,
+    )
     world = World(
         name=str(data.get("name", Path(source).stem)),
         boxes=tuple(boxes),

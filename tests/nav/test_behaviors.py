@@ -83,12 +83,14 @@ def test_clear_costmap_has_no_motion() -> None:
 
 @pytest.mark.parametrize(
     ("kwargs", "match"),
-    [({"name": "dance"}, "unknown behaviour"),
-     ({"name": "spin", "target": 4.0, "speed": 1.0}, "spin_dist"),
-     ({"name": "backup", "target": 0.3, "speed": 0.0}, "backup_speed"),
-     ({"name": "wait", "target": 0.0}, "wait_duration"),
-     ({"name": "wait", "target": 1.0, "time_allowance": 0.0}, "time_allowance")],
-)  # fmt: skip
+    [
+        ({"name": "dance"}, "unknown behaviour"),
+        ({"name": "spin", "target": 4.0, "speed": 1.0}, "spin_dist"),
+        ({"name": "backup", "target": 0.3, "speed": 0.0}, "backup_speed"),
+        ({"name": "wait", "target": 0.0}, "wait_duration"),
+        ({"name": "wait", "target": 1.0, "time_allowance": 0.0}, "time_allowance"),
+    ],
+)
 def test_bad_behaviour_parameters_are_refused(kwargs: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         Behavior(**kwargs)

@@ -15,13 +15,15 @@ R, STOP, SLOW, RATIO = 0.23, 0.12, 0.4, 0.4  # [m, m, m, -]
 
 @pytest.mark.parametrize(
     ("point", "expected_v", "action"),
-    [((0.30, 0.0), 0.0, "stop"),  # inside radius + stop distance, straight ahead
-     ((0.50, 0.1), 0.3 * RATIO, "slowdown"),
-     ((0.50, 0.4), 0.3, ""),  # beside the footprint's path
-     ((0.0, 0.26), 0.0, "stop"),  # a door frame at the robot's side, within the margin
-     ((-0.5, 0.0), 0.3, ""),  # behind: the robot drives away from it
-     ((1.5, 0.0), 0.3, "")],
-)  # fmt: skip
+    [
+        ((0.30, 0.0), 0.0, "stop"),  # inside radius + stop distance, straight ahead
+        ((0.50, 0.1), 0.3 * RATIO, "slowdown"),
+        ((0.50, 0.4), 0.3, ""),  # beside the footprint's path
+        ((0.0, 0.26), 0.0, "stop"),  # a door frame at the robot's side, within the margin
+        ((-0.5, 0.0), 0.3, ""),  # behind: the robot drives away from it
+        ((1.5, 0.0), 0.3, ""),
+    ],
+)
 def test_forward_motion_is_stopped_or_slowed_by_a_point_ahead(
     point: tuple[float, float], expected_v: float, action: str
 ) -> None:
@@ -43,8 +45,9 @@ def test_memory_keeps_a_wall_seen_from_afar_in_the_robots_frame_as_it_drives_up(
     np.testing.assert_allclose(pts, [[0.25, 0.0]], atol=1e-12)
     assert limit_twist(pts, 0.3, 0.0, R, STOP, SLOW, RATIO)[2] == "stop"
     # Turned left by 90 deg: the point is now on the robot's right.
-    np.testing.assert_allclose(mem.points_in_base(np.array([0.75, 0.0, math.pi / 2])),
-                               [[0.0, -0.25]], atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(
+        mem.points_in_base(np.array([0.75, 0.0, math.pi / 2])), [[0.0, -0.25]], atol=1e-12
+    )
 
 
 def test_memory_forgets_scans_older_than_its_window() -> None:

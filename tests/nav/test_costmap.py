@@ -25,8 +25,9 @@ from slam.map_bundle import save_map_yaml
 from slam.occupancy_grid import GridGeometry, OccupancyGrid
 
 # Inscribed radius 0.2 m, k = 3 /m, inflation out to 0.55 m.
-CFG = CostmapConfig(robot_radius=0.2, footprint_padding=0.0, inflation_radius=0.55,
-                    cost_scaling_factor=3.0)  # fmt: skip
+CFG = CostmapConfig(
+    robot_radius=0.2, footprint_padding=0.0, inflation_radius=0.55, cost_scaling_factor=3.0
+)
 NO_INFLATION = CostmapConfig(robot_radius=0.2, footprint_padding=0.0, inflation_radius=0.0)
 RANGE_MAX = 10.0  # [m]
 

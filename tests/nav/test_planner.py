@@ -276,8 +276,9 @@ def test_smoothing_keeps_path_collision_free_and_shortens_it() -> None:
     np.testing.assert_allclose(smooth.poses[-1, :2], goal, atol=1e-12)
 
 
-def _iterated_smoothing(xy: np.ndarray, cost: np.ndarray, geo: GridGeometry,
-                       cfg: PlannerConfig) -> np.ndarray:  # fmt: skip
+def _iterated_smoothing(
+    xy: np.ndarray, cost: np.ndarray, geo: GridGeometry, cfg: PlannerConfig
+) -> np.ndarray:
     """SimpleSmoother by its iteration alone, point by point (the reference for smooth_path)."""
     out = xy.copy()
     for _ in range(2 if cfg.smoothing_do_refinement else 1):
@@ -287,7 +288,8 @@ def _iterated_smoothing(xy: np.ndarray, cost: np.ndarray, geo: GridGeometry,
             change = 0.0
             for i in range(1, len(out) - 1):
                 step = cfg.smoothing_w_data * (data[i] - out[i]) + cfg.smoothing_w_smooth * (
-                    out[i - 1] + out[i + 1] - 2.0 * out[i])  # fmt: skip
+                    out[i - 1] + out[i + 1] - 2.0 * out[i]
+                )
                 cand = out[i] + step
                 probes = np.array([cand, 0.5 * (cand + out[i - 1]), 0.5 * (cand + out[i + 1])])
                 if points_passable(probes, cost, geo, cfg).all():
@@ -428,8 +430,9 @@ def test_weights_patched_for_a_few_changed_cells_equal_a_fresh_computation(
     first_base = incremental._base
     for step in range(12):
         r0, c0 = rng.integers(0, 26), rng.integers(0, 36)
-        cost[r0 : r0 + 4, c0 : c0 + 4] = rng.choice(np.array([0, 60, 253, 254], np.uint8),
-                                                    size=(4, 4))  # fmt: skip
+        cost[r0 : r0 + 4, c0 : c0 + 4] = rng.choice(
+            np.array([0, 60, 253, 254], np.uint8), size=(4, 4)
+        )
         cost[5, 1] = cost[25, 38] = 0
         got = incremental.plan(cost, geo, centre(5, 1), centre(25, 38))
         fresh = GridPlanner(cfg)

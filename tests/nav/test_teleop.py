@@ -13,10 +13,18 @@ from sensors.types import ConfigError
 
 @pytest.mark.parametrize(
     ("key", "twist"),
-    [("u", (0.5, 1.0)), ("i", (0.5, 0.0)), ("o", (0.5, -1.0)), ("j", (0.0, 1.0)),
-     ("k", (0.0, 0.0)), ("l", (0.0, -1.0)), ("m", (-0.5, -1.0)), (",", (-0.5, 0.0)),
-     (".", (-0.5, 1.0))],
-)  # fmt: skip
+    [
+        ("u", (0.5, 1.0)),
+        ("i", (0.5, 0.0)),
+        ("o", (0.5, -1.0)),
+        ("j", (0.0, 1.0)),
+        ("k", (0.0, 0.0)),
+        ("l", (0.0, -1.0)),
+        ("m", (-0.5, -1.0)),
+        (",", (-0.5, 0.0)),
+        (".", (-0.5, 1.0)),
+    ],
+)
 def test_motion_keys_map_like_teleop_twist_keyboard(key: str, twist: tuple) -> None:
     out, _ = teleop_key(key, TeleopState())
     assert out == twist

@@ -17,7 +17,8 @@ HOUSE = Path(__file__).resolve().parents[2] / "scenes" / "house.yaml"
 def house_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """45 frames (1.5 s) of the house route, seed 2: `rgbdnav simulate` as a user runs it."""
     out = tmp_path_factory.mktemp("rec") / "house"
-    result = CliRunner().invoke(app, ["simulate", str(HOUSE), "--out", str(out), "--frames",
-                                      "45", "--seed", "2", "--quiet"])  # fmt: skip
+    result = CliRunner().invoke(
+        app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45", "--seed", "2", "--quiet"]
+    )
     assert result.exit_code == 0, result.output
     return out

@@ -16,13 +16,20 @@ import bench_live  # noqa: E402  (bench/ is no package)
 
 CYCLES = 2
 GOOD = {
-    "counts": {"drill_unplug_board": 2, "drill_replug_board": 2, "drill_stall_camera": 2,
-               "board_command_errors": 40, "board_recovered": 2, "camera_stalls": 2,
-               "route_laps": 1, "waypoints_reached": 9},
+    "counts": {
+        "drill_unplug_board": 2,
+        "drill_replug_board": 2,
+        "drill_stall_camera": 2,
+        "board_command_errors": 40,
+        "board_recovered": 2,
+        "camera_stalls": 2,
+        "route_laps": 1,
+        "waypoints_reached": 9,
+    },
     "sim_robot": {"stalled_frames": 180},
     "slam_vs_groundtruth": {"ate_rmse_aligned_m": 0.05, "ate_rmse_m": 0.2},
     "errors": [],
-}  # fmt: skip
+}
 
 
 def test_the_schedule_fits_whole_cycles_into_the_run() -> None:
@@ -51,14 +58,16 @@ def test_a_run_that_recovered_from_every_drill_passes_every_check() -> None:
 
 @pytest.mark.parametrize(
     ("path", "value", "failing"),
-    [(("counts", "drill_stall_camera"), 1, "drills run"),
-     (("counts", "board_recovered"), 1, "reconnects"),
-     (("counts", "camera_stalls"), 1, "camera stalls"),
-     (("sim_robot", "stalled_frames"), 0, "held back"),
-     (("counts", "waypoints_reached"), 0, "route driving"),
-     (("slam_vs_groundtruth", "ate_rmse_aligned_m"), 0.4, "SLAM ATE"),
-     (("errors",), ["board: gone"], "errors")],
-)  # fmt: skip
+    [
+        (("counts", "drill_stall_camera"), 1, "drills run"),
+        (("counts", "board_recovered"), 1, "reconnects"),
+        (("counts", "camera_stalls"), 1, "camera stalls"),
+        (("sim_robot", "stalled_frames"), 0, "held back"),
+        (("counts", "waypoints_reached"), 0, "route driving"),
+        (("slam_vs_groundtruth", "ate_rmse_aligned_m"), 0.4, "SLAM ATE"),
+        (("errors",), ["board: gone"], "errors"),
+    ],
+)
 def test_each_kind_of_failure_fails_its_check(path: tuple, value: object, failing: str) -> None:
     s = copy.deepcopy(GOOD)
     node = s

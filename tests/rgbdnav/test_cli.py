@@ -32,8 +32,15 @@ def test_help_lists_the_commands() -> None:
 
 
 def test_simulate_writes_a_recording_and_a_run_record(recording: Path) -> None:
-    for name in ("rgb.txt", "depth.txt", "wheels.txt", "groundtruth.txt", "scene.yaml",
-                 "config.yaml", "summary.json"):  # fmt: skip
+    for name in (
+        "rgb.txt",
+        "depth.txt",
+        "wheels.txt",
+        "groundtruth.txt",
+        "scene.yaml",
+        "config.yaml",
+        "summary.json",
+    ):
         assert (recording / name).is_file(), name
     summary = json.loads((recording / "summary.json").read_text())
     assert summary["frames"] == 45 and summary["frames_per_s"] > 0
@@ -56,8 +63,17 @@ def test_odometry_writes_trajectory_summary_and_pictures(recording: Path, tmp_pa
     out = tmp_path / "run"
     result = runner.invoke(app, ["odometry", str(recording), "--out", str(out), "--quiet"])
     assert result.exit_code == 0, result.output
-    for name in ("config.yaml", "summary.json", "trajectory.tum", "wheel.tum", "vo.tum",
-                 "fused.tum", "groundtruth.tum", "trajectory.png", "frames.png"):  # fmt: skip
+    for name in (
+        "config.yaml",
+        "summary.json",
+        "trajectory.tum",
+        "wheel.tum",
+        "vo.tum",
+        "fused.tum",
+        "groundtruth.tum",
+        "trajectory.png",
+        "frames.png",
+    ):
         assert (out / name).is_file(), name
     summary = json.loads((out / "summary.json").read_text())
     # Visual odometry tracked the simulated frames and the EKF fused all three sensors.
@@ -79,8 +95,10 @@ def test_odometry_writes_trajectory_summary_and_pictures(recording: Path, tmp_pa
 
 def test_set_override_reaches_the_resolved_config(recording: Path, tmp_path: Path) -> None:
     out = tmp_path / "run"
-    result = runner.invoke(app, ["odometry", str(recording), "--out", str(out), "-q",
-                                 "--set", "robot.track_width=0.31"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        ["odometry", str(recording), "--out", str(out), "-q", "--set", "robot.track_width=0.31"],
+    )
     assert result.exit_code == 0, result.output
     assert "track_width: 0.31" in (out / "config.yaml").read_text()
 
@@ -113,8 +131,9 @@ def test_set_override_reaches_the_resolved_config(recording: Path, tmp_path: Pat
         (["simulate", "no-such-world.yaml", "--out", "x"], "no-such-world.yaml: no such world"),
     ],
 )
-def test_user_mistakes_give_one_clear_line_and_exit_1(args: list[str], message: str,
-                                                      tmp_path: Path) -> None:  # fmt: skip
+def test_user_mistakes_give_one_clear_line_and_exit_1(
+    args: list[str], message: str, tmp_path: Path
+) -> None:
     args = [a if a != "x" else str(tmp_path / "x") for a in args]
     result = runner.invoke(app, args)
     assert result.exit_code == 1
@@ -128,10 +147,21 @@ def test_console_script_prints_no_traceback_for_a_bad_config(tmp_path: Path) -> 
     bad = tmp_path / "bad.yaml"
     bad.write_text("ekf:\n  frequency: fast\n")
     proc = subprocess.run(
-        [sys.executable, "-m", "rgbdnav.cli", "simulate", str(HOUSE), "--out", str(tmp_path / "o"),
-         "--config", str(bad)],
-        capture_output=True, text=True, cwd=REPO,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "rgbdnav.cli",
+            "simulate",
+            str(HOUSE),
+            "--out",
+            str(tmp_path / "o"),
+            "--config",
+            str(bad),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
     assert proc.returncode == 1
     assert "Traceback" not in proc.stderr
     assert f"{bad}: ekf.frequency: expected a number" in proc.stderr
@@ -218,8 +248,11 @@ def test_odometry_refuses_a_source_without_wheels_whose_frames_vo_cannot_track(
     intr = CameraIntrinsics(4, 3, 5.0, 5.0, 2.0, 1.5)
     with RecordingWriter(tmp_path / "rec", intr, {}) as writer:
         for k in range(2):
-            writer.add_frame(RgbdFrame(k * 33_000_000, np.zeros((3, 4, 3), np.uint8),
-                                       np.ones((3, 4), np.float32), intr))  # fmt: skip
+            writer.add_frame(
+                RgbdFrame(
+                    k * 33_000_000, np.zeros((3, 4, 3), np.uint8), np.ones((3, 4), np.float32), intr
+                )
+            )
     result = runner.invoke(
         app, ["odometry", str(tmp_path / "rec"), "--out", str(tmp_path / "o"), *extra]
     )
@@ -227,8 +260,9 @@ def test_odometry_refuses_a_source_without_wheels_whose_frames_vo_cannot_track(
     assert message in result.output
 
 
-def test_an_unreadable_cached_rendering_is_rendered_again(tmp_path: Path, monkeypatch,
-                                                          caplog) -> None:  # fmt: skip
+def test_an_unreadable_cached_rendering_is_rendered_again(
+    tmp_path: Path, monkeypatch, caplog
+) -> None:
     import logging
 
     from rgbdnav.cache import cached_recording_path
@@ -259,8 +293,19 @@ def test_a_sensor_switched_off_in_the_ekf_config_is_not_fused_or_named(
 ) -> None:
     off = "[" + ",".join(["false"] * 15) + "]"
     out = tmp_path / "run"
-    result = runner.invoke(app, ["odometry", str(recording), "--out", str(out), "-q", "--no-vo",
-                                 "--set", f"ekf.imu0_config={off}"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "odometry",
+            str(recording),
+            "--out",
+            str(out),
+            "-q",
+            "--no-vo",
+            "--set",
+            f"ekf.imu0_config={off}",
+        ],
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ekf"]["inputs"] == ["odom0"]

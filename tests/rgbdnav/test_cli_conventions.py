@@ -50,14 +50,16 @@ def test_board_refuses_a_port_it_would_ignore_with_the_emulator() -> None:
 
 
 def test_quiet_and_verbose_together_are_refused(tmp_path) -> None:
-    result = runner.invoke(app, ["eval", str(tmp_path / "x"), "-r", str(tmp_path / "y"),
-                                 "-q", "-v"])  # fmt: skip
+    result = runner.invoke(
+        app, ["eval", str(tmp_path / "x"), "-r", str(tmp_path / "y"), "-q", "-v"]
+    )
     assert result.exit_code == 1
     assert "give --verbose or --quiet, not both" in result.output
 
 
 def test_a_bad_trajectory_format_is_refused_before_any_work(tmp_path) -> None:
-    result = runner.invoke(app, ["map", str(tmp_path / "nope.clf"), "-o", str(tmp_path / "r"),
-                                 "--format", "g2o"])  # fmt: skip
+    result = runner.invoke(
+        app, ["map", str(tmp_path / "nope.clf"), "-o", str(tmp_path / "r"), "--format", "g2o"]
+    )
     assert result.exit_code == 1
     assert "--format 'g2o': use one of tum, kitti, euroc" in result.output

@@ -55,8 +55,9 @@ def test_eval_fr1_xyz_writes_the_tum_check_value_to_summary(tmp_path: Path) -> N
 def test_fr2_desk_orb_reproduces_the_tum_check_value_despite_a_repeated_stamp() -> None:
     reference = read_trajectory(TUM / "fr2_desk_groundtruth.txt")
     assert reference.repeated_stamps == 1  # the official file repeats 1311868229.576
-    result = evaluate_files(read_trajectory(TUM / "fr2_desk_ORB.txt"), reference, "se3", 0.02,
-                            1.0, "m")  # fmt: skip
+    result = evaluate_files(
+        read_trajectory(TUM / "fr2_desk_ORB.txt"), reference, "se3", 0.02, 1.0, "m"
+    )
     assert result.ate.rmse == pytest.approx(0.00814, abs=1e-5)
 
 
@@ -70,13 +71,15 @@ def test_monocular_keyframes_need_sim3() -> None:
     assert sim3.ate.rmse < 0.02 and sim3.alignment.scale != pytest.approx(1.0, abs=0.01)
 
 
-def test_eval_of_a_trajectory_against_itself_is_zero(line_pair: tuple[Path, Path],
-                                                     tmp_path: Path) -> None:  # fmt: skip
+def test_eval_of_a_trajectory_against_itself_is_zero(
+    line_pair: tuple[Path, Path], tmp_path: Path
+) -> None:
     est, gt = line_pair
     out = tmp_path / "run"
     options = ["--delta", "3", "--delta-unit", "frames", "--align", "sim3"]
-    result = runner.invoke(app, ["eval", str(est), "--reference", str(gt), "--out", str(out),
-                                 *options])  # fmt: skip
+    result = runner.invoke(
+        app, ["eval", str(est), "--reference", str(gt), "--out", str(out), *options]
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ate_rmse_m"] == pytest.approx(0.0, abs=1e-9)
@@ -89,8 +92,9 @@ def test_eval_accepts_a_run_directory(line_pair: tuple[Path, Path], tmp_path: Pa
     run = tmp_path / "odometry_run"
     run.mkdir()
     (run / "trajectory.tum").write_text(est.read_text())
-    result = runner.invoke(app, ["eval", str(run), "--reference", str(gt), "--out",
-                                 str(tmp_path / "out")])  # fmt: skip
+    result = runner.invoke(
+        app, ["eval", str(run), "--reference", str(gt), "--out", str(tmp_path / "out")]
+    )
     assert result.exit_code == 0, result.output
 
 
@@ -106,8 +110,9 @@ def _one_line_error(args: list[str]) -> str:
 def test_missing_file_is_one_line_and_exit_1(line_pair: tuple[Path, Path], tmp_path: Path) -> None:
     _, gt = line_pair
     missing = tmp_path / "nope.txt"
-    line = _one_line_error(["eval", str(missing), "--reference", str(gt), "--out",
-                            str(tmp_path / "out")])  # fmt: skip
+    line = _one_line_error(
+        ["eval", str(missing), "--reference", str(gt), "--out", str(tmp_path / "out")]
+    )
     assert f"{missing}: cannot read" in line
 
 
@@ -116,23 +121,26 @@ def test_malformed_line_names_file_and_line(line_pair: tuple[Path, Path], tmp_pa
     text = est.read_text().splitlines()
     text[3] = text[3].replace(" 0 0 0 1", " 0 0 zero 1")
     est.write_text("\n".join(text) + "\n")
-    line = _one_line_error(["eval", str(est), "--reference", str(gt), "--out",
-                            str(tmp_path / "out")])  # fmt: skip
+    line = _one_line_error(
+        ["eval", str(est), "--reference", str(gt), "--out", str(tmp_path / "out")]
+    )
     assert f"{est}:4:" in line and "not valid pose" in line
 
 
 def test_no_overlap_in_time_names_both_files(line_pair: tuple[Path, Path], tmp_path: Path) -> None:
     est, _ = line_pair
     late = _write_tum(tmp_path / "late.txt", 100 + np.arange(5) * 0.1, np.zeros((5, 3)))
-    line = _one_line_error(["eval", str(est), "--reference", str(late), "--out",
-                            str(tmp_path / "out")])  # fmt: skip
+    line = _one_line_error(
+        ["eval", str(est), "--reference", str(late), "--out", str(tmp_path / "out")]
+    )
     assert str(est) in line and str(late) in line and "no estimate stamp" in line
 
 
 def test_unknown_alignment_is_one_line(line_pair: tuple[Path, Path], tmp_path: Path) -> None:
     est, gt = line_pair
-    line = _one_line_error(["eval", str(est), "--reference", str(gt), "--align", "se4",
-                            "--out", str(tmp_path / "out")])  # fmt: skip
+    line = _one_line_error(
+        ["eval", str(est), "--reference", str(gt), "--align", "se4", "--out", str(tmp_path / "out")]
+    )
     assert "--align 'se4'" in line
 
 
@@ -156,11 +164,13 @@ def straight_line(tmp_path: Path) -> tuple[Path, Path]:
     t = np.arange(11) * 1.0
     traj = _write_tum(tmp_path / "line.tum", t, np.column_stack([t, np.zeros(11), np.zeros(11)]))
     rel = tmp_path / "rel.txt"
-    rel.write_text("# t1 t2 x y z roll pitch yaw\n"
-                   "1 2 1.0 0 0 0 0 0\n"
-                   "3 4 1.0 0 0 0 0 0\n"
-                   "5 6 1.1 0 0 0 0 0.03490658503988659\n"
-                   "8 7 -1.1 0 0 0 0 -0.03490658503988659\n")  # fmt: skip
+    rel.write_text(
+        "# t1 t2 x y z roll pitch yaw\n"
+        "1 2 1.0 0 0 0 0 0\n"
+        "3 4 1.0 0 0 0 0 0\n"
+        "5 6 1.1 0 0 0 0 0.03490658503988659\n"
+        "8 7 -1.1 0 0 0 0 -0.03490658503988659\n"
+    )
     return traj, rel
 
 
@@ -205,8 +215,9 @@ def test_relations_far_from_every_pose_are_skipped_and_counted(
     assert "relations   4 of 5 scored, 1 skipped" in result.output
 
 
-def test_missing_relations_file_is_one_line(straight_line: tuple[Path, Path],
-                                            tmp_path: Path) -> None:  # fmt: skip
+def test_missing_relations_file_is_one_line(
+    straight_line: tuple[Path, Path], tmp_path: Path
+) -> None:
     traj, _ = straight_line
     missing = tmp_path / "nope.relations"
     line = _one_line_error(["eval", str(traj), "--relations", str(missing)])
@@ -240,8 +251,9 @@ def test_reference_and_relations_together_or_neither_are_refused(
 ) -> None:
     traj, rel = straight_line
     out = ["--out", str(tmp_path / "out")]
-    both = _one_line_error(["eval", str(traj), "--reference", str(traj), "--relations", str(rel),
-                            *out])  # fmt: skip
+    both = _one_line_error(
+        ["eval", str(traj), "--reference", str(traj), "--relations", str(rel), *out]
+    )
     neither = _one_line_error(["eval", str(traj), *out])
     assert both == neither == "error: give exactly one of --reference GT and --relations FILE"
 
@@ -265,8 +277,9 @@ def test_options_of_the_other_mode_are_refused_not_ignored(
     rel = tmp_path / "r.relations"
     rel.write_text("0 1 0.1 0 0 0 0 0\n")
     line = _one_line_error(["eval", str(est), "--relations", str(rel), "--align", "se2"])
-    assert line == ("error: --align: only with --reference, not --relations; it would be "
-                    "ignored here")  # fmt: skip
+    assert line == (
+        "error: --align: only with --reference, not --relations; it would be ignored here"
+    )
 
 
 @needs_carmen
@@ -279,16 +292,19 @@ def test_raw_odometry_of_mit_csail_scores_the_published_relations_figures(tmp_pa
     traj = tmp_path / "mit-csail-odometry.tum"
     write_tum_trajectory(traj, odom.stamps_ns, odom.x, odom.y, odom.yaw)
     out, relations = tmp_path / "run", CARMEN / "mit-csail.relations"
-    result = runner.invoke(app, ["eval", str(traj), "--relations", str(relations), "--out",
-                                 str(out)])  # fmt: skip
+    result = runner.invoke(
+        app, ["eval", str(traj), "--relations", str(relations), "--out", str(out)]
+    )
     assert result.exit_code == 0, result.output
     metric = json.loads((out / "summary.json").read_text())["relations_error"]
     assert (metric["count"], metric["skipped"]) == (1172, 0)
     # Kümmerle et al. 2009 (../shared/data/README.md): 1.6815 ± 5.2922 m, 5.072 ± 8.241 deg.
-    assert (metric["trans_mean_m"], metric["trans_std_m"]) == pytest.approx((1.6815, 5.2922),
-                                                                            abs=1e-3)  # fmt: skip
-    assert (metric["rot_mean_deg"], metric["rot_std_deg"]) == pytest.approx((5.072, 8.241),
-                                                                          abs=1e-2)  # fmt: skip
+    assert (metric["trans_mean_m"], metric["trans_std_m"]) == pytest.approx(
+        (1.6815, 5.2922), abs=1e-3
+    )
+    assert (metric["rot_mean_deg"], metric["rot_std_deg"]) == pytest.approx(
+        (5.072, 8.241), abs=1e-2
+    )
 
 
 @needs_tum

@@ -49,8 +49,9 @@ def test_a_drill_that_does_not_parse_names_the_expected_form() -> None:
 
 def test_live_sim_maps_while_driving_the_route_and_checkpoints_the_bundle(tmp_path: Path) -> None:
     out = tmp_path / "live"
-    s = _live(out, "--duration", "14", "--set", "live.checkpoint_period=4",
-              "--rrd", str(out / "run.rrd"))  # fmt: skip
+    s = _live(
+        out, "--duration", "14", "--set", "live.checkpoint_period=4", "--rrd", str(out / "run.rrd")
+    )
     c = s["counts"]
     assert s["mode"] == "mapping" and s["errors"] == []
     assert c["frames_processed"] >= 10 and c["scans_mapped"] >= 10
@@ -77,8 +78,19 @@ def test_live_sim_maps_while_driving_the_route_and_checkpoints_the_bundle(tmp_pa
 
 def test_fault_drills_stop_the_motors_pause_mapping_and_recover(tmp_path: Path) -> None:
     out = tmp_path / "drills"
-    s = _live(out, "--duration", "14", "--drill", "unplug_board@3", "--drill", "replug_board@6",
-              "--drill", "stall_camera@8:2", "--set", "board.reconnect_interval=0.2")  # fmt: skip
+    s = _live(
+        out,
+        "--duration",
+        "14",
+        "--drill",
+        "unplug_board@3",
+        "--drill",
+        "replug_board@6",
+        "--drill",
+        "stall_camera@8:2",
+        "--set",
+        "board.reconnect_interval=0.2",
+    )
     c = s["counts"]
     assert s["errors"] == []
     assert c["drill_unplug_board"] == c["drill_replug_board"] == c["drill_stall_camera"] == 1
@@ -92,10 +104,21 @@ def test_fault_drills_stop_the_motors_pause_mapping_and_recover(tmp_path: Path) 
 def test_kill_9_leaves_a_checkpoint_that_loads_and_localises(tmp_path: Path) -> None:
     out = tmp_path / "killed"
     proc = subprocess.Popen(
-        [str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "-q",
-         "--set", "live.checkpoint_period=2"],
-        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
+        [
+            str(RGBDNAV),
+            "live",
+            "--out",
+            str(out),
+            "--sim-world",
+            str(WORLD),
+            "-q",
+            "--set",
+            "live.checkpoint_period=2",
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     keyframes = 0
     try:
         # Kill it once a checkpoint holds enough of the house to localise in.
@@ -123,8 +146,17 @@ def test_kill_9_leaves_a_checkpoint_that_loads_and_localises(tmp_path: Path) -> 
     # (Standing at the start the camera sees no wall within range_max: nothing to correct it.)
     start = load_bundle(out / "map").keyframe_poses[0]
     told = [float(start[0]) + 0.15, float(start[1]), float(start[2]) + 0.05]
-    s = _live(tmp_path / "told", "--map", str(out / "map"), "--duration", "8", "--drive", "idle",
-              "--initial-pose", *map(str, told))  # fmt: skip
+    s = _live(
+        tmp_path / "told",
+        "--map",
+        str(out / "map"),
+        "--duration",
+        "8",
+        "--drive",
+        "idle",
+        "--initial-pose",
+        *map(str, told),
+    )
     assert s["initial_pose"] == told and s["errors"] == []
     assert s["counts"].get("localizer_tracking", 0) > 0
     first = np.loadtxt(tmp_path / "told" / "trajectory.tum", comments="#", ndmin=2)[0]
@@ -135,8 +167,11 @@ def test_sigterm_stops_the_motors_and_saves_the_map(tmp_path: Path) -> None:
     out = tmp_path / "term"
     proc = subprocess.Popen(
         [str(RGBDNAV), "live", "--out", str(out), "--sim-world", str(WORLD), "-q"],
-        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     # Until it maps, not a fixed 10 s: on a loaded machine the imports alone took longer, and
     # SIGTERM then came before the run had installed its handler.
     deadline = time.monotonic() + 60
@@ -174,9 +209,23 @@ def test_ctrl_c_ends_the_run_cleanly_without_a_traceback_from_any_process(tmp_pa
 
 def test_a_board_port_that_does_not_open_fails_in_one_line(tmp_path: Path) -> None:
     rrd = tmp_path / "x" / "run.rrd"
-    res = runner.invoke(app, ["live", "--out", str(tmp_path / "x"), "--sim-world", str(WORLD),
-                              "--board", str(tmp_path / "no-such-tty"), "--duration", "5",
-                              "--rrd", str(rrd), "-q"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "live",
+            "--out",
+            str(tmp_path / "x"),
+            "--sim-world",
+            str(WORLD),
+            "--board",
+            str(tmp_path / "no-such-tty"),
+            "--duration",
+            "5",
+            "--rrd",
+            str(rrd),
+            "-q",
+        ],
+    )
     assert res.exit_code == 1
     assert "cannot open Eddie board" in res.output and "Traceback" not in res.output
     assert rrd.stat().st_size > 0  # the recording is closed on the way out, not left open
@@ -184,23 +233,31 @@ def test_a_board_port_that_does_not_open_fails_in_one_line(tmp_path: Path) -> No
 
 @pytest.mark.parametrize(
     ("args", "match"),
-    [(["--drive", "fly"], "--drive 'fly': expected route, teleop or idle"),
-     (["--goal", "4.5;1"], "--goal '4.5;1': expected X,Y in metres"),
-     (["--drill", "unplug_board@x"], "expected ACTION@SECONDS"),
-     (["--sim-world", "no/such/world.yaml"], "no/such/world.yaml"),
-     (["--map", "no/such/map"], "no/such/map"),
-     (["--camera", "openni://", "--drill", "stall_camera@1:1"],
-      "--drill needs the simulated robot"),
-     (["--initial-pose", "1", "2", "0"], "--initial-pose places the robot in a saved map"),
-     (["--map", str(REPO / "tests"), "--initial-pose", "1", "nan", "0"],
-      "--initial-pose needs three finite numbers"),
-     (["--camera", "openni://", "--board", "none"], "OpenNI2"),  # no library or no device
-     (["--camera", "openni://", "--board", "none", "--sim-world", str(WORLD)],
-      "--sim-world: only with --camera sim or --board sim; it would be ignored here"),
-     (["--camera", "openni://", "--board", "none", "--seed", "2"], "--seed: only with"),
-     (["--drive", "idle", "--goal", "1,2"], "--goal: only with --drive route, not idle"),
-     (["--drive", "teleop", "--repeat-route"], "--repeat-route: only with --drive route")],
-)  # fmt: skip
+    [
+        (["--drive", "fly"], "--drive 'fly': expected route, teleop or idle"),
+        (["--goal", "4.5;1"], "--goal '4.5;1': expected X,Y in metres"),
+        (["--drill", "unplug_board@x"], "expected ACTION@SECONDS"),
+        (["--sim-world", "no/such/world.yaml"], "no/such/world.yaml"),
+        (["--map", "no/such/map"], "no/such/map"),
+        (
+            ["--camera", "openni://", "--drill", "stall_camera@1:1"],
+            "--drill needs the simulated robot",
+        ),
+        (["--initial-pose", "1", "2", "0"], "--initial-pose places the robot in a saved map"),
+        (
+            ["--map", str(REPO / "tests"), "--initial-pose", "1", "nan", "0"],
+            "--initial-pose needs three finite numbers",
+        ),
+        (["--camera", "openni://", "--board", "none"], "OpenNI2"),  # no library or no device
+        (
+            ["--camera", "openni://", "--board", "none", "--sim-world", str(WORLD)],
+            "--sim-world: only with --camera sim or --board sim; it would be ignored here",
+        ),
+        (["--camera", "openni://", "--board", "none", "--seed", "2"], "--seed: only with"),
+        (["--drive", "idle", "--goal", "1,2"], "--goal: only with --drive route, not idle"),
+        (["--drive", "teleop", "--repeat-route"], "--repeat-route: only with --drive route"),
+    ],
+)
 def test_bad_live_options_fail_in_one_line_before_anything_starts(
     tmp_path: Path, args: list[str], match: str
 ) -> None:
@@ -213,8 +270,9 @@ def test_bad_live_options_fail_in_one_line_before_anything_starts(
 
 
 def test_teleop_keys_drive_the_robot_and_tab_hands_over_to_the_route(tmp_path: Path) -> None:
-    live = LiveRun(LiveOptions(out=tmp_path / "teleop", world=WORLD, duration_s=10.0,
-                               drive="teleop"))  # fmt: skip
+    live = LiveRun(
+        LiveOptions(out=tmp_path / "teleop", world=WORLD, duration_s=10.0, drive="teleop")
+    )
 
     def press() -> None:
         time.sleep(2.0)  # the simulated robot starts
@@ -244,8 +302,14 @@ def test_live_localisation_loads_the_navigate_profile_as_navigate_does(tmp_path:
     loc = LiveRun(LiveOptions(out=tmp_path / "loc", world=WORLD, map_bundle=bundle))
     assert NAVIGATE_PROFILE in loc.config_files
     assert loc.cfg.localizer.match_gate == 3.0 and loc.cfg.localizer.kidnap_check_ratio == 0.0
-    mine = LiveRun(LiveOptions(out=tmp_path / "mine", world=WORLD, map_bundle=bundle,
-                               overrides=["localizer.match_gate=2.0"]))  # fmt: skip
+    mine = LiveRun(
+        LiveOptions(
+            out=tmp_path / "mine",
+            world=WORLD,
+            map_bundle=bundle,
+            overrides=["localizer.match_gate=2.0"],
+        )
+    )
     assert mine.cfg.localizer.match_gate == 2.0
     mapping = LiveRun(LiveOptions(out=tmp_path / "map", world=WORLD))
     assert NAVIGATE_PROFILE not in mapping.config_files
@@ -285,8 +349,18 @@ def test_record_writes_what_the_robot_saw_as_a_recording_that_maps_offline(
     frame = r.frame(0)
     assert frame.rgb.shape == (480, 640, 3) and (frame.depth_m > 0).mean() > 0.3
     # ... and it maps offline like any recording, scored against the world it was made in.
-    res = runner.invoke(app, ["map", str(rec_dir), "--out", str(tmp_path / "map"), "-q",
-                              "--set", "vo.cor_type=optical_flow"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "map",
+            str(rec_dir),
+            "--out",
+            str(tmp_path / "map"),
+            "-q",
+            "--set",
+            "vo.cor_type=optical_flow",
+        ],
+    )
     assert res.exit_code == 0, res.output
     offline = json.loads((tmp_path / "map" / "summary.json").read_text())
     assert offline["slam_vs_groundtruth"]["ate_rmse_m"] < 0.3
@@ -365,8 +439,21 @@ def test_live_exits_3_when_a_goal_was_not_reached(tmp_path: Path) -> None:
     """A goal far outside the house cannot be reached in 4 s: the run ends normally (summary
     written) but the exit status says the goal failed, as `navigate`'s does."""
     out = tmp_path / "live"
-    res = runner.invoke(app, ["live", "--out", str(out), "--sim-world", str(WORLD), "-q",
-                              "--duration", "4", "--goal", "40,40"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "live",
+            "--out",
+            str(out),
+            "--sim-world",
+            str(WORLD),
+            "-q",
+            "--duration",
+            "4",
+            "--goal",
+            "40,40",
+        ],
+    )
     assert res.exit_code == 3, res.output
     assert "goals       0 of 1 reached" in res.output
     assert (out / "summary.json").is_file()

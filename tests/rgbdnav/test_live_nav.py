@@ -31,8 +31,9 @@ def two_rooms() -> OccupancyGrid:
     return OccupancyGrid.from_occupancy_values(g, v)
 
 
-def drive(nav: LiveNavigator, pose: np.ndarray, seconds: float,
-          walls: np.ndarray) -> tuple[np.ndarray, float]:  # fmt: skip
+def drive(
+    nav: LiveNavigator, pose: np.ndarray, seconds: float, walls: np.ndarray
+) -> tuple[np.ndarray, float]:
     """A perfect unicycle under the navigator's commands; (final pose, least wall clearance)."""
     wall_xy = np.argwhere(walls)[:, ::-1] * RES + RES / 2  # cell centres (x, y)
     least = math.inf
@@ -40,8 +41,13 @@ def drive(nav: LiveNavigator, pose: np.ndarray, seconds: float,
     for _ in range(int(seconds * 1e9 / DT_NS)):
         v, w = nav.tick(t, pose)
         dt = DT_NS / 1e9
-        pose = pose + np.array([v * dt * math.cos(pose[2] + w * dt / 2),
-                                v * dt * math.sin(pose[2] + w * dt / 2), w * dt])  # fmt: skip
+        pose = pose + np.array(
+            [
+                v * dt * math.cos(pose[2] + w * dt / 2),
+                v * dt * math.sin(pose[2] + w * dt / 2),
+                w * dt,
+            ]
+        )
         least = min(least, float(np.hypot(*(wall_xy - pose[:2]).T).min()))
         t += DT_NS
         if nav.done:
@@ -52,8 +58,13 @@ def drive(nav: LiveNavigator, pose: np.ndarray, seconds: float,
 def test_the_navigator_plans_through_the_door_and_reaches_every_waypoint() -> None:
     grid = two_rooms()
     route = np.array([[4.5, 1.0], [4.5, 3.2], [1.0, 3.0]])
-    nav = LiveNavigator(Config(), route, np.array([1.0, 1.0, 0.0]),
-                        static_map=(grid, 0.65, 0.25), plan_in_thread=False)  # fmt: skip
+    nav = LiveNavigator(
+        Config(),
+        route,
+        np.array([1.0, 1.0, 0.0]),
+        static_map=(grid, 0.65, 0.25),
+        plan_in_thread=False,
+    )
     pose, least = drive(nav, np.array([1.0, 1.0, 0.0]), 150.0, grid.occupied_mask())
     assert nav.done and nav.counts["waypoints_reached"] == 3
     assert not any(k.startswith("waypoints_skipped") for k in nav.counts)
@@ -68,8 +79,9 @@ def test_an_unreachable_waypoint_is_skipped_and_the_route_goes_on() -> None:
     grid = two_rooms()
     route = np.array([[3.0, 1.0], [1.0, 3.0]])  # the first is inside the wall
     cfg = replace(Config(), live=replace(Config().live, waypoint_timeout=20.0))
-    nav = LiveNavigator(cfg, route, np.array([1.0, 1.0, 0.0]), static_map=(grid, 0.65, 0.25),
-                        plan_in_thread=False)  # fmt: skip
+    nav = LiveNavigator(
+        cfg, route, np.array([1.0, 1.0, 0.0]), static_map=(grid, 0.65, 0.25), plan_in_thread=False
+    )
     drive(nav, np.array([1.0, 1.0, 0.0]), 120.0, grid.occupied_mask())
     assert nav.done and nav.counts["waypoints_reached"] == 1
     skipped = nav.counts["waypoints_skipped_no_plan"] + nav.counts["waypoints_skipped_timeout"]
@@ -112,8 +124,14 @@ def test_a_snapshot_that_cannot_be_integrated_is_counted_and_the_builder_goes_on
     nav.start()
     try:
         angles = np.linspace(-0.5, 0.5, 101)
-        scan = LaserScan(1, float(angles[0]), float(angles[1] - angles[0]),
-                         (2.0 / np.cos(angles)).astype(np.float32), 0.45, 4.0)  # fmt: skip
+        scan = LaserScan(
+            1,
+            float(angles[0]),
+            float(angles[1] - angles[0]),
+            (2.0 / np.cos(angles)).astype(np.float32),
+            0.45,
+            4.0,
+        )
         nav.set_map(MapSnapshot(np.zeros((3, 3)), (scan,) * 5))  # 3 poses for 5 scans
         deadline = time.monotonic() + 10.0
         while nav.counts["nav_map_build_errors"] == 0 and time.monotonic() < deadline:
@@ -180,8 +198,9 @@ def test_a_timeline_halves_instead_of_growing() -> None:
 
 def test_with_the_planner_on_its_own_thread_the_tick_never_waits_for_a_plan() -> None:
     grid = two_rooms()
-    nav = LiveNavigator(Config(), np.array([[4.5, 1.0]]), np.array([1.0, 1.0, 0.0]),
-                        static_map=(grid, 0.65, 0.25))  # fmt: skip
+    nav = LiveNavigator(
+        Config(), np.array([[4.5, 1.0]]), np.array([1.0, 1.0, 0.0]), static_map=(grid, 0.65, 0.25)
+    )
     nav.start()
     try:
         pose = np.array([1.0, 1.0, 0.0])

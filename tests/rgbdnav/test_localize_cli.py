@@ -28,8 +28,9 @@ SHARED_MAP_SCANS = 60  # scans of the mapping lap
 ODOM_FRAME = (7.0, -3.0, 1.0)  # [m, m, rad]
 
 
-def _route(n: int, cx: float = 4.3, cy: float = 2.9, rx: float = 1.1, ry: float = 0.9,
-           turns: float = 1.0) -> np.ndarray:  # fmt: skip
+def _route(
+    n: int, cx: float = 4.3, cy: float = 2.9, rx: float = 1.1, ry: float = 0.9, turns: float = 1.0
+) -> np.ndarray:
     """(n, 3) poses on an ellipse in ROOM clear of its stub wall and pillar, heading along the
     path (``turns`` < 0 drives it clockwise)."""
     s = np.linspace(0.0, 2 * math.pi * turns, n, endpoint=False)
@@ -41,8 +42,13 @@ def _route(n: int, cx: float = 4.3, cy: float = 2.9, rx: float = 1.1, ry: float 
 def _in_frame(poses: np.ndarray, frame: tuple[float, float, float]) -> np.ndarray:
     tx, ty, th = frame
     c, s = math.cos(th), math.sin(th)
-    return np.column_stack([c * poses[:, 0] - s * poses[:, 1] + tx,
-                            s * poses[:, 0] + c * poses[:, 1] + ty, poses[:, 2] + th])  # fmt: skip
+    return np.column_stack(
+        [
+            c * poses[:, 0] - s * poses[:, 1] + tx,
+            s * poses[:, 0] + c * poses[:, 1] + ty,
+            poses[:, 2] + th,
+        ]
+    )
 
 
 def _trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -82,8 +88,9 @@ def test_localize_without_initial_pose_relocalises_globally_and_tracks_within_3c
 ) -> None:
     log, truth = second_session
     out = tmp_path / "run"
-    result = runner.invoke(app, ["localize", str(log), "--map", str(mapped), "--out", str(out),
-                                 "-q"])  # fmt: skip
+    result = runner.invoke(
+        app, ["localize", str(log), "--map", str(mapped), "--out", str(out), "-q"]
+    )
     assert result.exit_code == 0, result.output
     assert "relocalisation" in result.output
     summary = json.loads((out / "summary.json").read_text())
@@ -120,8 +127,22 @@ def test_localize_with_initial_pose_tracks_from_the_first_scan(
     log, truth = second_session
     out = tmp_path / "run"
     x, y, yaw = truth[0] + np.array([0.1, -0.08, 0.05])  # a rough click in RViz
-    result = runner.invoke(app, ["localize", str(log), "--map", str(mapped), "--out", str(out),
-                                 "--initial-pose", f"{x}", f"{y}", f"{yaw}", "-q"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "localize",
+            str(log),
+            "--map",
+            str(mapped),
+            "--out",
+            str(out),
+            "--initial-pose",
+            f"{x}",
+            f"{y}",
+            f"{yaw}",
+            "-q",
+        ],
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["counts"]["tracking"] == len(truth)
@@ -139,9 +160,24 @@ def test_localize_with_rrd_saves_a_rerun_recording_of_poses_scans_and_map(
     out = tmp_path / "run"
     rrd = out / "run.rrd"
     x, y, yaw = truth[0]
-    result = runner.invoke(app, ["localize", str(log), "--map", str(mapped), "--out", str(out),
-                                 "--initial-pose", f"{x}", f"{y}", f"{yaw}", "--rrd", str(rrd),
-                                 "-q"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "localize",
+            str(log),
+            "--map",
+            str(mapped),
+            "--out",
+            str(out),
+            "--initial-pose",
+            f"{x}",
+            f"{y}",
+            f"{yaw}",
+            "--rrd",
+            str(rrd),
+            "-q",
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert "rerun recording" in result.output
     data = rrd.read_bytes()
@@ -160,8 +196,9 @@ def test_localize_in_a_plain_map_yaml_from_another_tool(
         (foreign / name).write_bytes((mapped / name).read_bytes())
     log, truth = second_session
     out = tmp_path / "run"
-    result = runner.invoke(app, ["localize", str(log), "--map", str(foreign / "map.yaml"),
-                                 "--out", str(out), "-q"])  # fmt: skip
+    result = runner.invoke(
+        app, ["localize", str(log), "--map", str(foreign / "map.yaml"), "--out", str(out), "-q"]
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["map"]["kind"] == "map.yaml"
@@ -203,8 +240,9 @@ def test_localize_refuses_a_bad_map_in_one_line(
         map_yaml.write_text(yaml_text)
     log, _ = second_session
     out = tmp_path / "run"
-    result = runner.invoke(app, ["localize", str(log), "--map", str(map_yaml), "--out", str(out),
-                                 "-q"])  # fmt: skip
+    result = runner.invoke(
+        app, ["localize", str(log), "--map", str(map_yaml), "--out", str(out), "-q"]
+    )
     assert result.exit_code == 1
     text = result.output.strip()
     assert text.startswith("error:") and "\n" not in text and match in text, text
@@ -216,8 +254,22 @@ def test_localize_with_an_initial_pose_in_a_wall_reports_lost_and_never_a_wrong_
 ) -> None:
     log, truth = second_session
     out = tmp_path / "run"
-    result = runner.invoke(app, ["localize", str(log), "--map", str(mapped), "--out", str(out),
-                                 "--initial-pose", "8.0", "3.0", "0.0", "-q"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "localize",
+            str(log),
+            "--map",
+            str(mapped),
+            "--out",
+            str(out),
+            "--initial-pose",
+            "8.0",
+            "3.0",
+            "0.0",
+            "-q",
+        ],
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["initial_pose"]["cell"] in ("occupied", "unknown", "outside")
@@ -251,14 +303,37 @@ def test_localize_an_rgbd_recording_of_the_house_tracks_within_6cm_of_the_ground
     world = load_world(SCENES / "house.yaml")
     save_map_yaml(floor_plan_grid(world, rgbd_config()), tmp_path / "map.yaml")
     rec = tmp_path / "rec"
-    result = runner.invoke(app, ["simulate", str(SCENES / "house.yaml"), "--out", str(rec),
-                                 "--frames", str(RGBD_FRAMES), "-q"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(SCENES / "house.yaml"),
+            "--out",
+            str(rec),
+            "--frames",
+            str(RGBD_FRAMES),
+            "-q",
+        ],
+    )
     assert result.exit_code == 0, result.output
     out = tmp_path / "run"
     x, y, yaw = world.start
-    result = runner.invoke(app, ["localize", str(rec), "--map", str(tmp_path / "map.yaml"),
-                                 "--initial-pose", str(x), str(y), str(yaw), "--out", str(out),
-                                 "-q"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "localize",
+            str(rec),
+            "--map",
+            str(tmp_path / "map.yaml"),
+            "--initial-pose",
+            str(x),
+            str(y),
+            str(yaw),
+            "--out",
+            str(out),
+            "-q",
+        ],
+    )
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frame"] == "base_link"
@@ -294,16 +369,40 @@ def test_localize_in_a_rotated_ascii_nav2_map_tracks_as_in_the_original(
     log, truth = second_session
     out = tmp_path / "run"
     x, y, yaw = truth[0]
-    result = runner.invoke(app, ["localize", str(log), "--map", str(tmp_path / "turned.yaml"),
-                                 "--out", str(out), "--initial-pose", f"{x}", f"{y}", f"{yaw}",
-                                 "-q", "--format", "euroc"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "localize",
+            str(log),
+            "--map",
+            str(tmp_path / "turned.yaml"),
+            "--out",
+            str(out),
+            "--initial-pose",
+            f"{x}",
+            f"{y}",
+            f"{yaw}",
+            "-q",
+            "--format",
+            "euroc",
+        ],
+    )
     assert result.exit_code == 0, result.output
     _, est = _trajectory(out / "trajectory.tum")
     d, _ = _errors(est, truth)
     assert np.median(d) < 0.03 and d.max() < 0.1, (np.median(d), d.max())
     assert "trajectory.euroc.csv" in result.output
-    evo = runner.invoke(app, ["eval", str(out / "trajectory.euroc.csv"), "-r",
-                              str(out / "trajectory.tum"), "--align", "none"])  # fmt: skip
+    evo = runner.invoke(
+        app,
+        [
+            "eval",
+            str(out / "trajectory.euroc.csv"),
+            "-r",
+            str(out / "trajectory.tum"),
+            "--align",
+            "none",
+        ],
+    )
     assert evo.exit_code == 0, evo.output
     assert "ATE [m]     rmse 0.000000" in evo.output
 
@@ -312,9 +411,12 @@ def test_seed_without_a_world_is_refused_not_ignored(
     second_session: tuple[Path, np.ndarray], mapped: Path, tmp_path: Path
 ) -> None:
     log, _ = second_session
-    result = runner.invoke(app, ["localize", str(log), "--map", str(mapped), "--out",
-                                 str(tmp_path / "run"), "--seed", "3"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        ["localize", str(log), "--map", str(mapped), "--out", str(tmp_path / "run"), "--seed", "3"],
+    )
     assert result.exit_code == 1
-    assert result.output.strip() == ("error: --seed: only with a world SOURCE (it seeds the "
-                                     "rendering); it would be ignored here")  # fmt: skip
+    assert result.output.strip() == (
+        "error: --seed: only with a world SOURCE (it seeds the rendering); it would be ignored here"
+    )
     assert not (tmp_path / "run").exists()

@@ -89,12 +89,18 @@ def test_map_continue_relocalises_a_new_log_in_another_odometry_frame(tmp_path: 
     # Second session: half a lap, odometry in a frame rotated and shifted from the map's.
     part = truth[10:40]
     c, s = math.cos(1.0), math.sin(1.0)
-    moved = np.column_stack([c * part[:, 0] - s * part[:, 1] + 7.0,
-                             s * part[:, 0] + c * part[:, 1] - 3.0, part[:, 2] + 1.0])  # fmt: skip
+    moved = np.column_stack(
+        [
+            c * part[:, 0] - s * part[:, 1] + 7.0,
+            s * part[:, 0] + c * part[:, 1] - 3.0,
+            part[:, 2] + 1.0,
+        ]
+    )
     log2 = _write_log(tmp_path / "b.clf", part, moved, t0=500.0)
     second = tmp_path / "second"
-    result = runner.invoke(app, ["map", str(log2), "--continue", str(first / "map"),
-                                 "--out", str(second), "-q"])  # fmt: skip
+    result = runner.invoke(
+        app, ["map", str(log2), "--continue", str(first / "map"), "--out", str(second), "-q"]
+    )
     assert result.exit_code == 0, result.output
     est = _trajectory(second / "trajectory.tum")
     summary = json.loads((second / "summary.json").read_text())
@@ -121,8 +127,9 @@ def test_map_continue_refuses_a_broken_bundle_in_one_line(tmp_path: Path) -> Non
     bundle = tmp_path / "bundle"
     bundle.mkdir()
     (bundle / "map.yaml").write_text("image: ../../etc/passwd\nresolution: 0.05\n")
-    result = runner.invoke(app, ["map", str(log), "--continue", str(bundle),
-                                 "--out", str(tmp_path / "run"), "-q"])  # fmt: skip
+    result = runner.invoke(
+        app, ["map", str(log), "--continue", str(bundle), "--out", str(tmp_path / "run"), "-q"]
+    )
     assert result.exit_code == 1
     assert result.output.startswith("error:"), result.output
 
@@ -198,10 +205,14 @@ def test_aligned_floor_plan_score_separates_map_shape_from_map_placement() -> No
     grid.observed[:] = np.all((world > 0.15) & (world < 7.85), axis=-1)
     # The map: the room's inner surface as seen in a map frame with world = rot @ map + t.
     s = np.linspace(0.3, 7.7, 600)
-    walls = np.concatenate([np.column_stack([s, np.full_like(s, 0.26)]),
-                            np.column_stack([s, np.full_like(s, 7.74)]),
-                            np.column_stack([np.full_like(s, 0.26), s]),
-                            np.column_stack([np.full_like(s, 7.74), s])])  # fmt: skip
+    walls = np.concatenate(
+        [
+            np.column_stack([s, np.full_like(s, 0.26)]),
+            np.column_stack([s, np.full_like(s, 7.74)]),
+            np.column_stack([np.full_like(s, 0.26), s]),
+            np.column_stack([np.full_like(s, 7.74), s]),
+        ]
+    )
     in_map = (walls - t) @ rot
     r, c = geom.world_to_cell(in_map[:, 0], in_map[:, 1])
     mapped = np.zeros(geom.shape, bool)
@@ -234,8 +245,18 @@ def test_map_continue_refuses_a_log_that_cannot_be_placed_in_the_saved_map(
     still = np.zeros((15, 3))
     still[:, 2] = np.linspace(0.0, 0.7, 15)
     other = _write_log(tmp_path / "b.clf", still, still, segments=_hexagon(1.2))
-    result = runner.invoke(app, ["map", str(other), "--continue", str(first / "map"),
-                                 "--out", str(tmp_path / "second"), "-q"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "map",
+            str(other),
+            "--continue",
+            str(first / "map"),
+            "--out",
+            str(tmp_path / "second"),
+            "-q",
+        ],
+    )
     assert result.exit_code == 1, result.output
     assert (
         result.output.startswith("error:") and "could be placed in the saved map" in result.output
@@ -247,8 +268,10 @@ def test_map_of_a_log_without_usable_stamps_gates_keyframes_on_motion(tmp_path: 
     truth = _route(60)
     log = _write_log(tmp_path / "nostamps.clf", truth, truth)
     # Every timestamp 0: the reader synthesises 5 Hz stamps, which say nothing about real time.
-    lines = [" ".join(ln.split()[:-3] + ["0.000000", "h", "0.000000"])
-             for ln in log.read_text().splitlines()]  # fmt: skip
+    lines = [
+        " ".join(ln.split()[:-3] + ["0.000000", "h", "0.000000"])
+        for ln in log.read_text().splitlines()
+    ]
     log.write_text("\n".join(lines) + "\n")
     out = tmp_path / "run"
     result = runner.invoke(app, ["map", str(log), "--out", str(out), "-q"])

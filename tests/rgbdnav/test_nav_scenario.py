@@ -35,10 +35,18 @@ def test_furniture_moves_within_the_bounds_and_walls_stay() -> None:
     b = move_furniture(world, np.random.default_rng(5), 0.3, 0.2)
     assert a == b and a["walls"] == world["walls"]
     assert a is not world and world["furniture"][0]["center"] == [1.2, 0.5]  # input untouched
-    d = np.array([np.subtract(m["center"], f["center"]) for m, f in
-                  zip(a["furniture"], world["furniture"], strict=True)])  # fmt: skip
-    yaw = np.array([m["yaw"] - f.get("yaw", 0.0) for m, f in
-                    zip(a["furniture"], world["furniture"], strict=True)])  # fmt: skip
+    d = np.array(
+        [
+            np.subtract(m["center"], f["center"])
+            for m, f in zip(a["furniture"], world["furniture"], strict=True)
+        ]
+    )
+    yaw = np.array(
+        [
+            m["yaw"] - f.get("yaw", 0.0)
+            for m, f in zip(a["furniture"], world["furniture"], strict=True)
+        ]
+    )
     assert np.abs(d).max() <= 0.3 + 1e-4 and np.abs(yaw).max() <= 0.2 + 1e-4
     assert np.abs(d).mean() > 0.05  # they did move
     world_from_dict(a)  # still a valid world
@@ -89,12 +97,14 @@ def test_drawn_goals_keep_their_separation_and_repeat_per_seed() -> None:
 
 @pytest.mark.parametrize(
     ("text", "match"),
-    [("world: house.yaml\nspeed: 3\n", "speed: unknown key"),
-     ("goals: 3\n", "missing 'world'"),
-     ("world: nope.yaml\n", "nope.yaml"),
-     ("world: house.yaml\nkeepout: [[1, 2, 0, 3]]\n", r"keepout\[0\]"),
-     ("world: house.yaml\nfurniture_shift: -1\n", "furniture_shift must be a number >= 0")],
-)  # fmt: skip
+    [
+        ("world: house.yaml\nspeed: 3\n", "speed: unknown key"),
+        ("goals: 3\n", "missing 'world'"),
+        ("world: nope.yaml\n", "nope.yaml"),
+        ("world: house.yaml\nkeepout: [[1, 2, 0, 3]]\n", r"keepout\[0\]"),
+        ("world: house.yaml\nfurniture_shift: -1\n", "furniture_shift must be a number >= 0"),
+    ],
+)
 def test_bad_scenario_files_are_refused_with_the_key(text: str, match: str) -> None:
     path = REPO / "scenes" / "_test_scenario.yaml"  # beside house.yaml: 'world' is relative
     try:
@@ -131,8 +141,13 @@ def test_the_floor_plan_map_has_the_world_walls_faces_where_a_scan_sees_them(
     thickness = load_scenario(SCENARIO).world["wall_thickness"]  # [m] 0.12
     assert thickness > 2 * g.resolution
     # The living room / bedroom wall runs along y = 5.0: its faces are at 5.0 -/+ 0.06 m.
-    for y, wall in [(5.0, True), (5.0 - 0.04, True), (5.0 + 0.04, True), (5.0 - 0.1, False),
-                    (5.0 + 0.1, False)]:  # fmt: skip
+    for y, wall in [
+        (5.0, True),
+        (5.0 - 0.04, True),
+        (5.0 + 0.04, True),
+        (5.0 - 0.1, False),
+        (5.0 + 0.1, False),
+    ]:
         assert bool(occ[g.world_to_cell(3.5, y)]) is wall, y
     assert not occ[g.world_to_cell(3.0, 5.0)]  # the door (at 3.0, 1 m wide) is open
 
@@ -141,8 +156,7 @@ def test_reduced_scenario_reaches_every_goal_safely(house_map: Path, tmp_path: P
     # Three of the twenty goals, ground-truth localisation (the localiser's own accuracy is
     # exercised in test_navigate_cli and measured in bench_nav): the navigator must avoid the
     # moved furniture it only sees with the camera and never enter a keepout zone.
-    _, summary = run_scenario(SCENARIO, house_map, tmp_path, n_goals=3,
-                              localization="groundtruth")  # fmt: skip
+    _, summary = run_scenario(SCENARIO, house_map, tmp_path, n_goals=3, localization="groundtruth")
     sc = summary["scenario"]
     assert sc["goals"] == 3
     assert sc["reached_within_tolerance"] == 3, sc["failures"]

@@ -31,11 +31,15 @@ ROBOT_RADIUS = 0.23  # [m] costmap.robot_radius default
 ROOM = {
     "name": "room",
     "wall_thickness": 0.1,
-    "walls": [{"from": [0, 0], "to": [6, 0]}, {"from": [6, 0], "to": [6, 4]},
-              {"from": [6, 4], "to": [0, 4]}, {"from": [0, 4], "to": [0, 0]}],
+    "walls": [
+        {"from": [0, 0], "to": [6, 0]},
+        {"from": [6, 0], "to": [6, 4]},
+        {"from": [6, 4], "to": [0, 4]},
+        {"from": [0, 4], "to": [0, 0]},
+    ],
     "start": [1.0, 2.0, 0.0],
     "route": [[5.0, 2.0]],
-}  # fmt: skip
+}
 
 
 def _grid(plan: FloorPlan, values: np.ndarray) -> OccupancyGrid:
@@ -51,24 +55,44 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     keepout mask over the top-right corner."""
     d = tmp_path_factory.mktemp("room")
     (d / "bare.yaml").write_text(yaml.safe_dump(ROOM))
-    world = dict(ROOM, furniture=[{"name": "box", "center": list(BOX_CENTRE),
-                                   "size": [2 * BOX_HALF, 2 * BOX_HALF, 0.8]}])  # fmt: skip
+    world = dict(
+        ROOM,
+        furniture=[
+            {"name": "box", "center": list(BOX_CENTRE), "size": [2 * BOX_HALF, 2 * BOX_HALF, 0.8]}
+        ],
+    )
     (d / "world.yaml").write_text(yaml.safe_dump(world))
     # The map's walls are one cell thick, as a scan-built map's are (the world's are 0.1 m).
     (d / "thin.yaml").write_text(yaml.safe_dump(dict(ROOM, wall_thickness=0.01)))
     plan = floor_plan(load_world(d / "thin.yaml"))
     save_map_yaml(_grid(plan, np.where(plan.occupied, 100, 0)), d / "map.yaml")
-    x, y = (c.ravel() for c in np.meshgrid(
-        plan.origin_x + (np.arange(plan.occupied.shape[1]) + 0.5) * plan.resolution,
-        plan.origin_y + (np.arange(plan.occupied.shape[0]) + 0.5) * plan.resolution))  # fmt: skip
+    x, y = (
+        c.ravel()
+        for c in np.meshgrid(
+            plan.origin_x + (np.arange(plan.occupied.shape[1]) + 0.5) * plan.resolution,
+            plan.origin_y + (np.arange(plan.occupied.shape[0]) + 0.5) * plan.resolution,
+        )
+    )
     keep = ((x > 4.5) & (y > 2.8)).reshape(plan.occupied.shape)
     save_map_yaml(_grid(plan, np.where(keep, 100, 0)), d / "keepout.yaml")
     return {"world": d / "world.yaml", "map": d / "map.yaml", "keepout": d / "keepout.yaml"}
 
 
 def _navigate(scene: dict[str, Path], out: Path, *args: str) -> tuple[int, str, dict]:
-    result = runner.invoke(app, ["navigate", "--map", str(scene["map"]), "--sim",
-                                 str(scene["world"]), "--out", str(out), "-q", *args])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "navigate",
+            "--map",
+            str(scene["map"]),
+            "--sim",
+            str(scene["world"]),
+            "--out",
+            str(out),
+            "-q",
+            *args,
+        ],
+    )
     summary = {}
     if (out / "summary.json").is_file():
         summary = json.loads((out / "summary.json").read_text())
@@ -80,9 +104,20 @@ def test_two_goals_are_reached_around_a_box_missing_from_the_map(
 ) -> None:
     # Facing away from the box at the start, the first plan runs straight through it; the camera
     # sees it once the robot turns, and the path is replanned around it.
-    code, output, summary = _navigate(scene, tmp_path, "--localization", "groundtruth",
-                                      "--start", "1.0", "2.0", str(math.pi),
-                                      "--goal", "5.0,2.0", "--goal", "1.0,3.0")  # fmt: skip
+    code, output, summary = _navigate(
+        scene,
+        tmp_path,
+        "--localization",
+        "groundtruth",
+        "--start",
+        "1.0",
+        "2.0",
+        str(math.pi),
+        "--goal",
+        "5.0,2.0",
+        "--goal",
+        "1.0,3.0",
+    )
     assert code == 0, output
     assert "2/2 goals reached" in output
     assert [g["status"] for g in summary["goals"]] == ["reached", "reached"]
@@ -123,8 +158,18 @@ def test_the_localiser_in_the_loop_drives_on_wheel_odometry_and_scan_matching(
 ) -> None:
     # Default mode: the navigator only has T_map_odom from the localiser and the encoder counts
     # the board emulator reports; the wheels slip and their diameters differ from nominal.
-    code, output, summary = _navigate(scene, tmp_path, "--start", "1.0", "2.0", str(math.pi),
-                                      "--goal", "5.0,2.0", "--goal", "1.0,3.0")  # fmt: skip
+    code, output, summary = _navigate(
+        scene,
+        tmp_path,
+        "--start",
+        "1.0",
+        "2.0",
+        str(math.pi),
+        "--goal",
+        "5.0,2.0",
+        "--goal",
+        "1.0,3.0",
+    )
     assert code == 0, output
     assert "(localizer localisation)" in output
     loc = summary["localization"]
@@ -156,8 +201,16 @@ def test_the_localiser_in_the_loop_drives_on_wheel_odometry_and_scan_matching(
 
 
 def test_waypoint_pause_waits_at_each_reached_goal(scene: dict[str, Path], tmp_path: Path) -> None:
-    code, output, summary = _navigate(scene, tmp_path, "--localization", "groundtruth",
-                                      "--waypoint-pause", "2", "--goal", "2.0,1.0")  # fmt: skip
+    code, output, summary = _navigate(
+        scene,
+        tmp_path,
+        "--localization",
+        "groundtruth",
+        "--waypoint-pause",
+        "2",
+        "--goal",
+        "2.0,1.0",
+    )
     assert code == 0, output
     (goal,) = summary["goals"]
     assert goal["status"] == "reached" and goal["task"] == "wait"
@@ -170,21 +223,29 @@ def test_navigate_with_rrd_logs_plan_paths_map_and_costmap(
     scene: dict[str, Path], tmp_path: Path
 ) -> None:
     rrd = tmp_path / "nav.rrd"
-    code, output, _ = _navigate(scene, tmp_path, "--localization", "groundtruth", "--rrd",
-                                str(rrd), "--goal", "2.0,1.0")  # fmt: skip
+    code, output, _ = _navigate(
+        scene, tmp_path, "--localization", "groundtruth", "--rrd", str(rrd), "--goal", "2.0,1.0"
+    )
     assert code == 0, output
     data = rrd.read_bytes()
-    for path in (b"world/plan", b"world/truth", b"world/robot/trajectory", b"world/map",
-                 b"world/costmap"):  # fmt: skip
+    for path in (
+        b"world/plan",
+        b"world/truth",
+        b"world/robot/trajectory",
+        b"world/map",
+        b"world/costmap",
+    ):
         assert path in data, path
 
 
 @pytest.mark.parametrize(
     ("option", "match"),
-    [(["--localization", "amcl"], "--localization must be one of groundtruth, localizer"),
-     (["--waypoint-pause", "-1"], "--waypoint-pause must be >= 0"),
-     (["--goal-timeout", "0"], "need --goal-timeout > 0")],
-)  # fmt: skip
+    [
+        (["--localization", "amcl"], "--localization must be one of groundtruth, localizer"),
+        (["--waypoint-pause", "-1"], "--waypoint-pause must be >= 0"),
+        (["--goal-timeout", "0"], "need --goal-timeout > 0"),
+    ],
+)
 def test_a_bad_navigate_setting_is_a_one_line_error(
     scene: dict[str, Path], tmp_path: Path, option: list[str], match: str
 ) -> None:
@@ -197,8 +258,7 @@ def test_a_bad_navigate_setting_is_a_one_line_error(
 def test_a_goal_in_a_wall_is_refused_and_the_run_goes_on(
     scene: dict[str, Path], tmp_path: Path
 ) -> None:
-    code, output, summary = _navigate(scene, tmp_path, "--goal", "0.0,2.0",
-                                      "--goal", "1.5,1.0")  # fmt: skip
+    code, output, summary = _navigate(scene, tmp_path, "--goal", "0.0,2.0", "--goal", "1.5,1.0")
     assert code == GOAL_FAILED_EXIT, output  # a goal not reached
     first, second = summary["goals"]
     assert first["status"] == "refused"
@@ -209,8 +269,9 @@ def test_a_goal_in_a_wall_is_refused_and_the_run_goes_on(
 
 
 def test_a_goal_in_a_keepout_zone_is_refused(scene: dict[str, Path], tmp_path: Path) -> None:
-    code, output, summary = _navigate(scene, tmp_path, "--keepout", str(scene["keepout"]),
-                                      "--goal", "5.2,3.3")  # fmt: skip
+    code, output, summary = _navigate(
+        scene, tmp_path, "--keepout", str(scene["keepout"]), "--goal", "5.2,3.3"
+    )
     assert code == GOAL_FAILED_EXIT, output  # a goal not reached
     (goal,) = summary["goals"]
     assert goal["status"] == "refused"
@@ -219,9 +280,21 @@ def test_a_goal_in_a_keepout_zone_is_refused(scene: dict[str, Path], tmp_path: P
 
 
 def test_a_missing_map_is_a_one_line_error(scene: dict[str, Path], tmp_path: Path) -> None:
-    result = runner.invoke(app, ["navigate", "--map", str(tmp_path / "nope.yaml"), "--sim",
-                                 str(scene["world"]), "--out", str(tmp_path / "run"), "-q",
-                                 "--goal", "1,1"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "navigate",
+            "--map",
+            str(tmp_path / "nope.yaml"),
+            "--sim",
+            str(scene["world"]),
+            "--out",
+            str(tmp_path / "run"),
+            "-q",
+            "--goal",
+            "1,1",
+        ],
+    )
     assert result.exit_code == 1
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and "no such map" in lines[0]
@@ -284,8 +357,16 @@ def test_a_door_blocked_by_an_unmapped_box_fails_after_clearing_recoveries(
     )
     (tmp_path / "world.yaml").write_text(yaml.safe_dump(world))
     scene = {"map": tmp_path / "map.yaml", "world": tmp_path / "world.yaml"}
-    code, output, summary = _navigate(scene, tmp_path / "run", "--localization", "groundtruth",
-                                      "--max-replans", "2", "--goal", "5.0,2.0")  # fmt: skip
+    code, output, summary = _navigate(
+        scene,
+        tmp_path / "run",
+        "--localization",
+        "groundtruth",
+        "--max-replans",
+        "2",
+        "--goal",
+        "5.0,2.0",
+    )
     assert code == GOAL_FAILED_EXIT, output  # a goal not reached
     (goal,) = summary["goals"]
     assert goal["status"] == "failed"
@@ -344,8 +425,7 @@ def test_the_navigator_believes_what_the_localiser_tracks(
     import rgbdnav.commands.navigate as navigate_run
 
     monkeypatch.setattr(navigate_run, "Localizer", _jumpy_localizer(8, 10_000))
-    code, output, summary = _navigate(scene, tmp_path, "--goal-timeout", "3",
-                                      "--goal", "3.0,1.0")  # fmt: skip
+    code, output, summary = _navigate(scene, tmp_path, "--goal-timeout", "3", "--goal", "3.0,1.0")
     assert code == GOAL_FAILED_EXIT, output  # a goal not reached
     loc = summary["localization"]
     assert loc["position_error_m"]["max"] > 2.5  # the navigator believes the (wrong) 3 m
@@ -428,9 +508,16 @@ def test_a_goal_settle_turns_in_place_and_drives_on_to_the_corrected_goal(
 
     monkeypatch.setattr(navigate_run, "Localizer", _biased_localizer(0.3))
     spin = "6.0" if settle else "0.0"
-    code, output, summary = _navigate(scene, tmp_path, "--set", "follower.xy_goal_tolerance=0.1",
-                                      "--set", f"navigate.goal_settle_spin={spin}",
-                                      "--goal", "3.0,1.0")  # fmt: skip
+    code, output, summary = _navigate(
+        scene,
+        tmp_path,
+        "--set",
+        "follower.xy_goal_tolerance=0.1",
+        "--set",
+        f"navigate.goal_settle_spin={spin}",
+        "--goal",
+        "3.0,1.0",
+    )
     assert code == 0, output
     goal = summary["goals"][0]
     assert goal["status"] == "reached" and goal["estimated_error_m"] <= 0.1 + 1e-6
@@ -475,9 +562,9 @@ def test_a_run_of_gated_matches_while_driving_settles_then_replans(
     assert all(r.startswith("wide match of") for r in goal["settles"])
     assert summary["collisions"]["events"] == 0
     Contested.calls = 0  # the same disagreement, with settling while driving off
-    code, output, summary = _navigate(scene, tmp_path / "off", "--set",
-                                      "navigate.settle_on_gated_scans=0",
-                                      "--goal", "5.0,2.0")  # fmt: skip
+    code, output, summary = _navigate(
+        scene, tmp_path / "off", "--set", "navigate.settle_on_gated_scans=0", "--goal", "5.0,2.0"
+    )
     assert code == 0, output
     assert len(summary["goals"][0]["settles"]) == 1  # at the goal only
 
@@ -510,10 +597,16 @@ def test_replan_frequency_plans_again_while_driving(
     plans = {}
     for hz in (0.0, 1.0):
         calls.clear()
-        code, output, summary = _navigate(scene, tmp_path / f"hz{hz:g}", "--localization",
-                                          "groundtruth", "--set",
-                                          f"navigate.replan_frequency={hz}",
-                                          "--goal", "1.0,3.4")  # fmt: skip
+        code, output, summary = _navigate(
+            scene,
+            tmp_path / f"hz{hz:g}",
+            "--localization",
+            "groundtruth",
+            "--set",
+            f"navigate.replan_frequency={hz}",
+            "--goal",
+            "1.0,3.4",
+        )
         assert code == 0, output
         (goal,) = summary["goals"]
         assert goal["status"] == "reached" and summary["collisions"]["events"] == 0

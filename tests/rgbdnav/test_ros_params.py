@@ -34,8 +34,23 @@ def reasons(rows, node):
 def test_robot_localization_ekf_yaml_maps_its_15x15_covariance_and_inputs():
     overrides, rows = load_ros_params([EKF])
     cfg = load_config(overrides=overrides)
-    q = (0.05, 0.05, 0.06, 0.03, 0.03, 0.06, 0.025, 0.025, 0.04, 0.01, 0.01, 0.02, 0.01, 0.01,
-         0.015)  # fmt: skip
+    q = (
+        0.05,
+        0.05,
+        0.06,
+        0.03,
+        0.03,
+        0.06,
+        0.025,
+        0.025,
+        0.04,
+        0.01,
+        0.01,
+        0.02,
+        0.01,
+        0.01,
+        0.015,
+    )
     assert cfg.ekf.process_noise_covariance == pytest.approx(q)
     assert cfg.ekf.initial_estimate_covariance == pytest.approx((1e-9,) * 15)
     assert cfg.ekf.frequency == 30.0 and cfg.ekf.sensor_timeout == 0.1
@@ -160,9 +175,18 @@ def test_cli_odometry_with_robot_localizations_file(tmp_path):
     out = tmp_path / "b"
     result = runner.invoke(
         app,
-        ["odometry", str(bag), "-o", str(out), "-q", "--ros-params", str(mine),
-         "--set", "ekf.imu0_config=[" + ",".join(["false"] * 15) + "]"],
-    )  # fmt: skip
+        [
+            "odometry",
+            str(bag),
+            "-o",
+            str(out),
+            "-q",
+            "--ros-params",
+            str(mine),
+            "--set",
+            "ekf.imu0_config=[" + ",".join(["false"] * 15) + "]",
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert "ros-params: " in result.output and "-> ekf.process_noise_covariance" in result.output
     config = (out / "config.yaml").read_text()

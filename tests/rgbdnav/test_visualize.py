@@ -57,8 +57,14 @@ def test_an_rrd_holds_the_documented_entity_paths(tmp_path: Path) -> None:
     poses = np.column_stack([np.linspace(0, 2, 30), np.zeros(30), np.zeros(30)])
     occ = np.zeros((10, 10), bool)
     occ[0, :] = True
-    log_run(vis, np.arange(30) * 100_000_000, poses, [np.ones((5, 2))] * 30,
-            occupied_cells_xy(occ, (0.0, 0.0), 0.1), poses[:, :2])  # fmt: skip
+    log_run(
+        vis,
+        np.arange(30) * 100_000_000,
+        poses,
+        [np.ones((5, 2))] * 30,
+        occupied_cells_xy(occ, (0.0, 0.0), 0.1),
+        poses[:, :2],
+    )
     vis.frame(0, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32))
     vis.plan(0, poses[:, :2])
     vis.costmap(0, np.ones((3, 2)))

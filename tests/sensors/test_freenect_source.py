@@ -87,9 +87,10 @@ def test_live_run_stamps_on_the_monotonic_clock(monkeypatch) -> None:
     src.close()
 
 
-@pytest.mark.parametrize(("devices", "uri", "match"),
-                         [(0, "freenect://", "no Kinect v1 found"),
-                          (1, "freenect://1", r"no Kinect 1 \(1 found\)")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("devices", "uri", "match"),
+    [(0, "freenect://", "no Kinect v1 found"), (1, "freenect://1", r"no Kinect 1 \(1 found\)")],
+)
 def test_no_kinect_names_the_udev_rules(monkeypatch, devices: int, uri: str, match: str) -> None:
     monkeypatch.setitem(sys.modules, "freenect", _fake_freenect(devices=devices, frames=0))
     with pytest.raises(SensorError, match=match) as err:

@@ -233,11 +233,18 @@ def test_bridge_firmware_auto_stop_stops_a_killed_host() -> None:
     (flashed at 250 ms) stops the motors within 250 ms of its last command."""
     emu = BridgeEmulator(BridgeConfig(auto_stop_interval=0.25))
     path = emu.serve_pty()
-    host = subprocess.Popen([sys.executable, "-c", (
-        "import serial, time, sys\n"
-        f"p = serial.Serial({path!r}, 57600, timeout=0.5)\n"
-        "while True:\n"
-        "    p.write(b'm 20 20\\r'); p.readline(); time.sleep(0.05)\n")])  # fmt: skip
+    host = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            (
+                "import serial, time, sys\n"
+                f"p = serial.Serial({path!r}, 57600, timeout=0.5)\n"
+                "while True:\n"
+                "    p.write(b'm 20 20\\r'); p.readline(); time.sleep(0.05)\n"
+            ),
+        ]
+    )
     try:
         deadline = time.monotonic() + 10
         while emu.wheel_rates()[0] < 10 and time.monotonic() < deadline:

@@ -103,10 +103,14 @@ def test_a_recordings_gyro_is_the_imu_yaw_rate(route) -> None:
 def test_a_recording_reads_its_depth_to_colour_extrinsics(tmp_path: Path) -> None:
     intr = CameraIntrinsics(640, 480, 600.0, 601.0, 320.5, 240.5)
     frames = [
-        RgbdFrame(i * PERIOD_NS, np.full((480, 640, 3), 9 * i, np.uint8),
-                  np.full((480, 640), 2.0, np.float32), intr)
+        RgbdFrame(
+            i * PERIOD_NS,
+            np.full((480, 640, 3), 9 * i, np.uint8),
+            np.full((480, 640), 2.0, np.float32),
+            intr,
+        )
         for i in range(3)
-    ]  # fmt: skip
+    ]
     path = tmp_path / "ex.db3"
     write_sdk_recording(path, frames, depth_to_colour_m=(-0.015, 0.0, 0.0))
     with RealSenseSource.open(f"realsense://{path}") as src:
@@ -119,8 +123,9 @@ def test_a_recording_reads_its_depth_to_colour_extrinsics(tmp_path: Path) -> Non
 def test_odometry_and_map_of_a_recording_follow_the_route(route, tmp_path: Path) -> None:
     path, _ = route
     out = tmp_path / "odo"
-    res = runner.invoke(app, ["odometry", f"realsense://{path}", "-o", str(out), "-q",
-                              "--force-3dof"])  # fmt: skip
+    res = runner.invoke(
+        app, ["odometry", f"realsense://{path}", "-o", str(out), "-q", "--force-3dof"]
+    )
     assert res.exit_code == 0, res.output
     last = np.loadtxt(out / "vo.tum")[-1]
     travelled = (N_FRAMES - 1) * STEP_M
@@ -130,8 +135,9 @@ def test_odometry_and_map_of_a_recording_follow_the_route(route, tmp_path: Path)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == N_FRAMES and "fx=570.0" in summary["source_kind"]
     assert summary["ekf"]["stats"]["sensors"]["imu0"]["fused"] > 0, summary["ekf"]  # the gyro
-    res = runner.invoke(app, ["map", f"realsense://{path}", "-o", str(tmp_path / "map"), "-q",
-                              "--force-3dof"])  # fmt: skip
+    res = runner.invoke(
+        app, ["map", f"realsense://{path}", "-o", str(tmp_path / "map"), "-q", "--force-3dof"]
+    )
     assert res.exit_code == 0, res.output
     assert "map bundle" in res.output and (tmp_path / "map" / "summary.json").exists()
 
@@ -155,8 +161,21 @@ def test_a_recording_played_as_a_camera_keeps_its_timing(route) -> None:
 def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) -> None:
     path, _ = route
     out = tmp_path / "live"
-    res = runner.invoke(app, ["live", "--camera", f"realsense://{path}", "--board", "none",
-                              "--out", str(out), "--duration", "3", "-q"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "live",
+            "--camera",
+            f"realsense://{path}",
+            "--board",
+            "none",
+            "--out",
+            str(out),
+            "--duration",
+            "3",
+            "-q",
+        ],
+    )
     assert res.exit_code == 0, res.output
     s = json.loads((out / "summary.json").read_text())
     assert s["errors"] == [] and s["counts"]["frames_processed"] >= 5
@@ -171,8 +190,21 @@ def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) 
 def _live_yaw_error(path: Path, out: Path) -> tuple[float, dict]:
     """Live on ``path`` (no board): |odometry yaw - true yaw| at the last frame, and the summary's
     imu0 stats. The route turns at YAW_RATE from its first frame (odom.tum's first row)."""
-    res = runner.invoke(app, ["live", "--camera", f"realsense://{path}", "--board", "none",
-                              "--out", str(out), "--duration", "3", "-q"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "live",
+            "--camera",
+            f"realsense://{path}",
+            "--board",
+            "none",
+            "--out",
+            str(out),
+            "--duration",
+            "3",
+            "-q",
+        ],
+    )
     assert res.exit_code == 0, res.output
     odom = np.loadtxt(out / "odom.tum", ndmin=2)
     yaw = 2.0 * math.atan2(odom[-1, 6], odom[-1, 7])
@@ -195,10 +227,12 @@ def test_live_fuses_the_recordings_gyro_and_turns_as_the_route(route, tmp_path: 
 
 @pytest.mark.parametrize(
     ("uri", "match"),
-    [("realsense://", "no RealSense camera found"),
-     ("realsense://123", "no RealSense camera"),
-     ("realsense:///no/such.db3", "no such RealSense recording")],
-)  # fmt: skip
+    [
+        ("realsense://", "no RealSense camera found"),
+        ("realsense://123", "no RealSense camera"),
+        ("realsense:///no/such.db3", "no such RealSense recording"),
+    ],
+)
 def test_no_camera_or_file_is_one_error_line(uri: str, match: str) -> None:
     res = runner.invoke(app, ["info", uri])
     assert res.exit_code == 1
@@ -245,10 +279,14 @@ def test_the_recording_opened_as_a_plain_rosbag_reads_its_own_camera(route) -> N
 def test_a_rosbag_with_unregistered_sdk_depth_says_how_to_align_it(tmp_path: Path) -> None:
     intr = CameraIntrinsics(640, 480, 600.0, 601.0, 320.5, 240.5)
     frames = [
-        RgbdFrame(i * PERIOD_NS, np.zeros((480, 640, 3), np.uint8),
-                  np.full((480, 640), 2.0, np.float32), intr)
+        RgbdFrame(
+            i * PERIOD_NS,
+            np.zeros((480, 640, 3), np.uint8),
+            np.full((480, 640), 2.0, np.float32),
+            intr,
+        )
         for i in range(2)
-    ]  # fmt: skip
+    ]
     path = tmp_path / "offset.db3"
     write_sdk_recording(path, frames, depth_to_colour_m=(-0.015, 0.0, 0.0))
     with open_source(path) as bag:
@@ -257,11 +295,25 @@ def test_a_rosbag_with_unregistered_sdk_depth_says_how_to_align_it(tmp_path: Pat
     assert f"open it as realsense://{path}" in text
 
 
-@pytest.mark.parametrize(("camera", "match"),
-                         [("realsense://", "no RealSense camera found"),
-                          ("freenect://", "freenect")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("camera", "match"),
+    [("realsense://", "no RealSense camera found"), ("freenect://", "freenect")],
+)
 def test_live_without_the_camera_fails_in_one_line(tmp_path: Path, camera: str, match: str) -> None:
-    res = runner.invoke(app, ["live", "--camera", camera, "--board", "none", "--duration", "3",
-                              "--out", str(tmp_path / "x"), "-q"])  # fmt: skip
+    res = runner.invoke(
+        app,
+        [
+            "live",
+            "--camera",
+            camera,
+            "--board",
+            "none",
+            "--duration",
+            "3",
+            "--out",
+            str(tmp_path / "x"),
+            "-q",
+        ],
+    )
     assert res.exit_code == 1, res.output
     assert match in res.output and "Traceback" not in res.output

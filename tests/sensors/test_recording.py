@@ -64,8 +64,9 @@ def test_wheels_imu_and_groundtruth_round_trip_with_exact_stamps(tmp_path):
         writer.add_wheels(stamps[:2], np.array([0, 3]), np.array([0, -2]))
         writer.add_wheels(stamps[2:], np.array([7, 12]), np.array([-5, -9]))
         writer.add_imu(stamps, np.array([0.0, 0.125, -1.0 / 3.0, 2.5]))
-        writer.set_groundtruth(stamps, np.array([0, 0.1, 0.2, 0.3]), np.zeros(4),
-                               np.array([0.0, 0.5, -3.0, 3.1]))  # fmt: skip
+        writer.set_groundtruth(
+            stamps, np.array([0, 0.1, 0.2, 0.3]), np.zeros(4), np.array([0.0, 0.5, -3.0, 3.1])
+        )
     rec = Recording.open(path)
 
     t, left, right = rec.wheels()
@@ -242,9 +243,11 @@ def test_association_is_one_to_one_like_tum_associate():
 def associate_reference(a, b, max_difference):
     """TUM associate.py, verbatim in spirit: all pairs in the window, greedy by difference."""
     pairs = sorted(
-        (abs(x - y), i, j) for i, x in enumerate(a) for j, y in enumerate(b)
+        (abs(x - y), i, j)
+        for i, x in enumerate(a)
+        for j, y in enumerate(b)
         if abs(x - y) < max_difference
-    )  # fmt: skip
+    )
     used_a, used_b, out = set(), set(), []
     for _, i, j in pairs:
         if i not in used_a and j not in used_b:

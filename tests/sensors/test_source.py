@@ -31,8 +31,14 @@ def test_an_unknown_file_lists_what_can_be_read(tmp_path: Path) -> None:
 
 
 def test_a_recording_opens_as_a_source_with_all_its_streams(tmp_path: Path) -> None:
-    simulate(REPO / "scenes" / "house.yaml", tmp_path / "r", RobotConfig(), CameraConfig(),
-             SimConfig(), frames=3)  # fmt: skip
+    simulate(
+        REPO / "scenes" / "house.yaml",
+        tmp_path / "r",
+        RobotConfig(),
+        CameraConfig(),
+        SimConfig(),
+        frames=3,
+    )
     src = open_source(tmp_path / "r")
     assert isinstance(src, RecordingSource) and isinstance(src, Source)
     assert set(src.stream_stamps()) == {"rgb", "depth", "wheels", "imu", "groundtruth"}

@@ -112,8 +112,9 @@ def test_duplicate_out_of_order_and_stale_messages_are_counted_not_queued() -> N
 
 
 def test_synchronise_counts_an_out_of_order_stamp_in_file_order() -> None:
-    idx, stats = synchronise({"a": np.array([0, 33, 20, 66]) * MS,
-                              "b": np.array([0, 33, 66]) * MS}, SLOP, 10)  # fmt: skip
+    idx, stats = synchronise(
+        {"a": np.array([0, 33, 20, 66]) * MS, "b": np.array([0, 33, 66]) * MS}, SLOP, 10
+    )
     np.testing.assert_array_equal(idx["a"], [0, 1, 3])
     np.testing.assert_array_equal(idx["b"], [0, 1, 2])
     assert stats.streams["a"].out_of_order == 1 and stats.dropped == 1

@@ -55,15 +55,19 @@ def test_each_format_round_trips_and_is_detected(tmp_path, fmt) -> None:
 
 def test_euroc_reads_the_asl_ground_truth_layout_with_w_first(tmp_path) -> None:
     """The EuRoC state_groundtruth_estimate0/data.csv: 17 columns, quaternion w x y z."""
-    header = (EUROC_HEADER + ", v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], "
-              "b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], "
-              "b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]")  # fmt: skip
-    rows = ["1403636580838555648,4.688319,-1.786938,0.783338,0.534108,-0.153029,-0.827383,"
-            "-0.082152,-0.027876,0.033207,0.800006,-0.003172,0.021267,0.078502,-0.025266,"
-            "0.136696,0.075593",
-            "1403636580843555328,4.688177,-1.786770,0.787350,0.534640,-0.152990,-0.826976,"
-            "-0.082863,-0.029272,0.033992,0.804771,-0.003172,0.021267,0.078502,-0.025266,"
-            "0.136696,0.075593"]  # fmt: skip
+    header = (
+        EUROC_HEADER + ", v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], "
+        "b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], "
+        "b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
+    )
+    rows = [
+        "1403636580838555648,4.688319,-1.786938,0.783338,0.534108,-0.153029,-0.827383,"
+        "-0.082152,-0.027876,0.033207,0.800006,-0.003172,0.021267,0.078502,-0.025266,"
+        "0.136696,0.075593",
+        "1403636580843555328,4.688177,-1.786770,0.787350,0.534640,-0.152990,-0.826976,"
+        "-0.082863,-0.029272,0.033992,0.804771,-0.003172,0.021267,0.078502,-0.025266,"
+        "0.136696,0.075593",
+    ]
     path = tmp_path / "data.csv"
     path.write_text(header + "\n" + "\n".join(rows) + "\n")
     table = read_pose_table(path)
@@ -124,8 +128,9 @@ def test_real_ground_truth_survives_every_format(tmp_path) -> None:
         t, p, q = load_trajectory(path)
         np.testing.assert_array_equal(t, t0)
         np.testing.assert_allclose(p, p0, atol=1e-12)
-        _same_rotation(q / np.linalg.norm(q, axis=1)[:, None],
-                       q0 / np.linalg.norm(q0, axis=1)[:, None])  # fmt: skip
+        _same_rotation(
+            q / np.linalg.norm(q, axis=1)[:, None], q0 / np.linalg.norm(q0, axis=1)[:, None]
+        )
 
 
 def load_tum_trajectory_lenient(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -136,8 +141,13 @@ def load_tum_trajectory_lenient(path: Path) -> tuple[np.ndarray, np.ndarray, np.
 
 
 def test_run_folder_trajectories_are_converted_beside_the_tum(tmp_path) -> None:
-    write_tum_trajectory(tmp_path / "trajectory.tum", np.array([0, 10**9]), np.array([0.0, 1.0]),
-                         np.array([0.0, 0.5]), np.array([0.0, 0.3]))  # fmt: skip
+    write_tum_trajectory(
+        tmp_path / "trajectory.tum",
+        np.array([0, 10**9]),
+        np.array([0.0, 1.0]),
+        np.array([0.0, 0.5]),
+        np.array([0.0, 0.3]),
+    )
     written = convert_tum_files(tmp_path, "kitti")
     assert [p.name for p in written] == ["trajectory.kitti.txt", "trajectory.times.txt"]
     t, p, _ = load_trajectory(tmp_path / "trajectory.kitti.txt")

@@ -49,8 +49,7 @@ def rgbd_config() -> Config:
     return load_config([RGBD_PROFILE], [])
 
 
-def floor_plan_grid(world: World, cfg: Config, resolution: float = MAP_RESOLUTION
-                    ) -> OccupancyGrid:  # fmt: skip
+def floor_plan_grid(world: World, cfg: Config, resolution: float = MAP_RESOLUTION) -> OccupancyGrid:
     """An occupancy grid of the world as the depth->scan height band sees it."""
     d2s = cfg.depth_to_scan
     plan = floor_plan(world, resolution, d2s.min_height, d2s.max_height)
@@ -73,8 +72,9 @@ def floor_plan_grid(world: World, cfg: Config, resolution: float = MAP_RESOLUTIO
     return OccupancyGrid(geom, log_odds, log_odds != 0.0)
 
 
-def solid_floor_plan_grid(world: World, cfg: Config, resolution: float = MAP_RESOLUTION
-                          ) -> OccupancyGrid:  # fmt: skip
+def solid_floor_plan_grid(
+    world: World, cfg: Config, resolution: float = MAP_RESOLUTION
+) -> OccupancyGrid:
     """The floor plan as a CAD drawing gives it: walls filled solid, every other cell free."""
     d2s = cfg.depth_to_scan
     plan = floor_plan(world, resolution, d2s.min_height, d2s.max_height)
@@ -90,8 +90,13 @@ def route_at(traj: Trajectory, t_ns: np.ndarray) -> np.ndarray:
     return np.column_stack([x, y, yaw])
 
 
-def corrupt(felt: np.ndarray, rng: np.random.Generator, scale: float = 1.02,
-            sigma_m: float = 0.003, sigma_rad: float = 0.003) -> np.ndarray:  # fmt: skip
+def corrupt(
+    felt: np.ndarray,
+    rng: np.random.Generator,
+    scale: float = 1.02,
+    sigma_m: float = 0.003,
+    sigma_rad: float = 0.003,
+) -> np.ndarray:
     """Odometry from the felt path: each step scaled, with Gaussian noise, re-integrated."""
     steps = ominus(felt[:-1], felt[1:])
     steps[:, :2] *= scale
@@ -110,8 +115,9 @@ class KidnapStream:
     jump_index: int  # first frame after the teleport
 
 
-def kidnap_stream(traj: Trajectory, rate_hz: float, kidnap_s: float, jump_s: float,
-                  after_s: float, seed: int) -> KidnapStream:  # fmt: skip
+def kidnap_stream(
+    traj: Trajectory, rate_hz: float, kidnap_s: float, jump_s: float, after_s: float, seed: int
+) -> KidnapStream:
     """Frames at ``rate_hz`` for ``kidnap_s`` along the route, then ``after_s`` more from
     ``kidnap_s + jump_s`` on (the teleport); odometry as the module docstring says."""
     period = int(round(NS_PER_S / rate_hz))
@@ -162,9 +168,14 @@ class KidnapOutcome:
     errors_after: list[float]  # [m] position errors from the recovery on
 
 
-def run_kidnap(model: MapModel, cfg: Config, scanner: DepthScanner, stream: KidnapStream,
-               success_m: float = 0.2, success_rad: float = math.radians(5.0)
-               ) -> tuple[KidnapOutcome, list[LocalizationResult]]:  # fmt: skip
+def run_kidnap(
+    model: MapModel,
+    cfg: Config,
+    scanner: DepthScanner,
+    stream: KidnapStream,
+    success_m: float = 0.2,
+    success_rad: float = math.radians(5.0),
+) -> tuple[KidnapOutcome, list[LocalizationResult]]:
     loc = Localizer(model, cfg.localizer, initial_pose=stream.truth[0])
     frames = zip(stream.truth, stream.stamps_ns, stream.odom, strict=True)
     results = [loc.update(scanner.scan(p, t), o) for p, t, o in frames]
@@ -184,11 +195,14 @@ def run_kidnap(model: MapModel, cfg: Config, scanner: DepthScanner, stream: Kidn
     conf = np.array([r.confidence for r in results])
     wrong = tracking & ~good & (conf >= cfg.localizer.min_score)
     return KidnapOutcome(
-        left_tracking=first(~tracking), lost=first(np.array([r.status == "lost" for r in results])),
-        recovered=rec, confident_wrong=int(wrong[j:end].sum()), pre_jump_ok=bool(good[:j].all()),
+        left_tracking=first(~tracking),
+        lost=first(np.array([r.status == "lost" for r in results])),
+        recovered=rec,
+        confident_wrong=int(wrong[j:end].sum()),
+        pre_jump_ok=bool(good[:j].all()),
         period_s=float(np.diff(stream.stamps_ns).mean()) / NS_PER_S,
         errors_after=[] if rec is None else d[j + rec - 1 :].tolist(),
-    ), results  # fmt: skip
+    ), results
 
 
 def house(scene: str = "house") -> tuple[World, Config, Trajectory, MapModel]:

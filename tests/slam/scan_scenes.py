@@ -12,19 +12,32 @@ from sensors.types import LaserScan
 # yaw for a unique match.
 ROOM = np.array(
     [
-        [0, 0, 8, 0], [8, 0, 8, 6], [8, 6, 0, 6], [0, 6, 0, 0],
+        [0, 0, 8, 0],
+        [8, 0, 8, 6],
+        [8, 6, 0, 6],
+        [0, 6, 0, 0],
         [3, 0, 3, 2.5],
-        [5.5, 3.5, 6.0, 3.5], [6.0, 3.5, 6.0, 4.0], [6.0, 4.0, 5.5, 4.0], [5.5, 4.0, 5.5, 3.5],
-        [1.0, 5.0, 2.2, 5.0], [2.2, 5.0, 2.2, 6.0],
+        [5.5, 3.5, 6.0, 3.5],
+        [6.0, 3.5, 6.0, 4.0],
+        [6.0, 4.0, 5.5, 4.0],
+        [5.5, 4.0, 5.5, 3.5],
+        [1.0, 5.0, 2.2, 5.0],
+        [2.2, 5.0, 2.2, 6.0],
     ],
     dtype=np.float64,
-)  # fmt: skip
+)
 
 
 def raycast(
-    segments: np.ndarray, pose: np.ndarray, n_beams: int = 361, fov: float = math.pi,
-    range_max: float = 20.0, noise_m: float = 0.0, seed: int = 0, stamp_ns: int = 0,
-) -> LaserScan:  # fmt: skip
+    segments: np.ndarray,
+    pose: np.ndarray,
+    n_beams: int = 361,
+    fov: float = math.pi,
+    range_max: float = 20.0,
+    noise_m: float = 0.0,
+    seed: int = 0,
+    stamp_ns: int = 0,
+) -> LaserScan:
     """A LaserScan from ``pose`` (x, y, yaw) against segments (S, 4) = x0 y0 x1 y1."""
     angle_min = -fov / 2
     inc = fov / (n_beams - 1)
@@ -45,8 +58,9 @@ def raycast(
     return LaserScan(stamp_ns, angle_min, inc, r.astype(np.float32), 0.02, range_max)
 
 
-def write_flaser_log(path, truth: np.ndarray, odom: np.ndarray, t0: float = 100.0,
-                     segments: np.ndarray = ROOM):  # type: ignore[no-untyped-def]  # fmt: skip
+def write_flaser_log(
+    path, truth: np.ndarray, odom: np.ndarray, t0: float = 100.0, segments: np.ndarray = ROOM
+):  # type: ignore[no-untyped-def]
     """A CARMEN log of FLASER lines (361 beams, 0.5 deg, 5 mm noise, 5 Hz) ray-cast at the
     ``truth`` poses, with ``odom`` in the pose fields; returns ``path``."""
     lines = []
@@ -71,6 +85,13 @@ def corrupt_steps(truth: np.ndarray, scale: float, yaw_bias_per_step: float) -> 
         lx, ly, dyaw = scale * (c * dx + s * dy), scale * (-s * dx + c * dy), b[2] - a[2]
         p = out[-1]
         cp, sp = math.cos(p[2]), math.sin(p[2])
-        out.append(np.array([p[0] + cp * lx - sp * ly, p[1] + sp * lx + cp * ly,
-                             p[2] + dyaw + yaw_bias_per_step]))  # fmt: skip
+        out.append(
+            np.array(
+                [
+                    p[0] + cp * lx - sp * ly,
+                    p[1] + sp * lx + cp * ly,
+                    p[2] + dyaw + yaw_bias_per_step,
+                ]
+            )
+        )
     return np.array(out)

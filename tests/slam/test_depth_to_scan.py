@@ -22,15 +22,21 @@ from slam.depth_to_scan import (
 CAMERA = CameraConfig()
 ROBOT = RobotConfig()
 CFG = DepthToScanConfig()
-INTRINSICS = CameraIntrinsics(CAMERA.width, CAMERA.height, CAMERA.fx, CAMERA.fy, CAMERA.cx,
-                              CAMERA.cy, CAMERA.depth_scale)  # fmt: skip
+INTRINSICS = CameraIntrinsics(
+    CAMERA.width, CAMERA.height, CAMERA.fx, CAMERA.fy, CAMERA.cx, CAMERA.cy, CAMERA.depth_scale
+)
 TILT_RAD = 0.35  # [rad] nose down
 RANGE_TOL_M = 0.01  # [m]
 
 
 def room(walls: list[dict], furniture: list[dict] | None = None) -> dict:
-    return {"name": "test", "walls": walls, "furniture": furniture or [],
-            "start": [0.0, 0.0, 0.0], "route": [[1.0, 0.0]]}  # fmt: skip
+    return {
+        "name": "test",
+        "walls": walls,
+        "furniture": furniture or [],
+        "start": [0.0, 0.0, 0.0],
+        "route": [[1.0, 0.0]],
+    }
 
 
 def wall_ahead(distance: float, yaw_deg: float = 0.0) -> dict:
@@ -45,8 +51,9 @@ def true_depth(world: dict, robot: RobotConfig = ROBOT) -> np.ndarray:
     return r.true_depth(0.0, 0.0, 0.0)
 
 
-def line_ranges(scan_angles: np.ndarray, inc: float, dist_m: float, normal_rad: float
-                ) -> np.ndarray:  # fmt: skip
+def line_ranges(
+    scan_angles: np.ndarray, inc: float, dist_m: float, normal_rad: float
+) -> np.ndarray:
     """Nearest point of the line {p : p . n = dist} within each beam's +-inc/2 sector."""
     off = np.clip(normal_rad, scan_angles - inc / 2, scan_angles + inc / 2) - normal_rad
     return dist_m / np.cos(off)
@@ -104,8 +111,11 @@ def test_tilted_camera_sees_a_wall_at_its_true_distance() -> None:
 
 def box(near_m: float, half_width_m: float, height_m: float, elevation_m: float = 0.0) -> dict:
     depth_m = 0.5
-    return {"center": [near_m + depth_m / 2, 0.0], "size": [depth_m, 2 * half_width_m, height_m],
-            "elevation": elevation_m}  # fmt: skip
+    return {
+        "center": [near_m + depth_m / 2, 0.0],
+        "size": [depth_m, 2 * half_width_m, height_m],
+        "elevation": elevation_m,
+    }
 
 
 def sector(a: np.ndarray, inc: float, near_m: float, half_width_m: float) -> np.ndarray:
@@ -122,8 +132,9 @@ def test_box_below_min_height_is_ignored_and_a_taller_one_is_seen() -> None:
     tall = conv(true_depth(room([wall_ahead(3.05)], [box(1.5, 0.3, 0.4)])))
     inside = sector(a, inc, 1.5, 0.3)
     assert np.count_nonzero(inside) >= 15
-    np.testing.assert_allclose(tall.scan.ranges[inside], line_ranges(a, inc, 1.5, 0.0)[inside],
-                               atol=RANGE_TOL_M)  # fmt: skip
+    np.testing.assert_allclose(
+        tall.scan.ranges[inside], line_ranges(a, inc, 1.5, 0.0)[inside], atol=RANGE_TOL_M
+    )
 
 
 def test_height_band_sees_a_table_top_the_centre_rows_miss() -> None:
@@ -228,8 +239,9 @@ def test_unknown_output_frame_and_wrong_image_size_are_errors() -> None:
 
 def test_noisy_kinect_scan_stays_within_three_sigma_of_the_wall() -> None:
     sim = SimConfig()
-    r = KinectRenderer(world_from_dict(room([wall_ahead(2.05)])), CAMERA, ROBOT, sim,
-                       backend="raster")  # fmt: skip
+    r = KinectRenderer(
+        world_from_dict(room([wall_ahead(2.05)])), CAMERA, ROBOT, sim, backend="raster"
+    )
     _, depth = r.render(0.0, 0.0, 0.0, np.random.default_rng(3))
     out = DepthToScan(INTRINSICS, ROBOT, replace(CFG, scan_height=1))(depth)
     a = out.scan.angles()

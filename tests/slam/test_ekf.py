@@ -62,8 +62,11 @@ def cfg_with(**kw: Any) -> EkfConfig:
 def pose_vo_config(**kw: Any) -> EkfConfig:
     """robot_localization's usual VO set-up: an absolute VO pose fused differentially, ungated
     (the shipped default fuses VO as a gated twist instead)."""
-    base = {"vo0_config": mask("x", "y", "yaw"), "vo0_differential": True,
-            "vo0_twist_rejection_threshold": 1e9}  # fmt: skip
+    base = {
+        "vo0_config": mask("x", "y", "yaw"),
+        "vo0_differential": True,
+        "vo0_twist_rejection_threshold": 1e9,
+    }
     return dataclasses.replace(EkfConfig(), **{**base, **kw})
 
 
@@ -81,17 +84,25 @@ def circle(n: int, seed: int = 0, dt_ns: int = DT_NS):
     x, y = V / W * np.sin(yaw), V / W * (1 - np.cos(yaw))
     twist_cov = np.diag([SIGMA_V**2, 1e-4, SIGMA_W**2])
     twists = [
-        TwistInput(int(t[i]), V + SIGMA_V * rng.standard_normal(), 0.01 * rng.standard_normal(),
-                   W + SIGMA_W * rng.standard_normal(), twist_cov)
+        TwistInput(
+            int(t[i]),
+            V + SIGMA_V * rng.standard_normal(),
+            0.01 * rng.standard_normal(),
+            W + SIGMA_W * rng.standard_normal(),
+            twist_cov,
+        )
         for i in range(n)
-    ]  # fmt: skip
+    ]
     vo_cov = np.eye(3) * SIGMA_VO**2
     noise = SIGMA_VO * rng.standard_normal((n, 3))
     poses = [
-        PoseInput(int(t[i]), Pose2(x[i] + noise[i, 0], y[i] + noise[i, 1],
-                                   wrap_angle(yaw[i] + noise[i, 2])), vo_cov)
+        PoseInput(
+            int(t[i]),
+            Pose2(x[i] + noise[i, 0], y[i] + noise[i, 1], wrap_angle(yaw[i] + noise[i, 2])),
+            vo_cov,
+        )
         for i in range(n)
-    ]  # fmt: skip
+    ]
     return t, (x, y, yaw), twists, poses
 
 
@@ -122,16 +133,19 @@ def test_jacobian_matches_finite_differences() -> None:
     _, f = transition(x, 0.1)
     eps = 1e-7
     num = np.column_stack(
-        [(transition(x + eps * e, 0.1)[0] - transition(x - eps * e, 0.1)[0]) / (2 * eps)
-         for e in np.eye(6)]
-    )  # fmt: skip
+        [
+            (transition(x + eps * e, 0.1)[0] - transition(x - eps * e, 0.1)[0]) / (2 * eps)
+            for e in np.eye(6)
+        ]
+    )
     np.testing.assert_allclose(f, num, atol=1e-7)
 
 
 def test_update_1d_matches_hand_computed_values() -> None:
     # K = 4 / (4 + 1) = 0.8; x = 1 + 0.8 * 2; P = (1 - 0.8)^2 4 + 0.8^2 1 = 0.8
-    x, p, y, s, nis = update(np.array([1.0]), np.array([[4.0]]), np.array([3.0]),
-                             np.array([[1.0]]), np.array([[1.0]]))  # fmt: skip
+    x, p, y, s, nis = update(
+        np.array([1.0]), np.array([[4.0]]), np.array([3.0]), np.array([[1.0]]), np.array([[1.0]])
+    )
     assert x[0] == pytest.approx(2.6, abs=1e-12)
     assert p[0, 0] == pytest.approx(0.8, abs=1e-12)
     assert y[0] == pytest.approx(2.0) and s[0, 0] == pytest.approx(5.0)
@@ -174,8 +188,9 @@ def test_yaw_residual_wraps_across_pi() -> None:
     np.testing.assert_allclose(r, [0.5, 0.1], atol=1e-12)
     x = np.array([0.0, 0.0, math.pi - 0.05, 0.0, 0.0, 0.0])
     h = np.eye(6)[[2]]
-    xn, _, y, _, _ = update(x, np.eye(6), np.array([-math.pi + 0.05]), h, np.eye(1),
-                            angle_residual(np.array([True])))  # fmt: skip
+    xn, _, y, _, _ = update(
+        x, np.eye(6), np.array([-math.pi + 0.05]), h, np.eye(1), angle_residual(np.array([True]))
+    )
     assert y[0] == pytest.approx(0.1, abs=1e-12)
     assert wrap_angle(xn[2]) == pytest.approx(-math.pi + 0.0, abs=1e-12)  # halfway, across pi
 
@@ -202,8 +217,15 @@ def test_config_vectors_map_onto_the_planar_state() -> None:
 # --- consistency ------------------------------------------------------------------------------
 
 
-def _consistency_run(n: int, rng: np.random.Generator, ekf: PlanarEkf, q: np.ndarray,
-                     r_twist: np.ndarray, r_pose: np.ndarray, dt: float):  # fmt: skip
+def _consistency_run(
+    n: int,
+    rng: np.random.Generator,
+    ekf: PlanarEkf,
+    q: np.ndarray,
+    r_twist: np.ndarray,
+    r_pose: np.ndarray,
+    dt: float,
+):
     """Truth follows the filter's own model with process noise Q dt; yields NIS and NEES."""
     s = np.array([0.0, 0.0, 0.0, V, 0.0, W])
     nis: dict[str, list[float]] = {"twist": [], "pose": []}
@@ -273,10 +295,11 @@ def test_vo_jump_of_one_metre_is_rejected_by_the_mahalanobis_gate_and_counted() 
     n = 90
     t, (x, y, _), twists, poses = circle(n, seed=6)
     jumped = [
-        p if i < 45 else PoseInput(p.stamp_ns, Pose2(p.pose.x + 1.0, p.pose.y, p.pose.yaw),
-                                   p.covariance)
+        p
+        if i < 45
+        else PoseInput(p.stamp_ns, Pose2(p.pose.x + 1.0, p.pose.y, p.pose.yaw), p.covariance)
         for i, p in enumerate(poses)
-    ]  # fmt: skip
+    ]
     cfg = pose_vo_config(vo0_pose_rejection_threshold=5.0, vo0_twist_rejection_threshold=5.0)
     out = fuse({"odom0": twists, "vo0": jumped}, cfg, output_stamps_ns=t)
     assert out.stats.sensors["vo0"]["rejected"] == 1
@@ -340,8 +363,9 @@ def _lag_cfg(**kw: Any) -> EkfConfig:
 
 def test_late_measurement_within_history_is_refiltered_to_the_in_order_result() -> None:
     twists, poses = _streams_for_lag()
-    msgs = sorted([("odom0", m) for m in twists] + [("vo0", m) for m in poses],
-                  key=lambda sm: sm[1].stamp_ns)  # fmt: skip
+    msgs = sorted(
+        [("odom0", m) for m in twists] + [("vo0", m) for m in poses], key=lambda sm: sm[1].stamp_ns
+    )
     in_order = PlanarEkf(_lag_cfg())
     for s, m in msgs:
         in_order.process(s, m)
@@ -472,8 +496,9 @@ def test_gyro_bias_is_estimated_from_wheel_yaw_rates() -> None:
     n, bias = 600, 0.01
     t, (_, _, yaw), twists, _ = circle(n, seed=9)
     gyro = [ImuSample(tw.stamp_ns + 1, W + bias) for tw in twists]
-    out = fuse({"odom0": twists, "imu0": gyro}, EkfConfig(), output_stamps_ns=t,
-               gyro_z_variance=1e-5)  # fmt: skip
+    out = fuse(
+        {"odom0": twists, "imu0": gyro}, EkfConfig(), output_stamps_ns=t, gyro_z_variance=1e-5
+    )
     assert abs(wrap_angle(out.yaw[-1] - yaw[-1])) < 0.05  # [rad] (unestimated: 0.2 rad)
 
 
@@ -502,8 +527,9 @@ def test_a_vo_motion_spanning_skipped_frames_is_fused_at_each_of_them() -> None:
 
     def final_yaw(split: bool) -> float:
         ekf = PlanarEkf(cfg)
-        msgs = [(int(t), "odom0", TwistInput(int(t), 0.2, 0.0, wheel_w, wheel_cov))
-                for t in wheel_t]  # fmt: skip
+        msgs = [
+            (int(t), "odom0", TwistInput(int(t), 0.2, 0.0, wheel_w, wheel_cov)) for t in wheel_t
+        ]
         for a, b in zip(ran[:-1], ran[1:], strict=True):
             dt = (b - a) / NS_PER_S
             delta = Pose2(0.2 * dt, 0.0, true_w * dt)
@@ -535,8 +561,13 @@ def test_interval_twists_cut_long_gaps_and_keep_the_information_of_one_measureme
     ms = 1_000_000
     out = interval_twists(0, 100 * ms, mean, marks_ns=[30 * ms, 150 * ms], max_step_s=0.025)
     # (0, 30] in 2 steps, (30, 100] in 3; a mark outside the interval is ignored
-    assert [t.stamp_ns for t in out] == [15 * ms, 30 * ms, 53 * ms + ms // 3, 76 * ms + 2 * ms // 3,
-                                         100 * ms]  # fmt: skip
+    assert [t.stamp_ns for t in out] == [
+        15 * ms,
+        30 * ms,
+        53 * ms + ms // 3,
+        76 * ms + 2 * ms // 3,
+        100 * ms,
+    ]
     assert all((t.vx, t.vyaw) == (0.2, 0.5) for t in out)
     info = sum(np.linalg.inv(t.covariance) for t in out)
     assert np.allclose(info, np.linalg.inv(mean.covariance))
@@ -556,8 +587,9 @@ def test_wheel_twist_inputs_spread_a_late_reading_over_its_interval() -> None:
     assert all(t.vx == pytest.approx(48 * robot.metres_per_tick) for t in gap)
     plain = wheel_twist_inputs(stamps, ticks, ticks, robot)
     assert np.allclose(gap[0].covariance, 8 * plain[2].covariance)
-    last = wheel_twist_inputs(stamps[:4], ticks[:4], ticks[:4], robot, last_only=True,
-                              max_interval_s=1 / 30)  # fmt: skip
+    last = wheel_twist_inputs(
+        stamps[:4], ticks[:4], ticks[:4], robot, last_only=True, max_interval_s=1 / 30
+    )
     assert [t.stamp_ns for t in last] == [t.stamp_ns for t in gap]
 
 

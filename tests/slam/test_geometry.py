@@ -14,8 +14,9 @@ from slam.geometry import between, compose, wrap_angle
 def test_wrap_angle_maps_into_minus_pi_pi_for_scalars_and_arrays() -> None:
     assert wrap_angle(3 * math.pi / 2) == pytest.approx(-math.pi / 2)
     assert wrap_angle(math.pi) == pytest.approx(-math.pi)
-    np.testing.assert_allclose(wrap_angle(np.array([0.1, 2 * math.pi + 0.1, -7.0])),
-                               [0.1, 0.1, -7.0 + 2 * math.pi])  # fmt: skip
+    np.testing.assert_allclose(
+        wrap_angle(np.array([0.1, 2 * math.pi + 0.1, -7.0])), [0.1, 0.1, -7.0 + 2 * math.pi]
+    )
 
 
 def test_compose_moves_a_body_offset_into_the_parent_frame() -> None:

@@ -63,8 +63,9 @@ def plain_box(w: float, h: float) -> np.ndarray:
     return np.array([[0, 0, w, 0], [w, 0, w, h], [w, h, 0, h], [0, h, 0, 0]], dtype=np.float64)
 
 
-def ellipse_route(n: int = 60, cx: float = 4.5 + SHIFT, cy: float = 4.2 + SHIFT, rx: float = 2.5,
-                  ry: float = 1.0) -> np.ndarray:  # fmt: skip
+def ellipse_route(
+    n: int = 60, cx: float = 4.5 + SHIFT, cy: float = 4.2 + SHIFT, rx: float = 2.5, ry: float = 1.0
+) -> np.ndarray:
     """(n, 3) poses round an ellipse in WORLD (clear of its stub, pillar and cabinet), heading
     along the tangent."""
     t = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
@@ -74,14 +75,28 @@ def ellipse_route(n: int = 60, cx: float = 4.5 + SHIFT, cy: float = 4.2 + SHIFT,
 
 
 def scans_along(segments: np.ndarray, poses: np.ndarray, seed: int = 0) -> list[LaserScan]:
-    return [raycast(segments, p, n_beams=N_BEAMS, fov=FOV, noise_m=RANGE_NOISE, seed=seed + i,
-                    stamp_ns=(i + 1) * SCAN_PERIOD_NS)
-            for i, p in enumerate(poses)]  # fmt: skip
+    return [
+        raycast(
+            segments,
+            p,
+            n_beams=N_BEAMS,
+            fov=FOV,
+            noise_m=RANGE_NOISE,
+            seed=seed + i,
+            stamp_ns=(i + 1) * SCAN_PERIOD_NS,
+        )
+        for i, p in enumerate(poses)
+    ]
 
 
-def corrupt_odometry(truth: np.ndarray, seed: int, scale: float = 1.03,
-                     yaw_bias_per_m: float = 1.0 * DEG, sigma_m: float = 0.005,
-                     sigma_rad: float = 0.2 * DEG) -> np.ndarray:  # fmt: skip
+def corrupt_odometry(
+    truth: np.ndarray,
+    seed: int,
+    scale: float = 1.03,
+    yaw_bias_per_m: float = 1.0 * DEG,
+    sigma_m: float = 0.005,
+    sigma_rad: float = 0.2 * DEG,
+) -> np.ndarray:
     """Odometry poses whose increments are the true ones scaled, biased in yaw per metre and
     with seeded noise (starting at an arbitrary odom origin)."""
     rng = np.random.default_rng(seed)
@@ -89,25 +104,43 @@ def corrupt_odometry(truth: np.ndarray, seed: int, scale: float = 1.03,
     for a, b in zip(truth[:-1], truth[1:], strict=True):
         u = ominus(a, b)
         d = math.hypot(u[0], u[1])
-        noisy = np.array([u[0] * scale + rng.normal(0, sigma_m), u[1] * scale
-                          + rng.normal(0, sigma_m),
-                          u[2] + yaw_bias_per_m * d + rng.normal(0, sigma_rad)])  # fmt: skip
+        noisy = np.array(
+            [
+                u[0] * scale + rng.normal(0, sigma_m),
+                u[1] * scale + rng.normal(0, sigma_m),
+                u[2] + yaw_bias_per_m * d + rng.normal(0, sigma_rad),
+            ]
+        )
         odom.append(oplus(odom[-1], noisy))
     return np.array(odom)
 
 
 def build_grid(segments: np.ndarray, poses: np.ndarray) -> OccupancyGrid:
-    scans = [raycast(segments, p, n_beams=721, fov=2 * math.pi, seed=i)
-             for i, p in enumerate(poses)]  # fmt: skip
+    scans = [
+        raycast(segments, p, n_beams=721, fov=2 * math.pi, seed=i) for i, p in enumerate(poses)
+    ]
     mcfg = MapperConfig()
-    geom = GridGeometry.from_bounds(*bounds_of_scans(poses, scans, mcfg.max_laser_range),
-                                    resolution=0.05, margin=1.0)  # fmt: skip
+    geom = GridGeometry.from_bounds(
+        *bounds_of_scans(poses, scans, mcfg.max_laser_range), resolution=0.05, margin=1.0
+    )
     return integrate_scans(geom, poses, scans, mcfg)
 
 
 def mapping_poses() -> np.ndarray:
-    xy = [(1.0, 1.0), (1.5, 3.5), (2.0, 2.0), (4.0, 1.0), (6.5, 1.0), (4.5, 3.0), (7.0, 2.5),
-          (7.0, 5.0), (4.5, 5.0), (3.0, 4.2), (1.0, 4.2), (5.0, 4.6)]  # fmt: skip
+    xy = [
+        (1.0, 1.0),
+        (1.5, 3.5),
+        (2.0, 2.0),
+        (4.0, 1.0),
+        (6.5, 1.0),
+        (4.5, 3.0),
+        (7.0, 2.5),
+        (7.0, 5.0),
+        (4.5, 5.0),
+        (3.0, 4.2),
+        (1.0, 4.2),
+        (5.0, 4.6),
+    ]
     return np.array([[x + SHIFT, y + SHIFT, 0.3 * i] for i, (x, y) in enumerate(xy)])
 
 
@@ -180,8 +213,10 @@ def test_tracking_with_corrupted_odometry_stays_within_3cm_and_1deg(
     assert errs[:, 0].max() < 0.03
     assert errs[:, 1].max() < 1.0 * DEG
     # Dead reckoning alone drifts far beyond that over the same route.
-    drift = [pose_error(t, oplus(truth[0], ominus(odom[0], o)))[0]
-             for t, o in zip(truth, odom, strict=True)]  # fmt: skip
+    drift = [
+        pose_error(t, oplus(truth[0], ominus(odom[0], o)))[0]
+        for t, o in zip(truth, odom, strict=True)
+    ]
     assert max(drift) > 0.15
 
 
@@ -190,8 +225,9 @@ def test_confidence_is_high_when_tracking_and_low_for_scans_of_another_scene(
 ) -> None:
     truth = ellipse_route()[:10]
     odom = corrupt_odometry(truth, seed=3)
-    tracked = run(Localizer(room_model, CFG, initial_pose=truth[0]), scans_along(WORLD, truth),
-                  odom)  # fmt: skip
+    tracked = run(
+        Localizer(room_model, CFG, initial_pose=truth[0]), scans_along(WORLD, truth), odom
+    )
     assert min(r.confidence for r in tracked) > 0.85
     other = scans_along(circle_room(4.5, 4.2, 3.0), truth)
     foreign = run(Localizer(room_model, CFG, initial_pose=truth[0]), other, odom)
@@ -242,8 +278,17 @@ def test_tracking_declares_lost_after_lost_time_below_lost_score(room_model: Map
     truth = ellipse_route()[:12]
     odom = corrupt_odometry(truth, seed=4)
     scans = scans_along(WORLD, truth[:4]) + scans_along(circle_room(4.5, 4.2, 3.0), truth[4:])
-    scans = [LaserScan((i + 1) * SCAN_PERIOD_NS, s.angle_min, s.angle_increment, s.ranges,
-                       s.range_min, s.range_max) for i, s in enumerate(scans)]  # fmt: skip
+    scans = [
+        LaserScan(
+            (i + 1) * SCAN_PERIOD_NS,
+            s.angle_min,
+            s.angle_increment,
+            s.ranges,
+            s.range_min,
+            s.range_max,
+        )
+        for i, s in enumerate(scans)
+    ]
     results = run(Localizer(room_model, CFG, initial_pose=truth[0]), scans, odom)
     statuses = [r.status for r in results]
     first_lost = statuses.index("lost")
@@ -270,8 +315,9 @@ def test_moved_enough_is_amcls_update_min_d_or_update_min_a() -> None:
 def test_tracking_skips_matching_until_the_robot_moved_update_min_d(room_model: MapModel) -> None:
     truth = np.repeat(ellipse_route()[20:21], 3, axis=0)  # standing still
     cfg = dataclasses.replace(CFG, update_min_d=0.25, update_min_a=0.2)
-    results = run(Localizer(room_model, cfg, initial_pose=truth[0]), scans_along(WORLD, truth),
-                  truth)  # fmt: skip
+    results = run(
+        Localizer(room_model, cfg, initial_pose=truth[0]), scans_along(WORLD, truth), truth
+    )
     assert "not moved enough to match" not in results[0].reason
     assert all(r.reason == "not moved enough to match" for r in results[1:])
 
@@ -294,8 +340,9 @@ def test_a_robot_turning_slowly_on_the_spot_verifies_once_per_update_min_a(
     d, a = pose_error(truth[done[0]], results[done[0]].pose)
     assert d < 0.03 and a < 1.0 * DEG
     # Without the gate (both 0) every scan counts, as before.
-    eager = dataclasses.replace(CFG, relocalization_update_min_d=0.0,
-                                relocalization_update_min_a=0.0)  # fmt: skip
+    eager = dataclasses.replace(
+        CFG, relocalization_update_min_d=0.0, relocalization_update_min_a=0.0
+    )
     results = run(Localizer(room_model, eager), scans, truth)
     assert [r.status for r in results].index("tracking") == n - 1
 
@@ -338,8 +385,9 @@ def test_global_search_ranks_the_true_pose_first_and_its_mirror_image_second() -
     scan = raycast(box, pose, n_beams=N_BEAMS, fov=FOV)
     from slam.scan_matching import scan_points
 
-    cands, evaluated = global_search(model.global_field, scan_points(scan), 2 * DEG, 0.3, 0.75,
-                                     5, 0.25, 0.2)  # fmt: skip
+    cands, evaluated = global_search(
+        model.global_field, scan_points(scan), 2 * DEG, 0.3, 0.75, 5, 0.25, 0.2
+    )
     mirror = np.array([8.0 - pose[0], 6.0 - pose[1], pose[2] + math.pi])
     found = [min(pose_error(p, c.pose)[0] for c in cands[:2]) for p in (pose, mirror)]
     assert max(found) < 0.15
@@ -373,8 +421,11 @@ def test_wrong_initial_pose_in_free_space_falls_back_to_global(room_model: MapMo
 def test_initial_pose_near_the_truth_tracks_from_the_first_scan(room_model: MapModel) -> None:
     truth = ellipse_route()[:5]
     near = oplus(truth[0], np.array([0.15, -0.1, 5 * DEG]))
-    results = run(Localizer(room_model, CFG, initial_pose=near), scans_along(WORLD, truth),
-                  corrupt_odometry(truth, 10))  # fmt: skip
+    results = run(
+        Localizer(room_model, CFG, initial_pose=near),
+        scans_along(WORLD, truth),
+        corrupt_odometry(truth, 10),
+    )
     assert all(r.status == "tracking" for r in results)
     assert pose_error(truth[0], results[0].pose)[0] < 0.03
 
@@ -393,9 +444,11 @@ def aces() -> tuple[list[LaserScan], np.ndarray, MapModel]:
     truth = np.column_stack([lp.x, lp.y, lp.yaw])
     mcfg = MapperConfig()
     every = slice(0, None, 2)  # the map from every other scan; the others are unseen
-    geom = GridGeometry.from_bounds(*bounds_of_scans(truth[every], scans[every],
-                                                     mcfg.max_laser_range),
-                                    resolution=0.05, margin=1.0)  # fmt: skip
+    geom = GridGeometry.from_bounds(
+        *bounds_of_scans(truth[every], scans[every], mcfg.max_laser_range),
+        resolution=0.05,
+        margin=1.0,
+    )
     grid = integrate_scans(geom, truth[every], scans[every], mcfg)
     return scans, truth, MapModel.from_grid(grid, CFG)
 
@@ -448,8 +501,9 @@ RECOVERED_RAD = 1.0 * DEG  # [rad]
 WRONG_M = 0.3  # [m] a tracked pose farther off than this is wrong
 
 
-def kidnapped_route(k: int, jump: int, n_after: int = KIDNAP_SCANS_AFTER
-                    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def kidnapped_route(
+    k: int, jump: int, n_after: int = KIDNAP_SCANS_AFTER
+) -> tuple[np.ndarray, np.ndarray]:
     """(truth, odometry) of a robot driving round the ellipse route that is picked up after scan
     ``k - 1`` and set down ``jump`` route scans further on. The wheels know nothing of it: the
     odometry increments after the teleport are those of the new stretch, composed onto the
@@ -464,9 +518,18 @@ def kidnapped_route(k: int, jump: int, n_after: int = KIDNAP_SCANS_AFTER
 
 
 def kidnap_scans(truth: np.ndarray) -> list[LaserScan]:
-    return [raycast(WORLD, p, n_beams=N_BEAMS, fov=FOV, noise_m=RANGE_NOISE, seed=100 + i,
-                    stamp_ns=(i + 1) * KIDNAP_PERIOD_NS)
-            for i, p in enumerate(truth)]  # fmt: skip
+    return [
+        raycast(
+            WORLD,
+            p,
+            n_beams=N_BEAMS,
+            fov=FOV,
+            noise_m=RANGE_NOISE,
+            seed=100 + i,
+            stamp_ns=(i + 1) * KIDNAP_PERIOD_NS,
+        )
+        for i, p in enumerate(truth)
+    ]
 
 
 @dataclass(frozen=True)
@@ -486,16 +549,24 @@ def kidnap(model: MapModel, k: int, jump: int, config: LocalizerConfig = CFG) ->
     after = list(zip(truth[k:], results[k:], strict=True))
     errs = [pose_error(t, r.pose) for t, r in after]
     left = next((i for i, (_, r) in enumerate(after) if r.status != "tracking"), None)
-    fixed = [r.status == "tracking" and d < RECOVERED_M and a < RECOVERED_RAD
-             for (_, r), (d, a) in zip(after, errs, strict=True)]  # fmt: skip
+    fixed = [
+        r.status == "tracking" and d < RECOVERED_M and a < RECOVERED_RAD
+        for (_, r), (d, a) in zip(after, errs, strict=True)
+    ]
     rec = fixed.index(True) if any(fixed) else None
-    wrong = [r for (_, r), (d, _) in zip(after, errs, strict=True)
-             if r.status == "tracking" and d > WRONG_M]  # fmt: skip
+    wrong = [
+        r
+        for (_, r), (d, _) in zip(after, errs, strict=True)
+        if r.status == "tracking" and d > WRONG_M
+    ]
     return KidnapOutcome(
-        left, rec, sum(r.confidence >= CFG.min_score for r in wrong),
-        sum(r.confidence < CFG.lost_score for r in wrong), len(wrong),
+        left,
+        rec,
+        sum(r.confidence >= CFG.min_score for r in wrong),
+        sum(r.confidence < CFG.lost_score for r in wrong),
+        len(wrong),
         [d for d, _ in errs[rec:]] if rec is not None else [],
-    )  # fmt: skip
+    )
 
 
 @pytest.mark.parametrize(("k", "jump"), [(30, 57), (30, 26), (50, 74), (80, 42)])
@@ -542,7 +613,7 @@ def test_without_kidnap_check_the_robot_is_declared_lost_after_lost_time_then_re
         # lost after 21 scans; the drop from 0.92 now searches the map and finds the truth.
         pytest.param(20, 10),
     ],
-)  # fmt: skip
+)
 def test_kidnapped_robot_never_tracks_a_wrong_pose_confidently_and_recovers(
     room_model: MapModel, k: int, jump: int
 ) -> None:
@@ -620,8 +691,10 @@ def test_a_slip_the_odometry_missed_is_held_back_until_the_growing_covariance_ad
     assert all("held back" in r.reason for r in results[9 + cfg.jump_confirm_scans - 1 : fused])
     assert loc.stats.jumps == 0 and loc.stats.gated >= cfg.jump_confirm_scans
     assert all(r.status == "tracking" for r in results)
-    assert max(pose_error(t, r.pose)[0] for t, r in zip(truth[fused:], results[fused:],
-                                                        strict=True)) < 0.05  # fmt: skip
+    assert (
+        max(pose_error(t, r.pose)[0] for t, r in zip(truth[fused:], results[fused:], strict=True))
+        < 0.05
+    )
 
 
 def test_with_dead_reckoning_failing_matches_keep_tracking_until_the_covariance_is_too_large(
@@ -630,8 +703,7 @@ def test_with_dead_reckoning_failing_matches_keep_tracking_until_the_covariance_
     truth = ellipse_route()[:30]
     odom = corrupt_odometry(truth, seed=4)
     scans = scans_along(WORLD, truth[:4]) + scans_along(circle_room(4.5, 4.2, 3.0), truth[4:])
-    scans = [dataclasses.replace(s, stamp_ns=(i + 1) * SCAN_PERIOD_NS)
-             for i, s in enumerate(scans)]  # fmt: skip
+    scans = [dataclasses.replace(s, stamp_ns=(i + 1) * SCAN_PERIOD_NS) for i, s in enumerate(scans)]
     cfg = dataclasses.replace(CFG, dead_reckoning_max_sigma=0.5)
     results = run(Localizer(room_model, cfg, initial_pose=truth[0]), scans, odom)
     statuses = [r.status for r in results]
@@ -655,8 +727,15 @@ def test_agreeing_gated_matches_the_earlier_scans_support_are_adopted_as_a_jump(
     # rejected below min_score) follow, then clean scans again. The gated matches agree with
     # each other, and the earlier scans, stacked by odometry, fit them far better than the
     # prediction: the estimate jumps at the jump_confirm_scans-th agreeing match.
-    cfg = dataclasses.replace(GATED, kidnap_check_ratio=0.0, dead_reckoning_max_sigma=0.5,
-                              alpha1=0.0, alpha2=0.0, alpha3=0.0, alpha4=0.0)  # fmt: skip
+    cfg = dataclasses.replace(
+        GATED,
+        kidnap_check_ratio=0.0,
+        dead_reckoning_max_sigma=0.5,
+        alpha1=0.0,
+        alpha2=0.0,
+        alpha3=0.0,
+        alpha4=0.0,
+    )
     truth = ellipse_route()[:8]
     odom = corrupt_odometry(truth, seed=3)
     scans = scans_along(WORLD, truth)
@@ -667,7 +746,8 @@ def test_agreeing_gated_matches_the_earlier_scans_support_are_adopted_as_a_jump(
         ring = np.hstack([arc[:, :2] @ rot.T + truth[k, :2], arc[:, 2:] @ rot.T + truth[k, :2]])
         scans[k] = dataclasses.replace(
             scans_along(np.vstack([WORLD, ring]), truth[k : k + 1], seed=k)[0],
-            stamp_ns=(k + 1) * SCAN_PERIOD_NS)  # fmt: skip
+            stamp_ns=(k + 1) * SCAN_PERIOD_NS,
+        )
     wrong = oplus(truth[0], np.array([0.0, 0.2, 0.0]))
     tight = np.diag([0.02**2, 0.02**2, (0.5 * DEG) ** 2])
 
@@ -683,8 +763,7 @@ def test_agreeing_gated_matches_the_earlier_scans_support_are_adopted_as_a_jump(
     assert "jumped, 3 matches agree" in results[4].reason
     assert loc.stats.jumps == 1 and loc.stats.gated == cfg.jump_confirm_scans
     assert pose_error(truth[3], results[3].pose)[0] > 0.15  # held until then
-    assert all(pose_error(t, r.pose)[0] < 0.03 for t, r in zip(truth[4:], results[4:],
-                                                                strict=True))  # fmt: skip
+    assert all(pose_error(t, r.pose)[0] < 0.03 for t, r in zip(truth[4:], results[4:], strict=True))
     # Without jumps (jump_confirm_scans 0) the tight covariance holds the estimate off.
     never, held = drive(dataclasses.replace(cfg, jump_confirm_scans=0))
     assert never.stats.jumps == 0
@@ -699,8 +778,9 @@ def test_gated_streak_counts_consecutive_gated_matches_and_a_fused_one_ends_it(
     scans = scans_along(WORLD, truth)
     for k in (5, 6, 7):
         scans[k] = displaced_scan(truth, k, np.array([0.25, 0.0, 0.15]))
-    loc = Localizer(room_model, dataclasses.replace(GATED, jump_confirm_scans=0),
-                    initial_pose=truth[0])  # fmt: skip
+    loc = Localizer(
+        room_model, dataclasses.replace(GATED, jump_confirm_scans=0), initial_pose=truth[0]
+    )
     streaks = []
     for s, o in zip(scans, odom, strict=True):
         loc.update(s, o)
@@ -724,16 +804,35 @@ def test_match_recent_corrects_a_gated_estimate_with_the_scans_of_a_turn_stacked
     # turn's scans stacked by odometry are matched, fused past the gate, and correct it.
     truth = turn_in_place(np.array([4.0 + SHIFT, 3.0 + SHIFT, 0.3]), 24, 2 * math.pi - 0.3)
     odom = corrupt_odometry(truth, seed=2, scale=1.0, yaw_bias_per_m=0.0)
-    scans = [raycast(WORLD, p, n_beams=160, fov=NARROW_FOV, range_max=4.5, noise_m=RANGE_NOISE,
-                     seed=i, stamp_ns=(i + 1) * SCAN_PERIOD_NS)
-             for i, p in enumerate(truth)]  # fmt: skip
+    scans = [
+        raycast(
+            WORLD,
+            p,
+            n_beams=160,
+            fov=NARROW_FOV,
+            range_max=4.5,
+            noise_m=RANGE_NOISE,
+            seed=i,
+            stamp_ns=(i + 1) * SCAN_PERIOD_NS,
+        )
+        for i, p in enumerate(truth)
+    ]
     # Odometry trusted to its noise floor: the prediction's covariance stays tight.
-    cfg = dataclasses.replace(GATED, jump_confirm_scans=0, kidnap_check_ratio=0.0,
-                              dead_reckoning_max_sigma=0.5, alpha1=0.0, alpha2=0.0, alpha3=0.0,
-                              alpha4=0.0)  # fmt: skip
+    cfg = dataclasses.replace(
+        GATED,
+        jump_confirm_scans=0,
+        kidnap_check_ratio=0.0,
+        dead_reckoning_max_sigma=0.5,
+        alpha1=0.0,
+        alpha2=0.0,
+        alpha3=0.0,
+        alpha4=0.0,
+    )
     loc = Localizer(room_model, cfg)
-    loc.set_initial_pose(oplus(truth[0], np.array([0.1, -0.11, 3.0 * DEG])),
-                         np.diag([0.01**2, 0.01**2, (0.3 * DEG) ** 2]))  # fmt: skip
+    loc.set_initial_pose(
+        oplus(truth[0], np.array([0.1, -0.11, 3.0 * DEG])),
+        np.diag([0.01**2, 0.01**2, (0.3 * DEG) ** 2]),
+    )
     results = run(loc, scans, odom)
     before = pose_error(truth[-1], results[-1].pose)
     assert before[0] > 0.1  # the gate held the single scans back

@@ -53,8 +53,10 @@ def test_rgbd_kidnapping_is_declared_lost_at_once_and_recovered_with_no_confiden
     cfg, traj, model, scanner = scene
     # After 10 s the robot is set down 20 s further along the route (7.4 m away, another room).
     stream = kidnap_stream(traj, RATE_HZ, kidnap_s=10.0, jump_s=20.0, after_s=4.4, seed=0)
-    assert np.hypot(*(stream.truth[stream.jump_index, :2]
-                      - stream.truth[stream.jump_index - 1, :2])) > 5.0  # fmt: skip
+    assert (
+        np.hypot(*(stream.truth[stream.jump_index, :2] - stream.truth[stream.jump_index - 1, :2]))
+        > 5.0
+    )
     out, results = run_kidnap(model, cfg, scanner, stream)
     assert out.pre_jump_ok
     # The confidence falls from ~0.9 to ~0.3 and the kidnap check finds better places.
@@ -73,8 +75,9 @@ def test_a_map_with_solid_walls_still_gives_icp_its_normals(scene) -> None:  # t
     # A CAD-style floor plan: 0.12 m walls filled solid. ICP takes its reference from the wall
     # faces; from the solid cells it found no line-like neighbourhood and every match fell back
     # to the correlative lattice with no covariance (odometry alone).
-    model = MapModel.from_grid(solid_floor_plan_grid(load_world(SCENES / "house.yaml"), cfg),
-                               cfg.localizer)  # fmt: skip
+    model = MapModel.from_grid(
+        solid_floor_plan_grid(load_world(SCENES / "house.yaml"), cfg), cfg.localizer
+    )
     t_ns = np.arange(0, 12_000_000_000, int(1e9 / RATE_HZ), dtype=np.int64)
     truth = route_at(traj, t_ns)
     stream = KidnapStream(t_ns, truth, corrupt(truth, np.random.default_rng(4)), len(t_ns))

@@ -45,9 +45,18 @@ def make_bundle(k: int = 3) -> MapBundle:
         for i in range(k - 1)
     )
     cfg = {"resolution": 0.1, "occupied_thresh": 0.65, "free_thresh": 0.25}
-    return MapBundle(corner_grid(), np.arange(k, dtype=np.int64), np.arange(k) + 10,
-                     poses, poses + 0.5, edges, scans, cfg, "unit test",
-                     "2024-01-01T00:00:00+00:00")  # fmt: skip
+    return MapBundle(
+        corner_grid(),
+        np.arange(k, dtype=np.int64),
+        np.arange(k) + 10,
+        poses,
+        poses + 0.5,
+        edges,
+        scans,
+        cfg,
+        "unit test",
+        "2024-01-01T00:00:00+00:00",
+    )
 
 
 def assert_bundles_equal(a: MapBundle, b: MapBundle) -> None:
@@ -76,7 +85,12 @@ def test_bundle_round_trip_is_exact(tmp_path):
     bundle = make_bundle()
     save_bundle(bundle, tmp_path / "b")
     assert sorted(p.name for p in (tmp_path / "b").iterdir()) == [
-        "graph.json", "grid.npz", "map.pgm", "map.yaml", "scans.npz"]  # fmt: skip
+        "graph.json",
+        "grid.npz",
+        "map.pgm",
+        "map.yaml",
+        "scans.npz",
+    ]
     assert_bundles_equal(load_bundle(tmp_path / "b"), bundle)
     assert [p.name for p in tmp_path.iterdir()] == ["b"]  # no staging leftovers
 
@@ -88,8 +102,12 @@ def test_scans_npz_loads_without_pickle_with_ragged_offsets(tmp_path):
         assert npz["ranges"].dtype == np.float32 and npz["stamp_ns"].dtype == np.int64
     doc = json.loads((tmp_path / "b" / "graph.json").read_text())
     assert doc["schema_version"] == 1 and doc["frame"] == "map"
-    assert doc["keyframes"][1] == {"id": 1, "stamp_ns": 11, "pose": [0.1, 0.0, 0.05],
-                                   "odom_pose": [0.6, 0.5, 0.55]}  # fmt: skip
+    assert doc["keyframes"][1] == {
+        "id": 1,
+        "stamp_ns": 11,
+        "pose": [0.1, 0.0, 0.05],
+        "odom_pose": [0.6, 0.5, 0.55],
+    }
     assert doc["edges"][0]["kind"] == "odometry" and len(doc["edges"][0]["information"]) == 3
 
 
@@ -195,8 +213,12 @@ def test_a_save_removes_staging_folders_of_writers_that_died(tmp_path):
 
     target = tmp_path / "b"
     save_bundle(make_bundle(2), target)
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                          capture_output=True, text=True, check=True)  # fmt: skip
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     abandoned = tmp_path / f".b.pid{int(dead.stdout)}-x1y2.partial"
     running = tmp_path / f".b.pid{os.getppid()}-z3w4.partial"
     for folder in (abandoned, running):
@@ -302,8 +324,9 @@ def test_plain_loader_allows_absolute_and_resolves_relative_images(tmp_path):
     folder = saved(tmp_path)
     other = tmp_path / "elsewhere"
     other.mkdir()
-    (other / "m.yaml").write_text((folder / "map.yaml").read_text().replace(
-        "image: map.pgm", "image: ../b/map.pgm"))  # fmt: skip
+    (other / "m.yaml").write_text(
+        (folder / "map.yaml").read_text().replace("image: map.pgm", "image: ../b/map.pgm")
+    )
     assert load_map_yaml(other / "m.yaml").geometry == GEOM
     edit_yaml(folder, "image: map.pgm", f"image: {folder / 'map.pgm'}")
     assert load_map_yaml(folder / "map.yaml").geometry == GEOM

@@ -32,24 +32,32 @@ def box(x0: float, y0: float, x1: float, y1: float) -> list[list[float]]:
 # A 10 m x 8 m corridor loop around a 6 m x 4 m block (corridors 2 m wide), with a cabinet, a box,
 # a wall stub, a pillar and a diagonal panel so no stretch of corridor is featureless.
 LOOP_WORLD = np.array(
-    box(0, 0, 10, 8) + box(2, 2, 8, 6) + [
-        [3.5, 0.0, 3.5, 0.4], [3.5, 0.4, 4.2, 0.4], [4.2, 0.4, 4.2, 0.0],
-        [8.0, 3.0, 8.4, 3.0], [8.4, 3.0, 8.4, 3.6], [8.4, 3.6, 8.0, 3.6],
+    box(0, 0, 10, 8)
+    + box(2, 2, 8, 6)
+    + [
+        [3.5, 0.0, 3.5, 0.4],
+        [3.5, 0.4, 4.2, 0.4],
+        [4.2, 0.4, 4.2, 0.0],
+        [8.0, 3.0, 8.4, 3.0],
+        [8.4, 3.0, 8.4, 3.6],
+        [8.4, 3.6, 8.0, 3.6],
         [6.0, 8.0, 6.0, 7.5],
         *box(0.4, 4.2, 0.7, 4.5),
         [10.0, 5.5, 9.6, 5.9],
     ],
     dtype=np.float64,
-)  # fmt: skip
+)
 
 
 # 1. Routes, odometry and the driver --------------------------------------------------------------
 
 
 def legs_route(
-    start: Sequence[float], legs: Sequence[tuple[float, float]], step: float = STEP,
+    start: Sequence[float],
+    legs: Sequence[tuple[float, float]],
+    step: float = STEP,
     turn_step: float = TURN_STEP,
-) -> np.ndarray:  # fmt: skip
+) -> np.ndarray:
     """(S, 3) true poses: for each (length [m], heading [rad]) leg turn in place to the heading,
     then drive straight in ``step`` increments."""
     poses = [np.asarray(start, dtype=np.float64)]
@@ -76,9 +84,13 @@ ROOM_ROUTE = legs_route((1.0, 3.0, 0.0), [(5.4, 0.0)])
 
 
 def corrupt_odometry(
-    truth: np.ndarray, scale_error: float, yaw_bias_rad_per_m: float, sigma_xy_m: float,
-    sigma_yaw_rad: float, seed: int,
-) -> np.ndarray:  # fmt: skip
+    truth: np.ndarray,
+    scale_error: float,
+    yaw_bias_rad_per_m: float,
+    sigma_xy_m: float,
+    sigma_yaw_rad: float,
+    seed: int,
+) -> np.ndarray:
     """Odometry integrated from the true increments with a scale error, a yaw bias per metre
     travelled and white noise on every increment."""
     rng = np.random.default_rng(seed)
@@ -86,20 +98,33 @@ def corrupt_odometry(
     for a, b in zip(truth[:-1], truth[1:], strict=True):
         d = ominus(a, b)
         dist = math.hypot(d[0], d[1])
-        noisy = np.array([d[0] * (1 + scale_error), d[1] * (1 + scale_error),
-                          d[2] + yaw_bias_rad_per_m * dist])  # fmt: skip
+        noisy = np.array(
+            [d[0] * (1 + scale_error), d[1] * (1 + scale_error), d[2] + yaw_bias_rad_per_m * dist]
+        )
         noisy += rng.normal(0.0, [sigma_xy_m, sigma_xy_m, sigma_yaw_rad])
         odom.append(oplus(odom[-1], noisy))
     return np.array(odom)
 
 
 def scans_along(
-    world: np.ndarray, truth: np.ndarray, noise_m: float, seed: int, range_max: float = 20.0,
+    world: np.ndarray,
+    truth: np.ndarray,
+    noise_m: float,
+    seed: int,
+    range_max: float = 20.0,
     period_ns: int = SCAN_PERIOD_NS,
-) -> list[LaserScan]:  # fmt: skip
-    return [raycast(world, p, noise_m=noise_m, seed=seed * 10_000 + i, range_max=range_max,
-                    stamp_ns=(i + 1) * period_ns)
-            for i, p in enumerate(truth)]  # fmt: skip
+) -> list[LaserScan]:
+    return [
+        raycast(
+            world,
+            p,
+            noise_m=noise_m,
+            seed=seed * 10_000 + i,
+            range_max=range_max,
+            stamp_ns=(i + 1) * period_ns,
+        )
+        for i, p in enumerate(truth)
+    ]
 
 
 def run_mapper(
@@ -135,8 +160,14 @@ class LoopRun:
 @pytest.fixture(scope="module")
 def corrupted_loop() -> LoopRun:
     """The loop route with 3 % scale error, 2 deg/m yaw bias and small noise on the odometry."""
-    odom = corrupt_odometry(LOOP_ROUTE, scale_error=0.03, yaw_bias_rad_per_m=math.radians(2.0),
-                            sigma_xy_m=0.005, sigma_yaw_rad=0.002, seed=3)  # fmt: skip
+    odom = corrupt_odometry(
+        LOOP_ROUTE,
+        scale_error=0.03,
+        yaw_bias_rad_per_m=math.radians(2.0),
+        sigma_xy_m=0.005,
+        sigma_yaw_rad=0.002,
+        seed=3,
+    )
     scans = scans_along(LOOP_WORLD, LOOP_ROUTE, noise_m=0.01, seed=3)
     return LoopRun(LOOP_ROUTE, odom, scans, run_mapper(scans, odom))
 
@@ -172,8 +203,9 @@ def test_the_end_of_the_loop_closes_onto_its_start(corrupted_loop: LoopRun) -> N
     assert loops["accepted"] >= 1
     assert loops["proposed"] == loops["accepted"] + loops["rejected"]
     n_kf = len(result.keyframes)
-    closing = [e for e in result.edges
-               if e["kind"] == "loop" and e["from"] <= 5 and e["to"] >= n_kf - 5]  # fmt: skip
+    closing = [
+        e for e in result.edges if e["kind"] == "loop" and e["from"] <= 5 and e["to"] >= n_kf - 5
+    ]
     assert closing, "no accepted closure joins the last keyframes to the first"
     # Each accepted closure agrees with the true relative pose.
     kt = keyframe_truth(result, corrupted_loop.truth, corrupted_loop.scans)
@@ -232,8 +264,14 @@ def test_revisiting_reanchors_tracking_instead_of_growing_the_graph() -> None:
     again): with ``revisit_distance`` the graph stops growing once the first lap closed, and
     the trajectory stays as accurate as with a node every 0.5 m."""
     truth = _laps(3)
-    odom = corrupt_odometry(truth, scale_error=0.03, yaw_bias_rad_per_m=math.radians(2.0),
-                            sigma_xy_m=0.005, sigma_yaw_rad=0.002, seed=3)  # fmt: skip
+    odom = corrupt_odometry(
+        truth,
+        scale_error=0.03,
+        yaw_bias_rad_per_m=math.radians(2.0),
+        sigma_xy_m=0.005,
+        sigma_yaw_rad=0.002,
+        seed=3,
+    )
     scans = scans_along(LOOP_WORLD, truth, noise_m=0.01, seed=3)
     grown = run_mapper(scans, odom)
     bounded = run_mapper(scans, odom, replace(CFG, revisit_distance=0.3))
@@ -308,13 +346,21 @@ def test_bad_input_is_skipped_with_a_counted_reason() -> None:
             assert mapper.add_scan(scans[3], pose) is None
         if i == 15:
             no_ranges = np.zeros(0, dtype=np.float32)
-            empty = LaserScan(scan.stamp_ns + 1, scan.angle_min, scan.angle_increment,
-                              no_ranges, scan.range_min, scan.range_max)  # fmt: skip
+            empty = LaserScan(
+                scan.stamp_ns + 1,
+                scan.angle_min,
+                scan.angle_increment,
+                no_ranges,
+                scan.range_min,
+                scan.range_max,
+            )
             assert mapper.add_scan(empty, pose) is None
     result = mapper.finish()
     assert result.counts["skipped"] == {
-        "non-finite odometry": 2, "time not increasing": 2, "empty scan": 1,
-    }  # fmt: skip
+        "non-finite odometry": 2,
+        "time not increasing": 2,
+        "empty scan": 1,
+    }
     assert result.counts["scans"] == len(scans) + 5
     assert result.counts["scans_used"] == len(scans) == len(result.scan_poses)
     assert all(p is not None for p in good_poses)
@@ -324,9 +370,17 @@ def test_bad_input_is_skipped_with_a_counted_reason() -> None:
 
 
 def test_scans_with_varying_beam_counts_map_fine() -> None:
-    scans = [raycast(ROOM, p, n_beams=181 if i % 2 else 361, noise_m=0.005, seed=i,
-                     stamp_ns=(i + 1) * SCAN_PERIOD_NS)
-             for i, p in enumerate(ROOM_ROUTE)]  # fmt: skip
+    scans = [
+        raycast(
+            ROOM,
+            p,
+            n_beams=181 if i % 2 else 361,
+            noise_m=0.005,
+            seed=i,
+            stamp_ns=(i + 1) * SCAN_PERIOD_NS,
+        )
+        for i, p in enumerate(ROOM_ROUTE)
+    ]
     result = run_mapper(scans, ROOM_ROUTE)
     assert result.counts["sequential_matches"] == {"matched": len(scans) - 1}
     pos, yaw = errors(result.scan_poses, ROOM_ROUTE)
@@ -343,8 +397,16 @@ def test_scans_with_nan_inf_and_short_ranges_mixed_in_map_fine() -> None:
         r[pick < 0.15] = np.nan
         r[(pick >= 0.15) & (pick < 0.25)] = np.inf
         r[(pick >= 0.25) & (pick < 0.30)] = -1.0  # below range_min
-        scans.append(LaserScan(scan.stamp_ns, scan.angle_min, scan.angle_increment, r,
-                               scan.range_min, scan.range_max))  # fmt: skip
+        scans.append(
+            LaserScan(
+                scan.stamp_ns,
+                scan.angle_min,
+                scan.angle_increment,
+                r,
+                scan.range_min,
+                scan.range_max,
+            )
+        )
     result = run_mapper(scans, ROOM_ROUTE)
     assert result.counts["sequential_matches"] == {"matched": len(scans) - 1}
     pos, yaw = errors(result.scan_poses, ROOM_ROUTE)
@@ -355,12 +417,19 @@ def test_scans_with_nan_inf_and_short_ranges_mixed_in_map_fine() -> None:
 def test_a_scan_without_valid_returns_is_tracked_by_odometry() -> None:
     scans = scans_along(ROOM, ROOM_ROUTE, noise_m=0.005, seed=0)
     blind = scans[12]
-    scans[12] = LaserScan(blind.stamp_ns, blind.angle_min, blind.angle_increment,
-                          np.full_like(blind.ranges, np.nan), blind.range_min,
-                          blind.range_max)  # fmt: skip
+    scans[12] = LaserScan(
+        blind.stamp_ns,
+        blind.angle_min,
+        blind.angle_increment,
+        np.full_like(blind.ranges, np.nan),
+        blind.range_min,
+        blind.range_max,
+    )
     result = run_mapper(scans, ROOM_ROUTE)
-    assert result.counts["sequential_matches"] == {"matched": len(scans) - 2,
-                                                    "too few scan points": 1}  # fmt: skip
+    assert result.counts["sequential_matches"] == {
+        "matched": len(scans) - 2,
+        "too few scan points": 1,
+    }
     assert result.counts["scans_used"] == len(scans)
     pos, _ = errors(result.scan_poses, ROOM_ROUTE)
     assert pos.max() < 0.02
@@ -398,10 +467,17 @@ def test_aliased_loop_candidates_do_not_corrupt_the_map(seed: int) -> None:
     # return leg the loop search window (3 sigma of 3 %/m drift) spans more than one period.
     # Measured (seeds 0, 1, 2): accepted closures off by at most 0.15, 0.10, 0.14 m; map max error
     # 0.13, 0.08, 0.09 m; odometry 0.39, 0.60, 0.37 m.
-    odom = corrupt_odometry(OUT_AND_BACK, scale_error=0.03, yaw_bias_rad_per_m=0.0,
-                            sigma_xy_m=0.005, sigma_yaw_rad=0.002, seed=seed)  # fmt: skip
-    scans = scans_along(corridor(ALIAS_PERIOD), OUT_AND_BACK, noise_m=0.01, seed=seed,
-                        range_max=SHORT_RANGE)  # fmt: skip
+    odom = corrupt_odometry(
+        OUT_AND_BACK,
+        scale_error=0.03,
+        yaw_bias_rad_per_m=0.0,
+        sigma_xy_m=0.005,
+        sigma_yaw_rad=0.002,
+        seed=seed,
+    )
+    scans = scans_along(
+        corridor(ALIAS_PERIOD), OUT_AND_BACK, noise_m=0.01, seed=seed, range_max=SHORT_RANGE
+    )
     result = run_mapper(scans, odom)
     loops = [e for e in result.edges if e["kind"] == "loop"]
     assert loops  # closures were found, so the aliasing was actually exercised
@@ -420,10 +496,17 @@ def test_featureless_corridor_map_is_no_worse_than_odometry() -> None:
     # Before the degeneracy-aware fusion (seeds 0-2) the map ended 1.05-1.35 m off where odometry
     # was 0.37-0.60 m off: ICP's faked information along the corridor won over odometry.
     seed = 0
-    odom = corrupt_odometry(OUT_AND_BACK, scale_error=0.03, yaw_bias_rad_per_m=0.0,
-                            sigma_xy_m=0.005, sigma_yaw_rad=0.002, seed=seed)  # fmt: skip
-    scans = scans_along(corridor(None), OUT_AND_BACK, noise_m=0.01, seed=seed,
-                        range_max=SHORT_RANGE)  # fmt: skip
+    odom = corrupt_odometry(
+        OUT_AND_BACK,
+        scale_error=0.03,
+        yaw_bias_rad_per_m=0.0,
+        sigma_xy_m=0.005,
+        sigma_yaw_rad=0.002,
+        seed=seed,
+    )
+    scans = scans_along(
+        corridor(None), OUT_AND_BACK, noise_m=0.01, seed=seed, range_max=SHORT_RANGE
+    )
     result = run_mapper(scans, odom, MapperConfig(do_loop_closing=False))
     pos, _ = errors(result.scan_poses, OUT_AND_BACK)
     odom_pos, _ = errors(odom, OUT_AND_BACK)

@@ -18,8 +18,10 @@ import bench_mapper  # noqa: E402  (bench/ is no package)
 CARTOGRAPHER_M, CARTOGRAPHER_DEG = 0.0319, 0.369  # published, Kümmerle et al. 2009 relations
 
 
-@pytest.mark.skipif(not (bench_mapper.MIT_LOG.is_file() and bench_mapper.MIT_RELATIONS.is_file()),
-                    reason="../shared/data/carmen is absent")  # fmt: skip
+@pytest.mark.skipif(
+    not (bench_mapper.MIT_LOG.is_file() and bench_mapper.MIT_RELATIONS.is_file()),
+    reason="../shared/data/carmen is absent",
+)
 def test_mit_csail_relations_beat_cartographer() -> None:
     run = bench_mapper.run_case(bench_mapper.CaseSpec("mit"))
     slam, odom = run["slam"], run["odom"]

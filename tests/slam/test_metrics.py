@@ -37,8 +37,9 @@ def test_alignment_removes_a_rigid_offset() -> None:
 
 def test_reference_is_not_extrapolated() -> None:
     t_ref = np.array([0, 10])
-    _, _, _, inside = interpolate_poses(t_ref, np.zeros(2), np.zeros(2), np.zeros(2),
-                                        np.array([-1, 5, 11]))  # fmt: skip
+    _, _, _, inside = interpolate_poses(
+        t_ref, np.zeros(2), np.zeros(2), np.zeros(2), np.array([-1, 5, 11])
+    )
     assert inside.tolist() == [False, True, False]
 
 

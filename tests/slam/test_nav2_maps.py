@@ -38,17 +38,27 @@ free_thresh: {free}
 Origin = tuple[float, float, float]
 
 
-def write_map(folder: Path, image: str, mode: str = "trinary", negate: int = 0,
-              origin: Origin = (-1.0, -0.5, 0.0), free: float = 0.25) -> Path:  # fmt: skip
+def write_map(
+    folder: Path,
+    image: str,
+    mode: str = "trinary",
+    negate: int = 0,
+    origin: Origin = (-1.0, -0.5, 0.0),
+    free: float = 0.25,
+) -> Path:
     path = folder / f"{Path(image).stem}.yaml"
     ox, oy, yaw = origin
-    path.write_text(MAP_SAVER_YAML.format(image=image, mode=mode, ox=ox, oy=oy, yaw=yaw,
-                                          negate=negate, free=free))  # fmt: skip
+    path.write_text(
+        MAP_SAVER_YAML.format(
+            image=image, mode=mode, ox=ox, oy=oy, yaw=yaw, negate=negate, free=free
+        )
+    )
     return path
 
 
-def nav2_cell(shade: float, alpha: float | None, mode: str, negate: bool, occ_th: float,
-              free_th: float) -> int:  # fmt: skip
+def nav2_cell(
+    shade: float, alpha: float | None, mode: str, negate: bool, occ_th: float, free_th: float
+) -> int:
     """map_io.cpp loadMapFromFile for one pixel (shade, alpha in [0, 1])."""
     channels = [shade, shade, shade]
     if mode == "trinary" and alpha is not None:
@@ -94,8 +104,10 @@ def test_alpha_is_averaged_in_trinary_and_marks_unknown_in_scale(tmp_path):
     for mode in ("trinary", "scale"):
         meta = parse_map_yaml(write_map(tmp_path, "a.png", mode))
         grid = load_map_yaml(tmp_path / "a.yaml")
-        want = [nav2_cell(g / 255, a / 255, mode, False, 0.65, 0.25)
-                for g, a in zip(grey[0], alpha[0], strict=True)]  # fmt: skip
+        want = [
+            nav2_cell(g / 255, a / 255, mode, False, 0.65, 0.25)
+            for g, a in zip(grey[0], alpha[0], strict=True)
+        ]
         got = occupancy_values_from_image(grey / 255.0, alpha / 255.0, meta)
         np.testing.assert_array_equal(got[0], want)
         assert grid.observed[0].tolist() == [w >= 0 for w in want]

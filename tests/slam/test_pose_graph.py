@@ -125,8 +125,10 @@ def test_vectorised_residual_matches_gtsam_between_factor():
     d[:5, 2] = 0.0  # pure translations: the small-angle branch
     pj[:5, 2] = pi[:5, 2]
     ours = between_residuals(pi, pj, d)
-    ref = [gtsam.Pose2(*d[k]).localCoordinates(gtsam.Pose2(*pi[k]).between(gtsam.Pose2(*pj[k])))
-           for k in range(50)]  # fmt: skip
+    ref = [
+        gtsam.Pose2(*d[k]).localCoordinates(gtsam.Pose2(*pi[k]).between(gtsam.Pose2(*pj[k])))
+        for k in range(50)
+    ]
     np.testing.assert_allclose(ours, np.array(ref), atol=1e-12)
 
 

@@ -41,36 +41,55 @@ CORRIDOR = np.array([[-50.0, 0.0, 50.0, 0.0], [-50.0, 2.0, 50.0, 2.0]])
 
 
 def world_points(
-    segments: np.ndarray, pose: np.ndarray, n_beams: int = 360, fov: float = 2 * math.pi,
-    range_max: float = 20.0, noise_m: float = 0.0, seed: int = 0,
-) -> np.ndarray:  # fmt: skip
+    segments: np.ndarray,
+    pose: np.ndarray,
+    n_beams: int = 360,
+    fov: float = 2 * math.pi,
+    range_max: float = 20.0,
+    noise_m: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
     """End points of a synthetic scan from ``pose``, in the world frame."""
-    scan = raycast(segments, pose, n_beams=n_beams, fov=fov, range_max=range_max,
-                   noise_m=noise_m, seed=seed)  # fmt: skip
+    scan = raycast(
+        segments, pose, n_beams=n_beams, fov=fov, range_max=range_max, noise_m=noise_m, seed=seed
+    )
     return transform_points(pose, scan_points(scan))
 
 
 def body_points(
-    segments: np.ndarray, pose: np.ndarray, n_beams: int = 181, fov: float = math.pi,
-    range_max: float = 20.0, noise_m: float = 0.0, seed: int = 0,
-) -> np.ndarray:  # fmt: skip
+    segments: np.ndarray,
+    pose: np.ndarray,
+    n_beams: int = 181,
+    fov: float = math.pi,
+    range_max: float = 20.0,
+    noise_m: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
     """End points of a synthetic scan from ``pose``, in the scan frame."""
-    scan = raycast(segments, pose, n_beams=n_beams, fov=fov, range_max=range_max,
-                   noise_m=noise_m, seed=seed)  # fmt: skip
+    scan = raycast(
+        segments, pose, n_beams=n_beams, fov=fov, range_max=range_max, noise_m=noise_m, seed=seed
+    )
     return scan_points(scan)
 
 
 def room_field(margin_m: float = WINDOW, resolution: float = RES) -> LikelihoodField:
-    return build_likelihood_field(world_points(ROOM, REF_POSE), resolution,
-                                  max(SMEAR, resolution), margin_m, N_LEVELS)  # fmt: skip
+    return build_likelihood_field(
+        world_points(ROOM, REF_POSE), resolution, max(SMEAR, resolution), margin_m, N_LEVELS
+    )
 
 
 def brute_force_match(
-    field: LikelihoodField, points: np.ndarray, prior: np.ndarray, linear_window_m: float,
-    angular_window_rad: float, angle_step_rad: float,
-    distance_variance_penalty: float = math.inf, angle_variance_penalty: float = math.inf,
-    minimum_distance_penalty: float = 0.0, minimum_angle_penalty: float = 0.0,
-) -> tuple[float, float, np.ndarray]:  # fmt: skip
+    field: LikelihoodField,
+    points: np.ndarray,
+    prior: np.ndarray,
+    linear_window_m: float,
+    angular_window_rad: float,
+    angle_step_rad: float,
+    distance_variance_penalty: float = math.inf,
+    angle_variance_penalty: float = math.inf,
+    minimum_distance_penalty: float = 0.0,
+    minimum_angle_penalty: float = 0.0,
+) -> tuple[float, float, np.ndarray]:
     """Reference search: every lattice angle, every integer cell shift, the mean of
     ``field.field`` at the shifted cells (0 off the grid). Returns (penalised, raw, pose)."""
     res = field.resolution
@@ -95,8 +114,13 @@ def brute_force_match(
         penalised = raw * p_dist * p_ang
         i, j = np.unravel_index(int(np.argmax(penalised)), penalised.shape)
         if penalised[i, j] > best[0]:
-            pose = np.array([prior[0] + shifts[j] * res, prior[1] + shifts[i] * res,
-                             wrap_angle(prior[2] + dyaw)])  # fmt: skip
+            pose = np.array(
+                [
+                    prior[0] + shifts[j] * res,
+                    prior[1] + shifts[i] * res,
+                    wrap_angle(prior[2] + dyaw),
+                ]
+            )
             best = (float(penalised[i, j]), float(raw[i, j]), pose)
     return best
 
@@ -121,8 +145,9 @@ def test_scan_points_drops_nan_no_return_and_out_of_range_beams() -> None:
 def test_scan_points_drops_returns_beyond_max_range() -> None:
     ranges = np.array([1.0, 2.0, 3.0], np.float32)
     scan = LaserScan(0, 0.0, math.pi / 2, ranges, range_min=0.02, range_max=5.0)
-    np.testing.assert_allclose(scan_points(scan, max_range_m=2.5), [[1.0, 0.0], [0.0, 2.0]],
-                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(
+        scan_points(scan, max_range_m=2.5), [[1.0, 0.0], [0.0, 2.0]], atol=1e-12
+    )
 
 
 def test_scan_points_puts_a_beam_at_plus_90_deg_on_the_positive_y_axis() -> None:
@@ -131,8 +156,9 @@ def test_scan_points_puts_a_beam_at_plus_90_deg_on_the_positive_y_axis() -> None
 
 
 def test_voxel_filter_keeps_the_first_point_of_each_cell_in_order() -> None:
-    pts = np.array([[0.05, 0.05], [1.02, 0.01], [0.09, 0.02], [-0.48, 0.32], [1.05, 0.08],
-                    [-0.42, 0.38]])  # fmt: skip
+    pts = np.array(
+        [[0.05, 0.05], [1.02, 0.01], [0.09, 0.02], [-0.48, 0.32], [1.05, 0.08], [-0.42, 0.38]]
+    )
     out = voxel_filter(pts, 0.1)
     np.testing.assert_array_equal(out, pts[[0, 1, 3]])
 
@@ -165,12 +191,15 @@ def test_transform_points_agrees_with_compose() -> None:
 @pytest.mark.parametrize("penalised", [False, True], ids=["plain", "penalised"])
 def test_correlative_match_equals_brute_force_search_on_the_same_lattice(penalised: bool) -> None:
     rng = np.random.default_rng(11)
-    penalties = dict(distance_variance_penalty=0.3, angle_variance_penalty=0.02,
-                     minimum_distance_penalty=0.5, minimum_angle_penalty=0.9)  # fmt: skip
+    penalties = dict(
+        distance_variance_penalty=0.3,
+        angle_variance_penalty=0.02,
+        minimum_distance_penalty=0.5,
+        minimum_angle_penalty=0.9,
+    )
     for trial in range(4):
         ref_pose = np.array([rng.uniform(2.0, 6.0), rng.uniform(1.5, 4.5), rng.uniform(-3, 3)])
-        field = build_likelihood_field(world_points(ROOM, ref_pose), RES, SMEAR, WINDOW,
-                                       N_LEVELS)  # fmt: skip
+        field = build_likelihood_field(world_points(ROOM, ref_pose), RES, SMEAR, WINDOW, N_LEVELS)
         truth = ref_pose + np.array([*rng.uniform(-0.4, 0.4, 2), rng.uniform(-0.5, 0.5)])
         pts = body_points(ROOM, truth, n_beams=91, noise_m=0.01, seed=trial)
         # Prior within 0.2 m of the truth: see test_correlative_match_is_exact_for_a_far_prior.
@@ -233,8 +262,9 @@ def test_correlative_match_is_exact_for_a_far_prior() -> None:
     pts = body_points(ROOM, truth)
     prior = truth + np.array([0.45, -0.45, math.radians(3)])
     got = correlative_match(field, pts, prior, WINDOW, math.radians(5), ANGLE_STEP)
-    _, want_raw, want_pose = brute_force_match(field, pts, prior, WINDOW, math.radians(5),
-                                               ANGLE_STEP)  # fmt: skip
+    _, want_raw, want_pose = brute_force_match(
+        field, pts, prior, WINDOW, math.radians(5), ANGLE_STEP
+    )
     # Brute force: 0.886 at the truth; correlative_match reports 0.427 there.
     assert got.score == pytest.approx(want_raw, abs=1e-6)
     assert_same_pose(got.pose, want_pose)
@@ -244,22 +274,26 @@ def test_correlative_match_with_unreachable_min_score_returns_the_prior_and_scor
     field = room_field()
     pts = body_points(ROOM, REF_POSE + np.array([0.1, 0.0, 0.05]))
     prior = REF_POSE + np.array([0.02, -0.03, 0.01])
-    res = correlative_match(field, pts, prior, WINDOW, math.radians(5), ANGLE_STEP,
-                            min_score=1.01)  # fmt: skip
+    res = correlative_match(field, pts, prior, WINDOW, math.radians(5), ANGLE_STEP, min_score=1.01)
     assert res.score == 0.0 and res.penalised_score == 0.0
     np.testing.assert_array_equal(res.pose, prior)
 
 
 def test_correlative_match_scores_low_against_an_unrelated_scene() -> None:
-    field = build_likelihood_field(world_points(CORRIDOR, np.array([0.0, 1.0, 0.0]),
-                                                range_max=8.0),
-                                   RES, SMEAR, WINDOW, N_LEVELS)  # fmt: skip
+    field = build_likelihood_field(
+        world_points(CORRIDOR, np.array([0.0, 1.0, 0.0]), range_max=8.0),
+        RES,
+        SMEAR,
+        WINDOW,
+        N_LEVELS,
+    )
     pts = body_points(ROOM, REF_POSE)
     prior = np.array([0.0, 1.0, 0.0])
     res = correlative_match(field, pts, prior, WINDOW, math.radians(10), ANGLE_STEP)
     assert res.score < 0.4
-    pruned = correlative_match(field, pts, prior, WINDOW, math.radians(10), ANGLE_STEP,
-                               min_score=0.6)  # fmt: skip
+    pruned = correlative_match(
+        field, pts, prior, WINDOW, math.radians(10), ANGLE_STEP, min_score=0.6
+    )
     assert pruned.score == 0.0
     np.testing.assert_array_equal(pruned.pose, prior)
 
@@ -288,8 +322,9 @@ def test_pyramid_level_bounds_every_block_of_the_base_field() -> None:
         size = 2**k
         padded = np.pad(base, ((0, size), (0, size)))
         h, w = base.shape
-        block_max = np.max([padded[i : i + h, j : j + w] for i in range(size)
-                            for j in range(size)], axis=0)  # fmt: skip
+        block_max = np.max(
+            [padded[i : i + h, j : j + w] for i in range(size) for j in range(size)], axis=0
+        )
         np.testing.assert_array_equal(field.levels[k], block_max)
 
 
@@ -334,8 +369,9 @@ def test_icp_covariance_is_symmetric_positive_definite_and_small() -> None:
 
 
 def test_icp_covariance_grows_along_a_featureless_corridor() -> None:
-    ref = build_reference(world_points(CORRIDOR, np.array([0.0, 1.0, 0.0]), n_beams=720,
-                                       range_max=10.0))  # fmt: skip
+    ref = build_reference(
+        world_points(CORRIDOR, np.array([0.0, 1.0, 0.0]), n_beams=720, range_max=10.0)
+    )
     truth = np.array([0.5, 0.9, 0.05])
     pts = body_points(CORRIDOR, truth, n_beams=361, fov=math.radians(270), range_max=10.0)
     res = icp_refine(ref, pts, truth + np.array([0.03, 0.03, 0.02]), MAX_CORRESPONDENCE)
@@ -346,10 +382,15 @@ def test_icp_covariance_grows_along_a_featureless_corridor() -> None:
 
 def test_icp_covariance_grows_along_an_exactly_axis_aligned_corridor() -> None:
     xs = np.arange(-10.0, 10.0, 0.05)
-    walls = np.vstack([np.column_stack([xs, np.zeros_like(xs)]),
-                       np.column_stack([xs, np.full_like(xs, 2.0)])])  # fmt: skip
-    res = icp_refine(build_reference(walls), walls[::3] - [0.0, 1.0], np.array([0.0, 1.02, 0.0]),
-                     MAX_CORRESPONDENCE)  # fmt: skip
+    walls = np.vstack(
+        [np.column_stack([xs, np.zeros_like(xs)]), np.column_stack([xs, np.full_like(xs, 2.0)])]
+    )
+    res = icp_refine(
+        build_reference(walls),
+        walls[::3] - [0.0, 1.0],
+        np.array([0.0, 1.02, 0.0]),
+        MAX_CORRESPONDENCE,
+    )
     assert res.converged
     assert res.covariance[0, 0] > 1e4 * res.covariance[1, 1]
 
@@ -359,8 +400,11 @@ def test_icp_refine_failing_after_an_iteration_returns_the_initial_pose() -> Non
     # just past the end of the first wall, five lie 0.28 m left of the second: the first step
     # moves x by +0.28, which takes the ten beyond the correspondence gate, leaving 5 < MIN_POINTS.
     t = np.linspace(0.0, 1.0, 51)
-    ref = build_reference(np.vstack([np.column_stack([t, np.zeros_like(t)]),
-                                     np.column_stack([np.zeros_like(t), 1.0 + t])]))  # fmt: skip
+    ref = build_reference(
+        np.vstack(
+            [np.column_stack([t, np.zeros_like(t)]), np.column_stack([np.zeros_like(t), 1.0 + t])]
+        )
+    )
     near_end = np.column_stack([np.linspace(1.1, 1.28, 10), np.zeros(10)])
     left_of_wall = np.column_stack([np.full(5, -0.28), np.linspace(1.2, 1.8, 5)])
     initial = np.zeros(3)
@@ -441,8 +485,7 @@ def test_grid_reference_has_normals_across_walls_of_any_thickness() -> None:
     assert ref.size < 0.6 * occ.sum()
     # Nearest-neighbour PCA on the same cells finds no line at all: the bug this replaces.
     rows, cols = np.nonzero(occ)
-    pca = build_reference(np.column_stack([-0.5 + (cols + 0.5) * 0.05,
-                                           -0.5 + (rows + 0.5) * 0.05]))  # fmt: skip
+    pca = build_reference(np.column_stack([-0.5 + (cols + 0.5) * 0.05, -0.5 + (rows + 0.5) * 0.05]))
     assert np.count_nonzero(np.any(pca.normals != 0, axis=1)) < 0.05 * pca.size
 
 
@@ -564,10 +607,15 @@ def reference_normals(points: np.ndarray) -> np.ndarray:
 
 
 def reference_icp(
-    ref: ReferenceCloud, points: np.ndarray, initial: np.ndarray, max_correspondence_m: float,
-    max_iterations: int = 20, huber_m: float = 0.05, min_sigma_m: float = 0.01,
+    ref: ReferenceCloud,
+    points: np.ndarray,
+    initial: np.ndarray,
+    max_correspondence_m: float,
+    max_iterations: int = 20,
+    huber_m: float = 0.05,
+    min_sigma_m: float = 0.01,
     tolerance: float = 5e-4,
-) -> IcpResult:  # fmt: skip
+) -> IcpResult:
     """Point-to-line Gauss-Newton with a fresh (N, 3) Jacobian and np.linalg.solve per
     iteration."""
     pose = np.asarray(initial, dtype=np.float64).copy()
@@ -577,8 +625,9 @@ def reference_icp(
     for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
         c, s = math.cos(pose[2]), math.sin(pose[2])
         wx, wy = c * px - s * py + pose[0], s * px + c * py + pose[1]
-        _, idx = ref.tree.query(np.column_stack([wx, wy]),
-                                distance_upper_bound=max_correspondence_m)  # fmt: skip
+        _, idx = ref.tree.query(
+            np.column_stack([wx, wy]), distance_upper_bound=max_correspondence_m
+        )
         nx, ny = ref.normals[idx, 0], ref.normals[idx, 1]
         r = nx * (wx - ref.points[idx, 0]) + ny * (wy - ref.points[idx, 1])
         jac = np.column_stack([nx, ny, nx * (-s * px - c * py) + ny * (c * px - s * py)])
@@ -607,10 +656,12 @@ def reference_icp(
 
 def test_build_reference_normals_equal_the_einsum_reference_on_random_clouds() -> None:
     rng = np.random.default_rng(11)
-    clouds = [world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.01, seed=3),
-              rng.normal(size=(400, 2)) * 3.0,
-              np.column_stack([np.arange(40) * 0.05, np.zeros(40)]),  # exact ties, axis-aligned
-              rng.normal(size=(3, 2))]  # fmt: skip
+    clouds = [
+        world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.01, seed=3),
+        rng.normal(size=(400, 2)) * 3.0,
+        np.column_stack([np.arange(40) * 0.05, np.zeros(40)]),  # exact ties, axis-aligned
+        rng.normal(size=(3, 2)),
+    ]
     for pts in clouds:
         ref = build_reference(pts)
         np.testing.assert_array_equal(ref.normals[:-1], reference_normals(pts))
@@ -622,8 +673,9 @@ def test_build_reference_normals_equal_the_einsum_reference_on_random_clouds() -
 def test_icp_refine_equals_the_reference_kernel_from_random_starts(seed: int) -> None:
     rng = np.random.default_rng(seed)
     ref = build_reference(world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.01, seed=seed))
-    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270), noise_m=0.01,
-                      seed=50 + seed)  # fmt: skip
+    pts = body_points(
+        ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270), noise_m=0.01, seed=50 + seed
+    )
     start = ICP_TRUTH + rng.normal(size=3) * [0.1, 0.1, math.radians(3)]
     iterations = int(rng.integers(1, 21))
     fast = icp_refine(ref, pts, start, MAX_CORRESPONDENCE, max_iterations=iterations)

@@ -162,8 +162,13 @@ def test_ate_statistics_of_known_errors() -> None:
     est = np.array([[1.0, 0, 0], [0, 2.0, 0], [0, 0, 2.0], [0, 0, 3.0]])
     stamps = np.arange(4) * 100 * MS
     identity = np.tile([0, 0, 0, 1.0], (4, 1))
-    result = evaluate(stamps, poses_from_tum(est, identity), stamps,
-                      poses_from_tum(ref, identity), align_mode="none")  # fmt: skip
+    result = evaluate(
+        stamps,
+        poses_from_tum(est, identity),
+        stamps,
+        poses_from_tum(ref, identity),
+        align_mode="none",
+    )
     assert result.ate.rmse == pytest.approx(np.sqrt((1 + 4 + 4 + 9) / 4), abs=1e-12)
     assert (result.ate.mean, result.ate.median) == pytest.approx((2.0, 2.0), abs=1e-12)
     assert (result.ate.min, result.ate.max) == pytest.approx((1.0, 3.0), abs=1e-12)
@@ -245,8 +250,14 @@ def test_bad_deltas_are_errors(delta: float, unit: str, message: str) -> None:
 def test_fr1_xyz_rgbdslam_reproduces_the_tum_ate_check_value() -> None:
     te, xe, qe = load_tum_trajectory(TUM / "freiburg1_xyz-rgbdslam.txt")
     tg, xg, qg = load_tum_trajectory(TUM / "freiburg1_xyz-groundtruth.txt")
-    result = evaluate(te, poses_from_tum(xe, qe), tg, poses_from_tum(xg, qg), align_mode="se3",
-                      max_diff_ns=20 * MS)  # fmt: skip
+    result = evaluate(
+        te,
+        poses_from_tum(xe, qe),
+        tg,
+        poses_from_tum(xg, qg),
+        align_mode="se3",
+        max_diff_ns=20 * MS,
+    )
     assert result.ate.rmse == pytest.approx(0.01347, abs=1e-5)
     assert result.matched == 786
 
@@ -271,8 +282,9 @@ def _true_relations(poses: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarr
 def test_relations_of_the_true_trajectory_score_zero() -> None:
     stamps, poses = _planar_walk()
     i, j = np.arange(0, 50), np.arange(5, 55)
-    r = relations_error(stamps, poses, stamps[i] + 3 * MS, stamps[j] - 2 * MS,
-                        _true_relations(poses, i, j))  # fmt: skip
+    r = relations_error(
+        stamps, poses, stamps[i] + 3 * MS, stamps[j] - 2 * MS, _true_relations(poses, i, j)
+    )
     assert r["count"] == 50 and r["skipped"] == 0
     assert r["trans_mean_m"] == pytest.approx(0.0, abs=1e-12)
     assert r["rot_mean_deg"] == pytest.approx(0.0, abs=1e-9)
@@ -328,11 +340,13 @@ def test_raw_odometry_of_mit_csail_reproduces_the_published_relations_score() ->
 
 def test_read_relations_keeps_exact_stamps_and_the_planar_part(tmp_path: Path) -> None:
     path = tmp_path / "rel.txt"
-    path.write_text("# t1 t2 x y z roll pitch yaw\n"
-                    "1134864645.90321 1134864646.32420 0.31293 0.02935 0 0 0 0.24198\n"
-                    "\n"
-                    "# a relation backwards in time is still a relation\n"
-                    "2.5 1.000000001 -1.0 0.5 0.3 0.01 0.02 -3.0\n")  # fmt: skip
+    path.write_text(
+        "# t1 t2 x y z roll pitch yaw\n"
+        "1134864645.90321 1134864646.32420 0.31293 0.02935 0 0 0 0.24198\n"
+        "\n"
+        "# a relation backwards in time is still a relation\n"
+        "2.5 1.000000001 -1.0 0.5 0.3 0.01 0.02 -3.0\n"
+    )
     rel = read_relations(path)
     assert rel.t1_ns.tolist() == [1134864645903210000, 2_500_000_000]
     assert rel.t2_ns.tolist() == [1134864646324200000, 1_000_000_001]

@@ -41,9 +41,14 @@ from slam.visual_odometry import (
 CAMERA = CameraConfig()
 ROBOT = RobotConfig()
 NOISELESS = replace(
-    SimConfig(), disparity_noise=0.0, disparity_subpixel=10**6, depth_dropout=0.0,
-    depth_edge_threshold=0.0, shadows=False, rgb_noise=0.0,
-)  # fmt: skip
+    SimConfig(),
+    disparity_noise=0.0,
+    disparity_subpixel=10**6,
+    depth_dropout=0.0,
+    depth_edge_threshold=0.0,
+    shadows=False,
+    rgb_noise=0.0,
+)
 VO6 = VoConfig(force_3dof=False)
 CABINET = (
     Path(__file__).resolve().parents[3]
@@ -52,8 +57,13 @@ CABINET = (
     / "kinect"
     / ("tum_fr3_cabinet_keyframes")
 )
-FAILURE_REASONS = {"too_few_features", "too_few_matches", "pnp_failed", "too_few_inliers",
-                   "implausible_motion"}  # fmt: skip
+FAILURE_REASONS = {
+    "too_few_features",
+    "too_few_matches",
+    "pnp_failed",
+    "too_few_inliers",
+    "implausible_motion",
+}
 
 
 def room(texture: str, furniture_texture: str) -> dict:
@@ -68,9 +78,15 @@ def room(texture: str, furniture_texture: str) -> dict:
         {"name": "a", "center": [2.0, 0.8], "size": [0.5, 0.5, 0.9], "texture": furniture_texture},
         {"name": "b", "center": [1.8, -0.9], "size": [0.4, 0.6, 1.2], "texture": furniture_texture},
     ]
-    return {"name": "vo-test", "walls": walls, "furniture": boxes, "start": [0.0, 0.0, 0.0],
-            "route": [[1.0, 0.0]], "floor": {"texture": texture, "scale": 1.0},
-            "ceiling": {"texture": texture, "scale": 1.0}}  # fmt: skip
+    return {
+        "name": "vo-test",
+        "walls": walls,
+        "furniture": boxes,
+        "start": [0.0, 0.0, 0.0],
+        "route": [[1.0, 0.0]],
+        "floor": {"texture": texture, "scale": 1.0},
+        "ceiling": {"texture": texture, "scale": 1.0},
+    }
 
 
 @lru_cache(maxsize=4)
@@ -90,8 +106,7 @@ def true_motion(a: tuple[float, float, float], b: tuple[float, float, float]) ->
     return inverse(ta) @ tb
 
 
-def assert_pair_motions(poses: list, results: list[VoResult], max_m: float, max_deg: float
-                        ) -> None:  # fmt: skip
+def assert_pair_motions(poses: list, results: list[VoResult], max_m: float, max_deg: float) -> None:
     """Each result's T_prev_curr against the true motion between consecutive ``poses``."""
     for a, b, res in zip(poses[:-1], poses[1:], results, strict=True):
         truth = true_motion(a, b)
@@ -175,15 +190,19 @@ def test_faint_procedural_plaster_is_tracked_correctly_or_rejected_never_garbage
 
 def test_a_jump_beyond_max_translation_is_rejected_as_implausible() -> None:
     r = renderer()
-    res = estimate_motion(*frame(r, START), *frame(r, MOVED), K,
-                          replace(VO6, max_translation=0.02))  # fmt: skip
+    res = estimate_motion(*frame(r, START), *frame(r, MOVED), K, replace(VO6, max_translation=0.02))
     assert not res.success and res.reason == "implausible_motion"
 
 
 def test_planar_mode_gives_base_link_dx_dy_dyaw() -> None:
     r = renderer()
-    res = estimate_motion(*frame(r, START), *frame(r, MOVED), K, VoConfig(force_3dof=True),
-                          t_base_opt=base_from_optical(ROBOT))  # fmt: skip
+    res = estimate_motion(
+        *frame(r, START),
+        *frame(r, MOVED),
+        K,
+        VoConfig(force_3dof=True),
+        t_base_opt=base_from_optical(ROBOT),
+    )
     assert res.success and res.delta_base is not None
     d = res.delta_base
     assert d.x == pytest.approx(MOVED[0], abs=0.01)
@@ -349,8 +368,12 @@ def test_optical_flow_that_loses_its_points_falls_back_to_global_matching() -> N
     # Lucas-Kanade on the full-resolution image alone follows a few pixels of motion: the jump
     # (~60 px) loses the tracks, and the frame is matched by ORB against the keyframe instead.
     vo = VisualOdometry(r.intrinsics, replace(FLOW, cor_flow_max_level=0))
-    poses = [START, (0.005, 0.0, 0.0), (0.12, 0.03, math.radians(6.0)), (0.125, 0.03,
-             math.radians(6.0))]  # fmt: skip
+    poses = [
+        START,
+        (0.005, 0.0, 0.0),
+        (0.12, 0.03, math.radians(6.0)),
+        (0.125, 0.03, math.radians(6.0)),
+    ]
     results = [
         vo.process(RgbdFrame(i, *frame(r, p), r.intrinsics)) for i, p in enumerate(poses[:3])
     ]
@@ -375,8 +398,10 @@ def test_optical_flow_after_a_keyframe_without_depth_fails_cleanly_and_recovers(
     vo.process(RgbdFrame(0, rgb, np.zeros_like(depth), r.intrinsics))  # no depth at all
     lost = vo.process(RgbdFrame(1, *frame(r, (0.005, 0.0, 0.0)), r.intrinsics))
     assert not lost.success and lost.reason in FAILURE_REASONS
-    back = [vo.process(RgbdFrame(2 + i, *frame(r, (0.01 + 0.005 * i, 0.0, 0.0)), r.intrinsics))
-            for i in range(2)]  # fmt: skip
+    back = [
+        vo.process(RgbdFrame(2 + i, *frame(r, (0.01 + 0.005 * i, 0.0, 0.0)), r.intrinsics))
+        for i in range(2)
+    ]
     assert back[-1].success and back[-1].prior
 
 
@@ -410,8 +435,9 @@ def test_real_cabinet_keyframes_reach_the_measured_success_rate_for_any_ransac_s
         a, b = frames[i], frames[i + 1]
         res: VoResult = estimate_motion(a.rgb, a.depth_m, b.rgb, b.depth_m, k, cfg, tuning)
         truth = inverse(gt[i]) @ gt[i + 1]
-        errors.append(np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) if res.success
-                      else math.inf)  # fmt: skip
+        errors.append(
+            np.linalg.norm(res.T_prev_curr[:3, 3] - truth[:3, 3]) if res.success else math.inf
+        )
     errors_a = np.array(errors)
     # Measured over seeds 1-10: 100 % for every seed, median 1.28 cm (max 1.30) and 96 % /
     # 1.25 cm for seed 0 (bench/sweep_vo.py); pinned at the 90 % and 1.5 cm targets.
@@ -457,8 +483,9 @@ def test_fast_whitened_residuals_equal_the_reference_kernel_divided_by_sigma() -
     iw[2, has_z] = 1.0 / sig[has_z, 2]
     r, j = _whitened(t, p, obs.T, iw, K, bf)
     np.testing.assert_allclose(r, (r_ref / sig).T, rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(j, (j_ref / sig[:, :, None]).transpose(2, 1, 0), rtol=1e-12,
-                               atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        j, (j_ref / sig[:, :, None]).transpose(2, 1, 0), rtol=1e-12, atol=1e-9
+    )
 
 
 def test_kabsch_recovers_a_known_motion_per_batch_and_ignores_zero_weight_outliers() -> None:
@@ -483,8 +510,9 @@ def _rigid_scene(seed: int, n: int, outliers: float) -> tuple[np.ndarray, ...]:
     p = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1, 1, n), rng.uniform(1, 4, n)])
     q = p @ truth[:3, :3].T + truth[:3, 3]
     bad = rng.random(n) < outliers
-    q[bad] = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1, 1, n),
-                              rng.uniform(1, 4, n)])[bad]  # fmt: skip
+    q[bad] = np.column_stack(
+        [rng.uniform(-1.5, 1.5, n), rng.uniform(-1, 1, n), rng.uniform(1, 4, n)]
+    )[bad]
     q += rng.normal(0, 0.003, q.shape)
     uv = q[:, :2] / q[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
     uv += rng.normal(0, 0.5, uv.shape)
@@ -608,9 +636,12 @@ def test_features_equal_describing_only_the_kept_keypoints_in_a_second_orb_pass(
     cfg, tuning = replace(VO6, max_features=300), VoTuning(depth_margin_px=0, orb_split_level=0)
     feats = extract_features(rgb, depth, K, cfg, tuning)
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    orb = cv2.ORB_create(nfeatures=int(cfg.max_features * tuning.detect_factor),
-                         scaleFactor=tuning.orb_scale, nlevels=tuning.orb_levels,
-                         fastThreshold=tuning.fast_threshold)  # fmt: skip
+    orb = cv2.ORB_create(
+        nfeatures=int(cfg.max_features * tuning.detect_factor),
+        scaleFactor=tuning.orb_scale,
+        nlevels=tuning.orb_levels,
+        fastThreshold=tuning.fast_threshold,
+    )
     with np.errstate(invalid="ignore"):
         mask = ((depth >= cfg.min_depth) & (depth <= cfg.max_depth)).astype(np.uint8)
     kps = orb.detect(gray, mask)
@@ -645,15 +676,18 @@ def test_orb_split_over_two_threads_finds_nearly_the_keypoints_of_one_call(maske
     # columns), so the resampled images and their keypoints do too.
     def keyed(feats: tuple[np.ndarray, ...], level: int) -> set:
         sel = feats[1] == level
-        return {(round(u, 2), round(v, 2), d.tobytes()) for (u, v), d
-                in zip(feats[0][sel], feats[3][sel], strict=True)}  # fmt: skip
+        return {
+            (round(u, 2), round(v, 2), d.tobytes())
+            for (u, v), d in zip(feats[0][sel], feats[3][sel], strict=True)
+        }
 
     for level in range(4):  # the per-level budgets may round one apart
         a, b = keyed(two, level), keyed(one, level)
         assert (a <= b or b <= a) and abs(len(a) - len(b)) <= 1
     if masked:
-        assert (mask[np.rint(two[0][:, 1]).astype(int), np.rint(two[0][:, 0]).astype(int)] > 0
-                ).mean() > 0.97  # fmt: skip
+        assert (
+            mask[np.rint(two[0][:, 1]).astype(int), np.rint(two[0][:, 0]).astype(int)] > 0
+        ).mean() > 0.97
 
 
 def test_optical_flow_tracks_stay_anchored_to_the_keyframe_out_and_back() -> None:

@@ -62,8 +62,9 @@ def test_route_visits_every_waypoint_and_ends_at_the_last(house_route: Trajector
 
 def test_perfect_encoders_integrate_back_to_the_ground_truth_path(house_route: Trajectory) -> None:
     left, right = encoder_counts(house_route, ROBOT, PERFECT, np.random.default_rng(0))
-    x, y, yaw = integrate_ticks(left, right, ROBOT, Pose2(house_route.x[0], house_route.y[0],
-                                                             house_route.yaw[0]))  # fmt: skip
+    x, y, yaw = integrate_ticks(
+        left, right, ROBOT, Pose2(house_route.x[0], house_route.y[0], house_route.yaw[0])
+    )
     # Only quantisation is left: 36 positions per turn of a 6-inch wheel = 13.3 mm per count, so
     # heading wobbles by up to 13.3 mm / 0.3 m = 0.044 rad; over 44 m that stays under 0.3 %.
     err = np.hypot(x - house_route.x, y - house_route.y)
@@ -84,8 +85,14 @@ def test_track_width_error_scales_integrated_rotation() -> None:
     # Spin in place by 4 pi.
     n = 2001
     yaw = np.linspace(0, 4 * math.pi, n)
-    traj = Trajectory(np.arange(n, dtype=np.int64) * 5_000_000, np.zeros(n), np.zeros(n), yaw,
-                      np.zeros(n), np.full(n, 0.5))  # fmt: skip
+    traj = Trajectory(
+        np.arange(n, dtype=np.int64) * 5_000_000,
+        np.zeros(n),
+        np.zeros(n),
+        yaw,
+        np.zeros(n),
+        np.full(n, 0.5),
+    )
     sim = replace(PERFECT, track_width_error=0.05)
     left, right = encoder_counts(traj, ROBOT, sim, np.random.default_rng(0))
     _, _, odom_yaw = integrate_ticks(left, right, ROBOT)
@@ -104,8 +111,14 @@ def test_wheel_travel_splits_an_arc_between_the_wheels() -> None:
     n = 101
     radius, dtheta = 1.0, math.pi / 2
     th = np.linspace(0, dtheta, n)
-    traj = Trajectory(np.arange(n, dtype=np.int64), radius * np.sin(th), radius * (1 - np.cos(th)),
-                      th, np.ones(n), np.ones(n))  # fmt: skip
+    traj = Trajectory(
+        np.arange(n, dtype=np.int64),
+        radius * np.sin(th),
+        radius * (1 - np.cos(th)),
+        th,
+        np.ones(n),
+        np.ones(n),
+    )
     s_left, s_right = wheel_travel(traj, track_width=0.3)
     assert s_left.sum() == pytest.approx((radius - 0.15) * dtheta, rel=1e-3)
     assert s_right.sum() == pytest.approx((radius + 0.15) * dtheta, rel=1e-3)

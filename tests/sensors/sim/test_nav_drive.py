@@ -15,8 +15,9 @@ EXACT = SimConfig(wheel_diameter_error=(0.0, 0.0), track_width_error=0.0, wheel_
 STEP_NS = 50_000_000  # [ns] one smoother period at 20 Hz
 
 
-def _drive(sim: SimConfig, v: float, w: float, seconds: float, seed: int = 0
-           ) -> tuple[EmulatedDrive, WheelOdometry]:  # fmt: skip
+def _drive(
+    sim: SimConfig, v: float, w: float, seconds: float, seed: int = 0
+) -> tuple[EmulatedDrive, WheelOdometry]:
     drive = EmulatedDrive(ROBOT, sim, np.zeros(3), np.random.default_rng(seed))
     odo = WheelOdometry(ROBOT, drive.ticks())
     for _ in range(round(seconds * 1e9 / STEP_NS)):

@@ -15,9 +15,14 @@ from sensors.sim.world import world_from_dict
 CAMERA = CameraConfig()
 ROBOT = RobotConfig()
 NOISELESS = replace(
-    SimConfig(), disparity_noise=0.0, disparity_subpixel=10**6, depth_dropout=0.0,
-    depth_edge_threshold=0.0, shadows=False, rgb_noise=0.0,
-)  # fmt: skip
+    SimConfig(),
+    disparity_noise=0.0,
+    disparity_subpixel=10**6,
+    depth_dropout=0.0,
+    depth_edge_threshold=0.0,
+    shadows=False,
+    rgb_noise=0.0,
+)
 
 
 def room(walls: list[dict], furniture: list[dict] | None = None) -> dict:
@@ -37,11 +42,17 @@ def wall_ahead(distance: float, yaw_deg: float = 0.0) -> dict:
     return {"from": [distance - dx, -dy], "to": [distance + dx, dy], "thickness": 0.1}
 
 
-def renderer(world: dict, sim: SimConfig = NOISELESS, robot: RobotConfig = ROBOT,
-             noise_seed: int = 0, camera: CameraConfig = CAMERA,
-             backend: str = "raster") -> KinectRenderer:  # fmt: skip
-    return KinectRenderer(world_from_dict(world), camera, robot, sim, noise_seed=noise_seed,
-                          backend=backend)  # fmt: skip
+def renderer(
+    world: dict,
+    sim: SimConfig = NOISELESS,
+    robot: RobotConfig = ROBOT,
+    noise_seed: int = 0,
+    camera: CameraConfig = CAMERA,
+    backend: str = "raster",
+) -> KinectRenderer:
+    return KinectRenderer(
+        world_from_dict(world), camera, robot, sim, noise_seed=noise_seed, backend=backend
+    )
 
 
 BACKENDS = pytest.mark.parametrize("backend", ["raster", "raycast"])
@@ -80,8 +91,10 @@ def test_noisy_depth_on_a_known_wall_is_within_the_noise_model() -> None:
 @pytest.mark.parametrize("z", [1.0, 3.0])
 def test_depth_noise_sigma_matches_the_model_within_20_percent(z: float) -> None:
     # A slanted wall spreads true disparities over many quantisation steps, as real scenes do.
-    r = renderer(room([wall_ahead(z + 0.05, yaw_deg=40.0)]), sim=replace(
-        SimConfig(), depth_dropout=0.0, shadows=False, depth_edge_threshold=0.0))  # fmt: skip
+    r = renderer(
+        room([wall_ahead(z + 0.05, yaw_deg=40.0)]),
+        sim=replace(SimConfig(), depth_dropout=0.0, shadows=False, depth_edge_threshold=0.0),
+    )
     truth = r.true_depth(0.0, 0.0, 0.0)
     residuals = []
     rng = np.random.default_rng(7)

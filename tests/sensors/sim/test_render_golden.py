@@ -56,12 +56,14 @@ def route_poses(world: World) -> list[Pose]:
     return [(float(traj.x[i]), float(traj.y[i]), float(traj.yaw[i])) for i in idx]
 
 
-def render_digest(world: World, poses: Sequence[Pose], sim: SimConfig, noise_seed: int,
-                  rng_seed: int) -> str:  # fmt: skip
+def render_digest(
+    world: World, poses: Sequence[Pose], sim: SimConfig, noise_seed: int, rng_seed: int
+) -> str:
     """One sha256 over rgb and depth bytes of every pose, then the generator's next draws (so
     the renderer must consume the generator exactly as before)."""
-    r = KinectRenderer(world, CameraConfig(), RobotConfig(), sim, noise_seed=noise_seed,
-                       backend="raster")  # fmt: skip
+    r = KinectRenderer(
+        world, CameraConfig(), RobotConfig(), sim, noise_seed=noise_seed, backend="raster"
+    )
     rng = np.random.default_rng(rng_seed)
     digest = hashlib.sha256()
     for pose in poses:

@@ -92,8 +92,15 @@ def test_zero_frames_is_refused_with_a_reason(tmp_path: Path) -> None:
 @pytest.mark.skipif(not PIONEER_DIR.is_dir(), reason="../shared/data (TUM pioneer) not present")
 def test_replays_a_real_pioneer_trajectory_in_the_hall(tmp_path: Path) -> None:
     traj = PIONEER_DIR / "pioneer_360.groundtruth.txt"
-    simulate(REPO / "scenes" / "pioneer_hall.yaml", tmp_path / "r", RobotConfig(), CameraConfig(),
-             SimConfig(), frames=3, trajectory=traj)  # fmt: skip
+    simulate(
+        REPO / "scenes" / "pioneer_hall.yaml",
+        tmp_path / "r",
+        RobotConfig(),
+        CameraConfig(),
+        SimConfig(),
+        frames=3,
+        trajectory=traj,
+    )
     rec = Recording.open(tmp_path / "r")
     gt = rec.groundtruth()
     assert gt is not None and len(rec) == 3
