@@ -3,11 +3,18 @@ completion, --quiet everywhere, and no option that is silently ignored."""
 
 from __future__ import annotations
 
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 from typer.main import get_command
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
+
+REPO = Path(__file__).resolve().parents[2]
 
 runner = CliRunner()
 VERBS = sorted(get_command(app).commands)  # type: ignore[attr-defined]
@@ -37,9 +44,12 @@ def test_every_verb_has_quiet_and_verbose(verb: str) -> None:
 
 
 def test_shell_completion_script() -> None:
-    result = runner.invoke(app, ["--show-completion", "bash"])
-    assert result.exit_code == 0
-    assert "complete" in result.output and "COMP_WORDS" in result.output
+    # typer detects the shell from the parent process (`make test` runs pytest under sh, which it
+    # does not support): ask from a bash that stays the parent (no exec), as a bash user would.
+    cmd = f"{shlex.quote(sys.executable)} -m rgbdnav.cli --show-completion; exit $?"
+    result = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, cwd=REPO)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "complete" in result.stdout and "COMP_WORDS" in result.stdout
 
 
 def test_board_refuses_a_port_it_would_ignore_with_the_emulator() -> None:
