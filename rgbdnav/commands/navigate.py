@@ -73,8 +73,8 @@ from nav.behaviors import Behavior, next_waypoint, wait_at_waypoint, waypoints
 from nav.config import NavigateConfig
 from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap
 from nav.navigator import MAX_STOP_S, Navigator
-from rgbdnav.commands.nav_charts import velocity_chart
 from rgbdnav.config import Config, load_config
+from rgbdnav.nav_charts import velocity_chart
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE

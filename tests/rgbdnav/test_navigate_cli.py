@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from nav.navigator import past_escape
 from rgbdnav.cli import GOAL_FAILED_EXIT, app, parse_goals
-from rgbdnav.commands.nav_charts import accelerations
+from rgbdnav.nav_charts import accelerations
 from sensors.sim.scan import cast_scan, depth_range_sigma
 from sensors.sim.world import FloorPlan, floor_plan, load_world, world_from_dict
 from sensors.tum import load_tum_trajectory
