@@ -25,7 +25,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from rgbdnav.commands.map import _score_against_truth  # noqa: E402
+from rgbdnav.runners.map import _score_against_truth  # noqa: E402
 from rgbdnav.scan_stream import source_config  # noqa: E402
 from sensors.source import open_source  # noqa: E402
 from sensors.tum import load_tum_trajectory, yaw_from_quaternion  # noqa: E402

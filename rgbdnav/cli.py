@@ -533,8 +533,8 @@ def map_(
     _check_format(fmt)
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
-    from rgbdnav.commands.map import run_map
     from rgbdnav.config import load_config
+    from rgbdnav.runners.map import run_map
 
     cfg = load_config(config or [], set_ or [])
     recording = _recording_for(source, cfg, seed, quiet)
@@ -593,8 +593,8 @@ def localize(
     _check_format(fmt)
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
-    from rgbdnav.commands.localize import describe, run_localize
     from rgbdnav.config import load_config
+    from rgbdnav.runners.localize import describe, run_localize
     from slam.map_bundle import load_map
 
     if _is_world(source):
@@ -675,7 +675,7 @@ def navigate(
     set_ = _settings(set_, ros_params)
     _setup_logging(verbose, quiet)
     _check_format(fmt)
-    from rgbdnav.commands.navigate import describe, run_navigate
+    from rgbdnav.runners.navigate import describe, run_navigate
 
     goal = parse_goals(goal_ or [], ctx.args)
     with _Progress("navigating", quiet) as progress:
@@ -1010,7 +1010,7 @@ def eval_(
     writes it."""
     set_ = _settings(set_, ros_params)
     _setup_logging(verbose, quiet)
-    from rgbdnav.commands.eval import (
+    from rgbdnav.runners.eval import (
         format_relations_report,
         format_report,
         run_eval,

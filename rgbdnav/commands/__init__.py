@@ -1,5 +1,6 @@
-"""One module per CLI verb (`odometry`, `map`, `localize`, `eval`, `navigate`, `board`).
+"""One module per CLI verb (`odometry`, `board`, `export`, `fleet`, `batch`, navigation scenarios).
 
-A command wires the layers below it (sensors, slam, nav and the shared pieces in `rgbdnav/`)
-and never imports another command.
+The verbs whose work other verbs reuse (`map`, `localize`, `eval`, `navigate`) keep it in
+`rgbdnav/runners/`. A command wires the layers below it (`runners/`, the shared pieces in
+`rgbdnav/`, sensors, slam, nav) and never imports another command.
 """

@@ -1,7 +1,7 @@
 """`rgbdnav batch`: one `map` / `localize` / `eval` task per source on a Dask cluster.
 
-Each task calls the verb's own function (:func:`~rgbdnav.commands.map.run_map`,
-:func:`~rgbdnav.commands.localize.run_localize`, :func:`~rgbdnav.commands.eval.run_eval` /
+Each task calls the verb's own function (:func:`~rgbdnav.runners.map.run_map`,
+:func:`~rgbdnav.runners.localize.run_localize`, :func:`~rgbdnav.runners.eval.run_eval` /
 ``run_relations_eval``) in a worker process, writing ``DIR/<source-name>/`` exactly as the single
 verb would, and returns one row: status, accuracy against ground truth where the source has one
 (the simulator's truth, or Kümmerle relations in ``<log-name>.relations`` beside a CARMEN log),
@@ -124,7 +124,7 @@ def _read_summary(folder: Path) -> dict[str, Any]:
 
 
 def _relations_accuracy(trajectory: Path, relations: Path, out: Path) -> dict[str, Any]:
-    from rgbdnav.commands.eval import run_relations_eval
+    from rgbdnav.runners.eval import run_relations_eval
 
     try:
         s = run_relations_eval(trajectory, relations, out)
@@ -141,8 +141,8 @@ def _relations_accuracy(trajectory: Path, relations: Path, out: Path) -> dict[st
 
 def _run_map(task: Task) -> dict[str, Any]:
     from rgbdnav.cache import recording_for
-    from rgbdnav.commands.map import run_map
     from rgbdnav.config import load_config
+    from rgbdnav.runners.map import run_map
 
     o = task.opts
     cfg = load_config(list(o.config_files), list(o.overrides))
@@ -162,8 +162,8 @@ def _run_map(task: Task) -> dict[str, Any]:
 
 def _run_localize(task: Task) -> dict[str, Any]:
     from rgbdnav.cache import recording_for
-    from rgbdnav.commands.localize import run_localize
     from rgbdnav.config import load_config
+    from rgbdnav.runners.localize import run_localize
 
     o = task.opts
     assert o.map_bundle is not None  # checked before any task starts
@@ -186,7 +186,7 @@ def _run_localize(task: Task) -> dict[str, Any]:
 
 
 def _run_eval(task: Task) -> dict[str, Any]:
-    from rgbdnav.commands.eval import run_eval, run_relations_eval
+    from rgbdnav.runners.eval import run_eval, run_relations_eval
 
     o = task.opts
     if o.reference is not None:

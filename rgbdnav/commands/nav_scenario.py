@@ -367,7 +367,7 @@ def run_scenario(
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
     """Prepare the scenario, drive it with :func:`run_navigate`; the summary gains "scenario"."""
-    from rgbdnav.commands.navigate import run_navigate
+    from rgbdnav.runners.navigate import run_navigate
 
     scenario = load_scenario(scenario_path)
     overrides = [*scenario.overrides, *overrides]

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.commands.eval import evaluate_files, read_trajectory
+from rgbdnav.runners.eval import evaluate_files, read_trajectory
 from sensors.types import SensorError
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"

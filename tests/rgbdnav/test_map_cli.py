@@ -171,7 +171,7 @@ def test_the_rgbd_mapping_profile_is_a_valid_config_that_trusts_odometry_more() 
 
 
 def test_occupancy_iou_counts_a_wall_one_cell_off_as_matching_and_two_cells_off_as_not() -> None:
-    from rgbdnav.commands.map import occupancy_iou
+    from rgbdnav.runners.map import occupancy_iou
 
     truth = np.zeros((10, 10), bool)
     truth[:, 5] = True
@@ -188,7 +188,7 @@ def test_occupancy_iou_counts_a_wall_one_cell_off_as_matching_and_two_cells_off_
 def test_aligned_floor_plan_score_separates_map_shape_from_map_placement() -> None:
     """A right-shaped map turned 3 deg about its start loses IoU at every far wall; scored
     after the alignment that maps it onto the world it matches again."""
-    from rgbdnav.commands.map import _true_surface, occupancy_iou
+    from rgbdnav.runners.map import _true_surface, occupancy_iou
     from sensors.sim.world import FloorPlan
     from slam.occupancy_grid import GridGeometry, OccupancyGrid
 

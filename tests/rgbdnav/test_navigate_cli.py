@@ -422,7 +422,7 @@ def test_the_navigator_believes_what_the_localiser_tracks(
 ) -> None:
     # Whether a far answer is a jump to take is the localiser's call (localizer.match_gate,
     # tested in tests/slam): the navigator does not second-guess a "tracking" answer.
-    import rgbdnav.commands.navigate as navigate_run
+    import rgbdnav.runners.navigate as navigate_run
 
     monkeypatch.setattr(navigate_run, "Localizer", _jumpy_localizer(8, 10_000))
     code, output, summary = _navigate(scene, tmp_path, "--goal-timeout", "3", "--goal", "3.0,1.0")
@@ -437,7 +437,7 @@ def test_a_lost_localiser_is_put_back_on_odometry_with_its_last_covariance(
 ) -> None:
     import dataclasses
 
-    import rgbdnav.commands.navigate as navigate_run
+    import rgbdnav.runners.navigate as navigate_run
     from slam.localization import Localizer
 
     seeds: list[np.ndarray | None] = []
@@ -504,7 +504,7 @@ def test_a_goal_settle_turns_in_place_and_drives_on_to_the_corrected_goal(
     # The estimate is 0.3 m ahead of the truth when the goal checker (0.1 m) says "reached".
     # With the navigate profile's settle the robot turns in place, the wide match puts the
     # estimate back on the truth, and the next control cycle drives the last 0.3 m.
-    import rgbdnav.commands.navigate as navigate_run
+    import rgbdnav.runners.navigate as navigate_run
 
     monkeypatch.setattr(navigate_run, "Localizer", _biased_localizer(0.3))
     spin = "6.0" if settle else "0.0"
@@ -539,7 +539,7 @@ def test_a_run_of_gated_matches_while_driving_settles_then_replans(
 ) -> None:
     # navigate.settle_on_gated_scans (15 in the navigate profile): a localiser whose matches the
     # gate has held back that long disagrees with its scans; the robot settles on the way.
-    import rgbdnav.commands.navigate as navigate_run
+    import rgbdnav.runners.navigate as navigate_run
     from slam.localization import Localizer
 
     class Contested(Localizer):
