@@ -14,14 +14,9 @@ Run: ``.venv/bin/python bench/bench_localization.py [--out docs/benchmarks.md] [
    reports ``tracking``. Success: within 0.2 m and 5 deg of the corrected pose; a tracked pose
    farther off is a false positive (confident and wrong); no fix within the scans is a miss.
    Seconds per relocalisation: wall time of the ``update`` calls from the start scan to the fix.
-4. **Kidnapped robot**: ``--kidnaps`` seeded teleports. A ``Localizer`` tracks from the true pose
-   ``KIDNAP_WARMUP`` scans before a random scan k; then the scan stream jumps to a random scan j at
-   least ``KIDNAP_MIN_PATH_M`` further along the path (either way) while the odometry continues
-   smoothly: its increments after the jump are those of the new stretch composed onto the
-   pre-jump odometry pose, and the stamps continue from the pre-jump stamp with the new stretch's
-   own periods (lost_time is in seconds). Counted per kidnapping, in scans after the jump (the
-   first is 1): when "lost" is declared, when it is recovered (tracking within 0.2 m and 5 deg),
-   and the scans before that reported as tracking at a wrong pose with confidence >= min_score.
+4. **Kidnapped robot**: ``--kidnaps`` seeded teleports while the odometry rolls on smoothly;
+   counted per kidnapping, in scans after the jump: when "lost" is declared, when it is recovered
+   (within 0.2 m and 5 deg) and the confident wrong poses before (docs/design/bench_localization.md).
 5. **Kidnapped robot, RGB-D** (``--no-rgbd`` skips it): the simulated house route, Kinect depth
    rendered with noise at poses that jump along the route while the wheel odometry rolls on,
    depth -> scan, localised against the world's floor plan (``tests/slam/rgbd_kidnap.py``).

@@ -3,67 +3,11 @@
 Wire protocol (115200 8N1). A command is ``<CMD>[ <hex>]...\\r``; every command is answered by
 exactly one line ending in ``\\r`` -- an empty line for commands that set something, hex fields
 separated by one space for queries, ``ERROR\\r`` on failure (``ERROR - <reason>\\r`` in verbose
-mode). Numbers are hex; signed values are two's complement at the field width below.
+mode). Numbers are hex; signed values are two's complement at their field width.
 
-=========  =====================================================  ==============================
-command    parameters (width on the wire, range)                  reply fields
-=========  =====================================================  ==============================
-GO         left, right power (8-bit signed, -127..127)            --
-GOSPD      left, right speed [positions/s] (16-bit signed)        --
-STOP       distance to stop in [positions] (0 = cut power now)    --
-TRVL       distance [positions] (16-bit signed), speed 1..127     --
-TURN       angle [deg] (16-bit signed), speed 1..127              --
-ACC        acceleration [positions/s^2] 0..511 (default 200)      --
-SPD        --                                                     left, right (4 digits, signed)
-HEAD       --                                                     heading [deg] (3 digits)
-DIST       --                                                     left, right (8 digits, signed)
-RST        -- (zero DIST and HEAD)                                --
-VER/HWVER  --                                                     version (4 digits)
-VERB       0 or 1                                                 --
-WATCH      kill-switch time [s] 0..26 (0 = off)                   --
-KILL       kill-switch time [ms] 0..26500 (OPP #8 port only)      --
-PING       --                                                     0..16 ranges (3 digits each)
-ADC        --                                                     8 channels (3 digits, 12-bit)
-IN/OUT     pin mask (32-bit): make pins inputs / outputs          --
-HIGH/LOW   pin mask (32-bit): drive pins high / low               --
-READ       --                                                     pin states (8 digits)
-=========  =====================================================  ==============================
-
-TRVL and TURN speeds are in positions/s; TURN is clockwise-positive.
-
-What was confirmed, and where:
-
-- Parser, reply formats and error strings: the Parallax firmware source ``Eddie.spin`` (v1.1 with
-  Tang's additions, github.com/robotictang/eddiebot_firmware). Every plain-text command gets one
-  reply line terminated by a lone CR (no prompt character, no LF); ``OutputHex(value, digits)``
-  prints exactly ``digits`` upper-case digits (DIST 8, SPD 4, HEAD 3, ADC 3 x 8, PING 3 per
-  sensor, VER/HWVER 4, READ 8). Parameters are hex (either case, at most 8 digits, separated by
-  spaces or tabs); GO sign-extends 8 bits (``~``), GOSPD/TRVL/TURN 16 bits (``~~``); TRVL/TURN
-  speed must be 1..127, ACC 0..511, VERB 0..1. Errors: ``ERROR`` plus, only when VERB 1,
-  `` - Invalid command``, `` - Invalid parameter``, `` - Too few parameters``,
-  `` - Too many parameters``, `` - Overflow`` (input over 254 bytes) or `` - Encoder error``.
-  Verbose mode changes nothing else (no echo). Velocity is in positions per second there: the
-  control loop runs at 50 Hz and adds ``velocity / 50`` per cycle; ACC limits that velocity's
-  change per second. HEAD is ``((L - R) mod positions-per-robot-turn) * 360 / that`` -- clockwise
-  positive -- and Spin's ``//`` keeps the sign of the dividend, so a board may print a negative
-  heading as 12-bit two's complement; :meth:`EddieBoard.heading` folds either form into 0..359.
-- Host-side reading of the same formats (fixed offsets 0-8/9-17 for DIST, 3-digit ADC and PING
-  fields, ``"\\r"`` as the acknowledgement of set commands, battery = last ADC channel /
-  819 counts/V * 3.21): the ROS driver github.com/arashsm79/eddiebot-ros (``eddie.cpp``,
-  ``eddie_adc.cpp``).
-- ACC: forums.parallax.com/discussion/143502 -- ``ACC 1FF`` accepted, ``ACC 200`` rejected with
-  "invalid parameter" on a board reporting ``VER`` = ``000C`` and ``HWVER`` = ``FFFF``.
-- WATCH: github.com/ddegn/EddieFirmware ``Eddie.spin`` (Open Propeller Project #8 port of the
-  Parallax firmware) -- WATCH takes *seconds* 0..0x1A, KILL takes milliseconds; the kill switch
-  stops the motors when no command parsed for that long (default 1 s there). PING replies in mm,
-  0 = no echo. The Parallax "Eddie Command Set" v1.2 (digikey datasheet page) was only readable up
-  to its table of contents: firmware 1.1 for the green position controllers, 1.3 for quadrature
-  encoders.
-
-Assumed, not confirmed: that firmware 1.3 keeps positions per *second* for GOSPD/SPD (the
-Arlo/Activity-Board port above measures them per half second -- check ``SPD`` against ``DIST``
-on a real board); the battery on ADC channel 7 with the 3.21 divider (a wiring choice of the ROS
-driver); 16 as the largest number of PING sensors (16 PING-able pins).
+The command table (widths, ranges, reply fields), the sources that confirm it (the firmware's
+``Eddie.spin``, the ROS driver, forum reports) and what is still assumed (GOSPD units on firmware
+1.3, the battery divider, the PING count) are in ``docs/design/eddie_board.md``.
 
 Threading: one lock serialises command/reply pairs, so concurrent callers never see each other's
 replies. Replies carry no command name, so after a timeout the next command first waits up to

@@ -1,6 +1,6 @@
 """A software Eddie control board: the firmware's command parser plus a motor model.
 
-The parser follows the Parallax firmware source (see :mod:`sensors.eddie` for sources): bytes
+The parser follows the Parallax firmware source (``docs/design/eddie_board.md``): bytes
 are buffered until CR, BS deletes, other control bytes stay in the buffer (so ``"\\r\\n"`` makes
 the *next* command invalid, as on the board), an empty line gets no reply, 255 bytes without CR
 is an overflow. The command word is case-insensitive; parameters are at most 8 hex digits
@@ -19,12 +19,10 @@ positions-per-turn derived from the track: a full turn in place makes ``L - R`` 
 ``kill_ms_command``, as the Open Propeller Project port has it) stops the wheels when no command
 parsed for that long. Time comes from ``time_source`` (default ``time.monotonic``);
 the model is integrated lazily when a command arrives or the state is read, so tests with a fake
-clock are deterministic.
-
-Transports: :meth:`EddieEmulator.serve_pty` (a raw pseudo-terminal, path for pyserial) and
-:meth:`EddieEmulator.serve_socket` (``socket://127.0.0.1:PORT``), each served by one thread.
-:meth:`EddieEmulator.inject` adds faults; :meth:`EddieEmulator.reconnect` restores a
-disconnected transport (same URL for sockets; a pty usually gets a new path).
+clock are deterministic. Transports, one thread each: :meth:`EddieEmulator.serve_pty` (a raw
+pseudo-terminal for pyserial) and :meth:`EddieEmulator.serve_socket` (``socket://127.0.0.1:PORT``);
+:meth:`EddieEmulator.inject` adds faults, :meth:`EddieEmulator.reconnect` restores a disconnected
+transport (same URL for sockets; a pty usually gets a new path).
 """
 
 from __future__ import annotations

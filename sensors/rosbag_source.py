@@ -8,33 +8,12 @@ Topics come from :class:`RosbagTopics`. When a *default* topic is absent, the un
 right message type is used instead and :meth:`RosbagSource.describe` says so; a topic the caller
 named explicitly is never substituted.
 
-=========== ============================================== =====================================
-role        message types                                  becomes
-=========== ============================================== =====================================
-rgb         sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8,   RgbdFrame.rgb (HxWx3 uint8, RGB)
-            mono8), sensor_msgs/CompressedImage (png/jpeg)
-depth       sensor_msgs/Image (16UC1/mono16 = mm,          RgbdFrame.depth_m (float32 m),
-            32FC1 = m), CompressedImage (16-bit png,       assumed registered to rgb
-            compressedDepth png)
-camera_info sensor_msgs/CameraInfo (K, width, height)      CameraIntrinsics
-odom        nav_msgs/Odometry                              PoseStream (x, y, yaw, twist, covs)
-imu         sensor_msgs/Imu                                ImuStream (angular_velocity.z)
-wheels      std_msgs/Int32MultiArray, Int64MultiArray      WheelStream, data = [left, right]
-            (data = [left, right] encoder counts), or      counts; JointState angles become
-            sensor_msgs/JointState (position = wheel       round(angle * ticks_per_revolution
-            angles [rad], joints named *left*/*right*,     / 2 pi), cumulative like the board's
-            else the first two)
-gps         sensor_msgs/NavSatFix (status >= 0, known   GpsStream (lat, lon, alt, sigma_h)
-            position_covariance)
-=========== ============================================== =====================================
-
-Stamps are ``header.stamp`` as integer nanoseconds; a zero header stamp falls back to the bag's
-receive time (counted as ``zero_header_stamp``), and headerless messages (the MultiArrays) use the
-receive time. rgb and depth are associated one-to-one like TUM's associate.py
-(:func:`sensors.recording.associate`, window ``SyncConfig.slop``). CameraInfo stamps further than
-``SyncConfig.camera_info_stamp_tolerance`` from every rgb stamp are replaced by the stamp of the rgb
-image received closest to them (counted as ``camera_info_stamp_fixed``). Without any CameraInfo the
-intrinsics come from :class:`~sensors.config.CameraConfig`.
+Roles and message types: rgb/depth (``sensor_msgs/Image``, ``CompressedImage``), camera_info,
+odom (``nav_msgs/Odometry``), imu, wheels (``Int32/Int64MultiArray`` counts or ``JointState``
+angles) and gps (``NavSatFix``). Stamps are ``header.stamp`` in integer nanoseconds (the receive
+time when a header is missing or zero, counted); rgb and depth are associated like TUM's
+associate.py (``SyncConfig.slop``). The encodings each role accepts, what it becomes and the
+stamp rules in full are in ``docs/design/rosbag_source.md``.
 
 Bad messages (unsupported encoding, undecodable data, rgb/depth size mismatch) are skipped with a
 warning naming the topic and counted in ``skipped`` by reason; with ``strict=True`` they raise

@@ -18,9 +18,8 @@ controller thread, ``live.control_rate``):
    progress, replans and runs Nav2's recovery round, and smooths the command. The live run's
    settings on top: ``live.waypoint_timeout`` is the goal timeout, ``live.replan_period`` the
    replanning period; a waypoint the navigator fails or refuses is skipped and counted.
-3. **Planner** on its own thread, like Nav2's planner server beside the controller server: the
-   navigator asks and polls; meanwhile it follows the old path (a periodic replan) or waits at
-   rest (a first plan, a replan after a blocked path or a recovery).
+3. **Planner** on its own thread, like Nav2's planner server: the navigator asks and polls; it
+   follows the old path meanwhile (periodic replan) or rests (first plan, blocked path, recovery).
 
 The caller puts the collision monitor after the smoother; it keeps the last word before the board.
 Nothing here blocks: behaviours are run one tick at a time, so the board always gets a command.

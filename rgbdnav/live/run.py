@@ -13,21 +13,16 @@ Threads, each with its own bounded queue, so a slow consumer can only lose its o
 4. **mapper** (or localiser): ``map -> odom``; the map bundle is checkpointed every
    ``live.checkpoint_period`` and on exit, atomically.
 5. **controller** at ``live.control_rate``: drives the route/goals (``--drive route``) on the
-   estimated pose, or holds still (``--drive idle``); GOSPD through the driver. With
-   ``live.route_driver: nav`` (the default) the waypoints are goals for the navigation stack
-   (:mod:`rgbdnav.live.nav`: costmap from the live map and depth scans, planner, regulated pure
-   pursuit, behaviours, velocity smoother); ``direct`` steers straight at them. The collision
-   monitor has the last word either way.
+   estimated pose, or holds still (``--drive idle``); GOSPD through the driver. The waypoints are
+   goals for the navigation stack (:mod:`rgbdnav.live.nav`; ``live.route_driver: nav``, the
+   default) or steered at straight (``direct``); the collision monitor has the last word.
 6. **visualiser**: rerun on its own thread; dropped first when the machine falls behind.
 
-Nothing grows with the run's length except the map itself: latency samples are a bounded
-reservoir, the odometry, SLAM and ground-truth trajectories are streamed to the run directory
-(``odom.tum``, ``trajectory.tum``, ``groundtruth.tum``) with thinned copies in memory for
-drawing (``live.stats_reservoir``, ``live.track_decimation``).
-
-SIGINT and SIGTERM end the run cleanly (motors stopped, final checkpoint, summary). After a
-``kill -9`` the last checkpoint in ``OUT/map`` is a complete bundle that ``map --continue`` and
-``localize --map`` load.
+Nothing grows with the run's length except the map: latency samples are a bounded reservoir,
+trajectories are streamed to ``odom.tum``, ``trajectory.tum``, ``groundtruth.tum`` with thinned
+copies in memory for drawing (``live.stats_reservoir``, ``live.track_decimation``).
+SIGINT and SIGTERM end the run cleanly (motors stopped, final checkpoint, summary); after a
+``kill -9`` the last checkpoint in ``OUT/map`` is a complete bundle for ``map --continue``.
 """
 
 from __future__ import annotations

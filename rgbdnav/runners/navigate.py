@@ -1,58 +1,23 @@
 """`rgbdnav navigate`: drive to goals on a saved map, closed loop in a 2D simulation.
 
 The robot lives in a simulator world (``sensors.sim.world``); the navigator only knows the map.
-Each simulation step, in simulated time (never wall time):
-
-1. At ``costmap.update_frequency`` a depth-camera scan (the camera's horizontal field of view
-   and depth range, one beam per ``SCAN_COLUMNS_PER_BEAM`` image columns, Kinect range noise
-   growing with z^2) is ray-cast against the world's floor plan at the true camera pose. With
-   ``localization="localizer"`` (the default) it goes to the localiser
-   (:class:`slam.localization.Localizer`, tracking against the map from the start pose it is
-   given) with the wheel-odometry pose, which gives ``T_map_odom``; the navigator's pose is
-   ``T_map_odom (+) odometry``. Whether a match far from the odometry prediction is believed
-   is the localiser's call (``localizer.match_gate``: a jump hypothesis, confirmed by
-   ``localizer.jump_confirm_scans`` agreeing matches and the recent scans stacked by odometry;
-   ``localizer.dead_reckoning_max_sigma``: failing matches dead-reckon on odometry before
-   "lost"). When the localiser does lose track the navigator puts it back on the odometry pose
-   with its last covariance (``set_initial_pose``, as an operator would) instead of letting
-   it search the whole map, since turning wheels mean the robot was not kidnapped -- or, with
-   ``navigate.global_relocalization``, turns in place until the global search settles. A goal
-   fails after ``relocalize_timeout`` without a believable answer. With ``"groundtruth"`` the
-   navigator is handed the true pose.
-   The scan then marks and clears the costmap's obstacle layer at the *estimated* pose, so
-   obstacles that are in the world but not in the map appear; the path ahead is re-checked.
-   With ``navigate.replan_frequency`` > 0 (Nav2's behaviour tree replans at 1 Hz) the path is
-   also planned again at that rate on the costmap as it now is, so that it keeps the
-   inflation's distance from what the camera has seen since (furniture moved since the map).
-2. The navigator (:class:`nav.navigator.Navigator`, the one ``rgbdnav live`` ticks in wall
-   time) is ticked with the estimate: it plans, follows at ``follower.controller_frequency``,
-   checks progress, replans (``navigate.max_replans``, ``navigate.replan_frequency``), runs
-   Nav2's recoveries and smooths the command; the goal's outcome and its reason come from it.
-   This simulation is its pose corrector: a **settle** (``navigate.goal_settle_spin`` > 0,
-   localizer mode) fuses one match of the settle turn's scans stacked by odometry
-   (:meth:`Localizer.match_recent`), at goals and after ``navigate.settle_on_gated_scans``
-   gated matches in a row; a narrow depth scan fits moved furniture confidently off, and the
-   walls all round outweigh one piece of furniture.
-3. At ``smoother.smoothing_frequency`` the smoothed command goes to the wheels as a ``GOSPD``
-   line through the Eddie board emulator; the true pose follows the wheels with diameter/track
-   errors and slip, and wheel odometry integrates the encoder counts (:mod:`sensors.sim.nav_drive`).
+Each simulation step, in simulated time (never wall time): a depth-camera scan is ray-cast
+against the world's floor plan at the true camera pose (one beam per ``SCAN_COLUMNS_PER_BEAM``
+image columns, Kinect range noise); the localiser (``localization="localizer"``, the default) or
+ground truth gives the navigator its pose; the scan marks and clears the costmap's obstacle layer;
+the navigator (:class:`nav.navigator.Navigator`, the one ``rgbdnav live`` ticks in wall time)
+plans, follows, checks progress, replans, recovers and smooths the command; the command goes to
+the wheels as ``GOSPD`` through the Eddie board emulator (:mod:`sensors.sim.nav_drive`). Why each
+step is as it is (the localiser's gates, settles, replanning on moved furniture) and the run
+directory's files are in ``docs/design/navigate_simulation.md``.
 
 A goal in a wall, a keepout zone, outside the map or unreachable is refused with a reason;
 after every goal (reached or not) the robot is brought to rest, then the waypoint task (a pause)
 runs. A collision is a step at which the true circular footprint (``costmap.robot_radius``)
 overlaps an occupied floor-plan cell; a keepout entry a step at which the true robot centre is
-in a keepout cell (the filter's semantics: the planner never puts the centre there). The run
-directory holds:
-
-``trajectory.tum``   the true base_link pose at every simulation step.
-``estimated.tum``    the navigator's base_link pose (localiser or ground truth) at every step.
-``commands.csv``     ``t_s,goal,status,cmd_v_mps,cmd_w_radps,smoothed_v_mps,smoothed_w_radps,
-                     gospd_left,gospd_right`` (GOSPD in encoder positions/s).
-``summary.json``     per-goal outcome with reason, collisions, keepout entries, localisation
-                     error, distance driven, simulated time, control-step cost.
-``map.png``          the map with each goal's first plan, the driven and the estimated path.
-``velocity.png``     commanded vs smoothed velocity and acceleration with the smoother's limits.
-``config.yaml``      the resolved configuration.
+in a keepout cell (the filter's semantics: the planner never puts the centre there).
+The run directory holds ``trajectory.tum`` (true pose), ``estimated.tum``, ``commands.csv``,
+``summary.json``, ``map.png``, ``velocity.png`` and ``config.yaml``.
 """
 
 from __future__ import annotations

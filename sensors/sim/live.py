@@ -18,9 +18,7 @@ Ground truth is streamed to a TUM file as it is made (``truth_path``), so a long
 growing list in memory.
 
 Frames cross the process boundary through a ring of shared-memory slots (:class:`_FrameRing`);
-the queue carries only the stamp, the slot and the true pose. Pickling 2.1 MB per frame through
-a pipe kept the host's camera thread holding the GIL 28 % of the time (py-spy, 30 Hz), time the
-front end waited for.
+the queue carries only the stamp, the slot and the true pose (why: ``docs/design/sim_live.md``).
 
 The serial port is a symlink (``port_link``) to the emulator's pty, as a udev rule gives a USB
 adapter a stable name; a drilled "board unplugged" closes the pty, and "replugged" serves a new
