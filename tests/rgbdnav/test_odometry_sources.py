@@ -4,15 +4,10 @@ camera poses) and a ROS 2 bag with only /odom + RGB-D + IMU (no wheel encoders) 
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
@@ -22,6 +17,7 @@ from sensors.tum import load_tum_trajectory, yaw_from_quaternion
 from slam.diff_drive import integrate_ticks, wheel_increments
 from slam.map_bundle import load_bundle
 from slam.metrics import drift_report
+from tests.bagtools import write_bag
 
 REPO = Path(__file__).resolve().parents[2]
 HOUSE = REPO / "scenes" / "house.yaml"
@@ -61,88 +57,8 @@ def test_odometry_of_a_handheld_tum_folder_writes_6dof_camera_poses_that_match_t
 # --- a ROS 2 bag with /odom (nav_msgs/Odometry) + RGB-D + IMU, no wheel encoders --------------
 
 
-class _Bag:
-    def __init__(self, writer: Any) -> None:
-        self.store = get_typestore(Stores.ROS2_HUMBLE)
-        self.writer = writer
-        self.conns: dict[str, Any] = {}
-
-    def write(self, topic: str, msgtype: str, t: int, msg: Any) -> None:
-        if topic not in self.conns:
-            self.conns[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store)
-        self.writer.write(self.conns[topic], t, self.store.serialize_cdr(msg, msgtype))
-
-    def header(self, t: int, frame_id: str) -> Any:
-        T = self.store.types
-        stamp = T["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9)
-        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
-
-    def image(self, t: int, encoding: str, pixels: np.ndarray) -> Any:
-        data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
-        h, w = pixels.shape[:2]
-        return self.store.types["sensor_msgs/msg/Image"](
-            header=self.header(t, "camera_rgb_optical_frame"),
-            height=h,
-            width=w,
-            encoding=encoding,
-            is_bigendian=0,
-            step=data.size // h,
-            data=data,
-        )
-
-    def camera_info(self, t: int, k: Any) -> Any:
-        T = self.store.types
-        kk = np.array([k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0])
-        return T["sensor_msgs/msg/CameraInfo"](
-            header=self.header(t, "camera_rgb_optical_frame"),
-            height=k.height,
-            width=k.width,
-            distortion_model="plumb_bob",
-            d=np.zeros(5),
-            k=kk,
-            r=np.eye(3).reshape(-1),
-            p=np.zeros(12),
-            binning_x=0,
-            binning_y=0,
-            roi=T["sensor_msgs/msg/RegionOfInterest"](
-                x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
-            ),
-        )
-
-    def odometry(self, t: int, pose: np.ndarray, twist: np.ndarray) -> Any:
-        """nav_msgs/Odometry as a base driver publishes it: pose and twist with covariance."""
-        T = self.store.types
-        vec = T["geometry_msgs/msg/Vector3"]
-        p = T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=pose[0], y=pose[1], z=0.0),
-            orientation=T["geometry_msgs/msg/Quaternion"](
-                x=0.0, y=0.0, z=math.sin(pose[2] / 2), w=math.cos(pose[2] / 2)
-            ),
-        )
-        tw = T["geometry_msgs/msg/Twist"](
-            linear=vec(x=twist[0], y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=twist[1])
-        )
-        pose_cov = np.diag([1e-4, 1e-4, 1e6, 1e6, 1e6, 1e-3]).reshape(-1)
-        twist_cov = np.diag([4e-4, 1e-4, 1e6, 1e6, 1e6, 4e-3]).reshape(-1)
-        return T["nav_msgs/msg/Odometry"](
-            header=self.header(t, "odom"),
-            child_frame_id="base_link",
-            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=pose_cov),
-            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=tw, covariance=twist_cov),
-        )
-
-    def imu(self, t: int, gyro_z: float) -> Any:
-        T = self.store.types
-        vec = T["geometry_msgs/msg/Vector3"]
-        return T["sensor_msgs/msg/Imu"](
-            header=self.header(t, "imu"),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-            orientation_covariance=np.zeros(9),
-            angular_velocity=vec(x=0.0, y=0.0, z=gyro_z),
-            angular_velocity_covariance=np.zeros(9),
-            linear_acceleration=vec(x=0.0, y=0.0, z=9.81),
-            linear_acceleration_covariance=np.zeros(9),
-        )
+POSE_COV = np.diag([1e-4, 1e-4, 1e6, 1e6, 1e6, 1e-3]).reshape(-1)  # what a base driver reports
+TWIST_COV = np.diag([4e-4, 1e-4, 1e6, 1e6, 1e6, 4e-3]).reshape(-1)
 
 
 def _bag_from_recording(recording: Path, bag_path: Path) -> None:
@@ -162,8 +78,7 @@ def _bag_from_recording(recording: Path, bag_path: Path) -> None:
     dt = np.diff(wheels.stamps_ns) / 1e9
     v, w = np.append(0.0, ds / dt), np.append(0.0, dth / dt)
     k = src.intrinsics()
-    with Writer2(bag_path, version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
-        bag = _Bag(writer)
+    with write_bag(bag_path, "db3") as bag:
         for f in src.frames():
             t = f.stamp_ns
             bag.write(
@@ -181,7 +96,7 @@ def _bag_from_recording(recording: Path, bag_path: Path) -> None:
                 "/odom",
                 "nav_msgs/msg/Odometry",
                 int(t),
-                bag.odometry(int(t), np.array([x[i], y[i], yaw[i]]), np.array([v[i], w[i]])),
+                bag.odometry(int(t), x[i], y[i], yaw[i], v[i], w[i], POSE_COV, TWIST_COV),
             )
         for t, g in zip(imu.stamps_ns, imu.gyro_z, strict=True):
             bag.write("/imu/data", "sensor_msgs/msg/Imu", int(t), bag.imu(int(t), float(g)))

@@ -5,7 +5,6 @@ nav2_params.yaml with RPP, velocity_smoother and collision_monitor) mapped onto 
 from __future__ import annotations
 
 import re
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,6 +14,7 @@ from rgbdnav.cli import app
 from rgbdnav.config import load_config
 from rgbdnav.ros_params import format_table, load_ros_params
 from sensors.types import ConfigError
+from tests.bagtools import MS, T0, write_bag
 
 HERE = Path(__file__).resolve().parent
 PARAMS = HERE / "ros_params"
@@ -23,8 +23,6 @@ EKF, SLAM, NAV2 = (
     PARAMS / "mapper_params_online_async.yaml",
     PARAMS / "nav2_params.yaml",
 )
-sys.path.insert(0, str(HERE.parent / "sensors"))
-from test_rosbag_source import MS, T0, write_bag  # noqa: E402
 
 
 def reasons(rows, node):

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -12,9 +9,7 @@ from sensors.geo import GeoAnchor
 from sensors.gps import GpsStream, SimGpsConfig, read_gps_txt, simulate_gps, write_gps_txt
 from sensors.source import open_source
 from sensors.types import NS_PER_S, SensorError
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_rosbag_source import KINDS, MS, T0, bag_path, write_bag  # noqa: E402
+from tests.bagtools import KINDS, MS, T0, bag_path, write_bag
 
 ANCHOR = GeoAnchor(44.98, -93.27, 256.0, 0.0)
 

@@ -19,13 +19,13 @@ import numpy as np
 import pytest
 from rosbags.typesys import get_types_from_msg
 from scipy.spatial.transform import Rotation
-from test_rosbag_source import MS, T0, Bag, frame_pixels, write_bag
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
 from rgbdnav.config import camera_mount, load_config, source_options
 from sensors.source import open_source
 from sensors.types import SensorError
+from tests.bagtools import MS, T0, Bag, frame_pixels, write_bag
 
 FRAMES = 3
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
