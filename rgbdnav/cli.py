@@ -7,11 +7,13 @@ Heavy modules (Open3D, OpenCV, GTSAM) are imported inside the commands that need
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
 import math
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -263,6 +265,60 @@ def _setup_logging(verbose: bool, quiet: bool = False) -> None:
     )
 
 
+@dataclass(frozen=True)
+class Shared:
+    """The options verbs share, resolved once by :func:`_shared_options`."""
+
+    config: list[Path]  # --config files, in order
+    overrides: list[str]  # --ros-params, then --*-topic, then --set: section.key=value texts
+    quiet: bool
+
+
+_TOPIC_OPTS = {
+    "rgb_topic": RgbTopicOpt,
+    "depth_topic": DepthTopicOpt,
+    "info_topic": InfoTopicOpt,
+    "odom_topic": OdomTopicOpt,
+    "imu_topic": ImuTopicOpt,
+}
+
+
+def _shared_options(*, config: bool = True, ros_params: bool = True, topics: bool = False) -> Any:
+    """Give a verb the options verbs share, defined once: --config/--set, --ros-params, the
+    --*-topic flags (each group on request), --quiet and --verbose. They are added to the verb's
+    signature (where typer reads options), resolved (logging set up, overrides merged) and handed
+    to the verb as one ``shared: Shared``."""
+    extra: list[tuple[str, Any, Any]] = []
+    if config:
+        extra += [("config", ConfigOpt, None), ("set_", SetOpt, None)]
+    if ros_params:
+        extra.append(("ros_params", RosParamsOpt, None))
+    if topics:
+        extra += [(name, opt, None) for name, opt in _TOPIC_OPTS.items()]
+    extra += [("quiet", QuietOpt, False), ("verbose", VerboseOpt, False)]
+
+    def decorate(fn: Any) -> Any:
+        @functools.wraps(fn)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            given = {name: kwargs.pop(name) for name, _, _ in extra}
+            flags = _topic_flags(*(given[name] for name in _TOPIC_OPTS)) if topics else None
+            overrides = _settings(given.get("set_"), given.get("ros_params"), flags)
+            _setup_logging(given["verbose"], given["quiet"])
+            shared = Shared(list(given.get("config") or []), overrides, given["quiet"])
+            return fn(*args, shared=shared, **kwargs)
+
+        signature = inspect.signature(fn, eval_str=True)
+        own = [p for p in signature.parameters.values() if p.name != "shared"]
+        added = [
+            inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=opt)
+            for name, opt, default in extra
+        ]
+        wrapper.__signature__ = signature.replace(parameters=own + added)  # type: ignore[attr-defined]
+        return wrapper
+
+    return decorate
+
+
 class _Progress:
     """A rich progress bar, or nothing with --quiet."""
 
@@ -326,6 +382,7 @@ def _echo_outputs(outputs: dict[str, Path]) -> None:
 
 @app.command()
 @_known_errors
+@_shared_options(topics=True)
 def info(
     source_text: Annotated[
         str,
@@ -335,22 +392,10 @@ def info(
             "(realsense://, freenect://, openni://).",
         ),
     ],
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    ros_params: RosParamsOpt = None,
-    rgb_topic: RgbTopicOpt = None,
-    depth_topic: DepthTopicOpt = None,
-    info_topic: InfoTopicOpt = None,
-    odom_topic: OdomTopicOpt = None,
-    imu_topic: ImuTopicOpt = None,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Say what a recording, log, bag or world holds: streams, counts, rates, duration, gaps."""
-    set_ = _settings(
-        set_, ros_params, _topic_flags(rgb_topic, depth_topic, info_topic, odom_topic, imu_topic)
-    )
-    _setup_logging(verbose, quiet)
     source = Path(source_text)
     if _is_world(source):
         from sensors.sim.world import load_world
@@ -372,7 +417,7 @@ def info(
     from sensors.source import open_source
     from sensors.stream_stats import describe_source, format_stats_table
 
-    cfg = load_config(config or [], set_ or [])
+    cfg = load_config(shared.config, shared.overrides)
     src = open_source(source_text, source_options(cfg, require_topics=False))
     try:
         typer.echo(f"{source_text}: {src.describe()}")
@@ -381,7 +426,7 @@ def info(
             from rgbdnav.config import camera_mount
 
             try:
-                _, mount = camera_mount(src, config or [], set_)
+                _, mount = camera_mount(src, shared.config, shared.overrides)
             except RgbdNavError as err:  # info describes; the commands refuse
                 mount = {"source": "config", "note": f"tf_static not usable: {err}"}
             shown = ", ".join(f"{k}={v:g}" for k, v in mount.items() if k.startswith("camera_"))
@@ -397,6 +442,7 @@ def info(
 
 @app.command()
 @_known_errors
+@_shared_options()
 def simulate(
     world: Annotated[Path, typer.Argument(help="World YAML (see scenes/).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Recording folder to write.")],
@@ -407,15 +453,10 @@ def simulate(
         Path | None,
         typer.Option(help="Replay this TUM trajectory (z up, planar) instead of the route."),
     ] = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    ros_params: RosParamsOpt = None,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Render a Kinect + wheel-encoder recording of a robot driving through a world."""
-    set_ = _settings(set_, ros_params)
-    _setup_logging(verbose, quiet)
     from rgbdnav.config import load_config
     from rgbdnav.run_dir import RunDir
     from sensors.sim.simulator import simulate as run_simulation
@@ -426,9 +467,9 @@ def simulate(
         raise RgbdNavError(f"--frames must be >= 1, got {frames}")
     if not world.is_file():
         raise RgbdNavError(f"{world}: no such world file")
-    cfg = load_config(config or [], set_ or [])
+    cfg = load_config(shared.config, shared.overrides)
     t0 = time.perf_counter()
-    with _Progress(f"rendering {world.stem}", quiet) as progress:
+    with _Progress(f"rendering {world.stem}", shared.quiet) as progress:
         summary = run_simulation(
             world,
             out,
@@ -460,40 +501,31 @@ def simulate(
 
 @app.command()
 @_known_errors
+@_shared_options(topics=True)
 def odometry(
     ctx: typer.Context,
     source: SourceArg,
     out: OutOpt,
     seed: WorldSeedOpt = 0,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    ros_params: RosParamsOpt = None,
-    rgb_topic: RgbTopicOpt = None,
-    depth_topic: DepthTopicOpt = None,
-    info_topic: InfoTopicOpt = None,
-    odom_topic: OdomTopicOpt = None,
-    imu_topic: ImuTopicOpt = None,
     vo: Annotated[bool, typer.Option(help="Run visual odometry on the RGB-D frames.")] = True,
     force_3dof: Force3DofOpt = False,
     fmt: FormatOpt = "tum",
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Wheel, visual and fused (EKF) odometry of a source, with drift against ground truth."""
-    set_ = _settings(
-        set_, ros_params, _topic_flags(rgb_topic, depth_topic, info_topic, odom_topic, imu_topic)
-    )
-    _setup_logging(verbose, quiet)
     _check_format(fmt)
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.odometry import run_odometry
     from rgbdnav.config import load_config
 
-    cfg = load_config(config or [], set_ or [])
-    recording = _recording_for(source, cfg, seed, quiet)
-    with _Progress("visual odometry", quiet or not vo) as progress:
-        outputs = run_odometry(recording, out, config or [], set_ or [], vo, progress, force_3dof)
+    cfg = load_config(shared.config, shared.overrides)
+    recording = _recording_for(source, cfg, seed, shared.quiet)
+    with _Progress("visual odometry", shared.quiet or not vo) as progress:
+        outputs = run_odometry(
+            recording, out, shared.config, shared.overrides, vo, progress, force_3dof
+        )
     _echo_source(source, recording)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
@@ -501,6 +533,7 @@ def odometry(
 
 @app.command("map")
 @_known_errors
+@_shared_options(topics=True)
 def map_(
     ctx: typer.Context,
     source: SourceArg,
@@ -512,35 +545,31 @@ def map_(
     seed: WorldSeedOpt = 0,
     rrd: RrdOpt = None,
     viewer: ViewerOpt = False,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    ros_params: RosParamsOpt = None,
-    rgb_topic: RgbTopicOpt = None,
-    depth_topic: DepthTopicOpt = None,
-    info_topic: InfoTopicOpt = None,
-    odom_topic: OdomTopicOpt = None,
-    imu_topic: ImuTopicOpt = None,
     force_3dof: Force3DofOpt = False,
     fmt: FormatOpt = "tum",
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Pose-graph SLAM: trajectory, occupancy grid and a map bundle (Nav2 PGM/YAML + graph)."""
-    set_ = _settings(
-        set_, ros_params, _topic_flags(rgb_topic, depth_topic, info_topic, odom_topic, imu_topic)
-    )
-    _setup_logging(verbose, quiet)
     _check_format(fmt)
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.config import load_config
     from rgbdnav.runners.map import run_map
 
-    cfg = load_config(config or [], set_ or [])
-    recording = _recording_for(source, cfg, seed, quiet)
-    with _Progress("mapping", quiet) as progress:
+    cfg = load_config(shared.config, shared.overrides)
+    recording = _recording_for(source, cfg, seed, shared.quiet)
+    with _Progress("mapping", shared.quiet) as progress:
         outputs = run_map(
-            recording, out, config or [], set_ or [], progress, continue_, rrd, viewer, force_3dof
+            recording,
+            out,
+            shared.config,
+            shared.overrides,
+            progress,
+            continue_,
+            rrd,
+            viewer,
+            force_3dof,
         )
     _echo_source(source, recording)
     _echo_outputs(outputs)
@@ -549,6 +578,7 @@ def map_(
 
 @app.command()
 @_known_errors
+@_shared_options(topics=True)
 def localize(
     ctx: typer.Context,
     source: SourceArg,
@@ -565,14 +595,6 @@ def localize(
     seed: WorldSeedOpt = 0,
     rrd: RrdOpt = None,
     viewer: ViewerOpt = False,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    ros_params: RosParamsOpt = None,
-    rgb_topic: RgbTopicOpt = None,
-    depth_topic: DepthTopicOpt = None,
-    info_topic: InfoTopicOpt = None,
-    odom_topic: OdomTopicOpt = None,
-    imu_topic: ImuTopicOpt = None,
     force_3dof: Force3DofOpt = False,
     fmt: FormatOpt = "tum",
     gps: Annotated[
@@ -582,14 +604,10 @@ def localize(
             "the map needs a geo.yaml. Default: the source's own NavSatFix/gps.txt."
         ),
     ] = None,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Localise against a saved map (no mapping): trajectory, per-scan status and confidence."""
-    set_ = _settings(
-        set_, ros_params, _topic_flags(rgb_topic, depth_topic, info_topic, odom_topic, imu_topic)
-    )
-    _setup_logging(verbose, quiet)
     _check_format(fmt)
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
@@ -599,15 +617,15 @@ def localize(
 
     if _is_world(source):
         load_map(map_)  # refuse a bad map before spending minutes rendering the world
-    cfg = load_config(config or [], set_ or [])
-    recording = _recording_for(source, cfg, seed, quiet)
-    with _Progress("localising", quiet) as progress:
+    cfg = load_config(shared.config, shared.overrides)
+    recording = _recording_for(source, cfg, seed, shared.quiet)
+    with _Progress("localising", shared.quiet) as progress:
         outputs, summary = run_localize(
             recording,
             map_,
             out,
-            config or [],
-            set_ or [],
+            shared.config,
+            shared.overrides,
             initial_pose,
             progress,
             rrd,
@@ -624,6 +642,7 @@ def localize(
 # Extra args: the Y of the deprecated `--goal X Y` form (see parse_goals).
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 @_known_errors
+@_shared_options()
 def navigate(
     ctx: typer.Context,
     map_: MapOpt,
@@ -659,12 +678,9 @@ def navigate(
     goal_: GoalOpt = None,
     rrd: RrdOpt = None,
     viewer: ViewerOpt = False,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
     fmt: FormatOpt = "tum",
-    ros_params: RosParamsOpt = None,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Drive to goals on a saved map in a simulated world (localiser or ground truth).
 
@@ -672,20 +688,18 @@ def navigate(
     status is 3 when a goal was not reached. --localization, --goal-timeout, --max-replans and
     --waypoint-pause override the navigate settings (nav.config.NavigateConfig).
     """
-    set_ = _settings(set_, ros_params)
-    _setup_logging(verbose, quiet)
     _check_format(fmt)
     from rgbdnav.runners.navigate import describe, run_navigate
 
     goal = parse_goals(goal_ or [], ctx.args)
-    with _Progress("navigating", quiet) as progress:
+    with _Progress("navigating", shared.quiet) as progress:
         outputs, summary = run_navigate(
             map_,
             goal,
             sim,
             out,
-            config or [],
-            set_ or [],
+            shared.config,
+            shared.overrides,
             start,
             keepout,
             goal_timeout,
@@ -711,6 +725,7 @@ def navigate(
 
 @app.command()
 @_known_errors
+@_shared_options()
 def live(
     ctx: typer.Context,
     out: OutOpt,
@@ -814,16 +829,11 @@ def live(
             help="The simulated robot's true start in the world (default: the world's start).",
         ),
     ] = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
     fmt: FormatOpt = "tum",
-    ros_params: RosParamsOpt = None,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """The live run on the robot (or the simulated robot): map, or localise with --map."""
-    set_ = _settings(set_, ros_params)
-    _setup_logging(verbose, quiet)
     _check_format(fmt)
     from rgbdnav.live.run import Drill, LiveOptions, run_live
 
@@ -844,8 +854,8 @@ def live(
         camera=camera,
         board=board,
         world=world,
-        config_files=config or [],
-        overrides=set_ or [],
+        config_files=shared.config,
+        overrides=shared.overrides,
         map_bundle=map_,
         duration_s=duration,
         drive=drive,
@@ -889,16 +899,16 @@ def live(
 
 @app.command("world-view")
 @_known_errors
+@_shared_options(config=False, ros_params=False)
 def world_view(
     runs: Annotated[
         list[Path], typer.Argument(help="Robot run folders (live --robot), or folders of them.")
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="Picture to write (PNG).")],
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Every robot's own map and path in the world frame, in one picture."""
-    _setup_logging(verbose, quiet)
     from rgbdnav.live.world_view import robot_runs
     from rgbdnav.live.world_view import world_view as draw
 
@@ -914,6 +924,7 @@ def world_view(
 
 @app.command()
 @_known_errors
+@_shared_options()
 def board(
     port: Annotated[
         str | None,
@@ -933,20 +944,15 @@ def board(
     test_drive: Annotated[
         bool, typer.Option(help="Drive forward at 0.1 m/s for 1 s and measure it. Lift the robot!")
     ] = False,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    ros_params: RosParamsOpt = None,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Check a motor board: which board, firmware, battery, odometry, round-trip time."""
-    set_ = _settings(set_, ros_params)
-    _setup_logging(verbose, quiet)
     from rgbdnav.commands.board import check_board
     from rgbdnav.config import load_config
     from sensors.boards import open_board
 
-    cfg = load_config(config or [], set_ or [])
+    cfg = load_config(shared.config, shared.overrides)
     spec = f"emulator:{port or 'eddie'}" if emulator else (port or cfg.board.port)
     with open_board(spec, cfg) as motor_board:
         report = check_board(motor_board, spec, test_drive)
@@ -955,6 +961,7 @@ def board(
 
 @app.command("eval")
 @_known_errors
+@_shared_options()
 def eval_(
     ctx: typer.Context,
     trajectory: Annotated[
@@ -999,17 +1006,12 @@ def eval_(
     delta_unit: Annotated[
         str, typer.Option(help="Unit of --delta: m (along the reference) or frames.")
     ] = "m",
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    ros_params: RosParamsOpt = None,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Score a trajectory against a reference: ATE and RPE (TUM RGB-D benchmark / evo method),
     or against reference relations (Kümmerle et al. 2009). Prints the result; --out also
     writes it."""
-    set_ = _settings(set_, ros_params)
-    _setup_logging(verbose, quiet)
     from rgbdnav.runners.eval import (
         format_relations_report,
         format_report,
@@ -1033,8 +1035,8 @@ def eval_(
             relations,
             out,
             max_diff_s=max_diff,
-            config_files=config or [],
-            overrides=set_ or [],
+            config_files=shared.config,
+            overrides=shared.overrides,
             estimate_times=times,
         )
         typer.echo(format_relations_report(summary))
@@ -1051,8 +1053,8 @@ def eval_(
         max_diff_s=max_diff,
         delta=delta,
         delta_unit=delta_unit,
-        config_files=config or [],
-        overrides=set_ or [],
+        config_files=shared.config,
+        overrides=shared.overrides,
         estimate_times=times,
         reference_times=reference_times,
     )
@@ -1063,6 +1065,7 @@ def eval_(
 
 @app.command("export")
 @_known_errors
+@_shared_options(config=False, ros_params=False)
 def export(
     run: Annotated[Path, typer.Argument(metavar="RUN_DIR", help="A run folder (map, live, ...).")],
     to: Annotated[str, typer.Option("--to", help="Output format: mcap (rosbag2 folder).")],
@@ -1071,16 +1074,15 @@ def export(
         typer.Option("--out", "-o", help="Bag folder to write (default RUN_DIR/rosbag2)."),
     ] = None,
     images: Annotated[bool, typer.Option(help="Include the run's colour and depth images.")] = True,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """A run as a rosbag2/MCAP folder (/tf, /tf_static, /map, /scan, /odom, Path, images) for
     Foxglove or `ros2 bag play` into RViz."""
-    _setup_logging(verbose, quiet)
     from rgbdnav.commands.export import run_export
 
     result = run_export(run, to, out, images)
-    if not quiet:
+    if not shared.quiet:
         for topic, n in result["counts"].items():
             typer.echo(f"{topic:<42} {n} messages")
     typer.echo(f"bag         {result['out']}")
@@ -1088,6 +1090,7 @@ def export(
 
 @app.command()
 @_known_errors
+@_shared_options(ros_params=False)
 def batch(
     verb: Annotated[str, typer.Argument(help="map, localize or eval: the verb run per source.")],
     sources: Annotated[
@@ -1115,22 +1118,19 @@ def batch(
     ] = None,
     align: Annotated[str, typer.Option(help="eval --reference: se3, sim3, se2, none.")] = "se3",
     seed: WorldSeedOpt = 0,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
     force_3dof: Force3DofOpt = False,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Run map, localize or eval on many sources at once on Dask: one task per source, a report
     per source (accuracy, time, memory); finished sources are skipped on a rerun."""
-    _setup_logging(verbose, quiet)
     from rgbdnav.commands.batch import BatchOptions, accuracy_text, run_batch
 
     opts = BatchOptions(
         verb=verb,
         out=out,
-        config_files=tuple(config or []),
-        overrides=tuple(set_ or []),
+        config_files=tuple(shared.config),
+        overrides=tuple(shared.overrides),
         map_bundle=map_,
         reference=reference,
         relations=relations,
@@ -1159,15 +1159,15 @@ app.add_typer(fleet_app, name="fleet")
 
 @fleet_app.command("show")
 @_known_errors
+@_shared_options(config=False, ros_params=False)
 def fleet_show(
     fleet_file: Annotated[Path, typer.Argument(help="Fleet file (fleet.yaml).")],
     out: OutOpt,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """One picture of every robot's map and keepout mask in the world frame, and a rerun
     recording."""
-    _setup_logging(verbose, quiet)
     from rgbdnav.commands.fleet import run_show
 
     _echo_outputs(run_show(fleet_file, out))
@@ -1175,16 +1175,16 @@ def fleet_show(
 
 @fleet_app.command("align")
 @_known_errors
+@_shared_options(config=False, ros_params=False)
 def fleet_align(
     map_a: Annotated[Path, typer.Argument(help="Map A: bundle folder or map.yaml.")],
     map_b: Annotated[Path, typer.Argument(help="Map B, to place in A's frame.")],
     out: OutOpt,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Where B's map frame sits in A's, found without a guess; exit 1 when the maps do not
     overlap."""
-    _setup_logging(verbose, quiet)
     from rgbdnav.commands.fleet import run_align
     from slam.map_align import AlignConfig
 
@@ -1200,6 +1200,7 @@ def fleet_align(
 
 @app.command()
 @_known_errors
+@_shared_options(config=False, ros_params=False)
 def geo(
     map_: Annotated[Path, typer.Argument(help="Map bundle (with geo.yaml) or a geo.yaml.")],
     latlon: Annotated[
@@ -1210,11 +1211,10 @@ def geo(
         tuple[float, float] | None,
         typer.Option("--xy", metavar="X Y", help="Map x y [m] to WGS84 lat lon."),
     ] = None,
-    quiet: QuietOpt = False,
-    verbose: VerboseOpt = False,
+    *,
+    shared: Shared,
 ) -> None:
     """Convert between a map's x/y and WGS84 latitude/longitude through its geo anchor."""
-    _setup_logging(verbose, quiet)
     from sensors.geo import geo_anchor_of
 
     if (latlon is None) == (xy is None):
