@@ -16,8 +16,10 @@ same way, so the live run cannot tell it from a camera. Offline, a recording pla
 read (``set_real_time(False)``) with its recorded clock, and a camera's ``global_time`` stamps
 (librealsense's default on D400s: host wall time) are kept.
 
-The D435i/D455 gyro (200 Hz) is the IMU: ``imu()`` of a recording holding a gyro stream yields the
-yaw rate, -gyro_y (the IMU frame is x right, y down, z forward; a level camera's yaw is about -y).
+The D435i/D455 gyro is the IMU (yaw rate -gyro_y: the IMU frame is x right, y down, z forward).
+Offline, ``imu()`` reads a recording's gyro stream in a second pass. Live, the motion sensor (if the
+device has one; D415/D435 have none) streams beside the pipeline into :meth:`take_imu`, stamped as
+the frames: a recording played as the camera goes through the same code.
 
 Installing: ``pip install 'rgbdnav[realsense]'``; for a non-root user on Linux, librealsense's udev
 rules (``99-realsense-libusb.rules``) must be installed, see docs/guide.md.
@@ -30,6 +32,7 @@ import itertools
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +44,8 @@ import numpy as np
 from sensors.config import SyncConfig
 from sensors.source import ImuStream, SourceBase, SourceOptions
 from sensors.types import CameraIntrinsics, RgbdFrame, SensorError, seconds_to_ns
+
+GYRO_FPS = 200  # [Hz] the D435i/D455 gyro rate taken when the motion sensor offers several
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +121,21 @@ def _describe_extrinsics(rotation: Sequence[float], translation: Sequence[float]
     return f"translation ({t}) mm, rotation {angle:.2f} deg"
 
 
+def yaw_rate(motion: Any) -> float:
+    """A gyro motion frame's yaw rate [rad/s] about "up": -gyro_y (the IMU's y points down)."""
+    return -float(motion.get_motion_data().y)
+
+
+def gyro_sensor(rs: ModuleType, device: Any) -> tuple[Any, Any] | None:
+    """(motion sensor, gyro profile) of a D435i/D455 or a recording holding a gyro; None for a
+    device without a motion module (D415/D435) or a recording without a gyro stream."""
+    for sensor in device.query_sensors():
+        gyros = [p for p in sensor.get_stream_profiles() if p.stream_type() == rs.stream.gyro]
+        if gyros:
+            return sensor, min(gyros, key=lambda p: abs(p.fps() - GYRO_FPS))
+    return None
+
+
 _UNREAD = object()  # RealSenseSource's gyro before it is read
 
 
@@ -146,6 +166,11 @@ class RealSenseSource(SourceBase):
         self.stamp_offset_ns = 0
         self._gyro: ImuStream | None | object = _UNREAD  # imu(): read once
         device = profile.get_device()
+        # Live (realtime): the gyro streams into _gyro_samples as (device stamp [ns], yaw rate).
+        self._gyro_samples: deque[tuple[int, float]] = deque()
+        self._gyro_sensor: Any = None
+        gyro = gyro_sensor(rs, device)
+        self.gyro_fps = int(gyro[1].fps()) if gyro is not None else 0  # [Hz] 0: no IMU
         self.device_name = _info(rs, device, "name")
         self.serial = _info(rs, device, "serial_number")
         self._playback = device.as_playback() if target.file is not None else None
@@ -183,6 +208,21 @@ class RealSenseSource(SourceBase):
             "depth_units": f"{where}'s {self.depth_units_from}",
             "extrinsics": f"{where}'s depth-to-colour calibration",
         }
+        self.gyro_streams = realtime and gyro is not None  # take_imu() delivers it
+        if self.gyro_streams:
+            assert gyro is not None
+            sensor, gyro_profile = gyro
+            sensor.open(gyro_profile)
+            self._gyro_sensor = sensor
+            sensor.start(self._on_gyro)
+
+    @property
+    def imu_note(self) -> str:
+        """The IMU in one phrase, for ``info`` and the live summary."""
+        if self.gyro_fps:
+            return f"gyro {self.gyro_fps} Hz as imu0"
+        what = "recording has no gyro stream" if self.target.file else "camera has no motion module"
+        return f"no IMU (the {what})"
 
     # --- opening ------------------------------------------------------------------------------
 
@@ -230,8 +270,6 @@ class RealSenseSource(SourceBase):
             width, height, fps = LIVE_MODE
             config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
             config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
-        # Played in real time the recording runs from its start: its gyro is read before.
-        gyro = read_gyro(rs, target.file) if target.file is not None and realtime else None
         pipeline = rs.pipeline()
         try:
             profile = pipeline.start(config)
@@ -254,8 +292,6 @@ class RealSenseSource(SourceBase):
                 clock=clock,
                 max_difference_ns=max_difference_ns,
             )
-            if target.file is not None and realtime:
-                src._gyro = gyro
             return src
         except SensorError:
             pipeline.stop()  # e.g. a stream format rgbdnav does not read
@@ -282,6 +318,10 @@ class RealSenseSource(SourceBase):
         return serial
 
     def close(self) -> None:
+        if self._gyro_sensor is not None:
+            sensor, self._gyro_sensor = self._gyro_sensor, None
+            sensor.stop()
+            sensor.close()
         if self._pipeline is not None:
             pipeline, self._pipeline = self._pipeline, None
             pipeline.stop()
@@ -300,7 +340,7 @@ class RealSenseSource(SourceBase):
             f"fy={k.fy:.1f} cx={k.cx:g} cy={k.cy:g} from {self.origins['intrinsics']}; "
             f"depth units {self.depth_units * 1000.0:g} mm from {self.origins['depth_units']}; "
             f"depth-to-colour extrinsics {_describe_extrinsics(*self.extrinsics)} from "
-            f"{self.origins['extrinsics']}"
+            f"{self.origins['extrinsics']}; {self.imu_note}"
         )
 
     def stream_stamps(self) -> dict[str, np.ndarray]:
@@ -367,10 +407,23 @@ class RealSenseSource(SourceBase):
         gap_ms = abs(colour.get_timestamp() - depth.get_timestamp())
         return "unpaired_color" if gap_ms * NS_PER_MS > self._max_difference_ns else ""
 
+    def _on_gyro(self, frame: Any) -> None:
+        """librealsense's thread: one gyro sample (a deque append is thread-safe)."""
+        motion = frame.as_motion_frame()
+        if motion:
+            self._gyro_samples.append((round(motion.get_timestamp() * NS_PER_MS), yaw_rate(motion)))
+
+    def take_imu(self) -> ImuStream:
+        """Live: the gyro samples (yaw rates) that arrived since the last call, on the device
+        clock (``stamp_offset_ns`` moves them onto the frames'), as the camera delivers them."""
+        got = [self._gyro_samples.popleft() for _ in range(len(self._gyro_samples))]
+        stamps = np.array([t for t, _ in got], dtype=np.int64)
+        return ImuStream(stamps, np.array([r for _, r in got], dtype=np.float64))
+
     def imu(self) -> ImuStream | None:
-        """A recording's gyro as yaw rate (-gyro_y), read in a second pass, once (played in real
-        time: at opening, before the frames start playing); None without one."""
-        if self.target.file is None:
+        """A recording's gyro as yaw rate, read in a second pass, once; None without one, and
+        live (the gyro streams: :meth:`take_imu`)."""
+        if self.target.file is None or self.gyro_streams:
             return None
         if self._gyro is _UNREAD:
             self._gyro = read_gyro(self._rs, self.target.file)
@@ -399,7 +452,7 @@ def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:
                 motion = frame.as_motion_frame()
                 if motion:
                     stamps.append(round(motion.get_timestamp() * NS_PER_MS))
-                    rates.append(-float(motion.get_motion_data().y))
+                    rates.append(yaw_rate(motion))
     finally:
         pipeline.stop()
     if not stamps:
@@ -473,11 +526,16 @@ def write_sdk_recording(
     count, t0_ns, wall0 = 0, first.stamp_ns, time.monotonic()
     n_gyro = 0
 
+    def wait_until(stamp_ns: int) -> None:
+        if pace:
+            time.sleep(max(0.0, (stamp_ns - t0_ns) / 1e9 - (time.monotonic() - wall0)))
+
     def send_gyro(until_ns: float) -> None:
         nonlocal n_gyro
         while (
             gyro is not None and n_gyro < len(gyro.stamps_ns) and gyro.stamps_ns[n_gyro] <= until_ns
         ):
+            wait_until(int(gyro.stamps_ns[n_gyro]))  # a burst would be lost in real-time playback
             f = rs.software_motion_frame()
             v = rs.vector()
             v.x, v.y, v.z = 0.0, -float(gyro.gyro_z[n_gyro]), 0.0
@@ -489,9 +547,8 @@ def write_sdk_recording(
 
     try:
         for frame in itertools.chain((first,), frames):
-            if pace:
-                time.sleep(max(0.0, (frame.stamp_ns - t0_ns) / 1e9 - (time.monotonic() - wall0)))
             send_gyro(frame.stamp_ns)
+            wait_until(frame.stamp_ns)
             counts = np.round(np.nan_to_num(frame.depth_m, nan=0.0) / depth_units)
             pixels = {
                 "Depth": np.clip(counts, 0, 65535).astype(np.uint16),

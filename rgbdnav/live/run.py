@@ -449,12 +449,14 @@ class LiveRun:
         :class:`slam.front_end.FrontEnd` the offline commands drive); its scan and pose go to
         the mapper, the collision monitor and the navigator."""
         cfg = self.cfg
-        # The camera's gyro (a RealSense recording with one played as the camera) is imu0.
+        # The camera's gyro is imu0: a D435i/D455's (or a recording's played as the camera)
+        # streams as it comes (take_imu); another source's is read whole.
         src = self.camera_src
-        gyro = src.imu() if src is not None else None
+        streams = bool(getattr(src, "gyro_streams", False))
+        gyro = src.imu() if src is not None and not streams else None
         opts = FrontEndOptions(
             wheels=self.opts.board != "none",
-            imu=gyro is not None and len(gyro.stamps_ns) > 0,
+            imu=streams or (gyro is not None and len(gyro.stamps_ns) > 0),
             pose_before_vo=cfg.live.pose_before_vo,
             camera_rate_hz=cfg.camera.rate,
         )
@@ -497,6 +499,8 @@ class LiveRun:
                 if imu_feed is None:
                     offset = int(getattr(src, "stamp_offset_ns", 0))
                     imu_feed = MessageFeed(src, fe, offset, kinds=("imu",))
+                if streams:
+                    imu_feed.extend_imu(src.take_imu())  # type: ignore[attr-defined]
                 imu_feed.until(frame.stamp_ns)
             wheels_ms = 1e3 * (time.perf_counter() - t_a)
             # b. VO (skipped when frames wait: the next VO pair spans both), the pose at the
@@ -1006,6 +1010,7 @@ class LiveRun:
         summary: dict[str, Any] = {
             "command": "live",
             "camera": self.opts.camera,
+            "camera_imu": getattr(self.camera_src, "imu_note", None),
             "board": self.opts.board,
             "world": str(self.opts.world) if self.opts.world else None,
             "robot": self._robot_frame(),
