@@ -1,25 +1,23 @@
 """An Intel RealSense camera (D415/D435/D435i/D455) or a RealSense SDK recording as a
 :class:`~sensors.source.Source`, through the optional PyPI wheel ``pyrealsense2`` (SDK inside).
 
-Targets: ``realsense://`` (the first camera), ``realsense://SERIAL`` and ``realsense://FILE.db3`` /
-``realsense://FILE.bag`` (a recording by RealSense Viewer or ``rs.recorder``; SDK 2.59 writes
-rosbag2 ``.db3``, older SDKs rosbag1 ``.bag``). A camera streams colour (RGB8) and depth (Z16) at
-640x480 @ 30 Hz; a recording plays its recorded streams. Both go through the same code: depth is
-aligned to colour with ``rs.align``, so the intrinsics are the colour stream's, the depth units
-(metres per count) are the depth sensor's ``depth_units`` option, and the colour-depth extrinsics
-are the device's (or the recording's) calibration. ``describe`` says where each came from.
+Targets: ``realsense://`` (the first camera), ``realsense://SERIAL``, ``realsense://FILE.db3`` /
+``.bag`` (RealSense Viewer or ``rs.recorder``; SDK 2.59 writes rosbag2 ``.db3``, older SDKs
+rosbag1 ``.bag``). A camera streams colour (RGB8) and depth (Z16) at 640x480 @ 30 Hz, a recording
+its recorded streams, through the same code: the colour and depth sensors' frames are paired by
+stamp here (a playback not in real time waits for the reader, so no frame is lost) and depth is
+aligned to colour with ``rs.align``. Intrinsics are the colour stream's, depth units
+the ``depth_units`` option, extrinsics the device's (or recording's); ``describe`` says so.
 
-Stamps: for ``rgbdnav live`` (``SourceOptions.realtime``) device stamps are shifted by a constant,
-fixed at the first frame, onto the live run's clock (``time.monotonic_ns``, as the board's): free of
-jitter, yet comparable with the wheels. A recording then plays in real time and is stamped the
-same way, so the live run cannot tell it from a camera. Offline, a recording plays as fast as it is
-read (``set_real_time(False)``) with its recorded clock, and a camera's ``global_time`` stamps
-(librealsense's default on D400s: host wall time) are kept.
+Stamps: live (``SourceOptions.realtime``) device stamps are shifted by a constant, fixed at the
+first frame, onto the live run's clock (``time.monotonic_ns``, as the board's). A recording then
+plays in real time, stamped the same way: the live run cannot tell it from a camera. Offline, a
+recording plays as fast as it is read with its recorded clock, and a camera's ``global_time``
+stamps (D400 default: host wall time) are kept.
 
-The D435i/D455 gyro is the IMU (yaw rate -gyro_y: the IMU frame is x right, y down, z forward).
-Offline, ``imu()`` reads a recording's gyro stream in a second pass. Live, the motion sensor (if the
-device has one; D415/D435 have none) streams beside the pipeline into :meth:`take_imu`, stamped as
-the frames: a recording played as the camera goes through the same code.
+The D435i/D455 gyro is the IMU (yaw rate -gyro_y; the IMU frame is x right, y down, z forward).
+Offline, ``imu()`` reads a recording's gyro in a second pass. Live, the motion sensor (if any;
+D415/D435 have none) streams beside colour and depth into :meth:`take_imu`, stamped as the frames.
 
 Installing: ``pip install 'rgbdnav[realsense]'``; for a non-root user on Linux, librealsense's udev
 rules (``99-realsense-libusb.rules``) must be installed, see docs/guide.md.
@@ -31,6 +29,8 @@ import importlib
 import itertools
 import logging
 import math
+import queue
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -50,6 +50,7 @@ GYRO_FPS = 200  # [Hz] the D435i/D455 gyro rate taken when the motion sensor off
 log = logging.getLogger(__name__)
 
 SCHEME = "realsense:"
+FRAME_QUEUE = 4  # [frames] colour and depth frames between librealsense's threads and frames()
 RECORDING_SUFFIXES = (".db3", ".bag")
 LIVE_MODE = (640, 480, 30)  # [px], [px], [Hz]
 FRAME_TIMEOUT_MS = 2000  # [ms] a camera silent this long is gone
@@ -136,6 +137,61 @@ def gyro_sensor(rs: ModuleType, device: Any) -> tuple[Any, Any] | None:
     return None
 
 
+def _pick_streams(rs: ModuleType, device: Any, *, live: bool, where: str) -> dict[Any, Any]:
+    """{rs.stream.color / .depth: (sensor, profile)}: a camera's LIVE_MODE rgb8 / z16 profiles,
+    a recording's recorded streams; a clear error if one is missing."""
+    width, height, fps = LIVE_MODE
+    want = {rs.stream.color: rs.format.rgb8, rs.stream.depth: rs.format.z16}
+    found: dict[Any, Any] = {}
+    for sensor in device.query_sensors():
+        for p in sensor.get_stream_profiles():
+            kind = p.stream_type()
+            if kind not in want or kind in found:
+                continue
+            if live:
+                v = p.as_video_stream_profile()
+                if (p.format(), v.width(), v.height(), p.fps()) != (want[kind], width, height, fps):
+                    continue
+            found[kind] = (sensor, p)
+    missing = [str(k).rsplit(".", 1)[-1] for k in want if k not in found]
+    if missing:
+        what = f"{width}x{height} @ {fps} Hz " if live else ""
+        raise SensorError(f"{where}: no {what}{' or '.join(missing)} stream (rgbdnav needs both)")
+    return found
+
+
+class _Pairing:
+    """Colour and depth frames, as the two sensors deliver them, into pairs: each colour frame
+    once, with the latest depth frame within ``max_gap_ns`` of it; a colour frame replaced
+    before one came is skipped (``unpaired_color``)."""
+
+    def __init__(self, max_gap_ns: int) -> None:
+        self.max_gap_ns = max_gap_ns
+        self.colour: Any = None  # the latest colour frame not paired yet
+        self.depth: Any = None  # the latest depth frame
+        self._skips: dict[str, int] = {}
+
+    def add(self, colour: Any, depth: Any) -> tuple[Any, Any] | None:
+        """A frameset's frames (either may be missing); a new (colour, depth) pair or None."""
+        if colour:
+            if self.colour is not None:
+                self._skips["unpaired_color"] = self._skips.get("unpaired_color", 0) + 1
+            self.colour = colour
+        if depth:
+            self.depth = depth
+        if self.colour is None or self.depth is None:
+            return None
+        gap_ms = abs(self.colour.get_timestamp() - self.depth.get_timestamp())
+        if gap_ms * NS_PER_MS > self.max_gap_ns:
+            return None  # the depth frame for this colour frame may come next
+        pair, self.colour = (self.colour, self.depth), None
+        return pair
+
+    def take_skips(self) -> dict[str, int]:
+        skips, self._skips = self._skips, {}
+        return skips
+
+
 _UNREAD = object()  # RealSenseSource's gyro before it is read
 
 
@@ -146,18 +202,22 @@ class RealSenseSource(SourceBase):
         self,
         rs: ModuleType,
         target: RealSenseTarget,
-        pipeline: Any,
-        profile: Any,
+        device: Any,
+        streams: dict[Any, tuple[Any, Any]],
         *,
         realtime: bool,
         clock: Callable[[], int],
         max_difference_ns: int,
     ) -> None:
+        """``streams``: {rs.stream.color / .depth: (sensor, profile)} to stream (not started)."""
         self.path = f"realsense://{target.file or target.serial or ''}"
         self.skipped: dict[str, int] = {}
         self.target = target
         self._rs = rs
-        self._pipeline: Any = pipeline
+        self._sensors: list[Any] = []  # started, stopped by close()
+        # Colour and depth frames from the sensors' threads; None once closed.
+        self._frames_q: queue.Queue[Any] | None = queue.Queue(FRAME_QUEUE)
+        self._closing = threading.Event()
         self._realtime = realtime
         self._clock = clock
         self._max_difference_ns = max_difference_ns
@@ -165,7 +225,6 @@ class RealSenseSource(SourceBase):
         # run moves the recording's gyro onto its clock with it (slam.front_end.MessageFeed).
         self.stamp_offset_ns = 0
         self._gyro: ImuStream | None | object = _UNREAD  # imu(): read once
-        device = profile.get_device()
         # Live (realtime): the gyro streams into _gyro_samples as (device stamp [ns], yaw rate).
         self._gyro_samples: deque[tuple[int, float]] = deque()
         self._gyro_sensor: Any = None
@@ -174,10 +233,8 @@ class RealSenseSource(SourceBase):
         self.device_name = _info(rs, device, "name")
         self.serial = _info(rs, device, "serial_number")
         self._playback = device.as_playback() if target.file is not None else None
-        if self._playback is not None:
-            self._playback.set_real_time(realtime)
-        colour = profile.get_stream(rs.stream.color).as_video_stream_profile()
-        depth = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+        colour = streams[rs.stream.color][1].as_video_stream_profile()
+        depth = streams[rs.stream.depth][1].as_video_stream_profile()
         k = colour.get_intrinsics()
         sensor = device.first_depth_sensor()
         has_units = sensor.supports(rs.option.depth_units)
@@ -208,13 +265,33 @@ class RealSenseSource(SourceBase):
             "depth_units": f"{where}'s {self.depth_units_from}",
             "extrinsics": f"{where}'s depth-to-colour calibration",
         }
+        # A colour/depth pair is composed into one frameset for rs.align (_compose).
+        self._pair: list[Any] = []
+        self._composer = rs.processing_block(
+            lambda _f, source: source.frame_ready(source.allocate_composite_frame(self._pair))
+        )
+        self._composed = rs.frame_queue(1)
+        self._composer.start(self._composed)
+        # Colour and depth sensors into _frames_q; the gyro (live) beside them.
+        by_sensor: dict[int, tuple[Any, list[Any]]] = {}
+        for sensor, profile in streams.values():
+            by_sensor.setdefault(id(sensor), (sensor, []))[1].append(profile)
         self.gyro_streams = realtime and gyro is not None  # take_imu() delivers it
-        if self.gyro_streams:
-            assert gyro is not None
-            sensor, gyro_profile = gyro
-            sensor.open(gyro_profile)
-            self._gyro_sensor = sensor
-            sensor.start(self._on_gyro)
+        try:
+            for sensor, profiles in by_sensor.values():
+                sensor.open(profiles)
+                self._sensors.append(sensor)
+            if self.gyro_streams:
+                assert gyro is not None
+                gyro[0].open(gyro[1])
+                self._gyro_sensor = gyro[0]
+            for sensor in self._sensors:
+                sensor.start(self._on_frame)
+            if self._gyro_sensor is not None:
+                self._gyro_sensor.start(self._on_gyro)
+        except RuntimeError:
+            self.close()
+            raise
 
     @property
     def imu_note(self) -> str:
@@ -259,72 +336,62 @@ class RealSenseSource(SourceBase):
         if target.file is not None and not target.file.is_file():
             raise SensorError(f"{target.file}: no such RealSense recording")
         rs = load_pyrealsense2()
-        config = rs.config()
+        ctx = rs.context()
         if target.file is not None:
-            config.enable_device_from_file(str(target.file), repeat_playback=False)
-            config.enable_stream(rs.stream.color)  # as recorded; converted in frames()
-            config.enable_stream(rs.stream.depth)
+            try:
+                device = ctx.load_device(str(target.file))
+            except RuntimeError as err:
+                raise SensorError(f"{target.file}: RealSense SDK cannot read it: {err}") from err
+            # Set before streaming: a playback starts in real time, and real-time dispatch
+            # drops frames (now and then the first) while the reader is busy.
+            device.as_playback().set_real_time(realtime)
+            where = f"{target.file}"
         else:
-            serial = cls._find_camera(rs, target.serial)
-            config.enable_device(serial)
-            width, height, fps = LIVE_MODE
-            config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
-            config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
-        pipeline = rs.pipeline()
+            device = cls._find_camera(rs, ctx, target.serial)
+            where = f"RealSense camera {_info(rs, device, 'serial_number')}"
+        streams = _pick_streams(rs, device, live=target.file is None, where=where)
         try:
-            profile = pipeline.start(config)
-        except RuntimeError as err:
-            if target.file is not None:
-                raise SensorError(
-                    f"{target.file}: RealSense SDK cannot play it as colour + depth: {err}"
-                ) from err
-            hint = UDEV_HELP if "permission" in str(err).lower() else "is another program using it?"
-            raise SensorError(
-                f"RealSense camera {serial}: cannot start it ({err}); {hint}"
-            ) from err
-        try:
-            src = cls(
+            return cls(
                 rs,
                 target,
-                pipeline,
-                profile,
+                device,
+                streams,
                 realtime=realtime,
                 clock=clock,
                 max_difference_ns=max_difference_ns,
             )
-            return src
-        except SensorError:
-            pipeline.stop()  # e.g. a stream format rgbdnav does not read
-            raise
         except RuntimeError as err:
-            pipeline.stop()
-            where = target.file or f"RealSense camera {target.serial or ''}"
-            raise SensorError(f"{where}: RealSense SDK: {err}") from err
+            hint = UDEV_HELP if "permission" in str(err).lower() else "is another program using it?"
+            what = "cannot play it" if target.file is not None else f"cannot start it; {hint}"
+            raise SensorError(f"{where}: RealSense SDK {what} ({err})") from err
 
     @staticmethod
-    def _find_camera(rs: ModuleType, serial: str | None) -> str:
-        devices = rs.context().query_devices()
+    def _find_camera(rs: ModuleType, ctx: Any, serial: str | None) -> Any:
+        devices = list(ctx.query_devices())
         serials = [d.get_info(rs.camera_info.serial_number) for d in devices]
         if not serials:
             raise SensorError(
                 "no RealSense camera found: is it plugged into a USB 3 port? On Linux, " + UDEV_HELP
             )
         if serial is None:
-            return str(serials[0])
+            return devices[0]
         if serial not in serials:
             raise SensorError(
                 f"no RealSense camera with serial {serial}; connected: {', '.join(serials)}"
             )
-        return serial
+        return devices[serials.index(serial)]
 
     def close(self) -> None:
-        if self._gyro_sensor is not None:
-            sensor, self._gyro_sensor = self._gyro_sensor, None
-            sensor.stop()
+        sensors = [self._gyro_sensor] if self._gyro_sensor is not None else []
+        sensors += self._sensors
+        self._gyro_sensor, self._sensors, self._frames_q = None, [], None
+        self._closing.set()  # a callback waiting on a full queue returns
+        for sensor in sensors:
+            try:
+                sensor.stop()
+            except RuntimeError:
+                pass  # opened, never started (opening failed part-way)
             sensor.close()
-        if self._pipeline is not None:
-            pipeline, self._pipeline = self._pipeline, None
-            pipeline.stop()
 
     # --- Source -------------------------------------------------------------------------------
 
@@ -354,28 +421,25 @@ class RealSenseSource(SourceBase):
         """Aligned colour/depth pairs until :meth:`close` (camera) or the recording's end."""
         rs = self._rs
         offset_ns: int | None = None
-        last_colour = -1
-        while self._pipeline is not None:
+        pairing = _Pairing(self._max_difference_ns)
+        colour_kind = rs.stream.color
+        while (frames_q := self._frames_q) is not None:
             try:
-                ok, frameset = self._pipeline.try_wait_for_frames(FRAME_TIMEOUT_MS)
-            except RuntimeError as err:
-                raise SensorError(f"{self.path}: reading frames failed: {err}") from err
-            if not ok:
-                if self._playback is not None:
-                    return  # the recording ended
+                frame = frames_q.get(timeout=FRAME_TIMEOUT_MS / 1000)
+            except queue.Empty:
+                if self._playback is not None or self._frames_q is None:
+                    return  # the recording ended, or closed while waiting
                 raise SensorError(
                     f"{self.path}: no frames for {FRAME_TIMEOUT_MS / 1000:g} s; was the camera "
                     "unplugged?"
-                )
-            colour, depth = frameset.get_color_frame(), frameset.get_depth_frame()
-            # The pipeline's syncer hands out a frameset per arriving frame, pairing it with the
-            # other stream's latest: keep each colour frame once, with a depth frame close to it.
-            reason = self._unusable(colour, depth, last_colour)
-            if reason:
-                self.skipped[reason] = self.skipped.get(reason, 0) + 1
+                ) from None
+            is_colour = frame.get_profile().stream_type() == colour_kind
+            pair = pairing.add(frame if is_colour else None, None if is_colour else frame)
+            for reason, n in pairing.take_skips().items():
+                self.skipped[reason] = self.skipped.get(reason, 0) + n
+            if pair is None:
                 continue
-            last_colour = colour.get_frame_number()
-            aligned = self._align.process(frameset)
+            aligned = self._align.process(self._compose(*pair))
             colour, depth = aligned.get_color_frame(), aligned.get_depth_frame()
             stamp_ms = float(colour.get_timestamp())
             if offset_ns is None:
@@ -398,14 +462,26 @@ class RealSenseSource(SourceBase):
                 self._intrinsics,
             )
 
-    def _unusable(self, colour: Any, depth: Any, last_colour: int) -> str:
-        """Why a frameset is not a new colour/depth pair ("" if it is)."""
-        if not colour or not depth:
-            return "incomplete_frameset"
-        if colour.get_frame_number() == last_colour:
-            return "repeated_color"
-        gap_ms = abs(colour.get_timestamp() - depth.get_timestamp())
-        return "unpaired_color" if gap_ms * NS_PER_MS > self._max_difference_ns else ""
+    def _compose(self, colour: Any, depth: Any) -> Any:
+        """One frameset of a colour and a depth frame (from two framesets maybe), for rs.align."""
+        self._pair = [colour, depth]
+        self._composer.invoke(colour)
+        return self._composed.wait_for_frame().as_frameset()
+
+    def _on_frame(self, frame: Any) -> None:
+        """librealsense's threads: a colour or depth frame. Offline it waits while the queue is
+        full, so a playback not in real time waits for the reader; live a frame the reader has
+        no room for is dropped (``queue_full``), as a camera's."""
+        while not self._closing.is_set() and (frames_q := self._frames_q) is not None:
+            try:
+                frames_q.put(
+                    frame, timeout=None if self._realtime else 0.1, block=not self._realtime
+                )
+                return
+            except queue.Full:
+                if self._realtime:
+                    self.skipped["queue_full"] = self.skipped.get("queue_full", 0) + 1
+                    return
 
     def _on_gyro(self, frame: Any) -> None:
         """librealsense's thread: one gyro sample (a deque append is thread-safe)."""
