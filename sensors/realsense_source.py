@@ -160,7 +160,7 @@ def _pick_streams(rs: ModuleType, device: Any, *, live: bool, where: str) -> dic
     return found
 
 
-class _Pairing:
+class FramePairing:
     """Colour and depth frames, as the two sensors deliver them, into pairs: each colour frame
     once, with the latest depth frame within ``max_gap_ns`` of it; a colour frame replaced
     before one came is skipped (``unpaired_color``)."""
@@ -421,7 +421,7 @@ class RealSenseSource(SourceBase):
         """Aligned colour/depth pairs until :meth:`close` (camera) or the recording's end."""
         rs = self._rs
         offset_ns: int | None = None
-        pairing = _Pairing(self._max_difference_ns)
+        pairing = FramePairing(self._max_difference_ns)
         colour_kind = rs.stream.color
         while (frames_q := self._frames_q) is not None:
             try:

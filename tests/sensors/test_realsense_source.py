@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 from rgbdnav.cli import app
 from sensors.config import CameraConfig, RobotConfig, SimConfig
 from sensors.realsense_source import (
+    FramePairing,
     RealSenseSource,
     RealSenseTarget,
     parse_target,
@@ -94,6 +95,24 @@ def test_a_recording_reads_its_own_intrinsics_depth_units_and_frames(route) -> N
         valid = np.isfinite(want.depth_m) & (want.depth_m > 0) & (want.depth_m < 30.0)
         err = np.abs(got.depth_m[valid] - want.depth_m[valid])
         assert np.median(err) <= DEPTH_UNITS  # quantised to the recording's units, not mm
+
+
+def test_colour_and_depth_pair_by_stamp_whichever_comes_first() -> None:
+    class F:  # a librealsense frame: its stamp [ms]
+        def __init__(self, ms: float) -> None:
+            self.ms = ms
+
+        def get_timestamp(self) -> float:
+            return self.ms
+
+    pairing = FramePairing(max_gap_ns=20_000_000)
+    c0, d0, c1, c2, d2, d3, c3 = (F(t) for t in (0.0, 0.5, 33.3, 66.7, 66.7, 100.0, 100.2))
+    assert pairing.add(c0, None) is None  # depth 0 comes after, alone
+    assert pairing.add(None, d0) == (c0, d0)
+    assert pairing.add(c1, None) is None  # depth 1 never comes
+    assert pairing.add(c2, d2) == (c2, d2) and pairing.take_skips() == {"unpaired_color": 1}
+    assert pairing.add(None, d3) is None  # depth first, its colour after
+    assert pairing.add(c3, None) == (c3, d3) and pairing.take_skips() == {}
 
 
 def test_a_recordings_gyro_is_the_imu_yaw_rate(route) -> None:
