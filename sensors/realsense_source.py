@@ -172,7 +172,7 @@ class FramePairing:
         self._skips: dict[str, int] = {}
 
     def add(self, colour: Any, depth: Any) -> tuple[Any, Any] | None:
-        """A frameset's frames (either may be missing); a new (colour, depth) pair or None."""
+        """A colour or a depth frame (the other None), or both; a new (colour, depth) or None."""
         if colour:
             if self.colour is not None:
                 self._skips["unpaired_color"] = self._skips.get("unpaired_color", 0) + 1
