@@ -54,6 +54,7 @@ FRAME_QUEUE = 4  # [frames] colour and depth frames between librealsense's threa
 RECORDING_SUFFIXES = (".db3", ".bag")
 LIVE_MODE = (640, 480, 30)  # [px], [px], [Hz]
 FRAME_TIMEOUT_MS = 2000  # [ms] a camera silent this long is gone
+PLAYBACK_STALL_MS = 30_000  # [ms] a playback "playing" yet silent this long is taken as ended
 NS_PER_MS = 1_000_000  # [ns/ms] librealsense stamps are milliseconds
 # librealsense colour formats -> channel order to RGB
 COLOUR_FORMATS = {"rgb8": [0, 1, 2], "bgr8": [2, 1, 0], "rgba8": [0, 1, 2], "bgra8": [2, 1, 0]}
@@ -423,12 +424,25 @@ class RealSenseSource(SourceBase):
         offset_ns: int | None = None
         pairing = FramePairing(self._max_difference_ns)
         colour_kind = rs.stream.color
+        silent_ms = 0  # [ms] waited for a frame so far
         while (frames_q := self._frames_q) is not None:
             try:
                 frame = frames_q.get(timeout=FRAME_TIMEOUT_MS / 1000)
+                silent_ms = 0
             except queue.Empty:
-                if self._playback is not None or self._frames_q is None:
-                    return  # the recording ended, or closed while waiting
+                silent_ms += FRAME_TIMEOUT_MS
+                if self._frames_q is None:
+                    return  # closed while waiting
+                if self._playback is not None:
+                    # Still playing: the reader was kept waiting (a loaded machine), not the end.
+                    playing = self._playback.current_status() == rs.playback_status.playing
+                    if playing and silent_ms < PLAYBACK_STALL_MS:
+                        continue
+                    if playing:
+                        log.warning(
+                            "%s: playback silent for %d s: ended", self.path, silent_ms // 1000
+                        )
+                    return  # the recording ended
                 raise SensorError(
                     f"{self.path}: no frames for {FRAME_TIMEOUT_MS / 1000:g} s; was the camera "
                     "unplugged?"
