@@ -430,7 +430,8 @@ def info(
             except RgbdNavError as err:  # info describes; the commands refuse
                 mount = {"source": "config", "note": f"tf_static not usable: {err}"}
             shown = ", ".join(f"{k}={v:g}" for k, v in mount.items() if k.startswith("camera_"))
-            where = mount.get("chain") or mount.get("note") or "no usable /tf_static chain"
+            label = getattr(src, "mount_source", "/tf_static chain")
+            where = mount.get("chain") or mount.get("note") or f"no usable {label}"
             typer.echo(
                 f"extrinsics  from {mount['source']} ({where}){': ' + shown if shown else ''}"
             )

@@ -345,15 +345,18 @@ def camera_mount(
     overrides: Sequence[str],
     base: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
-    """(``base`` with the camera mount a bag's ``/tf_static`` gives, summary entry).
+    """(``base`` with the camera mount the source gives, summary entry): a bag's ``/tf_static``
+    (all of it), or a device's own measure (``mount_source``: a Kinect's accelerometer pitch).
 
-    The tf values go in the lowest layer, and only when neither the config files, ``--set``
-    nor ``base`` set any ``robot.camera_*`` key: the config wins, whole, over tf_static.
+    The source's values go in the lowest layer, and only when neither the config files,
+    ``--set`` nor ``base`` set any of the ``robot.camera_*`` keys it gives: the config wins,
+    whole, over what the source gives.
     """
     from sensors.extrinsics import MOUNT_KEYS
 
     out = {k: dict(v) for k, v in (base or {}).items()}
     static = getattr(src, "static_extrinsics", None)
+    label = str(getattr(src, "mount_source", "tf_static"))
     if static is None:
         return out, {"source": "config"}
     set_by_user = sorted(
@@ -366,13 +369,14 @@ def camera_mount(
     except RgbdNavError as err:
         if not set_by_user:
             raise
-        return out, {"source": "config", "note": f"tf_static not usable: {err}"}
+        return out, {"source": "config", "note": f"{label} not usable: {err}"}
     if found is None:
         return out, {"source": "config"}
     mount, chain = found
-    if set_by_user:
-        note = f"tf_static {chain} not used: the config sets {', '.join(set_by_user)}"
+    clash = [k for k in set_by_user if k.removeprefix("robot.") in mount]
+    if clash:
+        note = f"{label} {chain} not used: the config sets {', '.join(clash)}"
         return out, {"source": "config", "note": note}
     out.setdefault("robot", {}).update(mount)
     values = {k: round(v, 4) for k, v in mount.items()}
-    return out, {"source": "tf_static", "chain": chain, **values}
+    return out, {"source": label, "chain": chain, **values}

@@ -11,7 +11,9 @@ Stamps are host time at arrival (``time.monotonic_ns`` for ``rgbdnav live``, lik
 libfreenect's frame timestamps are a 32-bit device counter that wraps and has no host mapping.
 
 Camera pitch: before streaming, the Kinect's accelerometer gives its tilt against the horizon
-(``freenect_get_tilt_degs``); ``describe`` reports it as ``robot.camera_pitch`` (positive down).
+(``freenect_get_tilt_degs``): ``static_extrinsics`` offers it as ``robot.camera_pitch`` (positive
+down), taken as a bag's /tf_static mount is (``rgbdnav.config.camera_mount``): unless the user's
+config sets ``robot.camera_pitch``.
 
 Installing (Debian bookworm): ``apt-get install libfreenect-dev`` (library, headers and the udev
 rules that let a non-root user open the Kinect) and ``pip install 'rgbdnav[freenect]'``.
@@ -73,6 +75,8 @@ def pitch_from_tilt(tilt_degs: float) -> float:
 
 class FreenectSource(SourceBase):
     """A live Kinect v1 via libfreenect's sync API. Use :meth:`open`."""
+
+    mount_source = "accelerometer"  # what static_extrinsics measures (rgbdnav.config.camera_mount)
 
     def __init__(
         self,
@@ -137,6 +141,14 @@ class FreenectSource(SourceBase):
         finally:
             fn.shutdown(ctx)
         return pitch_from_tilt(tilt) if math.isfinite(tilt) else None
+
+    def static_extrinsics(self) -> tuple[dict[str, float], str] | None:
+        """The camera mount the Kinect measures: its pitch, and where it came from; None if the
+        tilt was unreadable."""
+        if self.camera_pitch is None:
+            return None
+        tilt = -math.degrees(self.camera_pitch)
+        return {"camera_pitch": self.camera_pitch}, f"Kinect tilt {tilt:+.1f} deg"
 
     def close(self) -> None:
         if self._fn is not None:

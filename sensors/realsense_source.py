@@ -1,23 +1,23 @@
 """An Intel RealSense camera (D415/D435/D435i/D455) or a RealSense SDK recording as a
 :class:`~sensors.source.Source`, through the optional PyPI wheel ``pyrealsense2`` (SDK inside).
 
-Targets: ``realsense://`` (the first camera), ``realsense://SERIAL`` and ``realsense://FILE.db3`` /
-``realsense://FILE.bag`` (a recording by RealSense Viewer or ``rs.recorder``; SDK 2.59 writes
-rosbag2 ``.db3``, older SDKs rosbag1 ``.bag``). A camera streams colour (RGB8) and depth (Z16) at
-640x480 @ 30 Hz; a recording plays its recorded streams. Both go through the same code: depth is
-aligned to colour with ``rs.align``, so the intrinsics are the colour stream's, the depth units
-(metres per count) are the depth sensor's ``depth_units`` option, and the colour-depth extrinsics
-are the device's (or the recording's) calibration. ``describe`` says where each came from.
+Targets: ``realsense://`` (the first camera), ``realsense://SERIAL``, ``realsense://FILE.db3`` /
+``.bag`` (RealSense Viewer or ``rs.recorder``; SDK 2.59 writes rosbag2 ``.db3``, older SDKs
+rosbag1 ``.bag``). A camera streams colour (RGB8) and depth (Z16) at 640x480 @ 30 Hz, a recording
+its recorded streams, through the same code: the colour and depth sensors' frames are paired by
+stamp here (a playback not in real time waits for the reader, so no frame is lost) and depth is
+aligned to colour with ``rs.align``. Intrinsics are the colour stream's, depth units
+the ``depth_units`` option, extrinsics the device's (or recording's); ``describe`` says so.
 
-Stamps: for ``rgbdnav live`` (``SourceOptions.realtime``) device stamps are shifted by a constant,
-fixed at the first frame, onto the live run's clock (``time.monotonic_ns``, as the board's): free of
-jitter, yet comparable with the wheels. A recording then plays in real time and is stamped the
-same way, so the live run cannot tell it from a camera. Offline, a recording plays as fast as it is
-read (``set_real_time(False)``) with its recorded clock, and a camera's ``global_time`` stamps
-(librealsense's default on D400s: host wall time) are kept.
+Stamps: live (``SourceOptions.realtime``) device stamps are shifted by a constant, fixed at the
+first frame, onto the live run's clock (``time.monotonic_ns``, as the board's). A recording then
+plays in real time, stamped the same way: the live run cannot tell it from a camera. Offline, a
+recording plays as fast as it is read with its recorded clock, and a camera's ``global_time``
+stamps (D400 default: host wall time) are kept.
 
-The D435i/D455 gyro (200 Hz) is the IMU: ``imu()`` of a recording holding a gyro stream yields the
-yaw rate, -gyro_y (the IMU frame is x right, y down, z forward; a level camera's yaw is about -y).
+The D435i/D455 gyro is the IMU (yaw rate -gyro_y; the IMU frame is x right, y down, z forward).
+Offline, ``imu()`` reads a recording's gyro in a second pass. Live, the motion sensor (if any;
+D415/D435 have none) streams beside colour and depth into :meth:`take_imu`, stamped as the frames.
 
 Installing: ``pip install 'rgbdnav[realsense]'``; for a non-root user on Linux, librealsense's udev
 rules (``99-realsense-libusb.rules``) must be installed, see docs/guide.md.
@@ -29,7 +29,10 @@ import importlib
 import itertools
 import logging
 import math
+import queue
+import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,12 +45,16 @@ from sensors.config import SyncConfig
 from sensors.source import ImuStream, SourceBase, SourceOptions
 from sensors.types import CameraIntrinsics, RgbdFrame, SensorError, seconds_to_ns
 
+GYRO_FPS = 200  # [Hz] the D435i/D455 gyro rate taken when the motion sensor offers several
+
 log = logging.getLogger(__name__)
 
 SCHEME = "realsense:"
+FRAME_QUEUE = 4  # [frames] colour and depth frames between librealsense's threads and frames()
 RECORDING_SUFFIXES = (".db3", ".bag")
 LIVE_MODE = (640, 480, 30)  # [px], [px], [Hz]
 FRAME_TIMEOUT_MS = 2000  # [ms] a camera silent this long is gone
+PLAYBACK_STALL_MS = 30_000  # [ms] a playback "playing" yet silent this long is taken as ended
 NS_PER_MS = 1_000_000  # [ns/ms] librealsense stamps are milliseconds
 # librealsense colour formats -> channel order to RGB
 COLOUR_FORMATS = {"rgb8": [0, 1, 2], "bgr8": [2, 1, 0], "rgba8": [0, 1, 2], "bgra8": [2, 1, 0]}
@@ -116,6 +123,76 @@ def _describe_extrinsics(rotation: Sequence[float], translation: Sequence[float]
     return f"translation ({t}) mm, rotation {angle:.2f} deg"
 
 
+def yaw_rate(motion: Any) -> float:
+    """A gyro motion frame's yaw rate [rad/s] about "up": -gyro_y (the IMU's y points down)."""
+    return -float(motion.get_motion_data().y)
+
+
+def gyro_sensor(rs: ModuleType, device: Any) -> tuple[Any, Any] | None:
+    """(motion sensor, gyro profile) of a D435i/D455 or a recording holding a gyro; None for a
+    device without a motion module (D415/D435) or a recording without a gyro stream."""
+    for sensor in device.query_sensors():
+        gyros = [p for p in sensor.get_stream_profiles() if p.stream_type() == rs.stream.gyro]
+        if gyros:
+            return sensor, min(gyros, key=lambda p: abs(p.fps() - GYRO_FPS))
+    return None
+
+
+def _pick_streams(rs: ModuleType, device: Any, *, live: bool, where: str) -> dict[Any, Any]:
+    """{rs.stream.color / .depth: (sensor, profile)}: a camera's LIVE_MODE rgb8 / z16 profiles,
+    a recording's recorded streams; a clear error if one is missing."""
+    width, height, fps = LIVE_MODE
+    want = {rs.stream.color: rs.format.rgb8, rs.stream.depth: rs.format.z16}
+    found: dict[Any, Any] = {}
+    for sensor in device.query_sensors():
+        for p in sensor.get_stream_profiles():
+            kind = p.stream_type()
+            if kind not in want or kind in found:
+                continue
+            if live:
+                v = p.as_video_stream_profile()
+                if (p.format(), v.width(), v.height(), p.fps()) != (want[kind], width, height, fps):
+                    continue
+            found[kind] = (sensor, p)
+    missing = [str(k).rsplit(".", 1)[-1] for k in want if k not in found]
+    if missing:
+        what = f"{width}x{height} @ {fps} Hz " if live else ""
+        raise SensorError(f"{where}: no {what}{' or '.join(missing)} stream (rgbdnav needs both)")
+    return found
+
+
+class FramePairing:
+    """Colour and depth frames, as the two sensors deliver them, into pairs: each colour frame
+    once, with the latest depth frame within ``max_gap_ns`` of it; a colour frame replaced
+    before one came is skipped (``unpaired_color``)."""
+
+    def __init__(self, max_gap_ns: int) -> None:
+        self.max_gap_ns = max_gap_ns
+        self.colour: Any = None  # the latest colour frame not paired yet
+        self.depth: Any = None  # the latest depth frame
+        self._skips: dict[str, int] = {}
+
+    def add(self, colour: Any, depth: Any) -> tuple[Any, Any] | None:
+        """A colour or a depth frame (the other None), or both; a new (colour, depth) or None."""
+        if colour:
+            if self.colour is not None:
+                self._skips["unpaired_color"] = self._skips.get("unpaired_color", 0) + 1
+            self.colour = colour
+        if depth:
+            self.depth = depth
+        if self.colour is None or self.depth is None:
+            return None
+        gap_ms = abs(self.colour.get_timestamp() - self.depth.get_timestamp())
+        if gap_ms * NS_PER_MS > self.max_gap_ns:
+            return None  # the depth frame for this colour frame may come next
+        pair, self.colour = (self.colour, self.depth), None
+        return pair
+
+    def take_skips(self) -> dict[str, int]:
+        skips, self._skips = self._skips, {}
+        return skips
+
+
 _UNREAD = object()  # RealSenseSource's gyro before it is read
 
 
@@ -126,18 +203,22 @@ class RealSenseSource(SourceBase):
         self,
         rs: ModuleType,
         target: RealSenseTarget,
-        pipeline: Any,
-        profile: Any,
+        device: Any,
+        streams: dict[Any, tuple[Any, Any]],
         *,
         realtime: bool,
         clock: Callable[[], int],
         max_difference_ns: int,
     ) -> None:
+        """``streams``: {rs.stream.color / .depth: (sensor, profile)} to stream (not started)."""
         self.path = f"realsense://{target.file or target.serial or ''}"
         self.skipped: dict[str, int] = {}
         self.target = target
         self._rs = rs
-        self._pipeline: Any = pipeline
+        self._sensors: list[Any] = []  # started, stopped by close()
+        # Colour and depth frames from the sensors' threads; None once closed.
+        self._frames_q: queue.Queue[Any] | None = queue.Queue(FRAME_QUEUE)
+        self._closing = threading.Event()
         self._realtime = realtime
         self._clock = clock
         self._max_difference_ns = max_difference_ns
@@ -145,14 +226,16 @@ class RealSenseSource(SourceBase):
         # run moves the recording's gyro onto its clock with it (slam.front_end.MessageFeed).
         self.stamp_offset_ns = 0
         self._gyro: ImuStream | None | object = _UNREAD  # imu(): read once
-        device = profile.get_device()
+        # Live (realtime): the gyro streams into _gyro_samples as (device stamp [ns], yaw rate).
+        self._gyro_samples: deque[tuple[int, float]] = deque()
+        self._gyro_sensor: Any = None
+        gyro = gyro_sensor(rs, device)
+        self.gyro_fps = int(gyro[1].fps()) if gyro is not None else 0  # [Hz] 0: no IMU
         self.device_name = _info(rs, device, "name")
         self.serial = _info(rs, device, "serial_number")
         self._playback = device.as_playback() if target.file is not None else None
-        if self._playback is not None:
-            self._playback.set_real_time(realtime)
-        colour = profile.get_stream(rs.stream.color).as_video_stream_profile()
-        depth = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+        colour = streams[rs.stream.color][1].as_video_stream_profile()
+        depth = streams[rs.stream.depth][1].as_video_stream_profile()
         k = colour.get_intrinsics()
         sensor = device.first_depth_sensor()
         has_units = sensor.supports(rs.option.depth_units)
@@ -183,6 +266,41 @@ class RealSenseSource(SourceBase):
             "depth_units": f"{where}'s {self.depth_units_from}",
             "extrinsics": f"{where}'s depth-to-colour calibration",
         }
+        # A colour/depth pair is composed into one frameset for rs.align (_compose).
+        self._pair: list[Any] = []
+        self._composer = rs.processing_block(
+            lambda _f, source: source.frame_ready(source.allocate_composite_frame(self._pair))
+        )
+        self._composed = rs.frame_queue(1)
+        self._composer.start(self._composed)
+        # Colour and depth sensors into _frames_q; the gyro (live) beside them.
+        by_sensor: dict[int, tuple[Any, list[Any]]] = {}
+        for sensor, profile in streams.values():
+            by_sensor.setdefault(id(sensor), (sensor, []))[1].append(profile)
+        self.gyro_streams = realtime and gyro is not None  # take_imu() delivers it
+        try:
+            for sensor, profiles in by_sensor.values():
+                sensor.open(profiles)
+                self._sensors.append(sensor)
+            if self.gyro_streams:
+                assert gyro is not None
+                gyro[0].open(gyro[1])
+                self._gyro_sensor = gyro[0]
+            for sensor in self._sensors:
+                sensor.start(self._on_frame)
+            if self._gyro_sensor is not None:
+                self._gyro_sensor.start(self._on_gyro)
+        except RuntimeError:
+            self.close()
+            raise
+
+    @property
+    def imu_note(self) -> str:
+        """The IMU in one phrase, for ``info`` and the live summary."""
+        if self.gyro_fps:
+            return f"gyro {self.gyro_fps} Hz as imu0"
+        what = "recording has no gyro stream" if self.target.file else "camera has no motion module"
+        return f"no IMU (the {what})"
 
     # --- opening ------------------------------------------------------------------------------
 
@@ -219,72 +337,62 @@ class RealSenseSource(SourceBase):
         if target.file is not None and not target.file.is_file():
             raise SensorError(f"{target.file}: no such RealSense recording")
         rs = load_pyrealsense2()
-        config = rs.config()
+        ctx = rs.context()
         if target.file is not None:
-            config.enable_device_from_file(str(target.file), repeat_playback=False)
-            config.enable_stream(rs.stream.color)  # as recorded; converted in frames()
-            config.enable_stream(rs.stream.depth)
+            try:
+                device = ctx.load_device(str(target.file))
+            except RuntimeError as err:
+                raise SensorError(f"{target.file}: RealSense SDK cannot read it: {err}") from err
+            # Set before streaming: a playback starts in real time, and real-time dispatch
+            # drops frames (now and then the first) while the reader is busy.
+            device.as_playback().set_real_time(realtime)
+            where = f"{target.file}"
         else:
-            serial = cls._find_camera(rs, target.serial)
-            config.enable_device(serial)
-            width, height, fps = LIVE_MODE
-            config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
-            config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
-        # Played in real time the recording runs from its start: its gyro is read before.
-        gyro = read_gyro(rs, target.file) if target.file is not None and realtime else None
-        pipeline = rs.pipeline()
+            device = cls._find_camera(rs, ctx, target.serial)
+            where = f"RealSense camera {_info(rs, device, 'serial_number')}"
+        streams = _pick_streams(rs, device, live=target.file is None, where=where)
         try:
-            profile = pipeline.start(config)
-        except RuntimeError as err:
-            if target.file is not None:
-                raise SensorError(
-                    f"{target.file}: RealSense SDK cannot play it as colour + depth: {err}"
-                ) from err
-            hint = UDEV_HELP if "permission" in str(err).lower() else "is another program using it?"
-            raise SensorError(
-                f"RealSense camera {serial}: cannot start it ({err}); {hint}"
-            ) from err
-        try:
-            src = cls(
+            return cls(
                 rs,
                 target,
-                pipeline,
-                profile,
+                device,
+                streams,
                 realtime=realtime,
                 clock=clock,
                 max_difference_ns=max_difference_ns,
             )
-            if target.file is not None and realtime:
-                src._gyro = gyro
-            return src
-        except SensorError:
-            pipeline.stop()  # e.g. a stream format rgbdnav does not read
-            raise
         except RuntimeError as err:
-            pipeline.stop()
-            where = target.file or f"RealSense camera {target.serial or ''}"
-            raise SensorError(f"{where}: RealSense SDK: {err}") from err
+            hint = UDEV_HELP if "permission" in str(err).lower() else "is another program using it?"
+            what = "cannot play it" if target.file is not None else f"cannot start it; {hint}"
+            raise SensorError(f"{where}: RealSense SDK {what} ({err})") from err
 
     @staticmethod
-    def _find_camera(rs: ModuleType, serial: str | None) -> str:
-        devices = rs.context().query_devices()
+    def _find_camera(rs: ModuleType, ctx: Any, serial: str | None) -> Any:
+        devices = list(ctx.query_devices())
         serials = [d.get_info(rs.camera_info.serial_number) for d in devices]
         if not serials:
             raise SensorError(
                 "no RealSense camera found: is it plugged into a USB 3 port? On Linux, " + UDEV_HELP
             )
         if serial is None:
-            return str(serials[0])
+            return devices[0]
         if serial not in serials:
             raise SensorError(
                 f"no RealSense camera with serial {serial}; connected: {', '.join(serials)}"
             )
-        return serial
+        return devices[serials.index(serial)]
 
     def close(self) -> None:
-        if self._pipeline is not None:
-            pipeline, self._pipeline = self._pipeline, None
-            pipeline.stop()
+        sensors = [self._gyro_sensor] if self._gyro_sensor is not None else []
+        sensors += self._sensors
+        self._gyro_sensor, self._sensors, self._frames_q = None, [], None
+        self._closing.set()  # a callback waiting on a full queue returns
+        for sensor in sensors:
+            try:
+                sensor.stop()
+            except RuntimeError:
+                pass  # opened, never started (opening failed part-way)
+            sensor.close()
 
     # --- Source -------------------------------------------------------------------------------
 
@@ -300,7 +408,7 @@ class RealSenseSource(SourceBase):
             f"fy={k.fy:.1f} cx={k.cx:g} cy={k.cy:g} from {self.origins['intrinsics']}; "
             f"depth units {self.depth_units * 1000.0:g} mm from {self.origins['depth_units']}; "
             f"depth-to-colour extrinsics {_describe_extrinsics(*self.extrinsics)} from "
-            f"{self.origins['extrinsics']}"
+            f"{self.origins['extrinsics']}; {self.imu_note}"
         )
 
     def stream_stamps(self) -> dict[str, np.ndarray]:
@@ -314,28 +422,38 @@ class RealSenseSource(SourceBase):
         """Aligned colour/depth pairs until :meth:`close` (camera) or the recording's end."""
         rs = self._rs
         offset_ns: int | None = None
-        last_colour = -1
-        while self._pipeline is not None:
+        pairing = FramePairing(self._max_difference_ns)
+        colour_kind = rs.stream.color
+        silent_ms = 0  # [ms] waited for a frame so far
+        while (frames_q := self._frames_q) is not None:
             try:
-                ok, frameset = self._pipeline.try_wait_for_frames(FRAME_TIMEOUT_MS)
-            except RuntimeError as err:
-                raise SensorError(f"{self.path}: reading frames failed: {err}") from err
-            if not ok:
+                frame = frames_q.get(timeout=FRAME_TIMEOUT_MS / 1000)
+                silent_ms = 0
+            except queue.Empty:
+                silent_ms += FRAME_TIMEOUT_MS
+                if self._frames_q is None:
+                    return  # closed while waiting
                 if self._playback is not None:
+                    # Still playing: the reader was kept waiting (a loaded machine), not the end.
+                    playing = self._playback.current_status() == rs.playback_status.playing
+                    if playing and silent_ms < PLAYBACK_STALL_MS:
+                        continue
+                    if playing:
+                        log.warning(
+                            "%s: playback silent for %d s: ended", self.path, silent_ms // 1000
+                        )
                     return  # the recording ended
                 raise SensorError(
                     f"{self.path}: no frames for {FRAME_TIMEOUT_MS / 1000:g} s; was the camera "
                     "unplugged?"
-                )
-            colour, depth = frameset.get_color_frame(), frameset.get_depth_frame()
-            # The pipeline's syncer hands out a frameset per arriving frame, pairing it with the
-            # other stream's latest: keep each colour frame once, with a depth frame close to it.
-            reason = self._unusable(colour, depth, last_colour)
-            if reason:
-                self.skipped[reason] = self.skipped.get(reason, 0) + 1
+                ) from None
+            is_colour = frame.get_profile().stream_type() == colour_kind
+            pair = pairing.add(frame if is_colour else None, None if is_colour else frame)
+            for reason, n in pairing.take_skips().items():
+                self.skipped[reason] = self.skipped.get(reason, 0) + n
+            if pair is None:
                 continue
-            last_colour = colour.get_frame_number()
-            aligned = self._align.process(frameset)
+            aligned = self._align.process(self._compose(*pair))
             colour, depth = aligned.get_color_frame(), aligned.get_depth_frame()
             stamp_ms = float(colour.get_timestamp())
             if offset_ns is None:
@@ -358,19 +476,44 @@ class RealSenseSource(SourceBase):
                 self._intrinsics,
             )
 
-    def _unusable(self, colour: Any, depth: Any, last_colour: int) -> str:
-        """Why a frameset is not a new colour/depth pair ("" if it is)."""
-        if not colour or not depth:
-            return "incomplete_frameset"
-        if colour.get_frame_number() == last_colour:
-            return "repeated_color"
-        gap_ms = abs(colour.get_timestamp() - depth.get_timestamp())
-        return "unpaired_color" if gap_ms * NS_PER_MS > self._max_difference_ns else ""
+    def _compose(self, colour: Any, depth: Any) -> Any:
+        """One frameset of a colour and a depth frame (from two framesets maybe), for rs.align."""
+        self._pair = [colour, depth]
+        self._composer.invoke(colour)
+        return self._composed.wait_for_frame().as_frameset()
+
+    def _on_frame(self, frame: Any) -> None:
+        """librealsense's threads: a colour or depth frame. Offline it waits while the queue is
+        full, so a playback not in real time waits for the reader; live a frame the reader has
+        no room for is dropped (``queue_full``), as a camera's."""
+        while not self._closing.is_set() and (frames_q := self._frames_q) is not None:
+            try:
+                frames_q.put(
+                    frame, timeout=None if self._realtime else 0.1, block=not self._realtime
+                )
+                return
+            except queue.Full:
+                if self._realtime:
+                    self.skipped["queue_full"] = self.skipped.get("queue_full", 0) + 1
+                    return
+
+    def _on_gyro(self, frame: Any) -> None:
+        """librealsense's thread: one gyro sample (a deque append is thread-safe)."""
+        motion = frame.as_motion_frame()
+        if motion:
+            self._gyro_samples.append((round(motion.get_timestamp() * NS_PER_MS), yaw_rate(motion)))
+
+    def take_imu(self) -> ImuStream:
+        """Live: the gyro samples (yaw rates) that arrived since the last call, on the device
+        clock (``stamp_offset_ns`` moves them onto the frames'), as the camera delivers them."""
+        got = [self._gyro_samples.popleft() for _ in range(len(self._gyro_samples))]
+        stamps = np.array([t for t, _ in got], dtype=np.int64)
+        return ImuStream(stamps, np.array([r for _, r in got], dtype=np.float64))
 
     def imu(self) -> ImuStream | None:
-        """A recording's gyro as yaw rate (-gyro_y), read in a second pass, once (played in real
-        time: at opening, before the frames start playing); None without one."""
-        if self.target.file is None:
+        """A recording's gyro as yaw rate, read in a second pass, once; None without one, and
+        live (the gyro streams: :meth:`take_imu`)."""
+        if self.target.file is None or self.gyro_streams:
             return None
         if self._gyro is _UNREAD:
             self._gyro = read_gyro(self._rs, self.target.file)
@@ -399,7 +542,7 @@ def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:
                 motion = frame.as_motion_frame()
                 if motion:
                     stamps.append(round(motion.get_timestamp() * NS_PER_MS))
-                    rates.append(-float(motion.get_motion_data().y))
+                    rates.append(yaw_rate(motion))
     finally:
         pipeline.stop()
     if not stamps:
@@ -473,11 +616,16 @@ def write_sdk_recording(
     count, t0_ns, wall0 = 0, first.stamp_ns, time.monotonic()
     n_gyro = 0
 
+    def wait_until(stamp_ns: int) -> None:
+        if pace:
+            time.sleep(max(0.0, (stamp_ns - t0_ns) / 1e9 - (time.monotonic() - wall0)))
+
     def send_gyro(until_ns: float) -> None:
         nonlocal n_gyro
         while (
             gyro is not None and n_gyro < len(gyro.stamps_ns) and gyro.stamps_ns[n_gyro] <= until_ns
         ):
+            wait_until(int(gyro.stamps_ns[n_gyro]))  # a burst would be lost in real-time playback
             f = rs.software_motion_frame()
             v = rs.vector()
             v.x, v.y, v.z = 0.0, -float(gyro.gyro_z[n_gyro]), 0.0
@@ -489,9 +637,8 @@ def write_sdk_recording(
 
     try:
         for frame in itertools.chain((first,), frames):
-            if pace:
-                time.sleep(max(0.0, (frame.stamp_ns - t0_ns) / 1e9 - (time.monotonic() - wall0)))
             send_gyro(frame.stamp_ns)
+            wait_until(frame.stamp_ns)
             counts = np.round(np.nan_to_num(frame.depth_m, nan=0.0) / depth_units)
             pixels = {
                 "Depth": np.clip(counts, 0, 65535).astype(np.uint16),

@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sensors.config import RobotConfig
-from sensors.source import Source
+from sensors.source import ImuStream, Source
 from sensors.types import NS_PER_S, ImuSample, LaserScan, Odometry2D, Pose2, RgbdFrame, WheelTicks
 from slam.config import STATE_NAMES, DepthToScanConfig, EkfConfig, VoConfig
 from slam.depth_to_scan import DepthToScan
@@ -398,11 +398,16 @@ class MessageFeed:
             )
             feed.append(lambda i: fe.odometry(msgs[i]))
         imu = src.imu() if opts.imu else None
-        if imu is not None:
-            g = imu
-            stamps.append(np.asarray(g.stamps_ns, np.int64))
+        # The IMU stream is held here (extend_imu replaces it); -1: none.
+        self._imu = imu if imu is not None else ImuStream(np.zeros(0, np.int64), np.zeros(0))
+        self._imu_slot = -1
+        if imu is not None or opts.imu:
+            self._imu_slot = len(feed)
+            stamps.append(np.asarray(self._imu.stamps_ns, np.int64))
             feed.append(
-                lambda i: fe.imu(ImuSample(int(g.stamps_ns[i]) + offset_ns, float(g.gyro_z[i])))
+                lambda i: fe.imu(
+                    ImuSample(int(self._imu.stamps_ns[i]) + offset_ns, float(self._imu.gyro_z[i]))
+                )
             )
         # One time-ordered merge (stable: ties keep the order above).
         all_t = np.concatenate(stamps) if stamps else np.zeros(0, np.int64)
@@ -414,6 +419,29 @@ class MessageFeed:
         self._t = all_t[order] + offset_ns
         self._which, self._index, self._feed = which[order], index[order], feed
         self._k = 0
+        self._offset_ns = offset_ns
+
+    def extend_imu(self, imu: ImuStream) -> None:
+        """IMU samples that arrived since (a live camera's gyro, streaming): merged with the
+        ones not fed yet, then fed by :meth:`until` as the recorded ones. Fed samples are let
+        go, so an hours-long run holds only the few waiting for their frame."""
+        if self._imu_slot < 0 or len(imu.stamps_ns) == 0:
+            return
+        k, slot = self._k, self._imu_slot
+        t, which, index = self._t[k:], self._which[k:], self._index[k:].copy()
+        waiting = which == slot
+        kept = index[waiting]
+        self._imu = ImuStream(
+            np.concatenate([np.asarray(self._imu.stamps_ns)[kept], imu.stamps_ns]).astype(np.int64),
+            np.concatenate([np.asarray(self._imu.gyro_z)[kept], imu.gyro_z]),
+        )
+        index[waiting] = np.arange(len(kept))
+        n = len(imu.stamps_ns)
+        t = np.concatenate([t, np.asarray(imu.stamps_ns, np.int64) + self._offset_ns])
+        which = np.concatenate([which, np.full(n, slot)])
+        index = np.concatenate([index, np.arange(len(kept), len(kept) + n)])
+        order = np.argsort(t, kind="stable")
+        self._t, self._which, self._index, self._k = t[order], which[order], index[order], 0
 
     def until(self, stamp_ns: int) -> None:
         """Every message stamped at or before ``stamp_ns`` not fed yet (ties: before the frame,

@@ -48,6 +48,7 @@ from nav.collision_monitor import ObstacleMemory, limit_twist
 from nav.teleop import TeleopState, teleop_key
 from rgbdnav.config import (
     Config,
+    camera_mount,
     initial_pose_array,
     load_config,
     section_to_dict,
@@ -259,6 +260,7 @@ class LiveRun:
         self._last_snapshot = -math.inf  # [s] monotonic time of the last map handed to it
         self.sim: Any = None
         self.camera_src: Source | None = None  # a camera other than the simulated robot
+        self.extrinsics: dict[str, Any] = {"source": "config"}  # the camera mount's origin
         self.board: MotorBoard | None = None
         self._opened: OpenedBoard | None = None
         self.poller: OdometryPoller | None = None
@@ -396,7 +398,21 @@ class LiveRun:
             return self._sim_frames()
         # realtime: a device recording plays at its own pace, stamped like a camera.
         self.camera_src = open_source(opts.camera, replace(source_options(cfg), realtime=True))
+        self._take_camera_mount(self.camera_src)
         return iter(self.camera_src.frames())
+
+    def _take_camera_mount(self, src: Source) -> None:
+        """The camera's own mount (a Kinect's accelerometer pitch) under the user's config keys,
+        as the offline commands take a bag's /tf_static: before the front end starts."""
+        base, self.extrinsics = camera_mount(src, self.config_files, self.opts.overrides)
+        if self.extrinsics["source"] == "config":
+            return
+        robot = load_config(self.config_files, self.opts.overrides, base=base).robot
+        self.cfg = replace(self.cfg, robot=robot)
+        self.run.write_config(self.cfg)  # the run's config.yaml says what the run used
+        if self.recorder is not None:  # its scene.yaml is written at the first frame
+            self.recorder.scene["robot"] = section_to_dict(robot)
+        log.info("camera mount from %s: %s", self.extrinsics["source"], self.extrinsics["chain"])
 
     def _turn_sim_wheels(self) -> None:
         """Copy the host-side board emulator's wheel travel [positions] to the simulated robot."""
@@ -444,12 +460,14 @@ class LiveRun:
         :class:`slam.front_end.FrontEnd` the offline commands drive); its scan and pose go to
         the mapper, the collision monitor and the navigator."""
         cfg = self.cfg
-        # The camera's gyro (a RealSense recording with one played as the camera) is imu0.
+        # The camera's gyro is imu0: a D435i/D455's (or a recording's played as the camera)
+        # streams as it comes (take_imu); another source's is read whole.
         src = self.camera_src
-        gyro = src.imu() if src is not None else None
+        streams = bool(getattr(src, "gyro_streams", False))
+        gyro = src.imu() if src is not None and not streams else None
         opts = FrontEndOptions(
             wheels=self.opts.board != "none",
-            imu=gyro is not None and len(gyro.stamps_ns) > 0,
+            imu=streams or (gyro is not None and len(gyro.stamps_ns) > 0),
             pose_before_vo=cfg.live.pose_before_vo,
             camera_rate_hz=cfg.camera.rate,
         )
@@ -492,6 +510,8 @@ class LiveRun:
                 if imu_feed is None:
                     offset = int(getattr(src, "stamp_offset_ns", 0))
                     imu_feed = MessageFeed(src, fe, offset, kinds=("imu",))
+                if streams:
+                    imu_feed.extend_imu(src.take_imu())  # type: ignore[attr-defined]
                 imu_feed.until(frame.stamp_ns)
             wheels_ms = 1e3 * (time.perf_counter() - t_a)
             # b. VO (skipped when frames wait: the next VO pair spans both), the pose at the
@@ -1001,6 +1021,8 @@ class LiveRun:
         summary: dict[str, Any] = {
             "command": "live",
             "camera": self.opts.camera,
+            "camera_imu": getattr(self.camera_src, "imu_note", None),
+            "extrinsics": self.extrinsics,
             "board": self.opts.board,
             "world": str(self.opts.world) if self.opts.world else None,
             "robot": self._robot_frame(),

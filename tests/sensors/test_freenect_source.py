@@ -5,9 +5,12 @@ it is installed (no Kinect on a CI machine: one clean error line)."""
 from __future__ import annotations
 
 import importlib
+import json
 import math
 import sys
+import time
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +25,9 @@ runner = CliRunner()
 H, W = 480, 640  # [px]
 
 
-def _fake_freenect(devices: int, frames: int, tilt_degs: float = 10.0) -> types.ModuleType:
+def _fake_freenect(
+    devices: int, frames: int, tilt_degs: float = 10.0, period_s: float = 0.0
+) -> types.ModuleType:
     fn = types.ModuleType("freenect")
     fn.VIDEO_RGB, fn.DEPTH_REGISTERED = 0, 4
     state = {"video": 0, "stopped": False}
@@ -40,6 +45,7 @@ def _fake_freenect(devices: int, frames: int, tilt_degs: float = 10.0) -> types.
         if state["video"] >= frames:
             return None
         state["video"] += 1
+        time.sleep(period_s)  # a Kinect's 30 Hz
         return np.full((H, W, 3), state["video"], np.uint8), 123
 
     def depth(index: int, fmt: int):
@@ -120,3 +126,47 @@ def test_info_without_a_kinect_is_one_error_line() -> None:
 
 def test_pitch_sign() -> None:
     assert pitch_from_tilt(15.0) == pytest.approx(-math.radians(15.0))  # tilted up: negative
+
+
+def test_info_says_whether_the_accelerometer_pitch_or_the_config_wins(monkeypatch) -> None:
+    """As a bag's /tf_static mount: the accelerometer's pitch unless the config sets
+    robot.camera_pitch (another camera key, e.g. the height, does not stop it)."""
+    monkeypatch.setitem(
+        sys.modules, "freenect", _fake_freenect(devices=1, frames=0, tilt_degs=-12.0)
+    )
+    cases = [
+        ([], "from accelerometer (Kinect tilt -12.0 deg): camera_pitch=0.2094"),
+        (["robot.camera_height=0.3"], "from accelerometer (Kinect tilt -12.0 deg)"),
+        (
+            ["robot.camera_pitch=0.05"],
+            "from config (accelerometer Kinect tilt -12.0 deg not used: the config sets "
+            "robot.camera_pitch)",
+        ),
+    ]
+    for sets, want in cases:
+        res = runner.invoke(app, ["info", "freenect://", *[a for x in sets for a in ("--set", x)]])
+        assert res.exit_code == 0, res.output
+        assert f"extrinsics  {want}" in res.output, res.output
+
+
+def test_live_takes_the_accelerometer_pitch_unless_the_config_sets_it(
+    monkeypatch, tmp_path
+) -> None:
+    import yaml
+
+    for sets, source, pitch in (
+        ([], "accelerometer", math.radians(12.0)),
+        (["robot.camera_pitch=0.05"], "config", 0.05),
+    ):
+        fake = _fake_freenect(devices=1, frames=10**6, tilt_degs=-12.0, period_s=1 / 30)
+        monkeypatch.setitem(sys.modules, "freenect", fake)
+        out = tmp_path / source
+        args = ["live", "--camera", "freenect://", "--board", "none", "--out", str(out)]
+        args += ["--duration", "1", "-q", *[a for x in sets for a in ("--set", x)]]
+        res = runner.invoke(app, args)
+        assert res.exit_code == 0, res.output
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["extrinsics"]["source"] == source, summary["extrinsics"]
+        assert summary["counts"]["frames_received"] > 0 and fake.state["stopped"]
+        robot = yaml.safe_load(Path(out / "config.yaml").read_text())["robot"]
+        assert robot["camera_pitch"] == pytest.approx(pitch, abs=1e-6)  # what the run used

@@ -152,3 +152,42 @@ def test_vo_sanity_limits_grow_for_frames_further_apart_than_the_camera_rate() -
     assert far.max_translation == pytest.approx(vo.max_translation * 20.1)
     assert far.max_rotation == pytest.approx(math.pi)
     assert replace(far, max_translation=vo.max_translation, max_rotation=vo.max_rotation) == vo
+
+
+def test_a_streaming_imu_is_fed_as_the_same_samples_read_whole() -> None:
+    """MessageFeed.extend_imu (a live camera's gyro, arriving in bursts, some after the frame they
+    precede) feeds fe.imu the same samples, in the same order, as a recorded stream read whole."""
+    from types import SimpleNamespace
+
+    from sensors.source import ImuStream
+    from slam.front_end import MessageFeed
+
+    rng = np.random.default_rng(7)
+    stamps = np.arange(0, 2_000_000_000, 5_000_000, dtype=np.int64)
+    rates = rng.normal(0.0, 0.1, len(stamps))
+    frames = np.arange(0, 2_000_000_000, 33_333_333, dtype=np.int64)
+    offset = 1_000_000_000  # [ns] device clock -> the frames' clock
+
+    def fed(streaming: bool) -> list[tuple[int, float]]:
+        got: list[tuple[int, float]] = []
+        fe = SimpleNamespace(
+            options=FrontEndOptions(vo=False, scan=False, wheels=False, imu=True),
+            imu=lambda s: got.append((s.stamp_ns, s.gyro_z)),
+        )
+        whole = None if streaming else ImuStream(stamps, rates)
+        src = SimpleNamespace(imu=lambda: whole)
+        feed = MessageFeed(src, fe, offset, kinds=("imu",))  # type: ignore[arg-type]
+        cut = np.sort(rng.integers(0, len(stamps), 40))  # bursts of any size
+        for a, b in zip(np.r_[0, cut], np.r_[cut, len(stamps)], strict=True):
+            if streaming:
+                feed.extend_imu(ImuStream(stamps[a:b], rates[a:b]))
+            if b < len(stamps):
+                feed.until(int(stamps[b]) + offset - 20_000_000)  # a frame 20 ms behind
+        for t in frames:
+            feed.until(int(t) + offset)
+        feed.until(2**62)
+        return got
+
+    whole, streamed = fed(False), fed(True)
+    assert len(whole) == len(stamps) and streamed == whole
+    assert [t for t, _ in streamed] == sorted(t for t, _ in streamed)
