@@ -26,8 +26,8 @@ reservoir, the odometry, SLAM and ground-truth trajectories are streamed to the 
 drawing (``live.stats_reservoir``, ``live.track_decimation``).
 
 SIGINT and SIGTERM end the run cleanly (motors stopped, final checkpoint, summary). After a
-``kill -9`` the last checkpoint in ``OUT/map`` is a complete bundle that ``map --continue`` and
-``localize --map`` load.
+``kill -9``: ``OUT/map`` is the last checkpoint (a complete bundle), the trajectories hold rows up
+to the last second, and ``summary.json`` (rewritten each checkpoint period) says ``incomplete``.
 """
 
 from __future__ import annotations
@@ -920,6 +920,7 @@ class LiveRun:
         drills = sorted(self.opts.drills, key=lambda d: d.at_s)
         total = self.opts.duration_s or math.inf
         next_sample = 0.0
+        next_progress = self.cfg.live.first_checkpoint_after
         while not self.stop.is_set():
             now = time.monotonic()
             if now - t0 >= next_sample:
@@ -927,6 +928,9 @@ class LiveRun:
                 next_sample += MEMORY_SAMPLE_S
             start = self._clock_start()
             elapsed = 0.0 if start is None else now - start
+            if start is not None and elapsed >= next_progress:
+                self._write_progress_summary(now - t0)
+                next_progress = elapsed + self.cfg.live.checkpoint_period
             while start is not None and drills and drills[0].at_s <= elapsed:
                 d = drills.pop(0)
                 log.warning("fault drill at %.1f s: %s", elapsed, d.action)
@@ -939,6 +943,30 @@ class LiveRun:
             if progress is not None and math.isfinite(total):
                 progress(elapsed, total)
             self.stop.wait(0.1)
+
+    def _write_progress_summary(self, wall: float) -> None:
+        """A ``summary.json`` with ``status: incomplete`` while the run goes on (first at
+        ``live.first_checkpoint_after``, then every ``live.checkpoint_period``): after a
+        ``kill -9`` the folder still says what ran, its counts so far and that it did not end.
+        The summary written at the end replaces it."""
+        summary = {
+            "command": "live",
+            "status": "incomplete",
+            "note": "written while the run went on; a run that ends replaces it",
+            "camera": self.opts.camera,
+            "board": self.opts.board,
+            "world": str(self.opts.world) if self.opts.world else None,
+            "robot": self._robot_frame(),
+            "mode": "localization" if self.localizer is not None else "mapping",
+            "config_files": [str(p) for p in self.config_files],
+            "wall_s": round(wall, 3),
+            "counts": self.counts.as_dict(),
+            "errors": list(self.errors),
+        }
+        try:
+            self.run.write_summary(summary)
+        except OSError as err:  # the run goes on; the final summary will say it again
+            log.warning("progress summary not written: %s", err)
 
     def _install_signal_handlers(self) -> Callable[[], None]:
         if threading.current_thread() is not threading.main_thread():
@@ -1005,6 +1033,7 @@ class LiveRun:
         lat = self.latency_ms
         summary: dict[str, Any] = {
             "command": "live",
+            "status": "finished",
             "camera": self.opts.camera,
             "board": self.opts.board,
             "world": str(self.opts.world) if self.opts.world else None,

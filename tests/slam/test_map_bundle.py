@@ -406,6 +406,10 @@ def test_graph_json_problems_are_map_errors(tmp_path):
         ),
         ("free_thresh", float("nan"), r"config\.free_thresh must be a number in \(0, 1\), got nan"),
         ("free_thresh", 0.9, r"free_thresh \(0\.9\) must be below occupied_thresh \(0\.65\)"),
+        # A string where the resolution was stored skipped the check against map.yaml (#16).
+        ("resolution", "fine", r"config\.resolution must be a number > 0, got 'fine'"),
+        ("resolution", float("nan"), r"config\.resolution must be a number > 0, got nan"),
+        ("resolution", True, r"config\.resolution must be a number > 0, got True"),
     ],
 )
 def test_a_stored_config_value_that_is_not_a_threshold_is_a_map_error(tmp_path, key, value, match):
