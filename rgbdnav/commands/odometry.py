@@ -140,6 +140,8 @@ def _run(
         outputs["frames"] = run.file("frames.png")
     summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
     summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
+    # lines of message types this reader does not use (CARMEN SYNC, ...), by type
+    summary["source_ignored"] = dict(getattr(src, "ignored", {}))
     outputs["summary"] = run.write_summary(summary)
     return outputs
 
