@@ -219,12 +219,8 @@ class FrontEnd:
             self._vo = VisualOdometry(frame.intrinsics, self.vo_cfg, self.robot)
         if self._d2s is None and self.options.scan and self.options.planar:
             self._d2s = DepthToScan(frame.intrinsics, self.robot, self.d2s_cfg)
-        no_wheels_yet = self.options.wheels and self._last_wheel_ns is None
-        if self.ekf is not None and (self.vo_carries or no_wheels_yet):
-            # The odom frame is where the robot starts. Frames before the first wheel reading
-            # (a board slow to answer on a loaded machine) had no pose, and a 3 s live run
-            # then mapped nothing (#16): the robot stands still until the wheels say otherwise.
-            self.ekf.start(frame.stamp_ns)
+        if self.ekf is not None and self.vo_carries:
+            self.ekf.start(frame.stamp_ns)  # the odom frame is where the robot starts
         res, vo_ms = (None, math.nan)
         if not self.options.pose_before_vo:
             res, vo_ms = self._visual_odometry(frame, skip_vo)

@@ -499,6 +499,11 @@ class LiveRun:
                     imu_feed = MessageFeed(src, fe, offset, kinds=("imu",))
                 imu_feed.until(frame.stamp_ns)
             wheels_ms = 1e3 * (time.perf_counter() - t_a)
+            if fe.ekf is not None:
+                # The robot stands where the run starts until its wheels say otherwise: a board
+                # slow to answer (a loaded machine) left the first frames without a pose, and a
+                # 3 s run then mapped and saved nothing (#16). No effect once the filter runs.
+                fe.ekf.start(frame.stamp_ns)
             # b. VO (skipped when frames wait: the next VO pair spans both), the pose at the
             #    frame's stamp and the scan: latency ends here.
             step = fe.frame(

@@ -152,20 +152,3 @@ def test_vo_sanity_limits_grow_for_frames_further_apart_than_the_camera_rate() -
     assert far.max_translation == pytest.approx(vo.max_translation * 20.1)
     assert far.max_rotation == pytest.approx(math.pi)
     assert replace(far, max_translation=vo.max_translation, max_rotation=vo.max_rotation) == vo
-
-
-def test_frames_before_the_first_wheel_reading_get_the_start_pose_not_none() -> None:
-    # A board slow to answer (a loaded machine) sent its first reading after the first frames:
-    # those frames had no pose, so no scan, and a 3 s live run mapped nothing (#16).
-    fe = _front_end(wheels=True)
-    t0 = 1_000_000_000
-    first = [fe.frame(_blank(t0 + k * 33_000_000)).odom for k in range(3)]
-    assert all(od is not None for od in first)
-    assert all(abs(od.pose.x) + abs(od.pose.y) + abs(od.pose.yaw) < 1e-9 for od in first)
-    assert fe.counts["frames_without_odometry"] == 0
-    # The wheels then move it as usual: 0.5 s of equal counts drives straight ahead.
-    for k in range(1, 64):
-        fe.wheels(WheelTicks(t0 + 100_000_000 + k * DT_NS, k // 4, k // 4))
-    od = fe.frame(_blank(t0 + 100_000_000 + 63 * DT_NS)).odom
-    travelled = 15 * math.pi * ROBOT.wheel_diameter / ROBOT.ticks_per_revolution
-    assert od.pose.x == pytest.approx(travelled, rel=0.2) and abs(od.pose.y) < 1e-3
