@@ -483,7 +483,11 @@ class LiveRun:
                 log.info("camera frames again: mapping resumed")
             if self.recorder is not None:
                 self.recorder.frame(frame)
-            # a. Wheel ticks that arrived since the last frame.
+            # a. Wheel ticks that arrived since the last frame. The filter starts at the first
+            #    frame, before the readings queued meanwhile (a loaded machine delivers them
+            #    late): their motion after it is fused, not the frame left without a pose (#16).
+            if fe.ekf is not None:
+                fe.ekf.start(frame.stamp_ns)
             t_a = time.perf_counter()
             while True:
                 try:
@@ -499,11 +503,6 @@ class LiveRun:
                     imu_feed = MessageFeed(src, fe, offset, kinds=("imu",))
                 imu_feed.until(frame.stamp_ns)
             wheels_ms = 1e3 * (time.perf_counter() - t_a)
-            if fe.ekf is not None:
-                # The robot stands where the run starts until its wheels say otherwise: a board
-                # slow to answer (a loaded machine) left the first frames without a pose, and a
-                # 3 s run then mapped and saved nothing (#16). No effect once the filter runs.
-                fe.ekf.start(frame.stamp_ns)
             # b. VO (skipped when frames wait: the next VO pair spans both), the pose at the
             #    frame's stamp and the scan: latency ends here.
             step = fe.frame(

@@ -118,8 +118,9 @@ def test_without_wheels_or_odom_the_vo_carries_the_ekf_of_a_ground_robot(recordi
 def test_live_frames_before_the_boards_first_motion_get_the_start_pose_and_are_mapped(
     recording: Path, tmp_path: Path
 ) -> None:
-    # On a loaded machine the board's first reading came, its second not before the 3 s run
-    # ended: every frame was "without odometry", nothing reached the mapper, no map was saved.
+    # On a loaded machine the board's first readings were stamped after the first frames but
+    # delivered before the front end took them: the filter started at the readings' motion,
+    # every frame was older ("without odometry"), nothing was mapped and no map was saved.
     live = LiveRun(
         LiveOptions(
             out=tmp_path / "live",
@@ -133,7 +134,9 @@ def test_live_frames_before_the_boards_first_motion_get_the_start_pose_and_are_m
         frames = list(src.frames())[:5]
         wheels = src.wheels()
     assert wheels is not None
-    live.ticks_q.put(WheelTicks(int(wheels.stamps_ns[0]), int(wheels.left[0]), 0))
+    late = np.flatnonzero(wheels.stamps_ns > frames[-1].stamp_ns)[:3]
+    for k in late:
+        live.ticks_q.put(WheelTicks(int(wheels.stamps_ns[k]), int(wheels.left[k]), int(k)))
     for f in frames:
         live.frame_q.put_nowait(f)
     live.frame_q.put(None)
