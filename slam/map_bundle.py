@@ -27,6 +27,7 @@ import os
 import re
 import shutil
 import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -613,7 +614,8 @@ def _load_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
         raise MapError(f"{path}: missing file") from err
     except MapError:
         raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as err:
+        # zlib.error: a compressed member whose data was damaged (found by bench/fuzz_inputs)
         raise MapError(f"{path}: corrupt or unreadable npz: {err}") from err
 
 

@@ -75,7 +75,7 @@ def _copy(src: Path, dst: Path) -> Path:
     return Path(shutil.copytree(src, dst))
 
 
-@examples(80)
+@examples(60)
 @given(st.sampled_from(["graph.json", "map.yaml", "scans.npz", "grid.npz"]), st.data())
 def test_a_bundle_with_one_mutated_file_loads_or_is_a_map_error(
     tmp_path: Path, bundle_dir: Path, name: str, data: st.DataObject
@@ -95,7 +95,7 @@ SCAN_VALUES = st.one_of(
 )
 
 
-@examples(60)
+@examples(40)
 @given(
     st.sampled_from(["angle_min", "angle_increment", "range_min", "range_max", "stamp_ns"]),
     SCAN_VALUES,

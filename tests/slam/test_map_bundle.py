@@ -431,6 +431,14 @@ def test_scans_npz_problems_are_map_errors(tmp_path):
     np.savez_compressed(scans, ranges=np.zeros(3, np.float32))
     with pytest.raises(MapError, match=r"scans.npz: missing arrays \['offsets'"):
         load_bundle(folder)
+    # Damaged deflate data inside an intact zip: zlib.error, not a zip error (bench/fuzz_inputs).
+    np.savez_compressed(scans, **mb._scans_arrays(make_bundle().scans))
+    data = bytearray(scans.read_bytes())
+    start = 30 + int.from_bytes(data[26:28], "little") + int.from_bytes(data[28:30], "little")
+    data[start : start + 4] = b"\xff" * 4  # the first member's compressed stream
+    scans.write_bytes(bytes(data))
+    with pytest.raises(MapError, match="scans.npz: corrupt or unreadable npz: Error -3"):
+        load_bundle(folder)
     arrays = mb._scans_arrays(make_bundle().scans)
     arrays["offsets"] = np.array([0, 3, 2, 12])
     np.savez_compressed(scans, **arrays)
