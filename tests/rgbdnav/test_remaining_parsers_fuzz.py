@@ -130,7 +130,7 @@ def recording_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-@examples(80)
+@examples(50)
 @given(st.sampled_from(["rgb.txt", "depth.txt", "wheels.txt", "imu.txt", "scene.yaml"]), st.data())
 def test_a_recording_with_one_mutated_index_or_scene_file_reads_or_is_a_sensor_error(
     tmp_path: Path, recording_dir: Path, name: str, data: st.DataObject
