@@ -10,6 +10,7 @@ Exits 1 when any input ended in a traceback or a hang.
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import shutil
 import signal
@@ -494,6 +495,8 @@ def main() -> int:
     )  # OpenCV's own stderr lines for each bad image: the outcome is counted
     rng = random.Random(args.seed)
     rows, problems, total = [], [], Counter()
+    load0 = os.getloadavg()[0]  # slowest [ms] depends on it: the machine is shared
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch:
         tmp = Path(scratch)
@@ -524,7 +527,8 @@ def main() -> int:
         f"`bench/fuzz_inputs.py --count {args.count} --seed {args.seed}`: every reader gets "
         f"{args.count} seeded mutations of a valid input (byte edits, repeats, cuts, and "
         "spliced NaN / 1e30 / huge digit strings / aliases / deep nesting / invalid UTF-8). "
-        f"{n} inputs in {wall:.1f} s on {machine('cv2', 'yaml')}.",
+        f"{n} inputs in {wall:.1f} s on {machine('cv2', 'yaml')}, {started}, load average "
+        f"{load0:.0f} at the start, {os.getloadavg()[0]:.0f} at the end.",
         "",
         "| reader | inputs | " + " | ".join(OUTCOMES) + " | slowest [ms] |",
         "|---|---:|" + "---:|" * len(OUTCOMES) + "---:|",
