@@ -26,8 +26,8 @@ reservoir, the odometry, SLAM and ground-truth trajectories are streamed to the 
 drawing (``live.stats_reservoir``, ``live.track_decimation``).
 
 SIGINT and SIGTERM end the run cleanly (motors stopped, final checkpoint, summary). After a
-``kill -9``: ``OUT/map`` is the last checkpoint (a complete bundle), the trajectories hold rows up
-to the last second, and ``summary.json`` (rewritten each checkpoint period) says ``incomplete``.
+``kill -9`` the last checkpoint in ``OUT/map`` is a complete bundle that ``map --continue`` and
+``localize --map`` load.
 """
 
 from __future__ import annotations
