@@ -10,7 +10,9 @@ Exits 1 when any input ended in a traceback or a hang.
 from __future__ import annotations
 
 import argparse
+import os
 import random
+import shutil
 import signal
 import sys
 import tempfile
@@ -33,13 +35,21 @@ from rgbdnav.config import load_config  # noqa: E402
 from rgbdnav.ros_params import load_ros_params  # noqa: E402
 from sensors.arduino_bridge import parse_encoder_reply  # noqa: E402
 from sensors.carmen import read_carmen_log  # noqa: E402
+from sensors.eddie import parse_reply  # noqa: E402
 from sensors.geo import read_geo_anchor  # noqa: E402
 from sensors.gps import read_gps_txt  # noqa: E402
 from sensors.images import decode_image  # noqa: E402
 from sensors.motor_board import parse_device_spec  # noqa: E402
-from sensors.rosbag_source import parse_sdk_transform  # noqa: E402
+from sensors.recording import Recording  # noqa: E402
+from sensors.rosbag_source import (  # noqa: E402
+    depth_from_compressed,
+    depth_from_image,
+    parse_sdk_transform,
+)
+from sensors.sim.world import load_world  # noqa: E402
 from sensors.thunderborg import parse_tacho_line  # noqa: E402
 from sensors.tum import load_tum_trajectory, read_pose_table  # noqa: E402
+from sensors.tum_folder import read_camera_yaml  # noqa: E402
 from sensors.types import LaserScan, RgbdNavError, SensorError, parse_stamp  # noqa: E402
 from slam.fleet import load_fleet  # noqa: E402
 from slam.map_bundle import (  # noqa: E402
@@ -51,6 +61,8 @@ from slam.map_bundle import (  # noqa: E402
     save_bundle,
 )
 from slam.occupancy_grid import GridGeometry, OccupancyGrid  # noqa: E402
+from slam.pose_graph import read_g2o  # noqa: E402
+from slam.trajectory_eval import read_relations  # noqa: E402
 
 OUTCOMES = ("ok", "counted skip", "clean error", "traceback", "hang")
 SECTION = "fuzz_inputs"
@@ -153,12 +165,6 @@ def _map_yaml(data: bytes, tmp: Path) -> str:
     return "ok"
 
 
-def _graph_json(data: bytes, tmp: Path) -> str:
-    (tmp / "b" / "graph.json").write_bytes(data)
-    load_bundle(tmp / "b")
-    return "ok"
-
-
 def _fleet(data: bytes, tmp: Path) -> str:
     (tmp / "fleet.yaml").write_bytes(data)
     load_fleet(tmp / "fleet.yaml")
@@ -238,6 +244,74 @@ def _sdk_transform(data: bytes, tmp: Path) -> str:
     return "ok"
 
 
+def _bundle_file(name: str) -> Callable[[bytes, Path], str]:
+    def read(data: bytes, tmp: Path) -> str:
+        (tmp / "b" / name).write_bytes(data)
+        try:
+            load_bundle(tmp / "b")
+        finally:
+            (tmp / "b" / name).write_bytes((tmp / "b0" / name).read_bytes())
+        return "ok"
+
+    return read
+
+
+def _recording_file(name: str) -> Callable[[bytes, Path], str]:
+    def read(data: bytes, tmp: Path) -> str:
+        (tmp / "rec" / name).write_bytes(data)
+        try:
+            rec = Recording.open(tmp / "rec")
+            frames = list(rec.frames(skip_bad=True))
+            rec.wheels()
+            rec.imu()
+        finally:
+            (tmp / "rec" / name).write_bytes((tmp / "rec0" / name).read_bytes())
+        return "counted skip" if len(frames) < len(rec) else "ok"
+
+    return read
+
+
+def _world(data: bytes, tmp: Path) -> str:
+    (tmp / "w.yaml").write_bytes(data)
+    load_world(tmp / "w.yaml")
+    return "ok"
+
+
+def _camera_yaml(data: bytes, tmp: Path) -> str:
+    (tmp / "TUM3.yaml").write_bytes(data)
+    cam = read_camera_yaml(tmp / "TUM3.yaml")
+    if cam is not None and not all(np.isfinite(list(cam.values()))):
+        raise SensorError("non-finite intrinsics passed")  # silent: reported as a traceback
+    return "ok" if cam is not None else "counted skip"  # None: said, defaults not taken silently
+
+
+def _g2o(data: bytes, tmp: Path) -> str:
+    (tmp / "g.g2o").write_bytes(data)
+    read_g2o(tmp / "g.g2o")
+    return "ok"
+
+
+def _relations(data: bytes, tmp: Path) -> str:
+    (tmp / "r.relations").write_bytes(data)
+    read_relations(tmp / "r.relations")
+    return "ok"
+
+
+def _raw_depth_message(data: bytes, tmp: Path) -> str:
+    depth_from_image("16UC1", 2, 3, 6, data)  # sensor_msgs/Image data of a 3x2 16UC1 image
+    return "ok"
+
+
+def _compressed_depth_message(data: bytes, tmp: Path) -> str:
+    depth_from_compressed("16UC1; compressedDepth png", data)
+    return "ok"
+
+
+def _eddie_reply(data: bytes, tmp: Path) -> str:
+    parse_reply("DIST", data)
+    return "ok"
+
+
 def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
     """Reader name -> (reader, the valid input it mutates)."""
     config = (
@@ -281,6 +355,16 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
         tmp / "b",
     )
     graph = (tmp / "b" / "graph.json").read_bytes()
+    shutil.copytree(tmp / "b", tmp / "b0")  # each bundle reader restores its file from here
+    _write_recording(tmp / "rec")
+    shutil.copytree(tmp / "rec", tmp / "rec0")
+    world = (REPO / "scenes" / "blank_rooms.yaml").read_bytes()
+    g2o = (
+        b"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1.0 0.1 0.2\n"
+        b"EDGE_SE2 0 1 1.0 0.1 0.2 500 0 0 500 0 5000\n"
+    )
+    png16 = cv2.imencode(".png", np.arange(6, dtype=np.uint16).reshape(2, 3) * 900)[1].tobytes()
+    compressed_depth = b"\x00\x00\x00\x00" + np.array([1, 2], "<f4").tobytes() + png16
     (tmp / "m").mkdir()
     (tmp / "g").mkdir()
     (tmp / "run").mkdir()
@@ -303,7 +387,7 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
             b"P5\n2 2\n65535\n" + bytes([0, 0, 255, 255, 1, 0, 128, 0]),
         ),
         "Nav2 map.yaml": (_map_yaml, map_yaml),
-        "bundle graph.json": (_graph_json, graph),
+        "bundle graph.json": (_bundle_file("graph.json"), graph),
         "fleet.yaml": (
             _fleet,
             b"world:\n  geo: {latitude: 52.0, longitude: 4.0}\nrobots:\n  - name: a\n"
@@ -335,7 +419,46 @@ def _corpus(tmp: Path) -> dict[str, tuple[Callable[[bytes, Path], str], bytes]]:
             b"slam_toolbox:\n  ros__parameters:\n    resolution: 0.05\n",
         ),
         "RealSense SDK transform": (_sdk_transform, SDK_TRANSFORM),
+        "world file": (_world, world),
+        "bundle map.yaml": (_bundle_file("map.yaml"), (tmp / "b" / "map.yaml").read_bytes()),
+        "bundle scans.npz": (_bundle_file("scans.npz"), (tmp / "b" / "scans.npz").read_bytes()),
+        "bundle grid.npz": (_bundle_file("grid.npz"), (tmp / "b" / "grid.npz").read_bytes()),
+        "recording rgb.txt": (_recording_file("rgb.txt"), (tmp / "rec" / "rgb.txt").read_bytes()),
+        "recording wheels.txt": (
+            _recording_file("wheels.txt"),
+            (tmp / "rec" / "wheels.txt").read_bytes(),
+        ),
+        "recording scene.yaml": (
+            _recording_file("scene.yaml"),
+            (tmp / "rec" / "scene.yaml").read_bytes(),
+        ),
+        "TUM camera YAML": (
+            _camera_yaml,
+            b"%YAML:1.0\nCamera.fx: 535.4\nCamera.fy: 539.2\nCamera.cx: 320.1\n"
+            b"Camera.cy: 247.6\nCamera.width: 640\nCamera.height: 480\n",
+        ),
+        "g2o pose graph": (_g2o, g2o),
+        "relations file": (_relations, b"1.0 2.0 0.5 0.0 0 0 0 0.1\n2.0 3.0 0.5 0.1 0 0 0 -0.1\n"),
+        "rosbag Image data (16UC1)": (_raw_depth_message, bytes(range(12))),
+        "rosbag compressedDepth": (_compressed_depth_message, compressed_depth),
+        "Eddie DIST reply": (_eddie_reply, b"0000000A FFFFFFF6\r"),
     }
+
+
+def _write_recording(path: Path) -> None:
+    """Three 8x6 frames with wheels and IMU: a recording folder as `simulate` writes one."""
+    from sensors.recording import RecordingWriter
+    from sensors.types import CameraIntrinsics, RgbdFrame
+
+    intr = CameraIntrinsics(width=8, height=6, fx=10.0, fy=10.0, cx=3.5, cy=2.5)
+    with RecordingWriter(path, intr, {"robot": {"track_m": 0.3}}) as writer:
+        for k in range(3):
+            rgb = np.full((6, 8, 3), 40 * k, np.uint8)
+            writer.add_frame(
+                RgbdFrame(1_000_000_000 + k * 33_000_000, rgb, np.ones((6, 8), np.float32), intr)
+            )
+    (path / "wheels.txt").write_text("# t left right\n1.0 0 0\n1.033 3 4\n1.066 7 9\n")
+    (path / "imu.txt").write_text("# t gyro_z\n1.0 0.01\n1.033 0.02\n1.066 -0.01\n")
 
 
 def run_one(
@@ -372,6 +495,8 @@ def main() -> int:
     )  # OpenCV's own stderr lines for each bad image: the outcome is counted
     rng = random.Random(args.seed)
     rows, problems, total = [], [], Counter()
+    load0 = os.getloadavg()[0]  # slowest [ms] depends on it: the machine is shared
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch:
         tmp = Path(scratch)
@@ -402,7 +527,8 @@ def main() -> int:
         f"`bench/fuzz_inputs.py --count {args.count} --seed {args.seed}`: every reader gets "
         f"{args.count} seeded mutations of a valid input (byte edits, repeats, cuts, and "
         "spliced NaN / 1e30 / huge digit strings / aliases / deep nesting / invalid UTF-8). "
-        f"{n} inputs in {wall:.1f} s on {machine('cv2', 'yaml')}.",
+        f"{n} inputs in {wall:.1f} s on {machine('cv2', 'yaml')}, {started}, load average "
+        f"{load0:.0f} at the start, {os.getloadavg()[0]:.0f} at the end.",
         "",
         "| reader | inputs | " + " | ".join(OUTCOMES) + " | slowest [ms] |",
         "|---|---:|" + "---:|" * len(OUTCOMES) + "---:|",
@@ -410,8 +536,9 @@ def main() -> int:
         f"| **all** | {n} | " + " | ".join(f"**{total[o]}**" for o in OUTCOMES) + " | |",
         "",
         "ok and clean error are both right answers (most mutations make an input invalid); a "
-        "counted skip is a CARMEN line dropped and counted in `skipped` or a tacho line counted in "
-        "`tacho_bad_lines`. A traceback is any "
+        "counted skip is a CARMEN line dropped and counted in `skipped`, a tacho line counted in "
+        "`tacho_bad_lines`, a recording frame skipped and counted, or a camera YAML that does "
+        "not parse (warned; its folder's source says so). A traceback is any "
         "exception other than an RgbdNavError; a hang is an input still running after "
         f"{args.timeout:g} s. This cannot see a silent wrong result: those are pinned by the "
         "unit tests named after them.",

@@ -29,6 +29,7 @@ import gzip
 import logging
 import math
 import os
+import re
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -36,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sensors.config import short_repr
 from sensors.source import PoseStream, SourceBase, SourceOptions
 from sensors.types import (
     NS_PER_S,
@@ -68,6 +70,7 @@ RANGE_MAX_PARAM = "robot_front_laser_max"  # [m]
 FOV_PARAM = "laser_front_laser_fov"  # [deg]
 RESOLUTION_PARAM = "laser_front_laser_resolution"  # [deg]
 BAD_STAMP = np.iinfo(np.int64).min  # marks a timestamp that did not parse
+MESSAGE_NAME = re.compile(r"[A-Z][A-Z0-9_]{0,31}")  # FLASER, ROBOTLASER1, NMEAGGA, ...
 
 
 class _LineError(Exception):
@@ -335,8 +338,10 @@ def read_carmen_log(
             elif kind == "PARAM":
                 key, value = _split_param(tokens)
                 params[key] = value
-            else:
+            elif MESSAGE_NAME.fullmatch(kind):
                 ignored[kind] = ignored.get(kind, 0) + 1
+            else:  # not a message at all: a bad record, not a type we do not read
+                raise _LineError("not_a_message", f"not a CARMEN message: {short_repr(kind)}")
         except _LineError as err:
             problems.add(number, err.reason, str(err))
 
@@ -588,6 +593,7 @@ class CarmenSource(SourceBase):
         self.log = read_carmen_log(path, strict=strict, range_min_m=range_min_m)
         self.path = str(self.log.path)
         self.skipped: dict[str, int] = dict(self.log.skipped)
+        self.ignored: dict[str, int] = dict(self.log.ignored)  # messages of types not read
 
     @classmethod
     def try_open(

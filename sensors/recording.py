@@ -155,10 +155,10 @@ def intrinsics_from_scene(scene: Mapping[str, Any], where: str = "scene.yaml") -
             cy=float(camera["cy"]),
             depth_scale=float(camera.get("depth_scale", CameraIntrinsics.depth_scale)),
         )
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError) as err:
         raise SensorError(f"{where}: camera intrinsics are not numbers: {err}") from err
-    if min(intr.width, intr.height) <= 0 or min(intr.fx, intr.fy, intr.depth_scale) <= 0:
-        raise SensorError(f"{where}: camera width, height, fx, fy, depth_scale must be > 0")
+    except SensorError as err:  # not finite, or not > 0
+        raise SensorError(f"{where}: {err}") from None
     return intr
 
 

@@ -349,15 +349,18 @@ def intrinsics_from_camera_info(
     kk = np.asarray(k, dtype=np.float64).reshape(-1)
     if kk.size != 9 or not np.all(np.isfinite(kk)) or kk[0] <= 0 or kk[4] <= 0:
         raise _BadMessage("uncalibrated_camera_info", f"CameraInfo K {kk.tolist()} is unusable")
-    return CameraIntrinsics(
-        width=int(width),
-        height=int(height),
-        fx=float(kk[0]),
-        fy=float(kk[4]),
-        cx=float(kk[2]),
-        cy=float(kk[5]),
-        depth_scale=depth_scale,
-    )
+    try:
+        return CameraIntrinsics(
+            width=int(width),
+            height=int(height),
+            fx=float(kk[0]),
+            fy=float(kk[4]),
+            cx=float(kk[2]),
+            cy=float(kk[5]),
+            depth_scale=depth_scale,
+        )
+    except SensorError as err:  # e.g. width 0: counted like an uncalibrated K
+        raise _BadMessage("uncalibrated_camera_info", f"CameraInfo: {err}") from None
 
 
 def ticks_from_wheel_angles(angles_rad: np.ndarray, ticks_per_revolution: int) -> np.ndarray:

@@ -319,21 +319,21 @@ class TumFolderSource(SourceBase):
             size = (int(camera["width"]), int(camera["height"]))
         else:
             size = self._probe_size()
-        intr = CameraIntrinsics(
-            width=size[0],
-            height=size[1],
-            fx=camera["fx"],
-            fy=camera["fy"],
-            cx=camera["cx"],
-            cy=camera["cy"],
-            depth_scale=camera.get("depth_scale", default_scale),
-        )
-        positive = (intr.width, intr.height, intr.fx, intr.fy, intr.depth_scale)
-        if not all(math.isfinite(v) and v > 0 for v in positive):
+        try:
+            intr = CameraIntrinsics(
+                width=size[0],
+                height=size[1],
+                fx=camera["fx"],
+                fy=camera["fy"],
+                cx=camera["cx"],
+                cy=camera["cy"],
+                depth_scale=camera.get("depth_scale", default_scale),
+            )
+        except SensorError:
             raise SensorError(
                 f"{self.root}: intrinsics from {source}: width, height, fx, fy, depth_scale "
                 "must be > 0"
-            )
+            ) from None
         return intr, source
 
     def _probe_size(self) -> tuple[int, int]:

@@ -103,6 +103,21 @@ class CameraIntrinsics:
     cy: float  # [px]
     depth_scale: float = 5000.0  # [counts/m] of 16-bit depth PNGs (TUM convention)
 
+    def __post_init__(self) -> None:
+        # Every reader builds its intrinsics here: a NaN passes a "> 0" check written as
+        # "<= 0 is an error", and then every frame fails downstream (issue #16).
+        positive = (self.width, self.height, self.fx, self.fy, self.depth_scale)
+        if not (
+            all(math.isfinite(v) and v > 0 for v in positive)
+            and math.isfinite(self.cx)
+            and math.isfinite(self.cy)
+        ):
+            raise SensorError(
+                f"camera intrinsics {self.width}x{self.height} fx={self.fx} fy={self.fy} "
+                f"cx={self.cx} cy={self.cy} depth_scale={self.depth_scale}: width, height, fx, "
+                "fy and depth_scale must be finite and > 0, cx and cy finite"
+            )
+
     def matrix(self) -> np.ndarray:
         """3x3 pinhole matrix K (float64)."""
         return np.array(

@@ -219,8 +219,11 @@ class FrontEnd:
             self._vo = VisualOdometry(frame.intrinsics, self.vo_cfg, self.robot)
         if self._d2s is None and self.options.scan and self.options.planar:
             self._d2s = DepthToScan(frame.intrinsics, self.robot, self.d2s_cfg)
-        if self.ekf is not None and self.vo_carries:
-            self.ekf.start(frame.stamp_ns)  # the odom frame is where the robot starts
+        if self.ekf is not None and (self.vo_carries or self.options.wheels):
+            # The odom frame is where the robot starts; with wheels, where it stands at the
+            # first frame unless their first motion came before it. Frames before the board's
+            # first motion had no pose, and a short live run then mapped nothing (#16).
+            self.ekf.start(frame.stamp_ns)
         res, vo_ms = (None, math.nan)
         if not self.options.pose_before_vo:
             res, vo_ms = self._visual_odometry(frame, skip_vo)

@@ -27,6 +27,7 @@ import os
 import re
 import shutil
 import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -613,7 +614,8 @@ def _load_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
         raise MapError(f"{path}: missing file") from err
     except MapError:
         raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as err:
+        # zlib.error: a compressed member whose data was damaged (found by bench/fuzz_inputs)
         raise MapError(f"{path}: corrupt or unreadable npz: {err}") from err
 
 
@@ -782,7 +784,10 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
         raise MapError(f"{where}: free_thresh ({free}) must be below occupied_thresh ({occupied})")
     grid = _bundle_grid(folder, occupied, free)
     made_at = config.get("resolution")
-    if isinstance(made_at, (int, float)) and not isinstance(made_at, bool):
+    if made_at is not None:  # bundles by other tools may not say; ours always do
+        number = isinstance(made_at, (int, float)) and not isinstance(made_at, bool)
+        if not (number and math.isfinite(made_at) and made_at > 0):
+            raise MapError(f"{where}.resolution must be a number > 0, got {short_repr(made_at)}")
         if not math.isclose(made_at, grid.geometry.resolution, rel_tol=1e-6):
             raise MapError(
                 f"{folder / MAP_YAML}: resolution {grid.geometry.resolution:g} m "

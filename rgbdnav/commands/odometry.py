@@ -135,11 +135,20 @@ def _run(
     if isinstance(src, RecordingSource) and len(src.recording):
         rec = src.recording
         pick = np.linspace(0, len(rec) - 1, CONTACT_SHEET_FRAMES).round().astype(int)
-        frames = [(f.rgb, f.depth_m) for f in (rec.frame(int(k)) for k in np.unique(pick))]
-        contact_sheet(run.file("frames.png"), frames)
-        outputs["frames"] = run.file("frames.png")
+        frames = []
+        for k in np.unique(pick):
+            try:
+                f = rec.frame(int(k))
+            except SensorError:  # a bad image was skipped and counted above; not drawn here
+                continue
+            frames.append((f.rgb, f.depth_m))
+        if frames:
+            contact_sheet(run.file("frames.png"), frames)
+            outputs["frames"] = run.file("frames.png")
     summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
     summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
+    # lines of message types this reader does not use (CARMEN SYNC, ...), by type
+    summary["source_ignored"] = dict(getattr(src, "ignored", {}))
     outputs["summary"] = run.write_summary(summary)
     return outputs
 

@@ -496,7 +496,11 @@ class LiveRun:
                 log.info("camera frames again: mapping resumed")
             if self.recorder is not None:
                 self.recorder.frame(frame)
-            # a. Wheel ticks that arrived since the last frame.
+            # a. Wheel ticks that arrived since the last frame. The filter starts at the first
+            #    frame, before the readings queued meanwhile (a loaded machine delivers them
+            #    late): their motion after it is fused, not the frame left without a pose (#16).
+            if fe.ekf is not None:
+                fe.ekf.start(frame.stamp_ns)
             t_a = time.perf_counter()
             while True:
                 try:
@@ -935,6 +939,7 @@ class LiveRun:
         drills = sorted(self.opts.drills, key=lambda d: d.at_s)
         total = self.opts.duration_s or math.inf
         next_sample = 0.0
+        next_progress = self.cfg.live.first_checkpoint_after
         while not self.stop.is_set():
             now = time.monotonic()
             if now - t0 >= next_sample:
@@ -942,6 +947,9 @@ class LiveRun:
                 next_sample += MEMORY_SAMPLE_S
             start = self._clock_start()
             elapsed = 0.0 if start is None else now - start
+            if start is not None and elapsed >= next_progress:
+                self._write_progress_summary(now - t0)
+                next_progress = elapsed + self.cfg.live.checkpoint_period
             while start is not None and drills and drills[0].at_s <= elapsed:
                 d = drills.pop(0)
                 log.warning("fault drill at %.1f s: %s", elapsed, d.action)
@@ -954,6 +962,30 @@ class LiveRun:
             if progress is not None and math.isfinite(total):
                 progress(elapsed, total)
             self.stop.wait(0.1)
+
+    def _write_progress_summary(self, wall: float) -> None:
+        """A ``summary.json`` with ``status: incomplete`` while the run goes on (first at
+        ``live.first_checkpoint_after``, then every ``live.checkpoint_period``): after a
+        ``kill -9`` the folder still says what ran, its counts so far and that it did not end.
+        The summary written at the end replaces it."""
+        summary = {
+            "command": "live",
+            "status": "incomplete",
+            "note": "written while the run went on; a run that ends replaces it",
+            "camera": self.opts.camera,
+            "board": self.opts.board,
+            "world": str(self.opts.world) if self.opts.world else None,
+            "robot": self._robot_frame(),
+            "mode": "localization" if self.localizer is not None else "mapping",
+            "config_files": [str(p) for p in self.config_files],
+            "wall_s": round(wall, 3),
+            "counts": self.counts.as_dict(),
+            "errors": list(self.errors),
+        }
+        try:
+            self.run.write_summary(summary)
+        except OSError as err:  # the run goes on; the final summary will say it again
+            log.warning("progress summary not written: %s", err)
 
     def _install_signal_handlers(self) -> Callable[[], None]:
         if threading.current_thread() is not threading.main_thread():
@@ -1020,6 +1052,7 @@ class LiveRun:
         lat = self.latency_ms
         summary: dict[str, Any] = {
             "command": "live",
+            "status": "finished",
             "camera": self.opts.camera,
             "camera_imu": getattr(self.camera_src, "imu_note", None),
             "extrinsics": self.extrinsics,

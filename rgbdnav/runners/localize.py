@@ -360,6 +360,8 @@ def run_localize(
         if rrd is not None:
             outputs["rerun recording"] = rrd
         summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
+        # lines of message types this reader does not use (CARMEN SYNC, ...), by type
+        summary["source_ignored"] = dict(getattr(src, "ignored", {}))
         outputs["summary"] = run.write_summary(summary)
         return outputs, summary
     finally:

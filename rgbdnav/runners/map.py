@@ -141,6 +141,8 @@ def run_map(
         )
         outputs["picture"] = run.file("map.png")
         summary["source_skipped"] = dict(src.skipped)  # bad records, by reason
+        # lines of message types this reader does not use (CARMEN SYNC, ...), by type
+        summary["source_ignored"] = dict(getattr(src, "ignored", {}))
         outputs["summary"] = run.write_summary(summary)
         _visualize(vis, result, occ, g, gt if gt is not None and frame == "base_link" else None)
         if rrd is not None:

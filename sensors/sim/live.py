@@ -210,6 +210,7 @@ def _simulate(
     slip = np.zeros(2)
     prev = positions()
     period_ns = int(round(1e9 / sim.camera_rate))
+    flush_every = max(1, int(sim.camera_rate))  # [poses] about once a second
     next_ns = time.monotonic_ns()
     stall_until_ns = 0
     replies.put(("ready", renderer.intrinsics))
@@ -260,6 +261,8 @@ def _simulate(
             f"{math.sin(yaw / 2)!r} {math.cos(yaw / 2)!r}\n"
         )
         stats.truth_poses += 1
+        if stats.truth_poses % flush_every == 0:
+            truth_file.flush()  # a host killed with -9 (and us with it) leaves the truth so far
         if stamp < stall_until_ns:
             stats.stalled_frames += 1
         else:

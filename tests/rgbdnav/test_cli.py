@@ -232,6 +232,23 @@ def test_a_glitched_encoder_reading_is_counted_in_the_summary_not_driven(
     assert summary["wheel_odometry_vs_groundtruth"]["final_position_error_m"] < 0.1
 
 
+def test_a_bad_frame_is_a_counted_skip_also_where_the_contact_sheet_would_draw_it(
+    recording: Path, tmp_path: Path
+) -> None:
+    # The frames.png contact sheet re-read the frames it drew: the first one (always drawn)
+    # truncated made the whole run an error after the skip had been counted (#16).
+    bad = tmp_path / "bad"
+    shutil.copytree(recording, bad)
+    first = sorted((bad / "depth").iterdir())[0]
+    first.write_bytes(first.read_bytes()[:100])
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["odometry", str(bad), "--out", str(out), "-q", "--no-vo"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["source_skipped"] == {"truncated": 1}
+    assert (out / "frames.png").is_file()
+
+
 @pytest.mark.parametrize(
     ("extra", "message"),
     [

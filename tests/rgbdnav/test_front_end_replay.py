@@ -113,3 +113,38 @@ def test_without_wheels_or_odom_the_vo_carries_the_ekf_of_a_ground_robot(recordi
     ).as_dict()
     assert rep["path_length_m"] > 0.3
     assert rep["final_position_error_m"] < 0.03 and rep["ate_rmse_m"] < 0.03
+
+
+def test_live_frames_before_the_boards_first_motion_get_the_start_pose_and_are_mapped(
+    recording: Path, tmp_path: Path
+) -> None:
+    # On a loaded machine the board's first readings were stamped after the first frames but
+    # delivered before the front end took them: the filter started at the readings' motion,
+    # every frame was older ("without odometry"), nothing was mapped and no map was saved.
+    live = LiveRun(
+        LiveOptions(
+            out=tmp_path / "live",
+            camera=str(recording),
+            board="/dev/null",
+            drive="idle",
+            overrides=["live.frame_queue_size=100"],
+        )
+    )
+    with open_source(recording) as src:
+        frames = list(src.frames())[:5]
+        wheels = src.wheels()
+    assert wheels is not None
+    late = np.flatnonzero(wheels.stamps_ns > frames[-1].stamp_ns)[:3]
+    for k in late:
+        live.ticks_q.put(WheelTicks(int(wheels.stamps_ns[k]), int(wheels.left[k]), int(k)))
+    for f in frames:
+        live.frame_q.put_nowait(f)
+    live.frame_q.put(None)
+    live._front_end_loop()
+    live.odom_track.close()
+    counts = live.counts.as_dict()
+    assert counts.get("frames_without_odometry", 0) == 0
+    assert counts["frames_processed"] == len(frames)
+    assert isinstance(live.scan_q.get_nowait(), tuple)  # scans went to the mapper
+    posed = live.odom_track.load()
+    assert len(posed) == len(frames) and np.abs(posed[:, 1:]).max() < 0.05  # near the start

@@ -138,6 +138,10 @@ def test_kill_9_leaves_a_checkpoint_that_loads_and_localises(tmp_path: Path) -> 
     # The streamed trajectory holds what was tracked up to the kill (rows flushed each second).
     tracked = np.loadtxt(out / "trajectory.tum", comments="#", ndmin=2)
     assert len(tracked) >= MIN_KEYFRAMES_TO_LOCALISE
+    # So does the simulated robot's ground truth, and summary.json says the run did not end.
+    assert len(np.loadtxt(out / "groundtruth.tum", comments="#", ndmin=2)) > 0
+    killed = json.loads((out / "summary.json").read_text())
+    assert killed["status"] == "incomplete" and killed["counts"]["scans_mapped"] > 0
     s = _live(tmp_path / "again", "--map", str(out / "map"), "--duration", "8", "--drive", "idle")
     assert s["mode"] == "localization" and s["errors"] == []
     assert s["initial_pose"] == "simulator start"
@@ -183,6 +187,7 @@ def test_sigterm_stops_the_motors_and_saves_the_map(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
     s = json.loads((out / "summary.json").read_text())
     assert s["counts"]["checkpoints"] >= 1 and s["errors"] == []
+    assert s["status"] == "finished"  # the final summary replaced the incomplete one
     assert load_bundle(out / "map") is not None
 
 

@@ -74,11 +74,15 @@ def test_records_the_reader_skipped_are_counted_in_the_summary(tmp_path: Path) -
     log = _write_log(tmp_path / "room.clf", truth, truth)
     with log.open("a") as f:
         f.write("FLASER 3 1.0 zwei 3.0 0 0 0 0 0 0 99.0 host 99.0\n")  # one garbage line
+        f.write("SYNC 1 2 3\n")  # a message type the reader does not use: ignored, counted
+        f.write("garbage\x01" * 500 + " that is no message at all\n")  # a bad record
     out = tmp_path / "run"
     result = runner.invoke(app, ["map", str(log), "--out", str(out), "-q"])
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["source_skipped"] == {"non_numeric": 1}
+    assert summary["source_skipped"] == {"non_numeric": 1, "not_a_message": 1}
+    assert summary["source_ignored"] == {"SYNC": 1}
+    assert "garbage" not in summary["source_kind"]  # a count, not the garbage itself
 
 
 def test_map_continue_relocalises_a_new_log_in_another_odometry_frame(tmp_path: Path) -> None:

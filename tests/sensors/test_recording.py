@@ -264,3 +264,28 @@ def test_association_matches_the_greedy_reference_on_jittered_streams():
         b = np.unique(rng.integers(0, 1000, size=rng.integers(0, 40)))
         ia, ib = associate(a, b, max_difference_ns=25)
         assert list(zip(ia.tolist(), ib.tolist(), strict=True)) == associate_reference(a, b, 25)
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("fx", ".nan"), ("fy", ".inf"), ("cx", ".nan"), ("depth_scale", "-.inf")]
+)
+def test_intrinsics_that_are_not_finite_are_an_error_naming_the_scene_file(tmp_path, key, value):
+    # fx: .nan passed the "> 0" check and every frame then failed downstream (issue #16).
+    write_recording(tmp_path / "rec")
+    scene = tmp_path / "rec" / "scene.yaml"
+    text = scene.read_text()
+    assert f"\n  {key}: " in text
+    lines = [
+        f"  {key}: {value}" if line.startswith(f"  {key}: ") else line for line in text.splitlines()
+    ]
+    scene.write_text("\n".join(lines) + "\n")
+    with pytest.raises(SensorError, match=r"scene\.yaml: camera intrinsics .* must be finite"):
+        Recording.open(tmp_path / "rec")
+
+
+@pytest.mark.parametrize("field", ["width", "fx", "fy", "cx", "depth_scale"])
+def test_camera_intrinsics_refuse_nan_and_non_positive_values_wherever_they_are_built(field):
+    good = {"width": 4, "height": 3, "fx": 5.0, "fy": 5.0, "cx": 2.0, "cy": 1.5}
+    for bad in (float("nan"), float("inf")) if field in ("cx",) else (float("nan"), 0, -1.0):
+        with pytest.raises(SensorError, match="must be finite"):
+            CameraIntrinsics(**{**good, field: bad})

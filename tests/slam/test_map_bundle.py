@@ -406,6 +406,10 @@ def test_graph_json_problems_are_map_errors(tmp_path):
         ),
         ("free_thresh", float("nan"), r"config\.free_thresh must be a number in \(0, 1\), got nan"),
         ("free_thresh", 0.9, r"free_thresh \(0\.9\) must be below occupied_thresh \(0\.65\)"),
+        # A string where the resolution was stored skipped the check against map.yaml (#16).
+        ("resolution", "fine", r"config\.resolution must be a number > 0, got 'fine'"),
+        ("resolution", float("nan"), r"config\.resolution must be a number > 0, got nan"),
+        ("resolution", True, r"config\.resolution must be a number > 0, got True"),
     ],
 )
 def test_a_stored_config_value_that_is_not_a_threshold_is_a_map_error(tmp_path, key, value, match):
@@ -426,6 +430,14 @@ def test_scans_npz_problems_are_map_errors(tmp_path):
         load_bundle(folder)
     np.savez_compressed(scans, ranges=np.zeros(3, np.float32))
     with pytest.raises(MapError, match=r"scans.npz: missing arrays \['offsets'"):
+        load_bundle(folder)
+    # Damaged deflate data inside an intact zip: zlib.error, not a zip error (bench/fuzz_inputs).
+    np.savez_compressed(scans, **mb._scans_arrays(make_bundle().scans))
+    data = bytearray(scans.read_bytes())
+    start = 30 + int.from_bytes(data[26:28], "little") + int.from_bytes(data[28:30], "little")
+    data[start : start + 4] = b"\xff" * 4  # the first member's compressed stream
+    scans.write_bytes(bytes(data))
+    with pytest.raises(MapError, match="scans.npz: corrupt or unreadable npz: Error -3"):
         load_bundle(folder)
     arrays = mb._scans_arrays(make_bundle().scans)
     arrays["offsets"] = np.array([0, 3, 2, 12])
