@@ -1179,16 +1179,19 @@ def fleet_align(
     map_a: Annotated[Path, typer.Argument(help="Map A: bundle folder or map.yaml.")],
     map_b: Annotated[Path, typer.Argument(help="Map B, to place in A's frame.")],
     out: OutOpt,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
     quiet: QuietOpt = False,
     verbose: VerboseOpt = False,
 ) -> None:
     """Where B's map frame sits in A's, found without a guess; exit 1 when the maps do not
-    overlap."""
+    overlap. Tunables: the ``align`` section (``--set align.min_overlap_m=10``)."""
     _setup_logging(verbose, quiet)
     from rgbdnav.commands.fleet import run_align
-    from slam.map_align import AlignConfig
+    from rgbdnav.config import load_config
 
-    al, outputs = run_align(map_a, map_b, out, AlignConfig())
+    cfg = load_config(config or [], set_ or [])
+    al, outputs = run_align(map_a, map_b, out, cfg.align)
     x, y, yaw = al.T_a_b
     typer.echo(
         f"B in A: x {x:.3f} m, y {y:.3f} m, yaw {yaw:.4f} rad "

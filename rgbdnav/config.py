@@ -44,6 +44,7 @@ from sensors.safe_yaml import load_yaml, read_yaml
 from sensors.source import SourceOptions
 from sensors.types import ConfigError, RgbdNavError
 from slam.config import (
+    AlignConfig,
     DepthToScanConfig,
     EkfConfig,
     LocalizerConfig,
@@ -184,6 +185,7 @@ class Config:
     depth_to_scan: DepthToScanConfig = field(default_factory=DepthToScanConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
+    align: AlignConfig = field(default_factory=AlignConfig)
     costmap: CostmapConfig = field(default_factory=CostmapConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     follower: FollowerConfig = field(default_factory=FollowerConfig)

@@ -105,6 +105,19 @@ def test_maps_of_two_buildings_exit_1_with_a_sentence(maps: dict[str, Path]) -> 
 
 
 @needs_data
+@pytest.mark.slow
+def test_align_tunables_are_the_align_config_section(maps: dict[str, Path]) -> None:
+    # The same two robots, asked for more matched wall than the buildings hold: refused.
+    out = maps["root"] / "strict"
+    args = ("fleet", "align", maps["a"], maps["b"], "--out", out)
+    result = _invoke(*args, "--set", "align.min_overlap_m=5000")
+    assert result.exit_code == 1 and "(need 5000 m)" in result.output, result.output
+    assert not (out / "alignment.yaml").exists()
+    bad = _invoke(*args, "--set", "align.min_agreement=2")
+    assert bad.exit_code == 1 and "align.min_agreement" in bad.output, bad.output
+
+
+@needs_data
 def test_geo_converts_both_ways_through_a_bundle_anchor(tmp_path: Path) -> None:
     (tmp_path / "geo.yaml").write_text(
         "latitude: 44.98\nlongitude: -93.27\naltitude: 256.0\nheading_deg: 0.0\n"
