@@ -14,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.commands.fleet import TINTS_RGB
+from rgbdnav.world_picture import TINTS_RGB
 from sensors.safe_yaml import read_yaml
 from slam.geometry import oplus, wrap_angle
 from slam.map_bundle import load_bundle, load_map_yaml
