@@ -814,6 +814,14 @@ def live(
             help="The simulated robot's true start in the world (default: the world's start).",
         ),
     ] = None,
+    fleet: Annotated[
+        Path | None,
+        typer.Option(
+            help="Fleet file (fleet.yaml) with --robot NAME: localise in that robot's map "
+            "(default --map), placed in the world by its T_world_map (or geo anchors), with "
+            "its keepout mask; world-view then draws the run where the fleet puts it.",
+        ),
+    ] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     fmt: FormatOpt = "tum",
@@ -860,6 +868,7 @@ def live(
         initial_pose=initial_pose,
         robot=robot,
         start=start,
+        fleet=fleet,
     )
     outputs, summary = run_live(opts)
     _write_formats(out, fmt)

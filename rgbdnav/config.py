@@ -115,6 +115,11 @@ class LiveConfig:
         doc="collision monitor: scans kept (carried by odometry); the "
         "Kinect is blind nearer than 0.45 m and beside its 58 deg view",
     )
+    sim_initial_pose: bool = param(
+        True,
+        doc="--map with the simulated robot: it is told its true start (as --initial-pose); "
+        "false: it relocalises globally, with the GPS prior when the world has a geo anchor",
+    )
     blocked_timeout: float = param(
         5.0, unit="s", gt=0.0, doc="direct driver: a waypoint blocked this long is skipped"
     )
