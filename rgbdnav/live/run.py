@@ -1275,6 +1275,8 @@ class LiveRun:
                 }
             plot_trajectories(run.file("map.png"), paths, "live run", **kw)
             outputs["picture"] = run.file("map.png")
+        if self.localizer is not None:
+            summary["seconds_to_first_pose"] = self._seconds_to_first_pose(tracks)
         if self.gps_writer.count:
             outputs["gps fixes"] = self.gps_writer.path
             summary["gps"] = self._gps_outputs(tracks, grid)
@@ -1283,6 +1285,13 @@ class LiveRun:
         outputs["summary"] = run.write_summary(summary)
         self.summary = summary
         return outputs
+
+    def _seconds_to_first_pose(self, tracks: dict[str, np.ndarray]) -> float | None:
+        """From the first scan to the first tracked one (the localiser's time to fix)."""
+        online = tracks["slam_online"]
+        if self._first_tracked is None or not len(online):
+            return None
+        return round((self._first_tracked[0] - online[0, 0]) / 1e9, 2)
 
     def _gps_outputs(self, tracks: dict[str, np.ndarray], grid: Any) -> dict[str, Any]:
         """The GPS part of the summary and, with the map's geo anchor, the run chart
@@ -1300,9 +1309,7 @@ class LiveRun:
         gps = (fixes.stamps_ns, fixes.in_map(self.map_anchor), fixes.sigma_m)
         est, odom = tracks.get("slam", tracks["slam_online"]), tracks["odometry"]
         placed = np.zeros((0, 3))
-        online = tracks["slam_online"]
-        if self._first_tracked is not None and len(online):
-            info["seconds_to_first_pose"] = round((self._first_tracked[0] - online[0, 0]) / 1e9, 2)
+        info["seconds_to_first_pose"] = self._seconds_to_first_pose(tracks)
         if self._first_tracked is not None and len(odom):  # estimates once it has one
             est = est[est[:, 0] >= self._first_tracked[0]]
             placed = oplus(self._first_tracked[1], odom[:, 1:4])
