@@ -1,7 +1,7 @@
 """`rgbdnav fleet show` and `rgbdnav fleet align`: several robots' maps in one world frame.
 
 ``show`` draws every robot's map and keepout mask where its fleet file puts it (``world ->
-<name>/map``), each in its own tint and blended where maps overlap, so no map hides another; it
+<name>/map``) with the one world renderer (:mod:`rgbdnav.world_picture`, as ``world-view``); it
 also writes a rerun recording with one static transform per robot (as RViz's fixed frame
 ``world`` shows them). ``align`` finds B's map frame in A's without a guess
 (:mod:`slam.map_align`), writes ``alignment.yaml``, the merged Nav2 map and a two-robot
