@@ -2,7 +2,7 @@
 its start, localising in a map placed in the world by a fleet file (T_world_map not the identity),
 driven by teleop keys (forward, then a turn) so the camera sweeps the living room.
 
-Run: ``python bench/bench_live_gps.py WORK [--runs 3] [--duration 30]``. Per variant (the world
+Run: ``python bench/bench_live_gps.py WORK [--runs 3] [--first-seed 0] [--duration 30]``. Per variant (the world
 with a geo anchor: the simulated receiver, sigma 3 m, 1 Hz, is the global search's prior; the same
 world without one: no GPS) and seed: the seconds from the first scan to the first tracked one, and
 whether the last tracked pose, placed by T_world_map, is the truth (within 0.5 m) or a false fix.
@@ -93,10 +93,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("work", type=Path)
     ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--duration", type=float, default=30.0)
     args = ap.parse_args()
     rows = []
-    for seed in range(args.runs):
+    for seed in range(args.first_seed, args.first_seed + args.runs):
         for geo in (True, False):
             rows.append(one_run(args.work, geo, seed, args.duration))
             print(json.dumps(rows[-1]), flush=True)
