@@ -125,6 +125,11 @@ def test_a_real_camera_run_takes_its_t_world_map_and_keepout_from_the_fleet(
     assert s["robot"]["T_world_map"] == pytest.approx(list(T_WORLD_MAP))
     assert s["robot"]["keepout"] == str((tmp_path / "r2_keepout.yaml").resolve())
     assert s["robot"]["T_world_map_from"].endswith("fleet.yaml: T_world_map")
+    # world-view places the real robot's run (its map and keepout) where the fleet puts it.
+    picture = tmp_path / "world.png"
+    shown = runner.invoke(app, ["world-view", str(tmp_path / "runs"), "--out", str(picture)])
+    assert shown.exit_code == 0, shown.output
+    assert f"world -> r2/map: x={x:g} y={y:g} yaw={yaw:g}" in shown.output
     # Another map than the fleet's cannot be placed by it; a robot it lacks is named.
     other = runner.invoke(app, [*args, *fleet, "--map", str(tmp_path / "r2_keepout.yaml")])
     assert other.exit_code == 1 and "is not robot r2's map" in other.output, other.output
