@@ -107,6 +107,11 @@ def test_fleet_options_refuse_bad_input_in_one_line(tmp_path: Path) -> None:
             "--start places the simulated robot",
         ),
         (["world-view", str(tmp_path), "--out", str(tmp_path / "w.png")], "no robot runs"),
+        (["live", "--out", str(tmp_path), "--fleet", str(tmp_path / "f.yaml")], "--robot NAME"),
+        (
+            ["live", "--out", str(tmp_path), "--fleet", str(tmp_path / "f.yaml"), "--robot", "a"],
+            "no such fleet file",
+        ),
         (
             [
                 "live",
