@@ -135,3 +135,32 @@ def test_a_real_camera_run_takes_its_t_world_map_and_keepout_from_the_fleet(
     assert other.exit_code == 1 and "is not robot r2's map" in other.output, other.output
     missing = runner.invoke(app, [*args, "--fleet", str(tmp_path / "fleet.yaml"), "--robot", "r9"])
     assert missing.exit_code == 1 and "no robot named 'r9'" in missing.output, missing.output
+
+
+def test_a_recorded_sources_fixes_go_through_the_same_door_on_the_cameras_clock(
+    tmp_path: Path,
+) -> None:
+    from types import SimpleNamespace
+
+    from sensors.geo import GeoAnchor
+    from sensors.gps import GpsStream
+    from slam.localization import GpsPrior
+
+    anchor = GeoAnchor(44.98, -93.27, 256.0, 0.0)
+    lat, lon, alt = anchor.to_wgs84(np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.0, 5.0]))
+    s = 1_000_000_000
+    recorded = GpsStream(np.array([s, 2 * s, 3 * s]), lat, lon, alt, np.full(3, 2.5))
+    live = LiveRun(LiveOptions(out=tmp_path / "real", camera="openni://", board="none"))
+    # As a bag's NavSatFix or a recording's gps.txt replayed live: stamps on the camera's clock.
+    live.camera_src = SimpleNamespace(stamp_offset_ns=500)  # type: ignore[assignment]
+    live._recorded_gps, live.map_anchor = recorded, anchor
+    live._gps_prior = GpsPrior(None)  # type: ignore[arg-type]  # fixes queue for the localiser
+    live._replay_gps(2 * s + 500)  # a frame at 2 s (camera clock): two fixes are due
+    assert live.gps_writer.count == 2 and live.gps_q.qsize() == 2
+    live._replay_gps(10 * s)
+    live.gps_writer.close()
+    back = read_gps_txt(tmp_path / "real" / "gps.txt")
+    assert back.stamps_ns.tolist() == [s + 500, 2 * s + 500, 3 * s + 500]
+    queued = [live.gps_q.get_nowait() for _ in range(3)]
+    assert np.allclose([q[1] for q in queued], [[1, 0], [2, 0], [3, 5]], atol=1e-6)
+    assert [q[2] for q in queued] == [2.5] * 3
