@@ -865,7 +865,7 @@ class AlignConfig:
     )
     min_overlap_m: float = param(15.0, unit="m", ge=0.0, doc="wall length matched both ways")
     max_rival_ratio: float = param(
-        0.85, gt=0.0, le=1.0, doc="a distinct pose scoring this fraction of the best: ambiguous"
+        0.7, gt=0.0, le=1.0, doc="a distinct pose scoring this fraction of the best: ambiguous"
     )
     free_penalty: float = param(
         1.0, ge=0.0, doc="global search: cost of a wall point on the other's open floor"
