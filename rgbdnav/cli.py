@@ -830,6 +830,14 @@ def live(
             help="The simulated robot's true start in the world (default: the world's start).",
         ),
     ] = None,
+    fleet: Annotated[
+        Path | None,
+        typer.Option(
+            help="Fleet file (fleet.yaml) with --robot NAME: localise in that robot's map "
+            "(default --map), placed in the world by its T_world_map (or geo anchors), with "
+            "its keepout mask; world-view then draws the run where the fleet puts it.",
+        ),
+    ] = None,
     fmt: FormatOpt = "tum",
     *,
     shared: Shared,
@@ -871,6 +879,7 @@ def live(
         initial_pose=initial_pose,
         robot=robot,
         start=start,
+        fleet=fleet,
     )
     outputs, summary = run_live(opts)
     _write_formats(out, fmt)
@@ -1176,7 +1185,7 @@ def fleet_show(
 
 @fleet_app.command("align")
 @_known_errors
-@_shared_options(config=False, ros_params=False)
+@_shared_options(ros_params=False)
 def fleet_align(
     map_a: Annotated[Path, typer.Argument(help="Map A: bundle folder or map.yaml.")],
     map_b: Annotated[Path, typer.Argument(help="Map B, to place in A's frame.")],
@@ -1185,11 +1194,12 @@ def fleet_align(
     shared: Shared,
 ) -> None:
     """Where B's map frame sits in A's, found without a guess; exit 1 when the maps do not
-    overlap."""
+    overlap. Tunables: the ``align`` section (``--set align.min_overlap_m=10``)."""
     from rgbdnav.commands.fleet import run_align
-    from slam.map_align import AlignConfig
+    from rgbdnav.config import load_config
 
-    al, outputs = run_align(map_a, map_b, out, AlignConfig())
+    cfg = load_config(shared.config, shared.overrides)
+    al, outputs = run_align(map_a, map_b, out, cfg.align)
     x, y, yaw = al.T_a_b
     typer.echo(
         f"B in A: x {x:.3f} m, y {y:.3f} m, yaw {yaw:.4f} rad "

@@ -44,6 +44,7 @@ from sensors.safe_yaml import load_yaml, read_yaml
 from sensors.source import SourceOptions
 from sensors.types import ConfigError, RgbdNavError
 from slam.config import (
+    AlignConfig,
     DepthToScanConfig,
     EkfConfig,
     LocalizerConfig,
@@ -113,6 +114,11 @@ class LiveConfig:
         gt=0.0,
         doc="collision monitor: scans kept (carried by odometry); the "
         "Kinect is blind nearer than 0.45 m and beside its 58 deg view",
+    )
+    sim_initial_pose: bool = param(
+        True,
+        doc="--map with the simulated robot: it is told its true start (as --initial-pose); "
+        "false: it relocalises globally, with the GPS prior when the world has a geo anchor",
     )
     blocked_timeout: float = param(
         5.0, unit="s", gt=0.0, doc="direct driver: a waypoint blocked this long is skipped"
@@ -184,6 +190,7 @@ class Config:
     depth_to_scan: DepthToScanConfig = field(default_factory=DepthToScanConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
+    align: AlignConfig = field(default_factory=AlignConfig)
     costmap: CostmapConfig = field(default_factory=CostmapConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     follower: FollowerConfig = field(default_factory=FollowerConfig)

@@ -102,6 +102,39 @@ def plot_trajectories(
     write_png(path, img)
 
 
+def gps_chart(
+    path: Path,
+    estimate: tuple[str, np.ndarray, np.ndarray],
+    odom_xy: np.ndarray,
+    gps: tuple[np.ndarray, np.ndarray, np.ndarray],
+    title: str,
+    occupied: np.ndarray | None = None,
+    origin: tuple[float, float] = (0.0, 0.0),
+    resolution: float = 0.05,
+) -> dict[str, object]:
+    """The run chart of `localize --gps` and `live`: the estimate (label, stamps_ns (N,), xy
+    (N, 2) [m] in the map), odometry placed in the map (M, 2) and the GPS fixes (stamps_ns,
+    xy (K, 2) in the map, sigma_h (K,)) over the map; and the GPS part of the summary (how far
+    the estimate lies from the latest fix)."""
+    label, est_t, est_xy = estimate
+    est_xy = np.asarray(est_xy, float).reshape(-1, 2)
+    odom_xy = np.asarray(odom_xy, float).reshape(-1, 2)
+    paths = [(label, est_xy[:, 0], est_xy[:, 1]), ("odometry", odom_xy[:, 0], odom_xy[:, 1])]
+    paths = [p for p in paths if len(p[1])]
+    paths.append(("GPS", gps[1][:, 0], gps[1][:, 1]))
+    plot_trajectories(path, paths, title, occupied, origin, resolution)
+    gps_err = None
+    if len(est_t) and len(gps[0]):
+        k = np.clip(np.searchsorted(gps[0], est_t, side="right") - 1, 0, len(gps[0]) - 1)
+        d = np.hypot(*(gps[1][k] - est_xy).T)
+        gps_err = {"median_m": round(float(np.median(d)), 3), "max_m": round(float(d.max()), 3)}
+    return {
+        "fixes": int(len(gps[0])),
+        "median_sigma_m": round(float(np.median(gps[2])), 3) if len(gps[2]) else None,
+        f"gps_vs_{label}": gps_err,
+    }
+
+
 def contact_sheet(
     path: Path,
     frames: Sequence[tuple[np.ndarray, np.ndarray]],

@@ -83,6 +83,13 @@ class GeoAnchor:
         lat, lon, alt = self.to_wgs84(x, y)
         return GeoAnchor(float(lat), float(lon), float(alt), self.heading_deg + math.degrees(yaw))
 
+    def pose_of(self, other: GeoAnchor) -> tuple[float, float, float]:
+        """(x [m], y [m], yaw [rad]) of ``other``'s frame in this one (the inverse of
+        :meth:`moved`; the two ENU tangent planes are taken as one, as over a site)."""
+        x, y, _ = self.to_map(other.latitude, other.longitude, other.altitude)
+        yaw = math.radians(other.heading_deg - self.heading_deg)
+        return float(x), float(y), math.atan2(math.sin(yaw), math.cos(yaw))
+
     def as_dict(self) -> dict[str, float]:
         return {k: float(getattr(self, k)) for k in _KEYS}
 

@@ -10,9 +10,11 @@ standard deviation (NavSatFix's ``position_covariance`` as sqrt of the mean of i
 variances). A fix without a position (NavSatStatus -1, STATUS_NO_FIX) is not a fix: it is skipped
 and counted. GPS is a rough prior for global relocalisation (metres), never a pose to drive by.
 
-:func:`simulate_gps` samples a receiver from a true planar trajectory and a geo anchor: fixes at
-``rate_hz``, Gaussian noise of ``sigma_m`` per axis, and dropouts as bursts (a two-state
-Gilbert channel: ``p_drop`` to enter an outage per fix, ``mean_outage_s`` its mean length).
+:class:`SimGpsReceiver` (and :func:`simulate_gps` over a whole trajectory) samples a receiver
+riding a true planar trajectory through a geo anchor: fixes at ``rate_hz``, Gaussian noise of
+``sigma_m`` per axis, and dropouts as bursts (a two-state Gilbert channel: ``p_drop`` to enter
+an outage per fix, ``mean_outage_s`` its mean length). :class:`GpsFix` is one fix from any
+receiver; a live run streams them to ``gps.txt`` with :class:`GpsWriter`.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -31,6 +34,18 @@ from sensors.types import NS_PER_S, SensorError, format_stamp
 
 GPS_TXT = "gps.txt"
 GPS_COLUMNS = ("timestamp", "latitude", "longitude", "altitude", "sigma_h")
+GPS_HEADER = f"# GPS fixes\n# {' '.join(GPS_COLUMNS)}\n"
+
+
+@dataclass(frozen=True)
+class GpsFix:
+    """One fix, from any receiver (simulated, NavSatFix, a recording's gps.txt)."""
+
+    stamp_ns: int  # [ns] on the run's clock
+    latitude: float  # [deg] WGS84
+    longitude: float  # [deg] WGS84
+    altitude: float  # [m] above the ellipsoid
+    sigma_m: float  # [m] horizontal standard deviation
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,6 +58,20 @@ class GpsStream:
 
     def __len__(self) -> int:
         return int(self.stamps_ns.size)
+
+    def fixes(self, offset_ns: int = 0) -> list[GpsFix]:
+        """The fixes one by one, stamps moved by ``offset_ns`` (a recording replayed live)."""
+        return [
+            GpsFix(int(t) + offset_ns, float(la), float(lo), float(al), float(s))
+            for t, la, lo, al, s in zip(
+                self.stamps_ns,
+                self.latitude,
+                self.longitude,
+                self.altitude,
+                self.sigma_m,
+                strict=True,
+            )
+        ]
 
     def in_map(self, anchor: GeoAnchor) -> np.ndarray:
         """(N, 2) [m] the fixes in the anchored map frame."""
@@ -78,10 +107,14 @@ def read_gps_txt(path: str | os.PathLike[str]) -> GpsStream:
     return check_fixes(stream, str(path))
 
 
+def _gps_row(t: int, la: float, lo: float, al: float, s: float) -> str:
+    return f"{format_stamp(int(t))} {la:.9f} {lo:.9f} {al:.3f} {s:.3f}\n"
+
+
 def write_gps_txt(path: str | os.PathLike[str], stream: GpsStream) -> None:
-    lines = [f"# GPS fixes\n# {' '.join(GPS_COLUMNS)}\n"]
+    lines = [GPS_HEADER]
     lines += [
-        f"{format_stamp(int(t))} {la:.9f} {lo:.9f} {al:.3f} {s:.3f}\n"
+        _gps_row(t, la, lo, al, s)
         for t, la, lo, al, s in zip(
             stream.stamps_ns,
             stream.latitude,
@@ -111,43 +144,102 @@ class SimGpsConfig:
     mean_outage_s: float = 5.0  # [s] mean outage length
 
 
+class SimGpsReceiver:
+    """A simulated receiver riding base_link, fed true poses as they happen (the live simulated
+    robot) or all at once (:func:`simulate_gps`): a fix every ``1 / rate_hz`` with Gaussian
+    noise of ``sigma_m`` per axis, lost in bursts (the module doc's Gilbert channel);
+    deterministic for a seed."""
+
+    def __init__(self, anchor: GeoAnchor, cfg: SimGpsConfig, seed: int) -> None:
+        if cfg.rate_hz <= 0 or cfg.sigma_m <= 0:
+            raise SensorError("a simulated GPS needs rate_hz > 0 and sigma_m > 0")
+        self.anchor, self.cfg = anchor, cfg
+        self._rng = np.random.default_rng(seed)
+        self._step_ns = int(round(NS_PER_S / cfg.rate_hz))
+        # Leave an outage with p = 1 / (fixes per outage).
+        self._p_leave = min(1.0, 1.0 / max(cfg.mean_outage_s * cfg.rate_hz, 1.0))
+        self._next_ns: int | None = None  # [ns] when the next fix is due
+        self._up = True  # the channel state
+
+    def update(self, stamp_ns: int, x: float, y: float) -> GpsFix | None:
+        """The true map position (x, y) [m] at ``stamp_ns``: a fix when one is due and the
+        channel is up (the fix takes the stamp of the pose that made it due)."""
+        if self._next_ns is None:
+            self._next_ns = int(stamp_ns)
+        if stamp_ns < self._next_ns:
+            return None
+        missed = (int(stamp_ns) - self._next_ns) // self._step_ns  # a host that fell behind
+        self._next_ns += (missed + 1) * self._step_ns
+        nx, ny = self._rng.normal(0.0, self.cfg.sigma_m, 2)
+        enter, leave = self._rng.random(2)
+        self._up = (enter >= self.cfg.p_drop) if self._up else bool(leave < self._p_leave)
+        if not self._up:
+            return None
+        lat, lon, alt = self.anchor.to_wgs84(x + nx, y + ny)
+        return GpsFix(int(stamp_ns), float(lat), float(lon), float(alt), self.cfg.sigma_m)
+
+
 def simulate_gps(
     stamps_ns: np.ndarray, xy_map: np.ndarray, anchor: GeoAnchor, cfg: SimGpsConfig, seed: int
 ) -> GpsStream:
-    """Fixes of a receiver riding the true trajectory ``xy_map`` (N, 2) [m] in the anchored map
-    frame (see the module doc); deterministic for a seed."""
+    """Fixes of a :class:`SimGpsReceiver` riding the true trajectory ``xy_map`` (N, 2) [m] in
+    the anchored map frame, sampled at the fix times; deterministic for a seed."""
     if len(stamps_ns) < 2 or cfg.rate_hz <= 0 or cfg.sigma_m <= 0:
         raise SensorError("simulate_gps needs a trajectory of 2+ poses, rate_hz > 0, sigma_m > 0")
-    rng = np.random.default_rng(seed)
+    rx = SimGpsReceiver(anchor, cfg, seed)
     step = int(round(NS_PER_S / cfg.rate_hz))
     t = np.arange(int(stamps_ns[0]), int(stamps_ns[-1]) + 1, step, dtype=np.int64)
-    x = np.interp(t, stamps_ns, xy_map[:, 0]) + rng.normal(0.0, cfg.sigma_m, t.size)
-    y = np.interp(t, stamps_ns, xy_map[:, 1]) + rng.normal(0.0, cfg.sigma_m, t.size)
-    # Gilbert channel: leave an outage with p = 1 / (fixes per outage), vectorised as runs.
-    p_leave = min(1.0, 1.0 / max(cfg.mean_outage_s * cfg.rate_hz, 1.0))
-    enter, leave = rng.random(t.size) < cfg.p_drop, rng.random(t.size) < p_leave
-    up = np.ones(t.size, bool)
-    state = True
-    for i in range(t.size):  # one step per fix (1 Hz): thousands, not a hot path
-        state = (not enter[i]) if state else bool(leave[i])
-        up[i] = state
-    lat, lon, alt = anchor.to_wgs84(x[up], y[up])
-    return GpsStream(
-        t[up],
-        np.atleast_1d(lat),
-        np.atleast_1d(lon),
-        np.atleast_1d(alt),
-        np.full(int(up.sum()), cfg.sigma_m),
-    )
+    x = np.interp(t, stamps_ns, xy_map[:, 0])
+    y = np.interp(t, stamps_ns, xy_map[:, 1])
+    # One step per fix (1 Hz): thousands, not a hot path.
+    fixes = [f for k in range(t.size) if (f := rx.update(int(t[k]), x[k], y[k])) is not None]
+    return stream_of(fixes)
+
+
+def stream_of(fixes: list[GpsFix]) -> GpsStream:
+    """A :class:`GpsStream` of single fixes."""
+    cols = np.array(
+        [(f.latitude, f.longitude, f.altitude, f.sigma_m) for f in fixes], np.float64
+    ).reshape(-1, 4)
+    stamps = np.array([f.stamp_ns for f in fixes], np.int64)
+    return GpsStream(stamps, *(cols[:, i].copy() for i in range(4)))
+
+
+class GpsWriter:
+    """``gps.txt`` streamed fix by fix (a live run: rows reach the OS at once, so a killed run
+    keeps its fixes); read back with :func:`read_gps_txt`."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.count = 0
+        self._file: IO[str] | None = None
+
+    def add(self, fix: GpsFix) -> None:
+        if self._file is None:
+            self._file = open(self.path, "w", buffering=1)  # closed by close()
+            self._file.write(GPS_HEADER)
+        self._file.write(
+            _gps_row(fix.stamp_ns, fix.latitude, fix.longitude, fix.altitude, fix.sigma_m)
+        )
+        self.count += 1
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
 
 
 __all__ = [
     "GPS_TXT",
+    "GpsFix",
     "GpsStream",
+    "GpsWriter",
     "SimGpsConfig",
+    "SimGpsReceiver",
     "check_fixes",
     "navsatfix_sigma",
     "read_gps_txt",
     "simulate_gps",
+    "stream_of",
     "write_gps_txt",
 ]

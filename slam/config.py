@@ -831,3 +831,42 @@ class LocalizerConfig:
         if self.angular_search_step > self.angular_search_window:
             return "angular_search_step exceeds angular_search_window"
         return None
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    """Map alignment with no initial guess (`rgbdnav fleet align`).
+
+    FFT correlative search over every yaw, ICP refinement, two-way verification (see
+    :mod:`slam.map_align`)."""
+
+    coarse_resolution: float = param(0.25, unit="m/cell", gt=0.0, doc="grid of the global search")
+    smear_sigma: float = param(
+        0.5, unit="m", gt=0.0, doc="likelihood field width of the global search"
+    )
+    yaw_step_deg: float = param(1.0, unit="deg", gt=0.0, le=90.0, doc="rotation sweep step")
+    candidates: int = param(6, ge=1, doc="distinct peaks refined and verified")
+    distinct_m: float = param(
+        2.0, unit="m", gt=0.0, doc="peaks closer than this (and distinct_deg) are one"
+    )
+    distinct_deg: float = param(
+        10.0, unit="deg", gt=0.0, doc="peaks closer than this (and distinct_m) are one"
+    )
+    icp_correspondence_m: float = param(1.0, unit="m", gt=0.0, doc="ICP neighbour radius")
+    icp_voxel_m: float = param(0.1, unit="m", gt=0.0, doc="B's wall cells thinned for ICP")
+    agree_distance_m: float = param(
+        0.2, unit="m", gt=0.0, doc="a wall cell within this of the other map's walls agrees"
+    )
+    min_agreement: float = param(
+        0.5,
+        gt=0.0,
+        le=1.0,
+        doc="fraction of wall cells over the other's known area that must agree",
+    )
+    min_overlap_m: float = param(15.0, unit="m", ge=0.0, doc="wall length matched both ways")
+    max_rival_ratio: float = param(
+        0.7, gt=0.0, le=1.0, doc="a distinct pose scoring this fraction of the best: ambiguous"
+    )
+    free_penalty: float = param(
+        1.0, ge=0.0, doc="global search: cost of a wall point on the other's open floor"
+    )

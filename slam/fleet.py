@@ -14,7 +14,9 @@ alone; the fleet file only says where each map frame sits in a shared ``world`` 
         geo: {latitude: ..., longitude: ...}         # optional, see sensors/geo.py
 
 A robot's geo anchor is, in order: its own ``geo``, ``geo.yaml`` in its bundle, or the world's
-anchor moved by ``T_world_map``. The keepout mask lies in the robot's map frame (as Nav2's
+anchor moved by ``T_world_map``. Without ``T_world_map``, a robot whose map has an anchor (its
+own ``geo`` or ``geo.yaml``) is placed by the two anchors (the world's and its map's); else its map
+frame is the world frame. The keepout mask lies in the robot's map frame (as Nav2's
 costmap filter info server publishes it). Paths are resolved against the fleet file's folder.
 """
 
@@ -43,6 +45,7 @@ class FleetRobot:
     T_world_map: tuple[float, float, float]  # [m, m, rad] the robot's map frame in world
     keepout_path: Path | None  # Nav2 filter-mask map.yaml in the robot's map frame
     geo: GeoAnchor | None  # the robot's map origin on WGS84 (see the module doc)
+    placed_by: str = "T_world_map"  # or "geo anchors", or the default identity
 
 
 @dataclass(frozen=True)
@@ -104,14 +107,19 @@ def _robot(item: Any, i: int, base: Path, world_geo: GeoAnchor | None, where: st
     keepout_path = (
         None if keepout is None else _existing(base, keepout, f"{at} ({name})", "keepout")
     )
-    pose = _pose(item.get("T_world_map", {}), f"{at} ({name})")
     if "geo" in item:
         geo = geo_from_dict(item["geo"], f"{at} ({name})")
     else:
         geo = read_geo_anchor(map_path)
-        if geo is None and world_geo is not None:
-            geo = world_geo.moved(*pose)
-    return FleetRobot(name, map_path, pose, keepout_path, geo)
+    if "T_world_map" in item:
+        pose, placed_by = _pose(item["T_world_map"], f"{at} ({name})"), "T_world_map"
+    elif geo is not None and world_geo is not None:
+        pose, placed_by = world_geo.pose_of(geo), "geo anchors"
+    else:
+        pose, placed_by = (0.0, 0.0, 0.0), "default (map frame = world)"
+    if geo is None and world_geo is not None:
+        geo = world_geo.moved(*pose)
+    return FleetRobot(name, map_path, pose, keepout_path, geo, placed_by)
 
 
 def load_fleet(path: str | os.PathLike[str]) -> Fleet:

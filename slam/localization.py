@@ -1288,6 +1288,43 @@ class Localizer:
         return self._result(stamp, odom, reason, self.model.score(pts, self._pose))
 
 
+GPS_ODOM_HISTORY = 256  # scans of odometry kept to place a late fix (minutes at live rates)
+
+
+class GpsPrior:
+    """GPS fixes (in the map frame, through its geo anchor) handed to a :class:`Localizer` as
+    the prior of its global search, the one way `localize --gps` and `live` do it: before each
+    scan, the newest fix stamped at or before the scan goes in with the odometry pose of the
+    last scan at or before the fix (the localiser widens the fix's disk by the distance driven
+    since). Fixes are added in time order, all at once (a log) or as they come (live)."""
+
+    def __init__(self, localizer: Localizer) -> None:
+        self.localizer = localizer
+        self._pending: deque[tuple[int, np.ndarray, float]] = deque()  # (stamp, xy, sigma)
+        self._odom: deque[tuple[int, np.ndarray]] = deque(maxlen=GPS_ODOM_HISTORY)
+        self.fixes_used = 0
+
+    def add_fix(self, stamp_ns: int, xy_map: np.ndarray, sigma_m: float) -> None:
+        self._pending.append((int(stamp_ns), np.asarray(xy_map, float), float(sigma_m)))
+
+    def before_scan(self, stamp_ns: int, odom: np.ndarray) -> None:
+        """Call with each scan's stamp and odometry pose before :meth:`Localizer.update`."""
+        self._odom.append((int(stamp_ns), np.asarray(odom, float)))
+        newest = None
+        while self._pending and self._pending[0][0] <= stamp_ns:
+            newest = self._pending.popleft()
+        if newest is None:
+            return
+        t_fix, xy, sigma = newest
+        at = self._odom[0][1]  # a fix older than the history: the oldest pose kept
+        for t, pose in reversed(self._odom):
+            if t <= t_fix:
+                at = pose
+                break
+        self.localizer.set_gps_fix(xy, sigma, at)
+        self.fixes_used += 1
+
+
 def _merge(hyps: list[_Hypothesis], config: LocalizerConfig) -> list[_Hypothesis]:
     """Best first (by mean score); a hypothesis that converged onto a better one is dropped."""
     out: list[_Hypothesis] = []
@@ -1322,6 +1359,7 @@ def _agree(a: np.ndarray, b: np.ndarray, config: LocalizerConfig) -> bool:
 __all__ = [
     "GlobalCandidate",
     "GlobalField",
+    "GpsPrior",
     "LocalizationResult",
     "Localizer",
     "MapModel",

@@ -25,28 +25,12 @@ import cv2
 import numpy as np
 
 from sensors.types import MapError
+from slam.config import AlignConfig
 from slam.geometry import wrap_angle
 from slam.occupancy_grid import GridGeometry, OccupancyGrid, warp_to_geometry
 from slam.scan_matching import build_grid_reference, icp_refine, voxel_filter
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class AlignConfig:
-    coarse_resolution: float = 0.25  # [m/cell] grid of the global search
-    smear_sigma: float = 0.5  # [m] likelihood field width of the global search
-    yaw_step_deg: float = 1.0  # [deg] rotation sweep step
-    candidates: int = 6  # distinct peaks refined and verified
-    distinct_m: float = 2.0  # [m] peaks closer than this (and distinct_deg) are one
-    distinct_deg: float = 10.0  # [deg]
-    icp_correspondence_m: float = 1.0  # [m] ICP neighbour radius
-    icp_voxel_m: float = 0.1  # [m] B's wall cells thinned for ICP
-    agree_distance_m: float = 0.2  # [m] a wall cell within this of the other map's walls agrees
-    min_agreement: float = 0.5  # fraction of wall cells over the other's known area that agree
-    min_overlap_m: float = 15.0  # [m] of wall matched both ways
-    max_rival_ratio: float = 0.85  # a distinct pose scoring this fraction of the best: ambiguous
-    free_penalty: float = 1.0  # global search: cost of a wall point on the other's open floor
 
 
 @dataclass(frozen=True)

@@ -46,6 +46,7 @@ from sensors.atomic import (
 )
 from sensors.bounded_read import read_bounded
 from sensors.config import short_repr
+from sensors.geo import GEO_YAML, GeoAnchor, geo_yaml_text, read_geo_anchor
 from sensors.images import MAX_IMAGE_FILE_BYTES, MAX_IMAGE_PIXELS, decode_image
 from sensors.safe_yaml import read_yaml
 from sensors.types import MAX_STAMP_NS, LaserScan, MapError
@@ -100,6 +101,7 @@ class MapBundle:
     config: dict[str, Any] = field(default_factory=dict)  # mapper config as plain values
     source: str = ""  # what the map was built from
     created: str = ""  # ISO 8601; filled in by save_bundle when empty
+    geo: GeoAnchor | None = None  # the map frame on WGS84 (geo.yaml, sensors/geo.py)
 
     @property
     def occupied_thresh(self) -> float:
@@ -672,6 +674,8 @@ def _write_bundle_files(bundle: MapBundle, folder: Path, created: str) -> None:
     (folder / GRAPH_JSON).write_text(_graph_json(bundle, created), encoding="utf-8")
     _write_scans(folder, bundle.scans)
     _write_npz(folder / GRID_NPZ, {"log_odds": grid.log_odds, "observed": grid.observed})
+    if bundle.geo is not None:
+        (folder / GEO_YAML).write_text(geo_yaml_text(bundle.geo), encoding="utf-8")
 
 
 def save_bundle(bundle: MapBundle, path: str | os.PathLike[str]) -> None:
@@ -805,6 +809,7 @@ def load_bundle(path: str | os.PathLike[str]) -> MapBundle:
         config,
         graph["source"],
         graph["created"],
+        read_geo_anchor(folder),
     )
 
 

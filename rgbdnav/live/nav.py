@@ -185,6 +185,7 @@ class LiveNavigator:
         repeat: bool = False,
         static_map: tuple[OccupancyGrid, float, float] | None = None,
         plan_in_thread: bool = True,
+        keepout: OccupancyGrid | None = None,
     ) -> None:
         self.cfg = live_nav_config(cfg)
         self.route = np.asarray(route, dtype=np.float64).reshape(-1, 2)
@@ -205,6 +206,7 @@ class LiveNavigator:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._static = static_map
+        self._keepout = keepout  # Nav2 keepout filter mask, in the map frame
         self._last_grid: tuple[OccupancyGrid, np.ndarray] | None = None  # (grid, its poses)
         pts = np.vstack([np.asarray(start_pose, dtype=np.float64)[:2], self.route])
         if static_map is not None:
@@ -224,7 +226,7 @@ class LiveNavigator:
             ThreadPlanning(planner) if plan_in_thread else ImmediatePlanning(planner)
         )
         # All unknown until a map comes.
-        self.nav = Navigator(self.cfg, Costmap(self.geometry, self.cfg.costmap), self.planning)
+        self.nav = Navigator(self.cfg, self._costmap(), self.planning)
         if static_map is not None:
             self._install(self._costmap_from_grid(*static_map))
 
@@ -344,8 +346,15 @@ class LiveNavigator:
         values = grid_values(grid, self.cfg.costmap, occupied_thresh, free_thresh)
         if grid.geometry != self.geometry:
             values, _ = resample_nearest(values, grid.geometry, self.geometry, UNKNOWN)
+        return self._costmap(values)
+
+    def _costmap(self, values: np.ndarray | None = None) -> Costmap:
+        """A costmap over the current geometry with the keepout filter (if any), inflated
+        here, not on the controller thread."""
         cm = Costmap(self.geometry, self.cfg.costmap, values)
-        cm.master()  # inflate here, not on the controller thread
+        if self._keepout is not None:
+            cm.set_keepout(self._keepout)
+        cm.master()
         return cm
 
     def _install(self, cm: Costmap) -> None:
@@ -373,7 +382,7 @@ class LiveNavigator:
         if self._static is not None:
             self._install(self._costmap_from_grid(*self._static))
         else:
-            self._install(Costmap(self.geometry, self.cfg.costmap))
+            self._install(self._costmap())
             self._wake.set()  # the next snapshot is built on the new geometry
 
     # 3. The controller tick.

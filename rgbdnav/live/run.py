@@ -35,7 +35,7 @@ import signal
 import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -57,19 +57,31 @@ from rgbdnav.config import (
 from rgbdnav.live.nav import LiveNavigator, MapSnapshot
 from rgbdnav.live.record import LiveRecorder
 from rgbdnav.live.stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
-from rgbdnav.report import plot_trajectories
+from rgbdnav.report import gps_chart, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE
 from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, occupied_cells_xy
 from sensors.boards import OpenedBoard, open_board
 from sensors.eddie import OdometryPoller
+from sensors.geo import GeoAnchor, read_geo_anchor
+from sensors.gps import (
+    GPS_TXT,
+    GpsFix,
+    GpsStream,
+    GpsWriter,
+    SimGpsConfig,
+    SimGpsReceiver,
+    read_gps_txt,
+)
 from sensors.motor_board import MotorBoard
 from sensors.source import Source, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, RgbdNavError, SensorError, WheelTicks
+from slam.fleet import FleetRobot, load_fleet
 from slam.front_end import FrontEnd, FrontEndOptions, MessageFeed
 from slam.geometry import ominus, oplus, path_length
-from slam.map_bundle import save_bundle
+from slam.localization import GpsPrior
+from slam.map_bundle import load_map_yaml, save_bundle
 from slam.mapper import Mapper, build_grid, make_bundle
 from slam.metrics import drift_summary
 from slam.scan_matching import scan_points, transform_points
@@ -83,6 +95,7 @@ SIM_WHEELS_PERIOD_S = 0.01  # [s] --board emulator:KIND: wheel travel to the sim
 MODE_SWITCH_KEY = "\t"  # Tab: manual (teleop keys) <-> auto (route)
 GIL_SWITCH_INTERVAL_S = 0.001  # [s] (Python's default 0.005)
 MEMORY_SAMPLE_S = 5.0  # [s] resident memory is sampled this often for the summary
+GPS_QUEUE_SIZE = 16  # fixes waiting for the localiser (1 Hz: a stalled localiser keeps the newest)
 
 
 def _interactive() -> bool:
@@ -146,6 +159,7 @@ class LiveOptions:
     initial_pose: tuple[float, float, float] | None = None  # --map: start tracking here (map)
     robot: str | None = None  # this robot's name in a fleet (the run is in OUT/NAME)
     start: tuple[float, float, float] | None = None  # simulated robot's start in the world
+    fleet: Path | None = None  # fleet.yaml: this robot's map, T_world_map and keepout
 
 
 class Counters:
@@ -208,6 +222,9 @@ LIVE_PROFILE = RGBD_PROFILE.with_name("live.yaml")  # real-time front-end settin
 
 class LiveRun:
     def __init__(self, opts: LiveOptions) -> None:
+        self.fleet_robot: FleetRobot | None = None
+        if opts.fleet is not None:
+            opts = self._with_fleet_map(opts)
         self.opts = opts
         # Depth scans: the RGB-D mapping profile; localising (--map) on the robot's own wheels:
         # the navigate profile too, as `rgbdnav navigate` loads them; real time: the live
@@ -272,7 +289,8 @@ class LiveRun:
         # [s] monotonic: the first camera frame, and the devices up (the duration's clock).
         self._first_frame_at: float | None = None
         self._devices_up_at: float | None = None
-        self.start_pose = np.zeros(3)
+        self.start_pose = np.zeros(3)  # [m, m, rad] in the map frame
+        self.start_in_world: np.ndarray | None = None  # the simulated robot's
         self.route = np.zeros((0, 2))
         self.route_done = False
         self.keys: queue.Queue[str] = queue.Queue()  # terminal keys (tests put them here)
@@ -297,6 +315,44 @@ class LiveRun:
         self.front_end: FrontEnd | None = None
         if opts.record is not None:
             self.recorder = LiveRecorder(opts.record, self._recording_scene())
+        # GPS: fixes from any receiver go to gps.txt and, in the map through its geo anchor,
+        # to the localiser's global search (slam.localization.GpsPrior, as `localize --gps`).
+        self.T_world_map, self.T_world_map_from = self._placement()
+        self.gps_writer = GpsWriter(self.run.file(GPS_TXT))
+        self.gps_source: str | None = None  # what gives the fixes: simulated, the camera's
+        self.gps_q: queue.Queue[tuple[int, np.ndarray, float]] = queue.Queue(GPS_QUEUE_SIZE)
+        self.map_anchor: GeoAnchor | None = None  # the run's map frame on WGS84
+        self._sim_gps: SimGpsReceiver | None = None
+        self._gps_prior: GpsPrior | None = None
+        self._first_tracked: tuple[int, np.ndarray] | None = None  # (stamp, map -> odom)
+        self._recorded_gps: GpsStream | None = None  # a recorded camera source's own fixes
+        self._gps_pending: deque[GpsFix] | None = None
+
+    def _with_fleet_map(self, opts: LiveOptions) -> LiveOptions:
+        """This robot in its fleet file: it localises in its own map there (the map the fleet
+        places in the world), unless told another map, which the fleet cannot place."""
+        if opts.robot is None:
+            raise ConfigError("--fleet needs --robot NAME: which robot of the fleet this is")
+        robot = load_fleet(opts.fleet).robot(opts.robot)  # type: ignore[arg-type]
+        self.fleet_robot = robot
+        if opts.map_bundle is None:
+            return replace(opts, map_bundle=robot.map_path)
+        if Path(opts.map_bundle).resolve() != robot.map_path.resolve():
+            raise ConfigError(
+                f"--map {opts.map_bundle} is not robot {robot.name}'s map in {opts.fleet} "
+                f"({robot.map_path}): the fleet places only that map in the world"
+            )
+        return opts
+
+    def _placement(self) -> tuple[tuple[float, float, float] | None, str | None]:
+        """Where this run's map frame sits in the world (``world -> NAME/map``) and who says
+        so: the fleet file (its T_world_map, or its geo anchors), or the simulator (a simulated
+        robot is told its true start, so the frame of a map it makes is the world frame)."""
+        if self.fleet_robot is not None:
+            return self.fleet_robot.T_world_map, f"{self.opts.fleet}: {self.fleet_robot.placed_by}"
+        if self.opts.camera == "sim" or self.opts.board == "sim":
+            return (0.0, 0.0, 0.0), "simulator"
+        return None, None
 
     def _recording_scene(self) -> dict[str, Any]:
         """``scene.yaml`` of a ``--record`` recording: what ``map``/``odometry`` need to read
@@ -323,12 +379,21 @@ class LiveRun:
     def _robot_frame(self) -> dict[str, Any]:
         """Who this robot is and where its map sits in the world (``world -> NAME/map``). The
         simulated robot is told its true start, so its map frame is the world frame; a real
-        robot's map frame is where it started, unknown to the world until aligned."""
+        robot's map frame is placed by its fleet file (``--fleet``), else unknown (null)."""
         simulated = self.sim is not None
+        own_map = self.opts.map_bundle is None
+        keepout = None if self.fleet_robot is None else self.fleet_robot.keepout_path
         return {
             "name": self.opts.robot,
-            "start_in_world": self.start_pose.tolist() if simulated else None,
-            "T_world_map": [0.0, 0.0, 0.0] if simulated else None,
+            "start_in_world": (
+                self.start_in_world.tolist()
+                if simulated and self.start_in_world is not None
+                else None
+            ),
+            "T_world_map": None if self.T_world_map is None else list(self.T_world_map),
+            "T_world_map_from": self.T_world_map_from,
+            "map": str(self.run.file("map") if own_map else Path(self.opts.map_bundle).resolve()),
+            "keepout": None if keepout is None else str(keepout),
         }
 
     # 1. Start: the simulated robot (if any), the board, the camera adapter.
@@ -344,12 +409,19 @@ class LiveRun:
             if opts.start is not None:
                 check_start(world, opts.start, "--start")
                 world = replace(world, start=opts.start)
-            self.start_pose = np.array(world.start, dtype=np.float64)
-            self.route = (
+            # The start and the route are in the world; the robot drives in its map frame.
+            self.start_in_world = np.array(world.start, dtype=np.float64)
+            self.start_pose = self._in_map(self.start_in_world)
+            route = (
                 np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2)
                 if opts.goals
                 else world.route
             )
+            self.route = self._in_map(np.column_stack([route, np.zeros(len(route))]))[:, :2]
+            if world.geo is not None and opts.camera == "sim":  # a receiver riding base_link
+                self._sim_gps = SimGpsReceiver(world.geo, SimGpsConfig(), seed=opts.seed)
+                self.gps_source = "simulated receiver"
+            self._set_map_anchor(world.geo)
             self.sim = SimRobot(
                 opts.world,  # type: ignore[arg-type]
                 cfg.robot,
@@ -364,6 +436,7 @@ class LiveRun:
             sim_port = self.sim.start()
         else:
             self.route = np.asarray(opts.goals, dtype=np.float64).reshape(-1, 2)
+            self._set_map_anchor(None)
         if opts.drive != "idle" and cfg.live.route_driver == "nav" and len(self.route):
             loaded = self._loaded_map
             static = (
@@ -371,8 +444,14 @@ class LiveRun:
                 if loaded is None
                 else (loaded.grid, loaded.occupied_thresh, loaded.free_thresh)
             )
+            keepout_path = None if self.fleet_robot is None else self.fleet_robot.keepout_path
             self.navigator = LiveNavigator(
-                cfg, self.route, self.start_pose, opts.repeat_route, static
+                cfg,
+                self.route,
+                self.start_pose,
+                opts.repeat_route,
+                static,
+                keepout=None if keepout_path is None else load_map_yaml(keepout_path),
             )
             self.navigator.start()
         spec = sim_port if opts.board == "sim" else opts.board
@@ -395,10 +474,16 @@ class LiveRun:
                 self.board, cfg.board, callback=self.ticks_q.put, read_speed_heading=False
             )
         if opts.camera == "sim":
+            self._start_gps_prior()
             return self._sim_frames()
         # realtime: a device recording plays at its own pace, stamped like a camera.
         self.camera_src = open_source(opts.camera, replace(source_options(cfg), realtime=True))
         self._take_camera_mount(self.camera_src)
+        gps = self.camera_src.gps() if callable(getattr(self.camera_src, "gps", None)) else None
+        if gps is not None and len(gps):  # NavSatFix in a bag, gps.txt in a recording
+            self._recorded_gps = gps
+            self.gps_source = "camera source"
+        self._start_gps_prior()
         return iter(self.camera_src.frames())
 
     def _take_camera_mount(self, src: Source) -> None:
@@ -413,6 +498,47 @@ class LiveRun:
         if self.recorder is not None:  # its scene.yaml is written at the first frame
             self.recorder.scene["robot"] = section_to_dict(robot)
         log.info("camera mount from %s: %s", self.extrinsics["source"], self.extrinsics["chain"])
+
+    # GPS: any receiver's fixes through one door (_on_gps_fix).
+
+    def _in_map(self, world_poses: np.ndarray) -> np.ndarray:
+        """World poses (..., 3) in this run's map frame (the simulator works in the world)."""
+        if self.T_world_map is None:
+            return world_poses
+        return ominus(np.asarray(self.T_world_map), world_poses)
+
+    def _set_map_anchor(self, world_geo: GeoAnchor | None) -> None:
+        """The map frame's geo anchor: the map's own ``geo.yaml``, else its fleet entry's,
+        else the simulated world's moved by ``T_world_map``."""
+        anchor = None
+        if self.opts.map_bundle is not None:
+            anchor = read_geo_anchor(self.opts.map_bundle)
+        if anchor is None and self.fleet_robot is not None:
+            anchor = self.fleet_robot.geo
+        if anchor is None and world_geo is not None and self.T_world_map is not None:
+            moved = any(self.T_world_map)
+            anchor = world_geo.moved(*self.T_world_map) if moved else world_geo
+        self.map_anchor = anchor
+
+    def _start_gps_prior(self) -> None:
+        if self.localizer is None or self.gps_source is None or self._gps_prior is not None:
+            return
+        if self.map_anchor is None:
+            log.warning("GPS fixes (%s) unused: the map has no geo anchor", self.gps_source)
+            return
+        self._gps_prior = GpsPrior(self.localizer)
+
+    def _on_gps_fix(self, fix: GpsFix) -> None:
+        """A fix from any receiver: to gps.txt and, placed in the map, to the localiser."""
+        self.gps_writer.add(fix)
+        self.counts.inc("gps_fixes")
+        if self._gps_prior is None or self.map_anchor is None:
+            return
+        x, y, _ = self.map_anchor.to_map(fix.latitude, fix.longitude, fix.altitude)
+        try:
+            self.gps_q.put_nowait((fix.stamp_ns, np.array([float(x), float(y)]), fix.sigma_m))
+        except queue.Full:
+            self.counts.inc("gps_fixes_dropped_localizer_behind")
 
     def _turn_sim_wheels(self) -> None:
         """Copy the host-side board emulator's wheel travel [positions] to the simulated robot."""
@@ -430,6 +556,10 @@ class LiveRun:
             if msg is None:
                 yield None  # type: ignore[misc]  # lets the camera thread notice a stall
                 continue
+            if self._sim_gps is not None:
+                fix = self._sim_gps.update(msg.stamp_ns, *msg.true_pose[:2])
+                if fix is not None:
+                    self._on_gps_fix(fix)
             yield RgbdFrame(msg.stamp_ns, msg.rgb, msg.depth_m, self.sim.intrinsics)
 
     # 2. The threads.
@@ -443,6 +573,8 @@ class LiveRun:
                     continue
                 if self._first_frame_at is None:
                     self._first_frame_at = time.monotonic()
+                if self._recorded_gps is not None:
+                    self._replay_gps(frame.stamp_ns)
                 self.counts.inc("frames_received")
                 self.arrival_ms.add((time.monotonic_ns() - frame.stamp_ns) / 1e6)
                 try:
@@ -454,6 +586,14 @@ class LiveRun:
             log.error("camera failed: %s", err)
         finally:
             self.frame_q.put(None)
+
+    def _replay_gps(self, stamp_ns: int) -> None:
+        """A recorded source's fixes, on the camera's clock, as its frames pass them."""
+        if self._gps_pending is None:  # its clock is known at the first frame
+            offset = int(getattr(self.camera_src, "stamp_offset_ns", 0))
+            self._gps_pending = deque(self._recorded_gps.fixes(offset))  # type: ignore[union-attr]
+        while self._gps_pending and self._gps_pending[0].stamp_ns <= stamp_ns:
+            self._on_gps_fix(self._gps_pending.popleft())
 
     def _front_end_loop(self) -> None:
         """Frames and the wheel readings that came meanwhile into the front end (the one
@@ -564,6 +704,10 @@ class LiveRun:
         while (item := self.scan_q.get()) is not None:
             scan, odom = item
             if self.localizer is not None:
+                if self._gps_prior is not None:
+                    while not self.gps_q.empty():
+                        self._gps_prior.add_fix(*self.gps_q.get_nowait())
+                    self._gps_prior.before_scan(scan.stamp_ns, odom)
                 res = self.localizer.update(scan, odom)
                 pose, m2o = res.pose, res.map_to_odom
                 tracking = res.status == "tracking"
@@ -590,6 +734,8 @@ class LiveRun:
             with self.shared.lock:
                 self.shared.map_to_odom = np.asarray(m2o, dtype=np.float64)
                 self.shared.tracking = tracking
+            if tracking and self._first_tracked is None:  # places odometry in the run chart
+                self._first_tracked = (scan.stamp_ns, np.array(m2o, dtype=np.float64))
             self.map_track.add(scan.stamp_ns, float(pose[0]), float(pose[1]), float(pose[2]))
             self.counts.inc("scans_mapped")
             if self.map_track.count % max(cfg.live.visualize_every, 1) == 0:
@@ -774,9 +920,8 @@ class LiveRun:
                 return None
             grid = build_grid(result, self.cfg.mapper)
             path = self.run.file("map")
-            save_bundle(
-                make_bundle(result, grid, self.cfg.mapper, f"live {self.opts.camera}"), path
-            )
+            bundle = make_bundle(result, grid, self.cfg.mapper, f"live {self.opts.camera}")
+            save_bundle(replace(bundle, geo=self.map_anchor), path)
             self._last_checkpoint = time.monotonic()
             self.counts.inc("checkpoints")
             self.last_result, self.last_grid = result, grid
@@ -858,7 +1003,11 @@ class LiveRun:
             frames = self._start_devices()
             if self.localizer is not None and self.initial_pose is not None:
                 self.localizer.set_initial_pose(self.initial_pose)
-            elif self.localizer is not None and self.sim is not None:
+            elif (
+                self.localizer is not None
+                and self.sim is not None
+                and self.cfg.live.sim_initial_pose
+            ):
                 # The simulated robot knows where it starts, as a user gives --initial-pose.
                 self.localizer.set_initial_pose(self.start_pose)
             if self.poller is not None:
@@ -909,6 +1058,7 @@ class LiveRun:
                 self.navigator.close()
             self.odom_track.close()
             self.map_track.close()
+            self.gps_writer.close()
             restore()
             sys.setswitchinterval(switch)
         return sim_stats, time.monotonic() - t0
@@ -1064,7 +1214,9 @@ class LiveRun:
                 self.initial_pose.tolist()
                 if self.initial_pose is not None
                 else "simulator start"
-                if self.localizer is not None and self.sim is not None
+                if self.localizer is not None
+                and self.sim is not None
+                and self.cfg.live.sim_initial_pose
                 else None
             ),
             "drive": self.opts.drive,
@@ -1173,9 +1325,66 @@ class LiveRun:
                 }
             plot_trajectories(run.file("map.png"), paths, "live run", **kw)
             outputs["picture"] = run.file("map.png")
+        if self.localizer is not None:
+            summary["seconds_to_first_pose"] = self._seconds_to_first_pose(tracks)
+        if self.gps_writer.count:
+            outputs["gps fixes"] = self.gps_writer.path
+            summary["gps"] = self._gps_outputs(tracks, grid)
+            if (chart := run.file("gps.png")).is_file():
+                outputs["run chart"] = chart
         outputs["summary"] = run.write_summary(summary)
         self.summary = summary
         return outputs
+
+    def _seconds_to_first_pose(self, tracks: dict[str, np.ndarray]) -> float | None:
+        """From the first scan to the first tracked one (the localiser's time to fix)."""
+        online = tracks["slam_online"]
+        if self._first_tracked is None or not len(online):
+            return None
+        return round((self._first_tracked[0] - online[0, 0]) / 1e9, 2)
+
+    def _gps_outputs(self, tracks: dict[str, np.ndarray], grid: Any) -> dict[str, Any]:
+        """The GPS part of the summary and, with the map's geo anchor, the run chart
+        ``gps.png``: the localiser (or the mapper) vs odometry vs GPS, as `localize --gps`."""
+        info: dict[str, Any] = {
+            "source": self.gps_source,
+            "geo_anchor": None if self.map_anchor is None else self.map_anchor.as_dict(),
+            "fixes_used_by_localiser": (
+                None if self._gps_prior is None else self._gps_prior.fixes_used
+            ),
+        }
+        if self.map_anchor is None:
+            return {"fixes": self.gps_writer.count, **info}
+        fixes = read_gps_txt(self.gps_writer.path)
+        gps = (fixes.stamps_ns, fixes.in_map(self.map_anchor), fixes.sigma_m)
+        est, odom = tracks.get("slam", tracks["slam_online"]), tracks["odometry"]
+        placed = np.zeros((0, 3))
+        info["seconds_to_first_pose"] = self._seconds_to_first_pose(tracks)
+        if self._first_tracked is not None and len(odom):  # estimates once it has one
+            est = est[est[:, 0] >= self._first_tracked[0]]
+            placed = oplus(self._first_tracked[1], odom[:, 1:4])
+        else:
+            est = est[:0]
+        kw: dict[str, Any] = {}
+        loaded = self._loaded_map
+        if grid is not None or loaded is not None:
+            g = (grid if grid is not None else loaded.grid).geometry
+            occ = (
+                grid.occupied_mask(self.cfg.mapper.occupied_thresh)
+                if grid is not None
+                else loaded.grid.occupied_mask(loaded.occupied_thresh)
+            )
+            kw = {"occupied": occ, "origin": (g.origin_x, g.origin_y), "resolution": g.resolution}
+        label = "localiser" if self.localizer is not None else "mapper"
+        chart = gps_chart(
+            self.run.file("gps.png"),
+            (label, est[:, 0].astype(np.int64), est[:, 1:3]),
+            placed[:, :2],
+            gps,
+            f"live run: {label}, odometry and GPS",
+            **kw,
+        )
+        return {**chart, **info}
 
 
 def run_live(

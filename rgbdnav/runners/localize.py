@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from rgbdnav.config import initial_pose_array, load_config, source_options
-from rgbdnav.report import plot_trajectories
+from rgbdnav.report import gps_chart, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import scan_stream, source_config
 from rgbdnav.visualize import (
@@ -53,7 +53,7 @@ from sensors.source import PoseStream, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
 from slam.geometry import oplus, wrap_angle
-from slam.localization import LocalizationResult, Localizer, MapModel
+from slam.localization import GpsPrior, LocalizationResult, Localizer, MapModel
 from slam.map_bundle import LoadedMap, load_map
 from slam.metrics import interpolate_poses
 from slam.occupancy_grid import OccupancyGrid
@@ -240,7 +240,11 @@ def run_localize(
         gps = _gps_fixes(src, gps_path, map_path)
         # 2. Localise every scan (each new GPS fix narrows the global search).
         loc = Localizer(model, cfg.localizer, init)
-        fix_k, odoms, odom_stamps = -1, [], []
+        prior = GpsPrior(loc)
+        if gps is not None:
+            for t, xy, sigma in zip(*gps, strict=True):
+                prior.add_fix(int(t), xy, float(sigma))
+        odoms = []
         results: list[LocalizationResult] = []
         scans_map: list[np.ndarray] = []  # tracked scans in the map frame, for the visualiser
         drawing = not isinstance(vis, NullVisualizer)
@@ -248,13 +252,7 @@ def run_localize(
         for k, (scan, odom) in enumerate(stream):
             t = time.perf_counter()
             odoms.append(odom)
-            odom_stamps.append(scan.stamp_ns)
-            if gps is not None:
-                k_new = int(np.searchsorted(gps[0], scan.stamp_ns, side="right")) - 1
-                if k_new > fix_k:  # a new fix, placed at the odometry of its own time
-                    at = max(int(np.searchsorted(odom_stamps, gps[0][k_new], "right")) - 1, 0)
-                    loc.set_gps_fix(gps[1][k_new], float(gps[2][k_new]), odoms[at])
-                    fix_k = k_new
+            prior.before_scan(scan.stamp_ns, odom)
             results.append(loc.update(scan, odom))
             update_s += time.perf_counter() - t
             if drawing and has_pose(results[-1]):
@@ -404,40 +402,25 @@ def _gps_chart(
     g: Any,
     name: str,
 ) -> dict[str, Any]:
-    """The run chart: localiser, odometry (placed in the map at the first localised pose) and
-    GPS fixes over the map; and the GPS part of the summary."""
+    """The run chart (:func:`rgbdnav.report.gps_chart`): odometry placed in the map at the
+    first localised pose; and the GPS part of the summary."""
     posed = [k for k, r in enumerate(results) if has_pose(r)]
-    paths = []
-    if posed:
-        first = results[posed[0]]
-        placed = oplus(first.map_to_odom, odoms)
-        loc_xy = np.array([results[k].pose[:2] for k in posed])
-        paths = [
-            ("localiser", loc_xy[:, 0], loc_xy[:, 1]),
-            ("odometry", placed[:, 0], placed[:, 1]),
-        ]
-    paths.append(("GPS", gps[1][:, 0], gps[1][:, 1]))
-    plot_trajectories(
+    placed = oplus(results[posed[0]].map_to_odom, odoms) if posed else np.zeros((0, 3))
+    summary = gps_chart(
         path,
-        paths,
+        (
+            "localiser",
+            np.array([results[k].stamp_ns for k in posed], np.int64),
+            np.array([results[k].pose[:2] for k in posed]).reshape(-1, 2),
+        ),
+        placed[:, :2],
+        gps,
         f"{name}: localiser, odometry and GPS",
-        occupied=model.occupied,
-        origin=(g.origin_x, g.origin_y),
-        resolution=g.resolution,
+        model.occupied,
+        (g.origin_x, g.origin_y),
+        g.resolution,
     )
-    stamps = np.array([r.stamp_ns for r in results])
-    first_fix = posed[0] + 1 if posed else None
-    gps_err = None
-    if posed:
-        k = np.clip(np.searchsorted(gps[0], stamps[posed], side="right") - 1, 0, len(gps[0]) - 1)
-        d = np.hypot(*(gps[1][k] - np.array([results[i].pose[:2] for i in posed])).T)
-        gps_err = {"median_m": round(float(np.median(d)), 3), "max_m": round(float(d.max()), 3)}
-    return {
-        "fixes": int(len(gps[0])),
-        "median_sigma_m": round(float(np.median(gps[2])), 3),
-        "scans_to_first_pose": first_fix,
-        "gps_vs_localiser": gps_err,
-    }
+    return {**summary, "scans_to_first_pose": posed[0] + 1 if posed else None}
 
 
 def _visualize(

@@ -14,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.commands.fleet import TINTS_RGB
+from rgbdnav.world_picture import TINTS_RGB
 from sensors.safe_yaml import read_yaml
 from slam.geometry import oplus, wrap_angle
 from slam.map_bundle import load_bundle, load_map_yaml
@@ -102,6 +102,20 @@ def test_maps_of_two_buildings_exit_1_with_a_sentence(maps: dict[str, Path]) -> 
     assert result.exit_code == 1
     assert "error: cannot align the maps" in result.output
     assert not (out / "alignment.yaml").exists()
+
+
+@needs_data
+@pytest.mark.slow
+def test_align_tunables_are_the_align_config_section(maps: dict[str, Path]) -> None:
+    # The same two robots, asked for more matched wall than the buildings hold: refused (a
+    # coarse 30-deg sweep keeps it quick).
+    out = maps["root"] / "strict"
+    args = ("fleet", "align", maps["a"], maps["b"], "--out", out, "--set", "align.yaw_step_deg=30")
+    result = _invoke(*args, "--set", "align.min_overlap_m=5000")
+    assert result.exit_code == 1 and "(need 5000 m)" in result.output, result.output
+    assert not (out / "alignment.yaml").exists()
+    bad = _invoke(*args, "--set", "align.min_agreement=2")
+    assert bad.exit_code == 1 and "align.min_agreement" in bad.output, bad.output
 
 
 @needs_data

@@ -1,5 +1,6 @@
-"""`fleet show`'s picture on tiny hand-built grids: maps placed by T_world_map, tints blended where
-two maps overlap (neither hides the other), keepouts hatched in the robot's tint."""
+"""The one world picture of `fleet show` and `world-view` on tiny hand-built grids: maps placed
+by T_world_map, tints blended where two maps overlap (neither hides the other), keepouts hatched
+in the robot's tint, a floor plan under the walls and paths on top."""
 
 from __future__ import annotations
 
@@ -9,7 +10,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdnav.commands.fleet import TINTS_RGB, Layer, render_fleet, run_show, world_geometry
+from rgbdnav.commands.fleet import run_show
+from rgbdnav.world_picture import (
+    FLOOR_PLAN_RGB,
+    TINTS_RGB,
+    FloorPlanMask,
+    Layer,
+    WorldPath,
+    render_world,
+    tint,
+    world_geometry,
+)
 from slam.map_bundle import save_map_yaml
 from slam.occupancy_grid import GridGeometry, OccupancyGrid
 
@@ -34,7 +45,7 @@ def test_overlapping_maps_blend_and_a_turned_map_lands_where_placed() -> None:
     # b turned a quarter turn and moved by (3, -1): its wall at x = 1.05 lands on world y = 0.05.
     b = Layer("b", _room(10), 0.65, 0.25, (3.0, -1.0, math.pi / 2), None)
     geom = world_geometry([a, b])
-    img = render_fleet([a, b], geom)
+    img = render_world([a, b], geom)
     assert np.allclose(_pixel(img, geom, 1.05, 0.5), TINTS_RGB[0], atol=1)  # a's wall
     assert np.allclose(_pixel(img, geom, 2.5, 0.05), TINTS_RGB[1], atol=1)  # b's wall
     free_a = 0.65 * 255 + 0.35 * TINTS_RGB[0]
@@ -58,3 +69,21 @@ def test_keepouts_are_hatched_in_the_robot_tint_and_the_rrd_is_written(tmp_path:
     n_hatch = np.count_nonzero(np.all(np.abs(img - hatch) <= 1.5, axis=2))
     assert 30 <= n_hatch <= 70  # half the 100 keepout cells, in stripes
     assert out["recording"].stat().st_size > 1000
+
+
+def test_world_view_pieces_floor_plan_under_walls_and_paths_on_top() -> None:
+    a = Layer("a", _room(10), 0.65, 0.25, (0.0, 0.0, 0.0), None)
+    plan_geom = GridGeometry(RES, 0.0, 0.0, 40, 20)
+    plan = np.zeros(plan_geom.shape, bool)
+    plan[:, 30] = True  # a true wall the map did not see, at x = 3.05
+    plan[:, 10] = True  # and one under the map's own wall
+    path = WorldPath(np.array([[0.5, 1.0], [3.5, 1.0]]), tint(1), 3, start_label="a")
+    # The path reaches beyond the map: the picture grows to hold it.
+    far = WorldPath(np.array([[0.5, 1.5], [9.0, 1.5]]), tint(2), 3)
+    geom = world_geometry([a], np.vstack([path.xy, far.xy]))
+    assert geom.origin_x + geom.width * geom.resolution > 9.0
+    img = render_world([a], geom, [path, far], FloorPlanMask(plan, plan_geom))
+    assert np.allclose(_pixel(img, geom, 3.05, 0.3), FLOOR_PLAN_RGB, atol=1)
+    assert np.allclose(_pixel(img, geom, 1.05, 0.3), TINTS_RGB[0], atol=1)  # the map's wall wins
+    assert np.allclose(_pixel(img, geom, 2.0, 1.0), tint(1), atol=1)  # the path on top
+    assert np.allclose(_pixel(img, geom, 8.0, 1.5), tint(2), atol=1)

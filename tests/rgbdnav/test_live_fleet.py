@@ -58,7 +58,10 @@ def test_two_robots_run_side_by_side_each_with_its_own_map_and_one_world_view(
         s = json.loads((run / "summary.json").read_text())
         assert s["errors"] == [] and s["counts"].get("scans_mapped", 0) >= 1
         start = [float(x), float(y), float(yaw)]
-        assert s["robot"] == {"name": name, "start_in_world": start, "T_world_map": [0, 0, 0]}
+        robot = {"name": name, "start_in_world": start, "T_world_map": [0, 0, 0]}
+        assert robot.items() <= s["robot"].items()
+        assert s["robot"]["T_world_map_from"] == "simulator"
+        assert s["robot"]["map"] == str(run / "map") and s["robot"]["keepout"] is None
         # The simulator drove this robot from its own start, and its estimate began there.
         _, truth, _ = load_tum_trajectory(run / "groundtruth.tum")
         _, est, _ = load_tum_trajectory(run / "trajectory.tum")
@@ -104,6 +107,11 @@ def test_fleet_options_refuse_bad_input_in_one_line(tmp_path: Path) -> None:
             "--start places the simulated robot",
         ),
         (["world-view", str(tmp_path), "--out", str(tmp_path / "w.png")], "no robot runs"),
+        (["live", "--out", str(tmp_path), "--fleet", str(tmp_path / "f.yaml")], "--robot NAME"),
+        (
+            ["live", "--out", str(tmp_path), "--fleet", str(tmp_path / "f.yaml"), "--robot", "a"],
+            "no such fleet file",
+        ),
         (
             [
                 "live",

@@ -222,3 +222,36 @@ def test_malloc_is_tamed_on_glibc_and_left_alone_when_asked() -> None:
     assert tame_malloc(0, 0) is False  # nothing asked: nothing done
     if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
         assert tame_malloc(8, 32 << 20) is True  # glibc's own limits: harmless to the suite
+
+
+def test_a_keepout_mask_closes_the_door_in_every_costmap_the_navigator_installs() -> None:
+    from nav.costmap import LETHAL
+
+    grid = two_rooms()
+    zone_geom = GridGeometry(RES, 2.8, 2.4, 8, 24)  # over the door (x 2.8-3.2, y 2.4-3.6)
+    zone = OccupancyGrid.from_occupancy_values(zone_geom, np.full(zone_geom.shape, 100, np.int8))
+    nav = LiveNavigator(
+        Config(),
+        np.array([[4.5, 3.0]]),
+        np.array([1.0, 1.0, 0.0]),
+        static_map=(grid, 0.65, 0.25),
+        plan_in_thread=False,
+        keepout=zone,
+    )
+
+    def door_cost() -> int:
+        r, c = nav.geometry.world_to_cell(3.0, 3.0)
+        return int(nav.nav.costmap.master()[r, c])
+
+    assert door_cost() == LETHAL
+    nav.tick(0, np.array([30.0, 1.0, 0.0]))  # far out: a new, larger costmap
+    assert nav.counts["nav_costmap_regrown"] == 1 and door_cost() == LETHAL
+    free = LiveNavigator(
+        Config(),
+        np.array([[4.5, 3.0]]),
+        np.array([1.0, 1.0, 0.0]),
+        static_map=(grid, 0.65, 0.25),
+        plan_in_thread=False,
+    )
+    r, c = free.geometry.world_to_cell(3.0, 3.0)
+    assert int(free.nav.costmap.master()[r, c]) < LETHAL  # the open door without the mask

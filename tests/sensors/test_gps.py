@@ -99,3 +99,25 @@ def test_simulated_gps_has_its_sigma_rate_and_dropouts() -> None:
     assert np.count_nonzero(gaps > 1.5) > 50
     again = simulate_gps(stamps, truth, ANCHOR, cfg, seed=1)
     assert again.latitude.tolist() == gps.latitude.tolist()
+
+
+def test_the_receiver_fed_pose_by_pose_gives_fixes_at_its_rate_and_they_stream_to_gps_txt(
+    tmp_path,
+) -> None:
+    from sensors.gps import GpsWriter, SimGpsReceiver
+
+    cfg = SimGpsConfig(sigma_m=2.0, rate_hz=1.0, p_drop=0.05, mean_outage_s=5.0)
+    rx = SimGpsReceiver(ANCHOR, cfg, seed=3)
+    writer = GpsWriter(tmp_path / "gps.txt")
+    stamps = np.arange(0, 1200 * NS_PER_S, NS_PER_S // 30, dtype=np.int64)  # 30 Hz camera
+    for t in stamps:  # a robot standing at (10, -5)
+        if (fix := rx.update(int(t), 10.0, -5.0)) is not None:
+            writer.add(fix)
+    writer.close()
+    back = read_gps_txt(tmp_path / "gps.txt")
+    assert back.sigma_m.tolist() == [2.0] * len(back)
+    assert np.all(np.diff(back.stamps_ns) >= 0.99 * NS_PER_S)  # at the first frame due
+    assert 0.6 * 1200 < len(back) < 0.97 * 1200  # 1 Hz less the outages
+    err = back.in_map(ANCHOR) - [10.0, -5.0]
+    assert np.std(err, axis=0) == pytest.approx([2.0, 2.0], rel=0.15)
+    assert np.abs(np.mean(err, axis=0)).max() < 0.3

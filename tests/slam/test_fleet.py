@@ -46,6 +46,22 @@ def test_fleet_file_round_trips_robots_keepouts_and_geo(tmp_path: Path) -> None:
     assert beta.geo.heading_deg == pytest.approx(90.0, abs=1e-4)
 
 
+def test_a_robot_without_t_world_map_is_placed_by_the_geo_anchors(tmp_path: Path) -> None:
+    from sensors.geo import geo_yaml_text
+
+    _map(tmp_path, "alpha")
+    world = GeoAnchor(44.98, -93.27, 256.0, 10.0)
+    # alpha's map frame: 120 m east-ish, 40 m north-ish of the world's, turned by 30 deg.
+    (tmp_path / "geo.yaml").write_text(geo_yaml_text(world.moved(120.0, 40.0, math.radians(30))))
+    (tmp_path / "fleet.yaml").write_text(
+        "world:\n  geo: {latitude: 44.98, longitude: -93.27, altitude: 256.0, heading_deg: 10}\n"
+        "robots:\n  - {name: alpha, map: alpha.yaml}\n"
+    )
+    alpha = load_fleet(tmp_path / "fleet.yaml").robot("alpha")
+    assert alpha.placed_by == "geo anchors"
+    assert alpha.T_world_map == pytest.approx((120.0, 40.0, math.radians(30)), abs=1e-3)
+
+
 @pytest.mark.parametrize(
     ("robots", "message"),
     [

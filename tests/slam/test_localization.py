@@ -880,3 +880,26 @@ def test_a_gps_fix_relocalises_where_the_map_alone_is_ambiguous() -> None:
     done = [i for i, r in enumerate(results) if r.status == "tracking"]
     assert done, [r.reason for r in results]
     assert pose_error(truth[done[0]], results[done[0]].pose)[0] < 0.1
+
+
+def test_gps_prior_hands_the_newest_fix_with_the_odometry_of_its_own_time() -> None:
+    from slam.localization import GpsPrior
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.calls: list[tuple[list[float], float, list[float]]] = []
+
+        def set_gps_fix(self, xy: np.ndarray, sigma: float, odom: np.ndarray) -> None:
+            self.calls.append((list(xy), sigma, list(odom)))
+
+    rec = Recorder()
+    prior = GpsPrior(rec)  # type: ignore[arg-type]
+    s = 1_000_000_000
+    prior.add_fix(int(1.5 * s), np.array([5.0, 6.0]), 3.0)
+    prior.add_fix(int(1.7 * s), np.array([7.0, 8.0]), 2.0)  # newer: the one used
+    prior.add_fix(int(9.0 * s), np.array([0.0, 0.0]), 2.0)  # not yet
+    for k in range(3):
+        prior.before_scan(k * s, np.array([float(k), 0.0, 0.0]))
+    assert rec.calls == [([7.0, 8.0], 2.0, [1.0, 0.0, 0.0])]  # placed at the scan of t = 1 s
+    prior.before_scan(10 * s, np.array([10.0, 0.0, 0.0]))
+    assert rec.calls[-1] == ([0.0, 0.0], 2.0, [2.0, 0.0, 0.0]) and prior.fixes_used == 2

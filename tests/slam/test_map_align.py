@@ -112,3 +112,38 @@ def test_warp_moves_a_cell_by_the_pose() -> None:
     x, y = dst.cell_to_world(r, c)
     assert (float(x[0]), float(y[0])) == pytest.approx((1.0 - 0.55, 2.0 + 1.05), abs=1e-9)
     assert out[r[0], c[0]] == 7 and len(r) == 1
+
+
+def test_the_simulated_house_split_in_two_is_refused_not_aligned_half_a_turn_wrong() -> None:
+    """The simulator's house (scenes/house.yaml) is nearly point-symmetric: its rooms mirror each
+    other, so robot b's half turned by 180 deg explains robot a's almost as well as the truth.
+    With the default rival ratio that is "more than one place", never a wrong transform."""
+    from pathlib import Path
+
+    from sensors.sim.world import floor_plan, load_world
+    from slam.config import AlignConfig
+    from slam.geometry import ominus
+
+    house = Path(__file__).resolve().parents[2] / "scenes" / "house.yaml"
+    fp = floor_plan(load_world(house))
+    h, w = fp.occupied.shape
+    src = GridGeometry(fp.resolution, fp.origin_x, fp.origin_y, w, h)
+    x_cells = fp.origin_x + (np.arange(w) + 0.5) * fp.resolution
+    walls = np.where(fp.occupied, 100.0, 0.0).astype(np.float32)
+    a_vals, b_vals = walls.copy(), walls.copy()
+    a_vals[:, x_cells > 9.0] = -1  # robot a saw x < 9 m, robot b x > 5 m
+    b_vals[:, x_cells < 5.0] = -1
+    a = OccupancyGrid.from_occupancy_values(src, a_vals.astype(np.int8))
+    T_a_b = np.array([20.0, -5.0, 0.3])  # b's map frame in a's (= the world)
+    x1, y1 = fp.origin_x + w * fp.resolution, fp.origin_y + h * fp.resolution
+    box = np.array([[fp.origin_x, fp.origin_y, 0], [x1, fp.origin_y, 0], [fp.origin_x, y1, 0]])
+    box = ominus(T_a_b, np.vstack([box, [x1, y1, 0]]).astype(float))
+    lo, hi = box[:, :2].min(axis=0), box[:, :2].max(axis=0)
+    dst = GridGeometry.from_bounds(lo[0], lo[1], hi[0], hi[1], fp.resolution)
+    b_in_b = warp_to_geometry(b_vals, src, ominus(T_a_b, np.zeros(3)), dst, fill=-1.0)
+    b = OccupancyGrid.from_occupancy_values(dst, np.round(b_in_b).astype(np.int8))
+    with pytest.raises(MapError, match="match in more than one place"):
+        align_maps(a, b, (0.65, 0.65), AlignConfig())
+    # Told to accept such a rival, it returns the half-turned pose, at a low confidence.
+    al = align_maps(a, b, (0.65, 0.65), AlignConfig(max_rival_ratio=0.9))
+    assert abs(abs(al.T_a_b[2] - T_a_b[2]) - math.pi) < 0.05 and al.confidence < 0.3
