@@ -26,6 +26,7 @@ import logging
 import math
 import time
 from collections import Counter, defaultdict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -67,6 +68,11 @@ ROTATED_RIVAL_ANGLES = np.radians([90.0, 180.0, -90.0])  # [rad] yaw offsets of 
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
 GRID_MARGIN_M = 1.0  # [m] unknown border around the mapped area in the built grid
 REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
+# The second core: local maps (likelihood field, k-d tree, normals) are built here while the
+# calling thread does other work (cv2, numpy and scipy's k-d tree release the GIL). Only pure
+# functions of inputs fixed before submission run here, and every result is awaited at a fixed
+# point, so no result depends on which thread finishes first.
+_BUILDERS = ThreadPoolExecutor(max_workers=2, thread_name_prefix="mapper-local-map")
 
 
 # 1. Odometry noise --------------------------------------------------------------------------------
@@ -382,7 +388,18 @@ class Mapper:
         self._append_keyframe(kf, float(math.hypot(edge_delta[0], edge_delta[1])), pose, match.ok)
         if cfg.do_loop_closing:
             t0 = time.perf_counter()
+            # The next scans' tracking map, built on the second core during the loop-closure
+            # search from the poses as they are now; kept only if the search left every pose
+            # as it was (else rebuilt from the moved ones), so it is the map a build after the
+            # search would make.
+            before = self.graph.poses()
+            ahead: Future[_LocalMap | None] = _BUILDERS.submit(
+                self._build_tracking_map, self._tracking_points(), False
+            )
             self._close_loops(kf)
+            local = ahead.result()
+            if self._local is None and np.array_equal(self.graph.poses(), before):
+                self._local = local
             self.timings["loop_closure"] += time.perf_counter() - t0
 
     def _world_points(self, ids: list[int], poses: np.ndarray) -> np.ndarray:
@@ -390,13 +407,22 @@ class Mapper:
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
     def _build_local(
-        self, ref_points: np.ndarray, linear_window: float, resolution: float, smear: float
+        self,
+        ref_points: np.ndarray,
+        linear_window: float,
+        resolution: float,
+        smear: float,
+        parallel: bool = True,
     ) -> _LocalMap | None:
+        """The matching map of world points: likelihood field and ICP reference, the reference
+        built on a worker thread meanwhile when ``parallel`` (not from a worker itself)."""
         if len(ref_points) < MIN_SCAN_POINTS:
             return None
         n_levels = int(math.ceil(math.log2(2 * linear_window / resolution + 1))) + 1
+        voxel = self.config.scan_voxel_size / 2
+        ref_job = _BUILDERS.submit(_reference, ref_points, voxel) if parallel else None
         fld = build_likelihood_field(ref_points, resolution, smear, linear_window, n_levels)
-        ref = build_reference(voxel_filter(ref_points, self.config.scan_voxel_size / 2))
+        ref = ref_job.result() if ref_job is not None else _reference(ref_points, voxel)
         return _LocalMap(fld, ref)
 
     def _match(
@@ -496,30 +522,41 @@ class Mapper:
             return None
         return MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction)
 
+    def _tracking_points(self) -> np.ndarray:
+        """World points of the tracking map: the keyframes around the anchor, at the graph's
+        current poses (so the map is a function of those poses)."""
+        cfg = self.config
+        poses = self.graph.poses()
+        n, anchor = len(self.keyframes), self._anchor
+        if anchor == n - 1:  # the recent chain
+            recent = list(range(max(0, n - cfg.scan_buffer_size), n))
+        else:  # re-anchored on an older keyframe: the keyframes nearest it
+            nearest = np.argsort(np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T), kind="stable")[
+                : cfg.scan_buffer_size
+            ]
+            recent = sorted(int(i) for i in nearest)
+        ids = [
+            i
+            for i in recent
+            if np.hypot(*(poses[i, :2] - poses[anchor, :2]))
+            <= cfg.scan_buffer_maximum_scan_distance
+        ]
+        return self._world_points(ids, poses)
+
+    def _build_tracking_map(self, points: np.ndarray, parallel: bool = True) -> _LocalMap | None:
+        cfg = self.config
+        return self._build_local(
+            points,
+            cfg.correlation_search_space_dimension / 2,
+            cfg.correlation_search_space_resolution,
+            cfg.correlation_search_space_smear_deviation,
+            parallel,
+        )
+
     def _match_local(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome:
         cfg = self.config
         if self._local is None:
-            poses = self.graph.poses()
-            n, anchor = len(self.keyframes), self._anchor
-            if anchor == n - 1:  # the recent chain
-                recent = list(range(max(0, n - cfg.scan_buffer_size), n))
-            else:  # re-anchored on an older keyframe: the keyframes nearest it
-                nearest = np.argsort(
-                    np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T), kind="stable"
-                )[: cfg.scan_buffer_size]
-                recent = sorted(int(i) for i in nearest)
-            ids = [
-                i
-                for i in recent
-                if np.hypot(*(poses[i, :2] - poses[anchor, :2]))
-                <= cfg.scan_buffer_maximum_scan_distance
-            ]
-            self._local = self._build_local(
-                self._world_points(ids, poses),
-                cfg.correlation_search_space_dimension / 2,
-                cfg.correlation_search_space_resolution,
-                cfg.correlation_search_space_smear_deviation,
-            )
+            self._local = self._build_tracking_map(self._tracking_points())
         fast = self._icp_first(kf, prior)
         if fast is not None:
             return fast
@@ -938,6 +975,11 @@ def edge_dict(edge: Edge) -> dict[str, Any]:
         "information": np.asarray(edge.information, dtype=float).tolist(),
         "robust": edge.robust,
     }
+
+
+def _reference(points: np.ndarray, voxel_m: float) -> ReferenceCloud:
+    """The ICP reference of a local map's points (thinned to half the scan voxel)."""
+    return build_reference(voxel_filter(points, voxel_m))
 
 
 def _response(fld: LikelihoodField, points: np.ndarray, pose: np.ndarray) -> float:
