@@ -28,7 +28,8 @@ import time
 from collections import Counter, defaultdict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from functools import partial
+from typing import Any, Literal
 
 import numpy as np
 
@@ -188,8 +189,19 @@ class _Held:
 
 @dataclass(frozen=True, eq=False)
 class _LocalMap:
-    field: LikelihoodField
-    reference: ReferenceCloud
+    """A matching map: the likelihood field (correlative search, response) and the ICP
+    reference. A part built on a worker thread is awaited where it is first used."""
+
+    _field: Future[LikelihoodField]
+    _reference: Future[ReferenceCloud]
+
+    @property
+    def field(self) -> LikelihoodField:
+        return self._field.result()
+
+    @property
+    def reference(self) -> ReferenceCloud:
+        return self._reference.result()
 
 
 @dataclass(frozen=True, eq=False)
@@ -393,13 +405,10 @@ class Mapper:
             # as it was (else rebuilt from the moved ones), so it is the map a build after the
             # search would make.
             before = self.graph.poses()
-            ahead: Future[_LocalMap | None] = _BUILDERS.submit(
-                self._build_tracking_map, self._tracking_points(), False
-            )
+            ahead = self._build_tracking_map(self._tracking_points(), first="worker")
             self._close_loops(kf)
-            local = ahead.result()
             if self._local is None and np.array_equal(self.graph.poses(), before):
-                self._local = local
+                self._local = ahead
             self.timings["loop_closure"] += time.perf_counter() - t0
 
     def _world_points(self, ids: list[int], poses: np.ndarray) -> np.ndarray:
@@ -412,18 +421,25 @@ class Mapper:
         linear_window: float,
         resolution: float,
         smear: float,
-        parallel: bool = True,
+        first: Literal["field", "reference", "worker"],
     ) -> _LocalMap | None:
-        """The matching map of world points: likelihood field and ICP reference, the reference
-        built on a worker thread meanwhile when ``parallel`` (not from a worker itself)."""
+        """The matching map of world points. The part the caller needs ``first`` is built here,
+        the other on a worker thread meanwhile (both there for ``"worker"``)."""
         if len(ref_points) < MIN_SCAN_POINTS:
             return None
         n_levels = int(math.ceil(math.log2(2 * linear_window / resolution + 1))) + 1
-        voxel = self.config.scan_voxel_size / 2
-        ref_job = _BUILDERS.submit(_reference, ref_points, voxel) if parallel else None
-        fld = build_likelihood_field(ref_points, resolution, smear, linear_window, n_levels)
-        ref = ref_job.result() if ref_job is not None else _reference(ref_points, voxel)
-        return _LocalMap(fld, ref)
+        field_job = partial(
+            build_likelihood_field, ref_points, resolution, smear, linear_window, n_levels
+        )
+        ref_job = partial(_reference, ref_points, self.config.scan_voxel_size / 2)
+        if first == "field":
+            ref = _BUILDERS.submit(ref_job)
+            return _LocalMap(_done(field_job()), ref)
+        if first == "reference":
+            fld = _BUILDERS.submit(field_job)
+            return _LocalMap(fld, _done(ref_job()))
+        ref = _BUILDERS.submit(ref_job)  # the next scan's ICP needs it first
+        return _LocalMap(_BUILDERS.submit(field_job), ref)
 
     def _match(
         self,
@@ -543,14 +559,17 @@ class Mapper:
         ]
         return self._world_points(ids, poses)
 
-    def _build_tracking_map(self, points: np.ndarray, parallel: bool = True) -> _LocalMap | None:
+    def _build_tracking_map(
+        self, points: np.ndarray, first: Literal["reference", "worker"] = "reference"
+    ) -> _LocalMap | None:
+        """The tracking map; ICP from the prediction needs its reference first."""
         cfg = self.config
         return self._build_local(
             points,
             cfg.correlation_search_space_dimension / 2,
             cfg.correlation_search_space_resolution,
             cfg.correlation_search_space_smear_deviation,
-            parallel,
+            first,
         )
 
     def _match_local(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome:
@@ -635,6 +654,7 @@ class Mapper:
             lin,
             cfg.correlation_search_space_resolution,
             cfg.correlation_search_space_smear_deviation,
+            first="field",  # the correlative search needs it first
         )
         match = self._match(
             kf,
@@ -748,6 +768,7 @@ class Mapper:
             lin,
             cfg.loop_search_space_resolution,
             max(cfg.loop_search_space_smear_deviation, cfg.loop_search_space_resolution),
+            first="field",  # the correlative search needs it first
         )
         match = self._match(
             kf,
@@ -975,6 +996,13 @@ def edge_dict(edge: Edge) -> dict[str, Any]:
         "information": np.asarray(edge.information, dtype=float).tolist(),
         "robust": edge.robust,
     }
+
+
+def _done(value: Any) -> Future[Any]:
+    """A future that already holds ``value`` (a local-map part built on the calling thread)."""
+    done: Future[Any] = Future()
+    done.set_result(value)
+    return done
 
 
 def _reference(points: np.ndarray, voxel_m: float) -> ReferenceCloud:
