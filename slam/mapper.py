@@ -15,6 +15,10 @@ Per scan (:meth:`Mapper.add_scan`), like slam_toolbox's ``addScan``:
    under the robust kernel); nearly ambiguous or inconsistent ones are held, and a final
    robust vote (GNC) over all closures decides which stay.
 
+Local maps are built on a second thread while the caller's thread matches (the next tracking
+map during the loop-closure search); every result is awaited at a fixed point, so the map is
+bit-identical to a single thread's (docs/design/speed.md).
+
 The poses are those of the scan frame (the laser for laser logs, ``base_link`` for depth->scan
 scans) in the ``map`` frame; odometry is given for the same frame. Design notes and the
 measurements behind the decisions: docs/design/mapper.md and docs/benchmarks.md.
@@ -24,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections import Counter, defaultdict
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -73,7 +78,8 @@ REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through 
 # calling thread does other work (cv2, numpy and scipy's k-d tree release the GIL). Only pure
 # functions of inputs fixed before submission run here, and every result is awaited at a fixed
 # point, so no result depends on which thread finishes first.
-_BUILDERS = ThreadPoolExecutor(max_workers=2, thread_name_prefix="mapper-local-map")
+LOCAL_MAP_WORKERS = 2
+_builders: dict[int, ThreadPoolExecutor] = {}  # per process id: a forked child gets its own
 
 
 # 1. Odometry noise --------------------------------------------------------------------------------
@@ -433,13 +439,13 @@ class Mapper:
         )
         ref_job = partial(_reference, ref_points, self.config.scan_voxel_size / 2)
         if first == "field":
-            ref = _BUILDERS.submit(ref_job)
+            ref = _builder_pool().submit(ref_job)
             return _LocalMap(_done(field_job()), ref)
         if first == "reference":
-            fld = _BUILDERS.submit(field_job)
+            fld = _builder_pool().submit(field_job)
             return _LocalMap(fld, _done(ref_job()))
-        ref = _BUILDERS.submit(ref_job)  # the next scan's ICP needs it first
-        return _LocalMap(_BUILDERS.submit(field_job), ref)
+        ref = _builder_pool().submit(ref_job)  # the next scan's ICP needs it first
+        return _LocalMap(_builder_pool().submit(field_job), ref)
 
     def _match(
         self,
@@ -996,6 +1002,17 @@ def edge_dict(edge: Edge) -> dict[str, Any]:
         "information": np.asarray(edge.information, dtype=float).tolist(),
         "robust": edge.robust,
     }
+
+
+def _builder_pool() -> ThreadPoolExecutor:
+    """This process's local-map builders (the threads of a parent do not survive a fork)."""
+    pool = _builders.get(os.getpid())
+    if pool is None:
+        pool = _builders.setdefault(
+            os.getpid(),
+            ThreadPoolExecutor(LOCAL_MAP_WORKERS, thread_name_prefix="mapper-local-map"),
+        )
+    return pool
 
 
 def _done(value: Any) -> Future[Any]:
