@@ -15,6 +15,10 @@ Per scan (:meth:`Mapper.add_scan`), like slam_toolbox's ``addScan``:
    under the robust kernel); nearly ambiguous or inconsistent ones are held, and a final
    robust vote (GNC) over all closures decides which stay.
 
+Local maps are built on a second thread while the caller's thread matches (the next tracking
+map during the loop-closure search); every result is awaited at a fixed point, so the map is
+bit-identical to a single thread's (docs/design/speed.md).
+
 The poses are those of the scan frame (the laser for laser logs, ``base_link`` for depth->scan
 scans) in the ``map`` frame; odometry is given for the same frame. Design notes and the
 measurements behind the decisions: docs/design/mapper.md and docs/benchmarks.md.
@@ -24,10 +28,13 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections import Counter, defaultdict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from functools import partial
+from typing import Any, Literal
 
 import numpy as np
 
@@ -67,6 +74,12 @@ ROTATED_RIVAL_ANGLES = np.radians([90.0, 180.0, -90.0])  # [rad] yaw offsets of 
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
 GRID_MARGIN_M = 1.0  # [m] unknown border around the mapped area in the built grid
 REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
+# The second core: local maps (likelihood field, k-d tree, normals) are built here while the
+# calling thread does other work (cv2, numpy and scipy's k-d tree release the GIL). Only pure
+# functions of inputs fixed before submission run here, and every result is awaited at a fixed
+# point, so no result depends on which thread finishes first.
+LOCAL_MAP_WORKERS = 2
+_builders: dict[int, ThreadPoolExecutor] = {}  # per process id: a forked child gets its own
 
 
 # 1. Odometry noise --------------------------------------------------------------------------------
@@ -182,8 +195,19 @@ class _Held:
 
 @dataclass(frozen=True, eq=False)
 class _LocalMap:
-    field: LikelihoodField
-    reference: ReferenceCloud
+    """A matching map: the likelihood field (correlative search, response) and the ICP
+    reference. A part built on a worker thread is awaited where it is first used."""
+
+    _field: Future[LikelihoodField]
+    _reference: Future[ReferenceCloud]
+
+    @property
+    def field(self) -> LikelihoodField:
+        return self._field.result()
+
+    @property
+    def reference(self) -> ReferenceCloud:
+        return self._reference.result()
 
 
 @dataclass(frozen=True, eq=False)
@@ -382,7 +406,15 @@ class Mapper:
         self._append_keyframe(kf, float(math.hypot(edge_delta[0], edge_delta[1])), pose, match.ok)
         if cfg.do_loop_closing:
             t0 = time.perf_counter()
+            # The next scans' tracking map, built on the second core during the loop-closure
+            # search from the poses as they are now; kept only if the search left every pose
+            # as it was (else rebuilt from the moved ones), so it is the map a build after the
+            # search would make.
+            before = self.graph.poses()
+            ahead = self._build_tracking_map(self._tracking_points(), first="worker")
             self._close_loops(kf)
+            if self._local is None and np.array_equal(self.graph.poses(), before):
+                self._local = ahead
             self.timings["loop_closure"] += time.perf_counter() - t0
 
     def _world_points(self, ids: list[int], poses: np.ndarray) -> np.ndarray:
@@ -390,14 +422,30 @@ class Mapper:
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
     def _build_local(
-        self, ref_points: np.ndarray, linear_window: float, resolution: float, smear: float
+        self,
+        ref_points: np.ndarray,
+        linear_window: float,
+        resolution: float,
+        smear: float,
+        first: Literal["field", "reference", "worker"],
     ) -> _LocalMap | None:
+        """The matching map of world points. The part the caller needs ``first`` is built here,
+        the other on a worker thread meanwhile (both there for ``"worker"``)."""
         if len(ref_points) < MIN_SCAN_POINTS:
             return None
         n_levels = int(math.ceil(math.log2(2 * linear_window / resolution + 1))) + 1
-        fld = build_likelihood_field(ref_points, resolution, smear, linear_window, n_levels)
-        ref = build_reference(voxel_filter(ref_points, self.config.scan_voxel_size / 2))
-        return _LocalMap(fld, ref)
+        field_job = partial(
+            build_likelihood_field, ref_points, resolution, smear, linear_window, n_levels
+        )
+        ref_job = partial(_reference, ref_points, self.config.scan_voxel_size / 2)
+        if first == "field":
+            ref = _builder_pool().submit(ref_job)
+            return _LocalMap(_done(field_job()), ref)
+        if first == "reference":
+            fld = _builder_pool().submit(field_job)
+            return _LocalMap(fld, _done(ref_job()))
+        ref = _builder_pool().submit(ref_job)  # the next scan's ICP needs it first
+        return _LocalMap(_builder_pool().submit(field_job), ref)
 
     def _match(
         self,
@@ -496,30 +544,44 @@ class Mapper:
             return None
         return MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction)
 
+    def _tracking_points(self) -> np.ndarray:
+        """World points of the tracking map: the keyframes around the anchor, at the graph's
+        current poses (so the map is a function of those poses)."""
+        cfg = self.config
+        poses = self.graph.poses()
+        n, anchor = len(self.keyframes), self._anchor
+        if anchor == n - 1:  # the recent chain
+            recent = list(range(max(0, n - cfg.scan_buffer_size), n))
+        else:  # re-anchored on an older keyframe: the keyframes nearest it
+            nearest = np.argsort(np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T), kind="stable")[
+                : cfg.scan_buffer_size
+            ]
+            recent = sorted(int(i) for i in nearest)
+        ids = [
+            i
+            for i in recent
+            if np.hypot(*(poses[i, :2] - poses[anchor, :2]))
+            <= cfg.scan_buffer_maximum_scan_distance
+        ]
+        return self._world_points(ids, poses)
+
+    def _build_tracking_map(
+        self, points: np.ndarray, first: Literal["reference", "worker"] = "reference"
+    ) -> _LocalMap | None:
+        """The tracking map; ICP from the prediction needs its reference first."""
+        cfg = self.config
+        return self._build_local(
+            points,
+            cfg.correlation_search_space_dimension / 2,
+            cfg.correlation_search_space_resolution,
+            cfg.correlation_search_space_smear_deviation,
+            first,
+        )
+
     def _match_local(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome:
         cfg = self.config
         if self._local is None:
-            poses = self.graph.poses()
-            n, anchor = len(self.keyframes), self._anchor
-            if anchor == n - 1:  # the recent chain
-                recent = list(range(max(0, n - cfg.scan_buffer_size), n))
-            else:  # re-anchored on an older keyframe: the keyframes nearest it
-                nearest = np.argsort(
-                    np.hypot(*(poses[:n, :2] - poses[anchor, :2]).T), kind="stable"
-                )[: cfg.scan_buffer_size]
-                recent = sorted(int(i) for i in nearest)
-            ids = [
-                i
-                for i in recent
-                if np.hypot(*(poses[i, :2] - poses[anchor, :2]))
-                <= cfg.scan_buffer_maximum_scan_distance
-            ]
-            self._local = self._build_local(
-                self._world_points(ids, poses),
-                cfg.correlation_search_space_dimension / 2,
-                cfg.correlation_search_space_resolution,
-                cfg.correlation_search_space_smear_deviation,
-            )
+            self._local = self._build_tracking_map(self._tracking_points())
         fast = self._icp_first(kf, prior)
         if fast is not None:
             return fast
@@ -598,6 +660,7 @@ class Mapper:
             lin,
             cfg.correlation_search_space_resolution,
             cfg.correlation_search_space_smear_deviation,
+            first="field",  # the correlative search needs it first
         )
         match = self._match(
             kf,
@@ -711,6 +774,7 @@ class Mapper:
             lin,
             cfg.loop_search_space_resolution,
             max(cfg.loop_search_space_smear_deviation, cfg.loop_search_space_resolution),
+            first="field",  # the correlative search needs it first
         )
         match = self._match(
             kf,
@@ -938,6 +1002,29 @@ def edge_dict(edge: Edge) -> dict[str, Any]:
         "information": np.asarray(edge.information, dtype=float).tolist(),
         "robust": edge.robust,
     }
+
+
+def _builder_pool() -> ThreadPoolExecutor:
+    """This process's local-map builders (the threads of a parent do not survive a fork)."""
+    pool = _builders.get(os.getpid())
+    if pool is None:
+        pool = _builders.setdefault(
+            os.getpid(),
+            ThreadPoolExecutor(LOCAL_MAP_WORKERS, thread_name_prefix="mapper-local-map"),
+        )
+    return pool
+
+
+def _done(value: Any) -> Future[Any]:
+    """A future that already holds ``value`` (a local-map part built on the calling thread)."""
+    done: Future[Any] = Future()
+    done.set_result(value)
+    return done
+
+
+def _reference(points: np.ndarray, voxel_m: float) -> ReferenceCloud:
+    """The ICP reference of a local map's points (thinned to half the scan voxel)."""
+    return build_reference(voxel_filter(points, voxel_m))
 
 
 def _response(fld: LikelihoodField, points: np.ndarray, pose: np.ndarray) -> float:

@@ -563,3 +563,35 @@ def test_the_time_gate_holds_back_only_dense_scans_and_never_past_twice_the_trav
     assert [kf.stamp_ns for kf in result.keyframes] == [
         s.stamp_ns for s in scans[::scans_per_keyframe]
     ]
+
+
+def test_local_maps_built_on_the_second_core_give_the_same_map(
+    corrupted_loop: LoopRun, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The next tracking map is built on a worker thread during the loop-closure search and
+    kept only if the search moved no pose (issue 27): the map must be the one a mapper that
+    always rebuilds it afterwards makes, bit for bit, and the prebuilt maps must get used."""
+    run = corrupted_loop
+    lazy_builds: list[str] = []
+    build = Mapper._build_tracking_map
+
+    def counted(self: Mapper, points: np.ndarray, first: str = "reference") -> object:
+        lazy_builds.append(first)
+        return build(self, points, first)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Mapper, "_build_tracking_map", counted)
+    again = run_mapper(run.scans, run.odom)
+    prebuilt = lazy_builds.count("worker")
+    used = prebuilt - lazy_builds.count("reference") + 1  # the first keyframe has no search
+
+    def never_prebuilt(self: Mapper, points: np.ndarray, first: str = "reference") -> object:
+        return None if first == "worker" else build(self, points, first)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Mapper, "_build_tracking_map", never_prebuilt)
+    reference = run_mapper(run.scans, run.odom)
+    for result in (again, reference):
+        assert np.array_equal(result.scan_poses, run.result.scan_poses)
+        assert np.array_equal(result.poses, run.result.poses)
+        assert result.counts == run.result.counts
+    assert run.result.counts["loop_closures"]["accepted"] > 0  # some searches moved the poses
+    assert 0 < used < prebuilt  # prebuilt maps were kept, and dropped after a closure
