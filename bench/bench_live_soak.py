@@ -138,6 +138,31 @@ def memory_growth(t: np.ndarray, mb: np.ndarray, warmup_s: float) -> dict[str, f
     }
 
 
+def frame_blocks(timeline: list[list[Any]], block_s: float) -> list[dict[str, Any]]:
+    """The run's ``frames_timeline`` ([t, processed so far, dropped so far, window p99]) in
+    blocks of ``block_s``: frames processed and dropped in each, and the median and worst of
+    its windows' latency p99 (None without windows that processed a frame)."""
+    blocks: list[dict[str, Any]] = []
+    prev = [0.0, 0, 0, None]
+    for k in range(int(np.ceil(max((p[0] for p in timeline), default=0.0) / block_s))):
+        pts = [p for p in timeline if k * block_s < p[0] <= (k + 1) * block_s]
+        if not pts:
+            continue
+        p99s = [p[3] for p in pts if p[3] is not None]
+        blocks.append(
+            {
+                "from_s": k * block_s,
+                "to_s": (k + 1) * block_s,
+                "processed": pts[-1][1] - prev[1],
+                "dropped": pts[-1][2] - prev[2],
+                "p99_median_ms": round(float(np.median(p99s)), 1) if p99s else None,
+                "p99_worst_ms": round(float(max(p99s)), 1) if p99s else None,
+            }
+        )
+        prev = pts[-1]
+    return blocks
+
+
 def role(pid: int, root: int, command: str) -> str:
     """A process's part in the run, for the report."""
     if pid == root:
@@ -283,11 +308,32 @@ def report(
         f"{(s.get('slam_vs_groundtruth') or {}).get('ate_rmse_aligned_m')} m |",
         f"| errors | {'; '.join(s['errors']) or 'none'} |",
         "",
+        *blocks_table(s.get("frames_timeline"), max(60.0, 60 * round(minutes / 6))),
         f"Targets: 0 frames dropped {'met' if dropped == 0 else '**not met**'}; latency p99 "
         f"{'met' if p99 is not None and p99 <= LATENCY_P99_TARGET_MS else '**not met**'}; memory "
         f"{'met' if growth_ok else '**not met**'} (drops and latency only count on idle cores).",
     ]
     return "\n".join(lines)
+
+
+def blocks_table(timeline: list[list[Any]] | None, block_s: float) -> list[str]:
+    """Markdown lines: frames, drops and window latency p99 per block of the run (none for a
+    summary without ``frames_timeline``)."""
+    if not timeline:
+        return []
+    rows = [
+        f"| {b['from_s'] / 60:g}-{b['to_s'] / 60:g} min | {b['processed']} | {b['dropped']} | "
+        f"{b['p99_median_ms']} / {b['p99_worst_ms']} ms |"
+        for b in frame_blocks(timeline, block_s)
+    ]
+    return [
+        "Frames over the run (the run's `frames_timeline`: latency p99 per 5-s window):",
+        "",
+        "| part of the run | frames processed | dropped | window p99: median / worst |",
+        "| --- | --- | --- | --- |",
+        *rows,
+        "",
+    ]
 
 
 def main() -> None:

@@ -940,7 +940,8 @@ class LiveRun:
                     c.get("frames_processed", 0),
                     c.get("frames_dropped_front_end", 0),
                 )
-                next_sample += MEMORY_SAMPLE_S
+                while next_sample <= now - t0:  # one sample, also after a late start
+                    next_sample += MEMORY_SAMPLE_S
             start = self._clock_start()
             elapsed = 0.0 if start is None else now - start
             while start is not None and drills and drills[0].at_s <= elapsed:

@@ -74,3 +74,18 @@ def test_series_sums_each_role_and_the_whole_run() -> None:
     assert s["all processes"][1].tolist() == [160.0, 120.0]
     assert s["host (rgbdnav live)"][0].tolist() == [0.0, 10.0]
     assert s["simulated robot"][1].tolist() == [50.0]
+
+
+def test_frame_blocks_count_each_parts_frames_and_drops_from_the_cumulative_timeline() -> None:
+    timeline = [
+        [5.0, 150, 0, 30.0],
+        [10.0, 300, 0, 40.0],
+        [65.0, 1800, 2, 90.0],  # halving left a gap: the counts still add up
+        [70.0, 1950, 2, None],
+    ]
+    b = soak.frame_blocks(timeline, 60.0)
+    assert [(x["processed"], x["dropped"]) for x in b] == [(300, 0), (1650, 2)]
+    assert b[0]["p99_median_ms"] == 35.0 and b[0]["p99_worst_ms"] == 40.0
+    assert b[1]["p99_median_ms"] == 90.0
+    assert soak.blocks_table(None, 60.0) == []
+    assert len(soak.blocks_table(timeline, 60.0)) == 2 + 2 + 2 + 1
