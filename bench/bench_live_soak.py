@@ -233,15 +233,18 @@ def soak(
 
 
 def series(rec: dict[str, Any]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per role and for the whole run: (t, MB) from the samples (a role's processes summed)."""
+    """Per role and for the whole run: (t, MB) from the samples (a role's processes summed; the
+    whole run only where all its processes were up)."""
     root, cmds = rec["pid"], rec.get("commands", {})
     out: dict[str, list[tuple[float, float]]] = {}
+    full = max((len(s["rss_mb"]) for s in rec["samples"]), default=0)
     for s in rec["samples"]:
         per: dict[str, float] = {}
         for pid, mb in s["rss_mb"].items():
             r = role(int(pid), root, cmds.get(pid, ""))
             per[r] = per.get(r, 0.0) + mb
-        per["all processes"] = sum(s["rss_mb"].values())
+        if len(s["rss_mb"]) == full:  # not while the run starts its children or ends
+            per["all processes"] = sum(s["rss_mb"].values())
         for r, mb in per.items():
             out.setdefault(r, []).append((s["t"], mb))
     return {r: tuple(np.array(v).T) for r, v in out.items()}  # type: ignore[misc]
