@@ -371,7 +371,10 @@ def main() -> None:
             sys.exit(f"error: no finished soak in {args.run_dir}: {err}")
     else:
         s, rec = soak(args.run_dir, args.minutes * 60, args.sample, extra)
-    cmdline = f"--minutes {args.minutes:g}" + "".join(f" --set {o}" for o in args.overrides)
+    cmdline = (
+        f"--minutes {args.minutes:g} --sample {args.sample:g} "
+        f"--warmup-minutes {args.warmup_minutes:g}" + "".join(f" --set {o}" for o in args.overrides)
+    )
     publish(report(s, rec, args.minutes, args.warmup_minutes, cmdline), args.out, args.section)
 
 
