@@ -56,7 +56,14 @@ from rgbdnav.config import (
 )
 from rgbdnav.live.nav import LiveNavigator, MapSnapshot
 from rgbdnav.live.record import LiveRecorder
-from rgbdnav.live.stats import Reservoir, Timeline, TrackWriter, load_track, tame_malloc
+from rgbdnav.live.stats import (
+    FrameWindows,
+    Reservoir,
+    Timeline,
+    TrackWriter,
+    load_track,
+    tame_malloc,
+)
 from rgbdnav.report import gps_chart, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE
@@ -264,6 +271,7 @@ class LiveRun:
         self.latency_ms = Reservoir(lc.stats_reservoir, 1)  # frame stamp -> pose out
         self.arrival_ms = Reservoir(lc.stats_reservoir, 2)  # frame stamp -> frame in this process
         self.rss_timeline = Timeline()  # (seconds into the run, MB)
+        self.frame_windows = FrameWindows()  # processed / dropped so far, window latency p99
         self.stage_ms = {
             k: Reservoir(lc.stats_reservoir, 3 + i)
             for i, k in enumerate(("wheels_ekf", "vo", "depth_to_scan", "mapper"))
@@ -676,7 +684,9 @@ class LiveRun:
                 self.shared.odom = odom
                 self.shared.obstacles.add(frame.stamp_ns, odom, scan_points(scan))
                 m2o = self.shared.map_to_odom
-            self.latency_ms.add((time.monotonic_ns() - frame.stamp_ns) / 1e6)
+            latency = (time.monotonic_ns() - frame.stamp_ns) / 1e6
+            self.latency_ms.add(latency)
+            self.frame_windows.add(latency)
             self.counts.inc("frames_processed")
             self.odom_track.add(frame.stamp_ns, float(odom[0]), float(odom[1]), float(odom[2]))
             if self.navigator is not None:  # the scan is in base_link: laser = base pose
@@ -1094,7 +1104,14 @@ class LiveRun:
             now = time.monotonic()
             if now - t0 >= next_sample:
                 self.rss_timeline.add(round(now - t0, 1), round(rss_mb(), 1))
-                next_sample += MEMORY_SAMPLE_S
+                c = self.counts.as_dict()
+                self.frame_windows.sample(
+                    round(now - t0, 1),
+                    c.get("frames_processed", 0),
+                    c.get("frames_dropped_front_end", 0),
+                )
+                while next_sample <= now - t0:  # one sample, also after a late start
+                    next_sample += MEMORY_SAMPLE_S
             start = self._clock_start()
             elapsed = 0.0 if start is None else now - start
             if start is not None and elapsed >= next_progress:
@@ -1257,6 +1274,8 @@ class LiveRun:
                 "sim_robot": round(kids.ru_maxrss / 1024, 1),
             },
             "rss_mb_timeline": self.rss_timeline.points,
+            # [t, frames processed so far, dropped so far, latency p99 of the window ending at t]
+            "frames_timeline": [[t, *v] for t, v in self.frame_windows.points],
             "mapper": mapper_counts,  # what the mapper holds: it grows with scans and keyframes
             "board_polls_per_s": round(self.poller.stats().polls / max(wall, 1e-9), 1)
             if self.poller is not None

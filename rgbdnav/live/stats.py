@@ -6,6 +6,8 @@
   in memory (a point per ``spacing`` metres of travel, halved whenever it reaches ``capacity``)
   for drawing.
 - :class:`Timeline`: (t, value) samples, halved whenever they reach ``capacity``.
+- :class:`FrameWindows`: frames processed and dropped so far and the latency p99 of each
+  sampling window, on a :class:`Timeline`: whether a long run falls behind as it goes on.
 - :func:`tame_malloc`: glibc's allocator, told not to keep what a long run frees.
 """
 
@@ -18,7 +20,7 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import numpy as np
 
@@ -131,12 +133,40 @@ class Timeline:
 
     def __init__(self, capacity: int = DEFAULT_TIMELINE_POINTS) -> None:
         self.capacity = capacity
-        self.points: list[tuple[float, float]] = []
+        self.points: list[tuple[float, Any]] = []
 
-    def add(self, t: float, value: float) -> None:
+    def add(self, t: float, value: Any) -> None:
         self.points.append((t, value))
         if len(self.points) >= self.capacity:
             self.points = self.points[::2]
+
+
+class FrameWindows:
+    """Per sampling window: [frames processed so far, frames dropped so far, frame-to-pose
+    latency p99 of the window (ms; None when none was processed)], on a :class:`Timeline`.
+    The counts are cumulative, so the windows dropped by the timeline's halving lose nothing:
+    the drops between any two kept points are their difference."""
+
+    def __init__(self, capacity: int = DEFAULT_TIMELINE_POINTS) -> None:
+        self.timeline = Timeline(capacity)
+        self._lock = threading.Lock()
+        self._window: list[float] = []
+
+    def add(self, latency_ms: float) -> None:
+        """One processed frame's latency (the front end's thread)."""
+        with self._lock:
+            self._window.append(latency_ms)
+
+    def sample(self, t: float, processed: int, dropped: int) -> None:
+        """Close the window at ``t`` [s into the run] with the run's counts so far."""
+        with self._lock:
+            window, self._window = self._window, []
+        p99 = round(float(np.percentile(window, 99)), 2) if window else None
+        self.timeline.add(t, [int(processed), int(dropped), p99])
+
+    @property
+    def points(self) -> list[tuple[float, list[int | float | None]]]:
+        return self.timeline.points
 
 
 def tame_malloc(arena_max: int, mmap_threshold: int) -> bool:
@@ -165,4 +195,4 @@ def tame_malloc(arena_max: int, mmap_threshold: int) -> bool:
     return ok
 
 
-__all__ = ["Reservoir", "Timeline", "TrackWriter", "load_track", "tame_malloc"]
+__all__ = ["FrameWindows", "Reservoir", "Timeline", "TrackWriter", "load_track", "tame_malloc"]

@@ -17,7 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.live.run import Drill, LiveOptions, LiveRun, route_command
+from rgbdnav.live.run import MEMORY_SAMPLE_S, Drill, LiveOptions, LiveRun, route_command
 from sensors.types import ConfigError, MapError
 from slam.map_bundle import load_bundle
 
@@ -63,6 +63,14 @@ def test_live_sim_maps_while_driving_the_route_and_checkpoints_the_bundle(tmp_pa
     # A short run stays close to the simulator's truth (a loose bound: CI machines are busy).
     assert s["slam_vs_groundtruth"]["ate_rmse_m"] < 0.3
     assert s["latency_ms"]["p50"] > 0
+    # Per sampling period: frames processed and dropped so far, the window's latency p99.
+    ft = s["frames_timeline"]
+    assert ft and ft[-1][1] <= c["frames_processed"]
+    assert ft[-1][2] <= c.get("frames_dropped_front_end", 0)
+    assert len({t // MEMORY_SAMPLE_S for t, *_ in ft}) == len(
+        ft
+    )  # one sample per period, no bursts
+    assert any(p99 is not None and p99 > 0 for *_, p99 in ft)
     ekf = s["ekf"]["sensors"]  # what the filter did with each input, as `odometry` reports it
     assert ekf["odom0"]["fused"] > 100 and ekf["vo0"]["received"] > 10
     bundle = load_bundle(out / "map")

@@ -13,7 +13,7 @@ import pytest
 
 from rgbdnav.config import Config
 from rgbdnav.live.nav import LiveNavigator, MapSnapshot, near_edge
-from rgbdnav.live.stats import Reservoir, Timeline, TrackWriter, tame_malloc
+from rgbdnav.live.stats import FrameWindows, Reservoir, Timeline, TrackWriter, tame_malloc
 from sensors.types import LaserScan
 from slam.occupancy_grid import GridGeometry, OccupancyGrid
 
@@ -194,6 +194,22 @@ def test_a_timeline_halves_instead_of_growing() -> None:
     for k in range(10_000):
         tl.add(float(k), 1.0)
     assert len(tl.points) < 64 and tl.points[0][0] == 0.0
+
+
+def test_frame_windows_keep_cumulative_counts_and_each_windows_p99() -> None:
+    fw = FrameWindows(capacity=8)
+    for ms in range(1, 101):  # 1..100 ms in the first window
+        fw.add(float(ms))
+    fw.sample(5.0, processed=100, dropped=0)
+    fw.sample(10.0, processed=100, dropped=3)  # nothing processed, 3 dropped meanwhile
+    fw.add(400.0)
+    fw.sample(15.0, processed=101, dropped=3)
+    assert fw.points[0] == (5.0, [100, 0, 99.01])
+    assert fw.points[1] == (10.0, [100, 3, None])
+    assert fw.points[2] == (15.0, [101, 3, 400.0])
+    for k in range(4, 100):  # halved, never longer than capacity; the counts stay cumulative
+        fw.sample(5.0 * k, processed=101 + k, dropped=3 + k)
+    assert len(fw.points) < 8 and fw.points[-1] == (495.0, [200, 102, None])  # the run's totals
 
 
 def test_with_the_planner_on_its_own_thread_the_tick_never_waits_for_a_plan() -> None:
