@@ -534,15 +534,22 @@ def map_(
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.map import run_map
-    from rgbdnav.config import load_config
 
-    cfg = load_config(config or [], set_ or [])
-    recording = _recording_for(source, cfg, seed, quiet)
+    # A world is rendered straight into the front end (no recording on disk).
     with _Progress("mapping", quiet) as progress:
         outputs = run_map(
-            recording, out, config or [], set_ or [], progress, continue_, rrd, viewer, force_3dof
+            source,
+            out,
+            config or [],
+            set_ or [],
+            progress,
+            continue_,
+            rrd,
+            viewer,
+            force_3dof,
+            seed,
         )
-    _echo_source(source, recording)
+    _echo_source(source, source)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
 
