@@ -313,9 +313,8 @@ def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
     return recording_for(source, cfg, seed, lambda what: _Progress(what, quiet))
 
 
-def _echo_source(source: Path, recording: Path) -> None:
-    rendered = f" (recording: {recording})" if recording != source else ""
-    typer.echo(f"source      {source}{rendered}")
+def _echo_source(source: Path) -> None:
+    typer.echo(f"source      {source}")
 
 
 def _echo_outputs(outputs: dict[str, Path]) -> None:
@@ -488,13 +487,12 @@ def odometry(
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.odometry import run_odometry
-    from rgbdnav.config import load_config
 
-    cfg = load_config(config or [], set_ or [])
-    recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("visual odometry", quiet or not vo) as progress:
-        outputs = run_odometry(recording, out, config or [], set_ or [], vo, progress, force_3dof)
-    _echo_source(source, recording)
+        outputs = run_odometry(
+            source, out, config or [], set_ or [], vo, progress, force_3dof, seed
+        )
+    _echo_source(source)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
 
@@ -549,7 +547,7 @@ def map_(
             force_3dof,
             seed,
         )
-    _echo_source(source, source)
+    _echo_source(source)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
 
@@ -601,16 +599,13 @@ def localize(
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.localize import describe, run_localize
-    from rgbdnav.config import load_config
     from slam.map_bundle import load_map
 
     if _is_world(source):
         load_map(map_)  # refuse a bad map before spending minutes rendering the world
-    cfg = load_config(config or [], set_ or [])
-    recording = _recording_for(source, cfg, seed, quiet)
     with _Progress("localising", quiet) as progress:
         outputs, summary = run_localize(
-            recording,
+            source,
             map_,
             out,
             config or [],
@@ -621,8 +616,9 @@ def localize(
             viewer,
             force_3dof,
             gps,
+            seed,
         )
-    _echo_source(source, recording)
+    _echo_source(source)
     typer.echo(f"result      {describe(summary)}")
     _echo_outputs(outputs)
     _write_formats(out, fmt)

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig
+from sensors.gps import GpsStream
 from sensors.recording import Recording, RecordingWriter, counts_to_depth, depth_to_counts
 from sensors.recording_source import RecordingSource
 from sensors.sim.render import KinectRenderer
@@ -43,23 +44,58 @@ POLL_S = 1.0  # [s] how often a waiting consumer checks that the renderer is sti
 
 def _render_worker(plan: SimulationPlan, out: Any) -> None:
     """Child process: every frame of ``plan`` as (rgb uint8, depth uint16 counts), then None;
-    an exception is sent as its text (the parent raises it)."""
+    an exception is sent as its text (the parent raises it). Ends when the parent is gone."""
+    parent = mp.parent_process()
+
+    def put(item: object) -> bool:
+        while True:
+            try:
+                out.put(item, timeout=POLL_S)
+                return True
+            except queue.Full:
+                if parent is not None and not parent.is_alive():
+                    out.cancel_join_thread()  # exit without flushing to a dead reader
+                    return False
+
     try:
         scale = plan.intrinsics.depth_scale
         for frame in render_frames(plan):
-            out.put((frame.rgb, depth_to_counts(frame.depth_m, scale)))
-        out.put(None)
+            if not put((frame.rgb, depth_to_counts(frame.depth_m, scale))):
+                return
+        put(None)
     except BaseException as err:  # the parent turns it into a one-line error
-        out.put(f"{type(err).__name__}: {err}")
+        put(f"{type(err).__name__}: {err}")
 
 
 class RenderedRecording(Recording):
     """A world's recording whose images are rendered when read: :meth:`frames` streams them
-    from a renderer process, :meth:`frame` renders one here. Everything else is read from the
-    small folder of index and stream files :func:`open_world` writes."""
+    from a renderer process, :meth:`frame` renders one here. Everything else was read from the
+    small folder of index and stream files :func:`open_world` wrote (and removed)."""
 
     plan: SimulationPlan
+    _streams: dict[str, Any]
     _renderer: KinectRenderer | None = None
+
+    def keep_streams(self) -> None:
+        """Read the stream files once, so the folder may go."""
+        self._streams = {
+            "wheels": super().wheels(),
+            "imu": super().imu(),
+            "gps": super().gps(),
+            "groundtruth": super().groundtruth(),
+        }
+
+    def wheels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._streams["wheels"]  # type: ignore[no-any-return]
+
+    def imu(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return self._streams["imu"]  # type: ignore[no-any-return]
+
+    def gps(self) -> GpsStream | None:
+        return self._streams["gps"]  # type: ignore[no-any-return]
+
+    def groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        return self._streams["groundtruth"]  # type: ignore[no-any-return]
 
     def frames(self, skip_bad: bool = False) -> Iterator[RgbdFrame]:
         """The frames in order, rendered in a child process up to QUEUE_FRAMES ahead."""
@@ -123,15 +159,12 @@ class RenderedRecording(Recording):
 
 
 class WorldSource(RecordingSource):
-    """:class:`RecordingSource` over a :class:`RenderedRecording`; closing removes its folder."""
+    """:class:`RecordingSource` over a :class:`RenderedRecording`."""
 
     recording: RenderedRecording
 
     def describe(self) -> str:
         return f"world rendered on demand (no images on disk): {super().describe()}"
-
-    def close(self) -> None:
-        shutil.rmtree(self.recording.path.parent, ignore_errors=True)
 
 
 def open_world(
@@ -144,18 +177,19 @@ def open_world(
     skip_bad: bool = True,
 ) -> WorldSource:
     """A world rendered on demand, as :func:`sensors.sim.simulator.simulate` would record it
-    with the same arguments (close the source to remove its temporary folder)."""
+    with the same arguments. Nothing stays on disk."""
     plan = plan_simulation(world_path, robot, camera, sim, seed, frames=frames)
-    folder = Path(tempfile.mkdtemp(prefix="rgbdnav-world-")) / "streams"
+    tmp = Path(tempfile.mkdtemp(prefix="rgbdnav-world-"))
     try:
-        with RecordingWriter(folder, plan.intrinsics, plan.scene, images=False) as writer:
+        with RecordingWriter(tmp / "streams", plan.intrinsics, plan.scene, images=False) as w:
             for stamp in plan.stamps_ns:
-                writer.add_frame_stamp(int(stamp))
-            plan.write_streams(writer)
-        rec = RenderedRecording.open(folder)
-    except BaseException:
-        shutil.rmtree(folder.parent, ignore_errors=True)
-        raise
+                w.add_frame_stamp(int(stamp))
+            plan.write_streams(w)
+        rec = RenderedRecording.open(tmp / "streams")
+        rec.keep_streams()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    rec.path = Path(world_path)  # what error messages and the summary name
     rec.plan = plan
     return WorldSource(rec, skip_bad=skip_bad)
 
