@@ -98,11 +98,19 @@ class RenderedRecording(Recording):
         return self._streams["groundtruth"]  # type: ignore[no-any-return]
 
     def frames(self, skip_bad: bool = False) -> Iterator[RgbdFrame]:
-        """The frames in order, rendered in a child process up to QUEUE_FRAMES ahead."""
+        """The frames in order, rendered in a child process up to QUEUE_FRAMES ahead (here, in
+        a daemonic process, which may not have children)."""
         self.skipped = {}
         n = len(self.plan.stamps_ns)
         if not np.array_equal(self.rgb_index, np.arange(n)):  # one stamp list: cannot happen
             raise SensorError(f"{self.path}: rgb/depth index does not match the rendered frames")
+        if mp.current_process().daemon:  # e.g. a Dask worker: no child processes allowed
+            plan = copy.copy(self.plan)
+            plan.render_rng = copy.deepcopy(self.plan.render_rng)
+            scale = plan.intrinsics.depth_scale
+            for k, f in enumerate(render_frames(plan)):
+                yield self._frame(k, f.rgb, depth_to_counts(f.depth_m, scale))
+            return
         ctx = mp.get_context("spawn")  # no fork of a process that runs threads
         frames_q = ctx.Queue(maxsize=QUEUE_FRAMES)
         proc = ctx.Process(

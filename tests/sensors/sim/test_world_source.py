@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing as mp
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +58,16 @@ def test_streamed_world_equals_its_recording_on_disk(tmp_path: Path, world: Path
         assert live.recording.scene == disk.recording.scene
     finally:
         live.close()
+
+
+def test_a_daemonic_process_renders_in_itself(world: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    src = open_world(world, *_args(), seed=3, frames=2)
+    first = list(src.frames())
+    monkeypatch.setattr(mp.current_process(), "daemon", True)  # as in a Dask worker
+    again = list(src.frames())
+    pairs = list(zip(first, again, strict=True))
+    assert all(np.array_equal(a.depth_m, b.depth_m) for a, b in pairs)
+    assert all(np.array_equal(a.rgb, b.rgb) for a, b in pairs)
 
 
 def test_a_renderer_that_fails_is_a_one_line_error(world: Path) -> None:
