@@ -348,7 +348,12 @@ class RecordingWriter:
             self.abort()
             raise
         self._closed = True
-        log.info("wrote recording %s (%d frames)", self.path, len(self._frame_stamps))
+        log.log(
+            logging.INFO if self._images else logging.DEBUG,  # no images: an internal step
+            "wrote recording %s (%d frames)",
+            self.path,
+            len(self._frame_stamps),
+        )
 
     def abort(self) -> None:
         """Drop everything written so far; an existing recording at ``path`` stays as it was."""
