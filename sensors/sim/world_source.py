@@ -194,6 +194,7 @@ def open_world(
                 w.add_frame_stamp(int(stamp))
             plan.write_streams(w)
         rec = RenderedRecording.open(tmp / "streams")
+        assert isinstance(rec, RenderedRecording)  # Recording.open builds cls
         rec.keep_streams()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
