@@ -12,6 +12,7 @@ from pathlib import Path
 import yaml
 
 from rgbdnav.config import Config, config_to_dict
+from sensors.source import Source
 from sensors.types import RgbdNavError
 
 log = logging.getLogger(__name__)
@@ -74,3 +75,16 @@ def recording_for(
     with bar(f"rendering {source.stem}") as progress:
         simulate(source, cached, cfg.robot, cfg.camera, cfg.sim, seed=seed, progress=progress)
     return cached
+
+
+def open_world_or_source(source: Path, cfg: Config, seed: int) -> Source:
+    """A world file as a source rendered on demand (no cache; see
+    :mod:`sensors.sim.world_source`), any other path as :func:`sensors.source.open_source`
+    opens it with ``cfg``'s options."""
+    from rgbdnav.config import source_options
+    from sensors.sim.world_source import open_world
+    from sensors.source import open_source
+
+    if is_world(source):
+        return open_world(source, cfg.robot, cfg.camera, cfg.sim, seed)
+    return open_source(source, source_options(cfg))

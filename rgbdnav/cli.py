@@ -362,16 +362,8 @@ def _is_world(path: Path) -> bool:
     return is_world(path)
 
 
-def _recording_for(source: Path, cfg: Any, seed: int, quiet: bool) -> Path:
-    """A recording folder as given, or the cached rendering of a world file (made if missing)."""
-    from rgbdnav.cache import recording_for
-
-    return recording_for(source, cfg, seed, lambda what: _Progress(what, quiet))
-
-
-def _echo_source(source: Path, recording: Path) -> None:
-    rendered = f" (recording: {recording})" if recording != source else ""
-    typer.echo(f"source      {source}{rendered}")
+def _echo_source(source: Path) -> None:
+    typer.echo(f"source      {source}")
 
 
 def _echo_outputs(outputs: dict[str, Path]) -> None:
@@ -519,15 +511,12 @@ def odometry(
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.odometry import run_odometry
-    from rgbdnav.config import load_config
 
-    cfg = load_config(shared.config, shared.overrides)
-    recording = _recording_for(source, cfg, seed, shared.quiet)
     with _Progress("visual odometry", shared.quiet or not vo) as progress:
         outputs = run_odometry(
-            recording, out, shared.config, shared.overrides, vo, progress, force_3dof
+            source, out, shared.config, shared.overrides, vo, progress, force_3dof, seed
         )
-    _echo_source(source, recording)
+    _echo_source(source)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
 
@@ -555,14 +544,12 @@ def map_(
     _check_format(fmt)
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
-    from rgbdnav.config import load_config
     from rgbdnav.runners.map import run_map
 
-    cfg = load_config(shared.config, shared.overrides)
-    recording = _recording_for(source, cfg, seed, shared.quiet)
+    # A world is rendered straight into the front end (no recording on disk).
     with _Progress("mapping", shared.quiet) as progress:
         outputs = run_map(
-            recording,
+            source,
             out,
             shared.config,
             shared.overrides,
@@ -571,8 +558,9 @@ def map_(
             rrd,
             viewer,
             force_3dof,
+            seed,
         )
-    _echo_source(source, recording)
+    _echo_source(source)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
 
@@ -612,17 +600,14 @@ def localize(
     _check_format(fmt)
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
-    from rgbdnav.config import load_config
     from rgbdnav.runners.localize import describe, run_localize
     from slam.map_bundle import load_map
 
     if _is_world(source):
         load_map(map_)  # refuse a bad map before spending minutes rendering the world
-    cfg = load_config(shared.config, shared.overrides)
-    recording = _recording_for(source, cfg, seed, shared.quiet)
     with _Progress("localising", shared.quiet) as progress:
         outputs, summary = run_localize(
-            recording,
+            source,
             map_,
             out,
             shared.config,
@@ -633,8 +618,9 @@ def localize(
             viewer,
             force_3dof,
             gps,
+            seed,
         )
-    _echo_source(source, recording)
+    _echo_source(source)
     typer.echo(f"result      {describe(summary)}")
     _echo_outputs(outputs)
     _write_formats(out, fmt)

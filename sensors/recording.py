@@ -189,10 +189,13 @@ class RecordingWriter:
         scene: Mapping[str, Any],
         workers: int = 2,
         rgb_compression: int = PNG_COMPRESSION,
+        images: bool = True,
     ) -> None:
         """``rgb_compression``: zlib level of the colour PNGs; 0 stores them (4 ms instead of
         20-30 ms a frame, 0.9 MB instead of 0.55 MB: noisy colour compresses little), for a
-        live run that must not fall behind. Depth is always compressed (7 ms, 70 kB)."""
+        live run that must not fall behind. Depth is always compressed (7 ms, 70 kB).
+        ``images=False`` writes everything but the PNGs (index files name them all): the
+        streams of a world rendered on demand (:mod:`sensors.sim.world_source`)."""
         if workers < 1:
             raise ValueError("workers must be >= 1")
         self.path = Path(path)
@@ -201,6 +204,7 @@ class RecordingWriter:
         self._scene = _plain({**scene, "camera": camera})
         self._max_pending = 2 * workers
         self._rgb_compression = rgb_compression
+        self._images = images
         try:
             self._staging = make_staging_dir(self.path)
             (self._staging / "rgb").mkdir()
@@ -246,18 +250,31 @@ class RecordingWriter:
             raise SensorError(
                 f"frame {frame.stamp_ns}: depth must be {h}x{w}, got {frame.depth_m.shape}"
             )
-        stamp = int(frame.stamp_ns)
+        stamp = self._add_stamp(frame.stamp_ns)
+        if not self._images:
+            return
+        name = f"{format_stamp(stamp)}.png"
+        bgr = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)
+        counts = depth_to_counts(frame.depth_m, self.intrinsics.depth_scale)
+        self._submit(self._staging / "rgb" / name, bgr, self._rgb_compression)
+        self._submit(self._staging / "depth" / name, counts)
+
+    def add_frame_stamp(self, stamp_ns: int) -> None:
+        """A frame's stamp alone (its index lines), for a writer made with ``images=False``."""
+        self._check_open()
+        if self._images:
+            raise SensorError("add_frame_stamp needs a writer made with images=False")
+        self._add_stamp(stamp_ns)
+
+    def _add_stamp(self, stamp_ns: int) -> int:
+        stamp = int(stamp_ns)
         if self._frame_stamps and stamp <= self._frame_stamps[-1]:
             raise SensorError(
                 f"frame stamps must strictly increase: {format_stamp(stamp)} after "
                 f"{format_stamp(self._frame_stamps[-1])}"
             )
-        name = f"{format_stamp(stamp)}.png"
-        bgr = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)
-        counts = depth_to_counts(frame.depth_m, self.intrinsics.depth_scale)
         self._frame_stamps.append(stamp)
-        self._submit(self._staging / "rgb" / name, bgr, self._rgb_compression)
-        self._submit(self._staging / "depth" / name, counts)
+        return stamp
 
     def _submit(self, path: Path, image: np.ndarray, level: int = PNG_COMPRESSION) -> None:
         self._pending.append(self._pool.submit(_write_png, path, image, level))
@@ -331,7 +348,12 @@ class RecordingWriter:
             self.abort()
             raise
         self._closed = True
-        log.info("wrote recording %s (%d frames)", self.path, len(self._frame_stamps))
+        log.log(
+            logging.INFO if self._images else logging.DEBUG,  # no images: an internal step
+            "wrote recording %s (%d frames)",
+            self.path,
+            len(self._frame_stamps),
+        )
 
     def abort(self) -> None:
         """Drop everything written so far; an existing recording at ``path`` stays as it was."""

@@ -14,12 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdnav.config import Config, camera_mount, load_config, source_options
+from rgbdnav.cache import open_world_or_source
+from rgbdnav.config import Config, camera_mount, load_config
 from rgbdnav.report import contact_sheet, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from sensors.recording_source import RecordingSource
 from sensors.sim.world import floor_plan, world_from_dict
-from sensors.source import Source, open_source
+from sensors.source import Source
 from sensors.sync import interpolate_wheels, synchronise
 from sensors.tum import write_tum_poses, write_tum_trajectory
 from sensors.types import Pose2, SensorError
@@ -49,11 +50,13 @@ def run_odometry(
     use_vo: bool = True,
     progress: Callable[[int, int], None] | None = None,
     force_3dof: bool = False,
+    seed: int = 0,
 ) -> dict[str, Path]:
-    """Odometry of any source with wheels, ``/odom`` or RGB-D frames (recording, folder, bag)."""
+    """Odometry of any source with wheels, ``/odom`` or RGB-D frames (recording, folder, bag),
+    or of a world file rendered on demand with ``seed``."""
     t0 = time.perf_counter()
     cfg = load_config(config_files, overrides)
-    src = open_source(source_path, source_options(cfg))
+    src = open_world_or_source(source_path, cfg, seed)
     try:
         scene = src.recording.scene if isinstance(src, RecordingSource) else {}
         # A recording's own robot description sits under the user's files and --set.

@@ -35,7 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from rgbdnav.config import initial_pose_array, load_config, source_options
+from rgbdnav.cache import open_world_or_source
+from rgbdnav.config import initial_pose_array, load_config
 from rgbdnav.report import gps_chart, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import scan_stream, source_config
@@ -49,7 +50,7 @@ from rgbdnav.visualize import (
 from sensors.atomic import atomic_write_text
 from sensors.geo import geo_anchor_of, read_geo_anchor
 from sensors.gps import read_gps_txt
-from sensors.source import PoseStream, open_source
+from sensors.source import PoseStream
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
 from slam.geometry import oplus, wrap_angle
@@ -188,11 +189,12 @@ def run_localize(
     viewer: bool = False,
     force_3dof: bool = False,
     gps_path: Path | None = None,
+    seed: int = 0,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
     """Localise every scan of ``source_path`` in the map; (files written, summary). ``rrd`` /
     ``viewer`` log the run to rerun (:mod:`rgbdnav.visualize`). GPS fixes (``gps_path``, else the
     source's own NavSatFix / gps.txt) through the map's geo anchor are the global search's
-    prior."""
+    prior. A world file is rendered on demand with ``seed``."""
     t0 = time.perf_counter()
     # 1. The map first: a bad map fails before the source is read or anything is written.
     loaded = load_map(map_path)
@@ -200,7 +202,7 @@ def run_localize(
     cfg = load_config(config_files, overrides)
     vis = make_visualizer("localize", rrd, viewer)  # fails before the run, not after it
     try:
-        src = open_source(source_path, source_options(cfg))
+        src = open_world_or_source(source_path, cfg, seed)
     except BaseException:
         vis.close()
         raise

@@ -17,7 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdnav.config import Config, load_config, source_options
+from rgbdnav.cache import open_world_or_source
+from rgbdnav.config import Config, load_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import scan_stream, source_config
@@ -29,7 +30,7 @@ from rgbdnav.visualize import (
     occupied_cells_xy,
 )
 from sensors.sim.world import FloorPlan, floor_plan, world_from_dict
-from sensors.source import PoseStream, open_source
+from sensors.source import PoseStream
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
 from slam.map_bundle import load_bundle, save_bundle
@@ -53,11 +54,13 @@ def run_map(
     rrd: Path | None = None,
     viewer: bool = False,
     force_3dof: bool = False,
+    seed: int = 0,
 ) -> dict[str, Path]:
+    """Map ``source_path``: any source, or a world file rendered on demand with ``seed``."""
     t0 = time.perf_counter()
     vis = make_visualizer("map", rrd, viewer)  # fails before minutes of mapping, not after
     cfg = load_config(config_files, overrides)
-    src = open_source(source_path, source_options(cfg))
+    src = open_world_or_source(source_path, cfg, seed)
     try:
         scene, config_files, cfg, extrinsics = source_config(src, config_files, overrides)
         run = RunDir(out)

@@ -282,6 +282,12 @@ def world_textures(world: World) -> tuple[str, ...]:
     return tuple(sorted(names))
 
 
+def camera_intrinsics(camera: CameraConfig) -> CameraIntrinsics:
+    return CameraIntrinsics(
+        camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, camera.depth_scale
+    )
+
+
 class KinectRenderer:
     """Renders ``(rgb uint8 HxWx3, depth_m float32 HxW)`` for a base_link pose.
 
@@ -302,15 +308,7 @@ class KinectRenderer:
     ) -> None:
         self.camera, self.robot, self.sim = camera, robot, sim
         self.backend = backend or sim.renderer
-        self.intrinsics = CameraIntrinsics(
-            camera.width,
-            camera.height,
-            camera.fx,
-            camera.fy,
-            camera.cx,
-            camera.cy,
-            camera.depth_scale,
-        )
+        self.intrinsics = camera_intrinsics(camera)
         self.atlas: TextureAtlas = build_atlas(world_textures(world))
         self.faces = build_scene_faces(world, self.atlas.names)
         self._scene = None
@@ -369,9 +367,15 @@ class KinectRenderer:
         self._block_lut = block.reshape(1, -1)
         self._row_mask_lut = row_mask.view(np.int32).reshape(1, -1)
 
-    def _window(self, bank: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-        start = int(rng.integers(0, len(bank) - n))
-        return bank[start : start + n]
+    def noise_offsets(self, rng: np.random.Generator) -> tuple[int, int, int]:
+        """Where one frame's colour, disparity and dropout noise start in their banks: the
+        draws :meth:`render` makes, in its order (a caller may draw them to skip a frame)."""
+        n = self.camera.height * self.camera.width
+        return (
+            int(rng.integers(0, len(self._rgb_plus) - 4 * n)),
+            int(rng.integers(0, len(self._disparity_noise) - n)),
+            int(rng.integers(0, len(self._kept) - n)),
+        )
 
     def geometry(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Noise-free (inverse depth (H, W), face index (H, W) int32, face table) for a base
@@ -419,9 +423,9 @@ class KinectRenderer:
         h, w = self.camera.height, self.camera.width
         invz, face, table = self._geometry(x, y, yaw)
         # Draw the noise windows here, in a fixed order, so threading cannot change the output.
-        rgb_noise = int(rng.integers(0, len(self._rgb_plus) - 4 * h * w))
-        depth_noise = self._window(self._disparity_noise, h * w, rng)
-        kept = self._window(self._kept, h * w, rng)
+        rgb_noise, d0, k0 = self.noise_offsets(rng)
+        depth_noise = self._disparity_noise[d0 : d0 + h * w]
+        kept = self._kept[k0 : k0 + h * w]
         # numpy releases the GIL on whole-image work: colour and depth run on both cores.
         pending = self._pool.submit(self._kinect_depth, invz, depth_noise, kept)
         if self._fast_shading:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig, section_to_dict
-from sensors.gps import SimGpsConfig, simulate_gps
+from sensors.gps import GpsStream, SimGpsConfig, simulate_gps
 from sensors.recording import RecordingWriter
 from sensors.sim.motion import (
     Trajectory,
@@ -33,9 +33,9 @@ from sensors.sim.motion import (
     replay_tum,
     sample_times,
 )
-from sensors.sim.render import KinectRenderer
+from sensors.sim.render import KinectRenderer, camera_intrinsics
 from sensors.sim.world import World, load_world
-from sensors.types import NS_PER_S, RgbdFrame, WorldError
+from sensors.types import NS_PER_S, CameraIntrinsics, RgbdFrame, WorldError
 
 log = logging.getLogger(__name__)
 
@@ -114,9 +114,55 @@ def camera_stamps(
     return capture, stamps, int((~keep).sum())
 
 
-def simulate(
+@dataclass
+class SimulationPlan:
+    """Everything a world's recording holds except the images: the frames' stamps and camera
+    poses, the low-rate streams, and the seeds the renderer draws its noise from. Rendering the
+    frames in order (:meth:`renderer`, :func:`render_frames`) gives the recording's images."""
+
+    world: World
+    robot: RobotConfig
+    camera: CameraConfig
+    sim: SimConfig
+    scene: dict[str, Any]
+    intrinsics: CameraIntrinsics
+    stamps_ns: np.ndarray  # reported frame stamps
+    poses: np.ndarray  # (N, 3) base_link x, y, yaw at each frame's true capture time
+    noise_seed: int  # the renderer's noise banks
+    render_rng: np.random.Generator  # per-frame noise windows, drawn in frame order
+    wheels: tuple[np.ndarray, np.ndarray, np.ndarray]
+    imu: tuple[np.ndarray, np.ndarray] | None
+    groundtruth: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    gps: GpsStream | None
+    summary: SimulationSummary
+
+    def renderer(self) -> KinectRenderer:
+        return KinectRenderer(self.world, self.camera, self.robot, self.sim, self.noise_seed)
+
+    def write_streams(self, writer: RecordingWriter) -> None:
+        """The low-rate streams (wheels, gyro, ground truth, GPS) into ``writer``."""
+        writer.add_wheels(*self.wheels)
+        if self.imu is not None:
+            writer.add_imu(*self.imu)
+        writer.set_groundtruth(*self.groundtruth)
+        if self.gps is not None:
+            writer.set_gps(self.gps)
+
+
+def render_frames(
+    plan: SimulationPlan, rng: np.random.Generator | None = None
+) -> Iterator[RgbdFrame]:
+    """The plan's frames in order, rendered here; ``rng`` (default: the plan's own generator,
+    which this advances) must be in the state the plan's generator had before frame 0."""
+    renderer = plan.renderer()
+    rng = plan.render_rng if rng is None else rng
+    for stamp, (x, y, yaw) in zip(plan.stamps_ns, plan.poses, strict=True):
+        rgb, depth = renderer.render(float(x), float(y), float(yaw), rng)
+        yield RgbdFrame(int(stamp), rgb, depth, renderer.intrinsics)
+
+
+def plan_simulation(
     world_path: str | Path,
-    out: str | Path,
     robot: RobotConfig,
     camera: CameraConfig,
     sim: SimConfig,
@@ -124,8 +170,9 @@ def simulate(
     duration_s: float | None = None,
     frames: int | None = None,
     trajectory: str | Path | None = None,
-    progress: Progress | None = None,
-) -> SimulationSummary:
+) -> SimulationPlan:
+    """Steps 1-2 and the frame schedule of step 3 (module docstring): the recording but its
+    images."""
     world = load_world(world_path)
     rngs = _streams(seed)
     traj = plan_trajectory(world, robot, sim, trajectory, duration_s, frames)
@@ -145,11 +192,13 @@ def simulate(
     gyro = w_true + sim.gyro_bias + sim.gyro_noise * rngs["imu"].standard_normal(len(imu_t))
     gt_t = sample_times(duration_ns, sim.groundtruth_rate)
     gt_x, gt_y, gt_yaw = traj.interpolate(gt_t)
+    gps = None
+    if world.geo is not None:  # a receiver riding base_link (sensors/gps.py defaults)
+        gps_xy = np.column_stack([gt_x, gt_y])
+        gps = simulate_gps(gt_t, gps_xy, world.geo, SimGpsConfig(), seed)
 
-    # 3. Render each camera frame at its true capture time.
+    # 3. Each camera frame is rendered at its true capture time.
     cam_x, cam_y, cam_yaw = traj.interpolate(capture)
-    bank_seed = int(rngs["noise_bank"].integers(2**31))
-    renderer = KinectRenderer(world, camera, robot, sim, noise_seed=bank_seed)
     scene = {
         "generator": "rgbdnav simulate",
         "world": world.name,
@@ -161,21 +210,6 @@ def simulate(
         "robot": section_to_dict(robot),
         "sim": section_to_dict(sim),
     }
-    render_rng = rngs["render"]
-    with RecordingWriter(out, renderer.intrinsics, scene) as writer:
-        for k in range(len(capture)):
-            pose = float(cam_x[k]), float(cam_y[k]), float(cam_yaw[k])
-            rgb, depth = renderer.render(*pose, render_rng)
-            writer.add_frame(RgbdFrame(int(stamps[k]), rgb, depth, renderer.intrinsics))
-            if progress is not None:
-                progress(k + 1, len(capture))
-        writer.add_wheels(wheel_t, left[phys], right[phys])
-        if sim.gyro_enabled:
-            writer.add_imu(imu_t, gyro)
-        writer.set_groundtruth(gt_t, gt_x, gt_y, gt_yaw)
-        if world.geo is not None:  # a receiver riding base_link (sensors/gps.py defaults)
-            gps_xy = np.column_stack([gt_x, gt_y])
-            writer.set_gps(simulate_gps(gt_t, gps_xy, world.geo, SimGpsConfig(), seed))
     summary = SimulationSummary(
         world=world.name,
         seed=seed,
@@ -186,9 +220,48 @@ def simulate(
         wheel_samples=len(wheel_t),
         imu_samples=len(imu_t) if sim.gyro_enabled else 0,
     )
+    return SimulationPlan(
+        world=world,
+        robot=robot,
+        camera=camera,
+        sim=sim,
+        scene=scene,
+        intrinsics=camera_intrinsics(camera),
+        stamps_ns=stamps,
+        poses=np.column_stack([cam_x, cam_y, cam_yaw]),
+        noise_seed=int(rngs["noise_bank"].integers(2**31)),
+        render_rng=rngs["render"],
+        wheels=(wheel_t, left[phys], right[phys]),
+        imu=(imu_t, gyro) if sim.gyro_enabled else None,
+        groundtruth=(gt_t, gt_x, gt_y, gt_yaw),
+        gps=gps,
+        summary=summary,
+    )
+
+
+def simulate(
+    world_path: str | Path,
+    out: str | Path,
+    robot: RobotConfig,
+    camera: CameraConfig,
+    sim: SimConfig,
+    seed: int = 0,
+    duration_s: float | None = None,
+    frames: int | None = None,
+    trajectory: str | Path | None = None,
+    progress: Progress | None = None,
+) -> SimulationSummary:
+    plan = plan_simulation(world_path, robot, camera, sim, seed, duration_s, frames, trajectory)
+    with RecordingWriter(out, plan.intrinsics, plan.scene) as writer:
+        for k, frame in enumerate(render_frames(plan)):
+            writer.add_frame(frame)
+            if progress is not None:
+                progress(k + 1, len(plan.stamps_ns))
+        plan.write_streams(writer)
+    summary = plan.summary
     log.info(
         "simulated %s: %d frames, %.1f m in %.1f s",
-        world.name,
+        summary.world,
         summary.frames,
         summary.path_length_m,
         summary.duration_s,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -308,3 +309,25 @@ def test_map_with_rrd_saves_a_rerun_recording_of_scans_path_and_map(tmp_path: Pa
     # The documented entity paths are in the recording (rrd keeps them as plain strings).
     for path in (b"world/map", b"world/robot/scan", b"world/robot/trajectory", b"world/robot/pose"):
         assert path in data, path
+
+
+def test_map_of_a_world_renders_into_the_front_end_and_leaves_no_recording(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("RGBDNAV_CACHE", str(cache))
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))  # the streams' folder
+    world = tmp_path / "tiny.yaml"
+    world.write_text(
+        "walls: [{from: [-1, -1], to: [3, -1]}, {from: [3, -1], to: [3, 1]},"
+        " {from: [3, 1], to: [-1, 1]}, {from: [-1, 1], to: [-1, -1]}]\n"
+        "start: [0, 0, 0]\nroute: [[0.15, 0]]\n"
+    )
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["map", str(world), "--out", str(out), "-q"])
+    assert result.exit_code == 0, result.output
+    s = json.loads((out / "summary.json").read_text())
+    assert s["source"] == str(world) and "rendered on demand" in s["source_kind"]
+    assert s["counts"]["scans"] > 10 and s["slam_vs_groundtruth"]["ate_rmse_m"] < 0.05
+    assert not cache.exists() and not any((tmp_path / "tmp").iterdir())  # nothing left on disk

@@ -1,0 +1,206 @@
+"""A world file as a source: its recording rendered on demand, with no images on disk.
+
+`rgbdnav map WORLD` used to render the whole route into a PNG recording (0.7 MB a frame of
+noisy, nearly incompressible images: 2.8 GB for the house) and then map it; encoding, writing,
+reading and decoding the PNGs were a fifth of the run (docs/design/speed.md). Here each frame
+goes straight from the renderer to the consumer, the renderer running in a second process so
+that rendering and the front end use the two cores at once.
+
+The frames are bit for bit the ones the recording would hold: the same plan
+(:func:`sensors.sim.simulator.plan_simulation`), the same noise draws in the same order, and
+depth passed through the recording's uint16 counts. The low-rate streams (wheels, gyro, ground
+truth, GPS: a few hundred kB) are written by the recording writer, without images, to a
+temporary folder and read back by :class:`~sensors.recording.Recording`, so they go through
+the same text round trip as a rendered recording's and every consumer sees the same numbers.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import multiprocessing as mp
+import queue
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sensors.config import CameraConfig, RobotConfig, SimConfig
+from sensors.gps import GpsStream
+from sensors.recording import Recording, RecordingWriter, counts_to_depth, depth_to_counts
+from sensors.recording_source import RecordingSource
+from sensors.sim.render import KinectRenderer
+from sensors.sim.simulator import SimulationPlan, plan_simulation, render_frames
+from sensors.types import RgbdFrame, SensorError
+
+log = logging.getLogger(__name__)
+
+QUEUE_FRAMES = 6  # frames the renderer may run ahead of the consumer (~1.5 MB each)
+POLL_S = 1.0  # [s] how often a waiting consumer checks that the renderer is still alive
+
+
+def _render_worker(plan: SimulationPlan, out: Any) -> None:
+    """Child process: every frame of ``plan`` as (rgb uint8, depth uint16 counts), then None;
+    an exception is sent as its text (the parent raises it). Ends when the parent is gone."""
+    parent = mp.parent_process()
+
+    def put(item: object) -> bool:
+        while True:
+            try:
+                out.put(item, timeout=POLL_S)
+                return True
+            except queue.Full:
+                if parent is not None and not parent.is_alive():
+                    out.cancel_join_thread()  # exit without flushing to a dead reader
+                    return False
+
+    try:
+        scale = plan.intrinsics.depth_scale
+        for frame in render_frames(plan):
+            if not put((frame.rgb, depth_to_counts(frame.depth_m, scale))):
+                return
+        put(None)
+    except BaseException as err:  # the parent turns it into a one-line error
+        put(f"{type(err).__name__}: {err}")
+
+
+class RenderedRecording(Recording):
+    """A world's recording whose images are rendered when read: :meth:`frames` streams them
+    from a renderer process, :meth:`frame` renders one here. Everything else was read from the
+    small folder of index and stream files :func:`open_world` wrote (and removed)."""
+
+    plan: SimulationPlan
+    _streams: dict[str, Any]
+    _renderer: KinectRenderer | None = None
+
+    def keep_streams(self) -> None:
+        """Read the stream files once, so the folder may go."""
+        self._streams = {
+            "wheels": super().wheels(),
+            "imu": super().imu(),
+            "gps": super().gps(),
+            "groundtruth": super().groundtruth(),
+        }
+
+    def wheels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._streams["wheels"]  # type: ignore[no-any-return]
+
+    def imu(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return self._streams["imu"]  # type: ignore[no-any-return]
+
+    def gps(self) -> GpsStream | None:
+        return self._streams["gps"]  # type: ignore[no-any-return]
+
+    def groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        return self._streams["groundtruth"]  # type: ignore[no-any-return]
+
+    def frames(self, skip_bad: bool = False) -> Iterator[RgbdFrame]:
+        """The frames in order, rendered in a child process up to QUEUE_FRAMES ahead (here, in
+        a daemonic process, which may not have children)."""
+        self.skipped = {}
+        n = len(self.plan.stamps_ns)
+        if not np.array_equal(self.rgb_index, np.arange(n)):  # one stamp list: cannot happen
+            raise SensorError(f"{self.path}: rgb/depth index does not match the rendered frames")
+        if mp.current_process().daemon:  # e.g. a Dask worker: no child processes allowed
+            plan = copy.copy(self.plan)
+            plan.render_rng = copy.deepcopy(self.plan.render_rng)
+            scale = plan.intrinsics.depth_scale
+            for k, f in enumerate(render_frames(plan)):
+                yield self._frame(k, f.rgb, depth_to_counts(f.depth_m, scale))
+            return
+        ctx = mp.get_context("spawn")  # no fork of a process that runs threads
+        frames_q = ctx.Queue(maxsize=QUEUE_FRAMES)
+        proc = ctx.Process(
+            target=_render_worker, args=(self.plan, frames_q), name="render", daemon=True
+        )
+        proc.start()
+        try:
+            for k in range(n):
+                item = self._next(frames_q, proc)
+                if not isinstance(item, tuple):
+                    raise SensorError(f"rendering {self.plan.world.name} failed: {item}")
+                rgb, counts = item
+                yield self._frame(k, rgb, counts)
+            if self._next(frames_q, proc) is not None:
+                raise SensorError(f"rendering {self.plan.world.name}: more frames than planned")
+        finally:
+            if proc.is_alive():  # the consumer stopped early, or an error
+                proc.terminate()
+            proc.join()
+            frames_q.close()
+
+    def _next(self, frames_q: Any, proc: Any) -> Any:
+        while True:
+            try:
+                return frames_q.get(timeout=POLL_S)
+            except queue.Empty:
+                if not proc.is_alive():
+                    raise SensorError(
+                        f"rendering {self.plan.world.name}: the renderer process ended "
+                        f"(exit code {proc.exitcode}) before its last frame"
+                    ) from None
+
+    def frame(self, k: int) -> RgbdFrame:
+        """The k-th frame, rendered in this process (its noise draws replayed up to k)."""
+        if not 0 <= k < len(self.plan.stamps_ns):
+            raise SensorError(f"{self.path}: no frame {k} (0..{len(self.plan.stamps_ns) - 1})")
+        if self._renderer is None:
+            self._renderer = self.plan.renderer()
+        rng = copy.deepcopy(self.plan.render_rng)
+        for _ in range(k):
+            self._renderer.noise_offsets(rng)
+        x, y, yaw = (float(v) for v in self.plan.poses[k])
+        rgb, depth = self._renderer.render(x, y, yaw, rng)
+        return self._frame(k, rgb, depth_to_counts(depth, self.plan.intrinsics.depth_scale))
+
+    def _frame(self, k: int, rgb: np.ndarray, counts: np.ndarray) -> RgbdFrame:
+        """What :meth:`Recording.frame` makes of the PNGs of these images."""
+        return RgbdFrame(
+            stamp_ns=int(self.rgb_stamps_ns[k]),
+            rgb=rgb,
+            depth_m=counts_to_depth(counts, self.intrinsics.depth_scale),
+            intrinsics=self.intrinsics,
+        )
+
+
+class WorldSource(RecordingSource):
+    """:class:`RecordingSource` over a :class:`RenderedRecording`."""
+
+    recording: RenderedRecording
+
+    def describe(self) -> str:
+        return f"world rendered on demand (no images on disk): {super().describe()}"
+
+
+def open_world(
+    world_path: str | Path,
+    robot: RobotConfig,
+    camera: CameraConfig,
+    sim: SimConfig,
+    seed: int = 0,
+    frames: int | None = None,
+    skip_bad: bool = True,
+) -> WorldSource:
+    """A world rendered on demand, as :func:`sensors.sim.simulator.simulate` would record it
+    with the same arguments. Nothing stays on disk."""
+    plan = plan_simulation(world_path, robot, camera, sim, seed, frames=frames)
+    tmp = Path(tempfile.mkdtemp(prefix="rgbdnav-world-"))
+    try:
+        with RecordingWriter(tmp / "streams", plan.intrinsics, plan.scene, images=False) as w:
+            for stamp in plan.stamps_ns:
+                w.add_frame_stamp(int(stamp))
+            plan.write_streams(w)
+        rec = RenderedRecording.open(tmp / "streams")
+        assert isinstance(rec, RenderedRecording)  # Recording.open builds cls
+        rec.keep_streams()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    rec.path = Path(world_path)  # what error messages and the summary name
+    rec.plan = plan
+    return WorldSource(rec, skip_bad=skip_bad)
+
+
+__all__ = ["RenderedRecording", "WorldSource", "open_world"]
