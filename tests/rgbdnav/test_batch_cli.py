@@ -1,6 +1,6 @@
-"""`rgbdnav batch` on a 2-worker Dask LocalCluster: real CARMEN logs and a broken one in, one
-row per source out (accuracy, time, memory), failures as rows, and a rerun that skips what is
-done."""
+"""`rgbdnav batch` on a 2-worker Dask LocalCluster: real CARMEN logs, a simulated recording and
+a broken log in, one row per source out (accuracy against each source's own ground truth, time,
+memory), failures as rows, and a rerun that skips what is done."""
 
 from __future__ import annotations
 
@@ -45,14 +45,18 @@ def _report(out: Path) -> dict:
 
 @needs_mit
 @needs_dask
-def test_batch_map_on_two_workers_reports_each_source_and_resumes(tmp_path: Path) -> None:
-    sources = _robots(tmp_path)
+def test_batch_map_on_two_workers_reports_each_source_and_resumes(
+    tmp_path: Path, house_recording: Path
+) -> None:
+    # The simulated robot (a recording of scenes/house.yaml, with the simulator's truth) beside
+    # the real ones, on the same cluster.
+    sources = [*_robots(tmp_path), house_recording]
     out = tmp_path / "batch"
     args = ["batch", "map", *map(str, sources), "--out", str(out), "--workers", "2"]
     result = runner.invoke(app, args)
     assert result.exit_code == 1, result.output  # one source failed: the batch says so
     rows = {r["name"]: r for r in _report(out)["rows"]}
-    assert list(rows) == ["mit-a", "mit-b", "broken"]
+    assert list(rows) == ["mit-a", "mit-b", "broken", "house"]
     for name in ("mit-a", "mit-b"):
         row = rows[name]
         assert row["status"] == "done" and row["error"] is None
@@ -64,10 +68,18 @@ def test_batch_map_on_two_workers_reports_each_source_and_resumes(tmp_path: Path
         assert acc["rel_trans_mean_m"] < 0.05 and acc["rel_rot_mean_deg"] < 1.0, acc
         assert row["wall_s"] > 0 and row["peak_rss_mb"] > 50
         assert row["peak_rss_scope"] == "task"
+    sim = rows["house"]
+    assert sim["status"] == "done" and (out / "house" / "map" / "map.yaml").is_file()
+    # Scored against the recording's ground truth (no relations there), as `rgbdnav map` scores it.
+    summary = json.loads((out / "house" / "summary.json").read_text())
+    assert sim["accuracy"]["ate_rmse_m"] == summary["slam_vs_groundtruth"]["ate_rmse_m"]
+    assert 0 < sim["accuracy"]["ate_rmse_m"] < 0.05 and "relations_scored" not in sim["accuracy"]
+    assert sim["accuracy"]["grid_iou"] == summary["grid_vs_floor_plan"]["iou"]
     bad = rows["broken"]
     assert bad["status"] == "failed" and "broken.clf" in bad["error"] and "\n" not in bad["error"]
     md = (out / "report.md").read_text()
     assert "| mit-a | done |" in md and "| broken | failed |" in md
+    assert f"| house | done | ATE {sim['accuracy']['ate_rmse_m']:.3f} m; grid IoU" in md
     assert "no laser scans" in md
 
     # Rerun after losing mit-b's row: mit-a is skipped (untouched), mit-b runs again.
@@ -77,10 +89,11 @@ def test_batch_map_on_two_workers_reports_each_source_and_resumes(tmp_path: Path
     assert again.exit_code == 1, again.output
     report = _report(out)
     rows = {r["name"]: r for r in report["rows"]}
-    assert report["skipped_as_done"] == 1 and rows["mit-a"].get("resumed") is True
+    assert report["skipped_as_done"] == 2 and rows["mit-a"].get("resumed") is True
+    assert rows["house"].get("resumed") is True
     assert rows["mit-b"]["status"] == "done" and not rows["mit-b"].get("resumed")
     assert (out / "mit-a" / "summary.json").stat().st_mtime_ns == first_summary
-    assert "1 skipped as done before" in again.output
+    assert "2 skipped as done before" in again.output
 
     # batch eval on a cluster already running (--scheduler): the two runs against the full
     # benchmark's relations score as the map tasks scored them.
