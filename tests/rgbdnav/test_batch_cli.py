@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.commands.batch import source_name
+from rgbdnav.commands.batch import map_accuracy, source_name
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 MIT = DATA / "carmen" / "mit-csail.clf"
@@ -74,12 +74,15 @@ def test_batch_map_on_two_workers_reports_each_source_and_resumes(
     summary = json.loads((out / "house" / "summary.json").read_text())
     assert sim["accuracy"]["ate_rmse_m"] == summary["slam_vs_groundtruth"]["ate_rmse_m"]
     assert 0 < sim["accuracy"]["ate_rmse_m"] < 0.05 and "relations_scored" not in sim["accuracy"]
-    assert sim["accuracy"]["grid_iou"] == summary["grid_vs_floor_plan"]["iou"]
+    # Its 1.5 s face a wall beyond the scan's 4 m: no wall mapped, none seen, so no grid IoU
+    # (0/0 is no score, not a score of 0).
+    assert not any(summary["grid_vs_floor_plan"][k] for k in ("true_positive", "false_negative"))
+    assert "grid_iou" not in sim["accuracy"]
     bad = rows["broken"]
     assert bad["status"] == "failed" and "broken.clf" in bad["error"] and "\n" not in bad["error"]
     md = (out / "report.md").read_text()
     assert "| mit-a | done |" in md and "| broken | failed |" in md
-    assert f"| house | done | ATE {sim['accuracy']['ate_rmse_m']:.3f} m; grid IoU" in md
+    assert f"| house | done | ATE {sim['accuracy']['ate_rmse_m']:.3f} m |" in md
     assert "no laser scans" in md
 
     # Rerun after losing mit-b's row: mit-a is skipped (untouched), mit-b runs again.
@@ -153,3 +156,14 @@ def test_source_names_drop_log_suffixes_and_name_runs_after_their_folder() -> No
     assert source_name(Path("scenes/house.yaml")) == "house"
     assert source_name(Path("runs/robot1/trajectory.tum")) == "robot1"
     assert source_name(Path("runs/robot1")) == "robot1"
+
+
+def test_map_accuracy_scores_the_grid_only_when_there_was_something_to_compare() -> None:
+    ate = {"ate_rmse_m": 0.02, "ate_rmse_aligned_m": 0.01}
+    scored = {"iou": 0.5, "true_positive": 5, "false_positive": 5, "false_negative": 0}
+    empty = {"iou": 0.0, "true_positive": 0, "false_positive": 0, "false_negative": 0}
+    summary = {"slam_vs_groundtruth": ate, "grid_vs_floor_plan": scored}
+    assert map_accuracy(summary) == {**ate, "grid_iou": 0.5}
+    assert map_accuracy({**summary, "grid_vs_floor_plan": empty}) == ate
+    missed = {**empty, "false_negative": 3}  # walls seen, none mapped: a real 0
+    assert map_accuracy({"grid_vs_floor_plan": missed}) == {"grid_iou": 0.0}
