@@ -14,6 +14,7 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -81,7 +82,7 @@ def load_layer(
     keepout_path: str | os.PathLike[str] | None = None,
 ) -> Layer:
     """A robot's map (bundle or Nav2 map.yaml) and keepout mask (Nav2 map.yaml), ready to draw."""
-    m = load_map(map_path)
+    m = load_map(Path(map_path))  # it takes a Path only
     keepout = None if keepout_path is None else load_map_yaml(keepout_path)
     return Layer(name, m.grid, m.occupied_thresh, m.free_thresh, T_world_map, keepout)
 

@@ -139,6 +139,19 @@ def _relations_accuracy(trajectory: Path, relations: Path, out: Path) -> dict[st
     }
 
 
+def map_accuracy(summary: dict[str, Any]) -> dict[str, Any]:
+    """A map run's scores against the simulator's truth: ATE, and the grid's IoU with the floor
+    plan unless nothing was there to compare (no wall mapped, none seen: 0/0 is no score)."""
+    acc: dict[str, Any] = {}
+    truth = summary.get("slam_vs_groundtruth") or {}
+    if "ate_rmse_m" in truth:
+        acc = {"ate_rmse_m": truth["ate_rmse_m"], "ate_rmse_aligned_m": truth["ate_rmse_aligned_m"]}
+    plan = summary.get("grid_vs_floor_plan") or {}
+    if plan.get("true_positive", 0) + plan.get("false_positive", 0) + plan.get("false_negative", 0):
+        acc["grid_iou"] = plan["iou"]
+    return acc
+
+
 def _run_map(task: Task) -> dict[str, Any]:
     from rgbdnav.cache import recording_for
     from rgbdnav.config import load_config
@@ -148,13 +161,7 @@ def _run_map(task: Task) -> dict[str, Any]:
     cfg = load_config(list(o.config_files), list(o.overrides))
     recording = recording_for(task.source, cfg, o.seed)
     run_map(recording, task.folder, o.config_files, o.overrides, force_3dof=o.force_3dof)
-    acc: dict[str, Any] = {}
-    summary = _read_summary(task.folder)
-    truth = summary.get("slam_vs_groundtruth") or {}
-    if "ate_rmse_m" in truth:
-        acc = {"ate_rmse_m": truth["ate_rmse_m"], "ate_rmse_aligned_m": truth["ate_rmse_aligned_m"]}
-    if "grid_vs_floor_plan" in summary:  # a world's map against its floor plan
-        acc["grid_iou"] = summary["grid_vs_floor_plan"]["iou"]
+    acc = map_accuracy(_read_summary(task.folder))
     if (rel := relations_beside(task.source)) is not None:
         acc |= _relations_accuracy(task.folder / "trajectory.tum", rel, task.folder / "relations")
     return acc

@@ -1,6 +1,6 @@
-"""`rgbdnav batch` on a 2-worker Dask LocalCluster: real CARMEN logs and a broken one in, one
-row per source out (accuracy, time, memory), failures as rows, and a rerun that skips what is
-done."""
+"""`rgbdnav batch` on a 2-worker Dask LocalCluster: real CARMEN logs, a simulated recording and
+a broken log in, one row per source out (accuracy against each source's own ground truth, time,
+memory), failures as rows, and a rerun that skips what is done."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.commands.batch import source_name
+from rgbdnav.commands.batch import map_accuracy, source_name
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 MIT = DATA / "carmen" / "mit-csail.clf"
@@ -45,14 +45,18 @@ def _report(out: Path) -> dict:
 
 @needs_mit
 @needs_dask
-def test_batch_map_on_two_workers_reports_each_source_and_resumes(tmp_path: Path) -> None:
-    sources = _robots(tmp_path)
+def test_batch_map_on_two_workers_reports_each_source_and_resumes(
+    tmp_path: Path, house_recording: Path
+) -> None:
+    # The simulated robot (a recording of scenes/house.yaml, with the simulator's truth) beside
+    # the real ones, on the same cluster.
+    sources = [*_robots(tmp_path), house_recording]
     out = tmp_path / "batch"
     args = ["batch", "map", *map(str, sources), "--out", str(out), "--workers", "2"]
     result = runner.invoke(app, args)
     assert result.exit_code == 1, result.output  # one source failed: the batch says so
     rows = {r["name"]: r for r in _report(out)["rows"]}
-    assert list(rows) == ["mit-a", "mit-b", "broken"]
+    assert list(rows) == ["mit-a", "mit-b", "broken", "house"]
     for name in ("mit-a", "mit-b"):
         row = rows[name]
         assert row["status"] == "done" and row["error"] is None
@@ -64,10 +68,21 @@ def test_batch_map_on_two_workers_reports_each_source_and_resumes(tmp_path: Path
         assert acc["rel_trans_mean_m"] < 0.05 and acc["rel_rot_mean_deg"] < 1.0, acc
         assert row["wall_s"] > 0 and row["peak_rss_mb"] > 50
         assert row["peak_rss_scope"] == "task"
+    sim = rows["house"]
+    assert sim["status"] == "done" and (out / "house" / "map" / "map.yaml").is_file()
+    # Scored against the recording's ground truth (no relations there), as `rgbdnav map` scores it.
+    summary = json.loads((out / "house" / "summary.json").read_text())
+    assert sim["accuracy"]["ate_rmse_m"] == summary["slam_vs_groundtruth"]["ate_rmse_m"]
+    assert 0 < sim["accuracy"]["ate_rmse_m"] < 0.05 and "relations_scored" not in sim["accuracy"]
+    # Its 1.5 s face a wall beyond the scan's 4 m: no wall mapped, none seen, so no grid IoU
+    # (0/0 is no score, not a score of 0).
+    assert not any(summary["grid_vs_floor_plan"][k] for k in ("true_positive", "false_negative"))
+    assert "grid_iou" not in sim["accuracy"]
     bad = rows["broken"]
     assert bad["status"] == "failed" and "broken.clf" in bad["error"] and "\n" not in bad["error"]
     md = (out / "report.md").read_text()
     assert "| mit-a | done |" in md and "| broken | failed |" in md
+    assert f"| house | done | ATE {sim['accuracy']['ate_rmse_m']:.3f} m |" in md
     assert "no laser scans" in md
 
     # Rerun after losing mit-b's row: mit-a is skipped (untouched), mit-b runs again.
@@ -77,10 +92,11 @@ def test_batch_map_on_two_workers_reports_each_source_and_resumes(tmp_path: Path
     assert again.exit_code == 1, again.output
     report = _report(out)
     rows = {r["name"]: r for r in report["rows"]}
-    assert report["skipped_as_done"] == 1 and rows["mit-a"].get("resumed") is True
+    assert report["skipped_as_done"] == 2 and rows["mit-a"].get("resumed") is True
+    assert rows["house"].get("resumed") is True
     assert rows["mit-b"]["status"] == "done" and not rows["mit-b"].get("resumed")
     assert (out / "mit-a" / "summary.json").stat().st_mtime_ns == first_summary
-    assert "1 skipped as done before" in again.output
+    assert "2 skipped as done before" in again.output
 
     # batch eval on a cluster already running (--scheduler): the two runs against the full
     # benchmark's relations score as the map tasks scored them.
@@ -140,3 +156,14 @@ def test_source_names_drop_log_suffixes_and_name_runs_after_their_folder() -> No
     assert source_name(Path("scenes/house.yaml")) == "house"
     assert source_name(Path("runs/robot1/trajectory.tum")) == "robot1"
     assert source_name(Path("runs/robot1")) == "robot1"
+
+
+def test_map_accuracy_scores_the_grid_only_when_there_was_something_to_compare() -> None:
+    ate = {"ate_rmse_m": 0.02, "ate_rmse_aligned_m": 0.01}
+    scored = {"iou": 0.5, "true_positive": 5, "false_positive": 5, "false_negative": 0}
+    empty = {"iou": 0.0, "true_positive": 0, "false_positive": 0, "false_negative": 0}
+    summary = {"slam_vs_groundtruth": ate, "grid_vs_floor_plan": scored}
+    assert map_accuracy(summary) == {**ate, "grid_iou": 0.5}
+    assert map_accuracy({**summary, "grid_vs_floor_plan": empty}) == ate
+    missed = {**empty, "false_negative": 3}  # walls seen, none mapped: a real 0
+    assert map_accuracy({"grid_vs_floor_plan": missed}) == {"grid_iou": 0.0}

@@ -1,10 +1,13 @@
 """`rgbdnav fleet align / show` and `rgbdnav geo` on real logs: a Radish CARMEN log cut into two
 overlapping robots, the second's odometry moved 89 m and turned 115 deg, each mapped by the mapper,
-aligned without a guess; a map of another building refused."""
+aligned without a guess; a map of another building refused. And `fleet show` on two simulated
+robots' maps, each drawn where its T_world_map places it."""
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
 import sys
 from pathlib import Path
 
@@ -14,10 +17,15 @@ import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
-from rgbdnav.world_picture import TINTS_RGB
+from rgbdnav.commands.fleet import load_layers
+from rgbdnav.live.world_view import to_world
+from rgbdnav.visualize import occupied_cells_xy
+from rgbdnav.world_picture import TINTS_RGB, world_geometry
 from sensors.safe_yaml import read_yaml
+from slam.fleet import load_fleet
 from slam.geometry import oplus, wrap_angle
-from slam.map_bundle import load_bundle, load_map_yaml
+from slam.map_bundle import load_bundle, load_map, load_map_yaml
+from slam.occupancy_grid import GridGeometry
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 from fleet_split_log import read_log_lines, split  # noqa: E402
@@ -131,3 +139,64 @@ def test_geo_converts_both_ways_through_a_bundle_anchor(tmp_path: Path) -> None:
     assert (x, y) == pytest.approx((100.0, -50.0), abs=0.01)
     missing = _invoke("geo", tmp_path / "nowhere", "--xy", "0", "0")
     assert missing.exit_code == 1 and "no such map" in missing.output
+
+
+def _cut(recording: Path, out: Path, t0: float, t1: float) -> Path:
+    """The stretch [t0, t1) [s] of a recording: its index files cut, its images shared."""
+    out.mkdir(parents=True)
+    for item in recording.iterdir():
+        if item.suffix == ".txt":
+            rows = item.read_text().splitlines()
+            keep = [r for r in rows if r.startswith("#") or t0 <= float(r.split()[0]) < t1]
+            (out / item.name).write_text("\n".join(keep) + "\n")
+        elif item.is_dir():
+            (out / item.name).symlink_to(item)
+        else:
+            shutil.copy(item, out / item.name)
+    return out
+
+
+def _shown_at(mask: np.ndarray, geom: GridGeometry, xy: np.ndarray) -> float:
+    """The fraction of world points ``xy`` (N, 2) [m] on True cells of a picture-sized mask."""
+    r, c = geom.world_to_cell(xy[:, 0], xy[:, 1])
+    inside = (r >= 0) & (r < geom.height) & (c >= 0) & (c < geom.width)
+    return float(np.count_nonzero(mask[r[inside], c[inside]]) / len(xy))
+
+
+def test_show_places_two_simulated_robots_maps_where_the_fleet_file_says(
+    house_recording: Path, tmp_path: Path
+) -> None:
+    # Two robots: overlapping stretches of the simulated house route, each mapped on its own.
+    # The route's first 1.5 s face the wall at x = 7 m from 5.5 m: the scan reaches 8 m here.
+    placed = {"a": (0.0, 0.0, 0.0), "b": (4.0, 12.0, math.pi / 2)}
+    for name, (t0, t1) in (("a", (0.0, 0.9)), ("b", (0.6, 2.0))):
+        cut = _cut(house_recording, tmp_path / f"rec-{name}", t0, t1)
+        args = ("map", cut, "--out", tmp_path / name, "-q", "--set", "depth_to_scan.range_max=8")
+        result = _invoke(*args)
+        assert result.exit_code == 0, result.output
+    robots = "".join(
+        f"  - {{name: {n}, map: {n}/map, T_world_map: {{x: {x}, y: {y}, yaw: {yaw}}}}}\n"
+        for n, (x, y, yaw) in placed.items()
+    )
+    (tmp_path / "fleet.yaml").write_text("robots:\n" + robots)
+    shown = _invoke("fleet", "show", tmp_path / "fleet.yaml", "--out", tmp_path / "show")
+    assert shown.exit_code == 0, shown.output
+    assert (tmp_path / "show" / "fleet.rrd").stat().st_size > 1000
+    img = cv2.imread(str(tmp_path / "show" / "fleet.png"))[:, :, ::-1]
+    geom = world_geometry(load_layers(load_fleet(tmp_path / "fleet.yaml")))
+    assert img.shape[:2] == geom.shape
+    for i, (name, other) in enumerate((("a", "b"), ("b", "a"))):
+        m = load_map(tmp_path / name / "map")
+        g = m.grid.geometry
+        occ = m.grid.occupied_mask(m.occupied_thresh)
+        walls = occupied_cells_xy(occ, (g.origin_x, g.origin_y), g.resolution)
+        assert len(walls) >= 20, name
+        # Each map's walls are the world's (its map frame is the simulator's world frame)...
+        truth = json.loads((tmp_path / name / "summary.json").read_text())["grid_vs_floor_plan"]
+        assert truth["false_positive"] <= 0.1 * truth["true_positive"], truth
+        # ... and the picture draws them in the robot's tint (within a pixel) where its
+        # T_world_map puts them, not where the other robot's placement would.
+        tinted = np.all(img == TINTS_RGB[i].astype(np.uint8), axis=2).astype(np.uint8)
+        tinted = cv2.dilate(tinted, np.ones((3, 3), np.uint8))[::-1]  # row 0 at the bottom
+        assert _shown_at(tinted, geom, to_world(placed[name], walls)) > 0.9, name
+        assert _shown_at(tinted, geom, to_world(placed[other], walls)) < 0.1, name

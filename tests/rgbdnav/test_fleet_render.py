@@ -17,6 +17,7 @@ from rgbdnav.world_picture import (
     FloorPlanMask,
     Layer,
     WorldPath,
+    load_layer,
     render_world,
     tint,
     world_geometry,
@@ -63,6 +64,8 @@ def test_keepouts_are_hatched_in_the_robot_tint_and_the_rrd_is_written(tmp_path:
         "robots:\n  - {name: a, map: a.yaml, keepout: keepout.yaml}\n"
     )
     out = run_show(tmp_path / "fleet.yaml", tmp_path / "show")
+    # The layer loader takes the path as a plain string too, as its signature says.
+    assert load_layer("a", str(tmp_path / "a.yaml"), (0.0, 0.0, 0.0)).grid.geometry.width == 40
     img = cv2.imread(str(out["picture"]))[:, :, ::-1].astype(float)
     free_a = 0.65 * 255 + 0.35 * TINTS_RGB[0]
     hatch = 0.5 * free_a + 0.5 * TINTS_RGB[0]
