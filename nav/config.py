@@ -167,12 +167,6 @@ class FollowerConfig:
     # Goal checker (nav2_controller SimpleGoalChecker).
     xy_goal_tolerance: float = param(0.25, unit="m", gt=0.0, doc="goal reached within this")
     yaw_goal_tolerance: float = param(0.25, unit="rad", gt=0.0, doc="goal yaw reached within this")
-    stateful: bool = param(
-        True,
-        doc="once within xy_goal_tolerance, only the heading is checked until the goal ends or "
-        "the pose is corrected (a settle): an estimate that shifts while the robot turns to the "
-        "goal heading does not send it creeping back",
-    )
 
     def validate(self) -> str | None:
         if self.min_lookahead_dist > self.max_lookahead_dist:

@@ -9,8 +9,7 @@ that never blocks: each :meth:`Navigator.tick` decides one command and returns i
   saw once, and a robot standing in the inscribed band runs the recovery round to get out; a
   goal still without a path is *refused*.
 - **Follow** with regulated pure pursuit (controller_server at ``follower.controller_frequency``);
-  the follower's goal checker (``xy_goal_tolerance``, ``yaw_goal_tolerance``; ``stateful``: once
-  within xy, only the heading until a settle corrects the pose) says *reached*.
+  the follower's goal checker (``xy_goal_tolerance``, ``yaw_goal_tolerance``) says *reached*.
   An estimate in the inscribed band is no refusal: the planner plans out of it (NavFn's
   ``clearRobotCell``), and on that way out the arc check only stops the robot for walls.
 - **Replan** when the path ahead is blocked (checked as the costmap changes), when the arc is
@@ -245,7 +244,6 @@ class _Goal:
     first_plan: np.ndarray | None = None
     controller_failures: int = 0  # recovery round-robin position of FollowPath failures
     goal_settles: int = 0
-    xy_reached: bool = False  # the stateful goal checker's latch (follower.stateful)
 
 
 class Navigator:
@@ -419,10 +417,6 @@ class Navigator:
         if now_ns < self._next_ctrl_ns - self.ctrl_ns // 2:
             return True
         self._next_ctrl_ns = max(self._next_ctrl_ns + self.ctrl_ns, now_ns - self.ctrl_ns)
-        fc = self.cfg.follower
-        gx, gy = self.path[-1, :2]
-        if fc.stateful and math.hypot(gx - pose[0], gy - pose[1]) <= fc.xy_goal_tolerance:
-            g.xy_reached = True
         cmd = compute_velocity(
             Pose2(*(float(v) for v in pose)),
             self.path,
@@ -431,7 +425,6 @@ class Navigator:
             cost_fn=lambda x, y: float(self.costmap.cost_at(x, y)),
             is_free=self._arc_free_fn(pose),
             inscribed_radius_m=self.inscribed,
-            xy_reached=g.xy_reached,
         )
         self.controller_cycles += 1
         if cmd.status == "goal_reached":
@@ -560,7 +553,6 @@ class Navigator:
             elif self._goal is not None:
                 self._goal.settles.append(self.corrector.finish_settle())
                 self.counts["settles"] += 1
-                self._goal.xy_reached = False  # the corrected pose is judged afresh
                 # The correction moved the estimate: this tick's pose is stale. What comes
                 # next (the goal check, a plan from here) waits for the next tick's pose.
                 if not self._actions:

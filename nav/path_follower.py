@@ -3,7 +3,7 @@
 One call of :func:`compute_velocity` is one controller cycle:
 
 1. goal check (SimpleGoalChecker): within ``xy_goal_tolerance`` and ``yaw_goal_tolerance`` -> done;
-   within xy (or, stateful, within it earlier) but not yaw -> turn in place toward the goal heading;
+   within xy but not yaw -> turn in place toward the goal heading;
 2. project the robot onto the path and pick the lookahead ``L`` (fixed, or ``speed *
    lookahead_time`` clamped to [min, max]);
 3. the carrot is where the path leaves the circle of radius ``L`` around the robot (interpolated
@@ -213,16 +213,13 @@ def compute_velocity(
     *,
     inscribed_radius_m: float = 0.0,
     collision_step_m: float = COLLISION_CHECK_STEP_M,
-    xy_reached: bool = False,
 ) -> FollowerCommand:
     """One regulated-pure-pursuit cycle.
 
     ``path`` is (N, 3) (x [m], y [m], yaw [rad]) in the frame of ``pose``; its last row is the goal.
     ``current_speed`` is v [m/s] or the odometry twist (v, w); with w, turn-in-place respects
     ``max_angular_accel``. ``cost_fn`` gives the costmap cost at the robot (cost regulation,
-    ``inscribed_radius_m`` is the costmap's inscribed radius); ``is_free`` vets the arc.
-    ``xy_reached``: the caller's stateful goal checker was within ``xy_goal_tolerance`` before
-    (``FollowerConfig.stateful``): only the heading is left to check."""
+    ``inscribed_radius_m`` is the costmap's inscribed radius); ``is_free`` vets the arc."""
     path = np.asarray(path, dtype=np.float64)
     if path.ndim != 2 or path.shape[1] != 3 or len(path) == 0:
         raise ValueError(f"path must be a non-empty (N, 3) array, got shape {path.shape}")
@@ -233,7 +230,7 @@ def compute_velocity(
     # 1. Goal check; inside the xy tolerance only the heading is left to fix.
     gx, gy, gyaw = path[-1]
     yaw_err = _wrap(float(gyaw) - pose.yaw)
-    if xy_reached or math.hypot(gx - pose.x, gy - pose.y) <= config.xy_goal_tolerance:
+    if math.hypot(gx - pose.x, gy - pose.y) <= config.xy_goal_tolerance:
         if abs(yaw_err) <= config.yaw_goal_tolerance:
             return FollowerCommand(0.0, 0.0, "goal_reached", "within xy and yaw tolerance")
         w = rotate_to_heading(yaw_err, w_now, config)

@@ -220,7 +220,7 @@ def _controller(blocks: Mapping[str, Any]) -> Any:
             if leaf in _fields(FollowerConfig):
                 return f"follower.{leaf}", value, ""
             return "RPP parameter rgbdnav does not implement"
-        if leaf in ("xy_goal_tolerance", "yaw_goal_tolerance", "stateful"):
+        if leaf in ("xy_goal_tolerance", "yaw_goal_tolerance"):
             return f"follower.{leaf}", value, ""
         return "controller_server parameter rgbdnav does not implement"
 

@@ -142,16 +142,6 @@ def test_at_goal_position_with_wrong_heading_rotates_to_goal_yaw() -> None:
     assert cmd.v == 0.0 and cmd.w < 0.0
 
 
-def test_a_stateful_goal_check_only_looks_at_the_heading_once_xy_was_reached() -> None:
-    # The estimate has shifted 0.4 m off the goal while the robot turned to the goal heading.
-    path = polyline((0.0, 0.0), (2.0, 0.0))
-    off = Pose2(1.6, 0.0, 0.1)
-    assert compute_velocity(off, path, 0.0, CFG).status == "following"
-    assert compute_velocity(off, path, 0.0, CFG, xy_reached=True).status == "goal_reached"
-    turned = compute_velocity(Pose2(1.6, 0.0, 1.0), path, 0.0, CFG, xy_reached=True)
-    assert turned.status == "rotating" and turned.v == 0.0 and turned.w < 0.0
-
-
 def test_approach_scaling_slows_near_goal() -> None:
     path = polyline((0.0, 0.0), (1.0, 0.0))
     far = compute_velocity(Pose2(0.0, 0.0, 0.0), path, 0.5, CFG)
