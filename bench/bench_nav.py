@@ -198,8 +198,16 @@ def bench_scenario(args: argparse.Namespace) -> None:
     for label, map_path in maps:
         for mode in modes:
             tag = "floorplan" if label == "floor plan" else Path(map_path).name
-            out = REPO / "runs" / f"nav_scenario_{tag}_{mode}"
-            _, summary = run_scenario(args.scenario, map_path, out, args.goals, localization=mode)
+            seed = "" if args.scenario_seed is None else f"_seed{args.scenario_seed}"
+            out = REPO / "runs" / f"nav_scenario_{tag}_{mode}{seed}"
+            _, summary = run_scenario(
+                args.scenario,
+                map_path,
+                out,
+                args.goals,
+                localization=mode,
+                seed=args.scenario_seed,
+            )
             sc = summary["scenario"]
             err = sc["position_error_m"]
             rows.append(
@@ -224,7 +232,8 @@ def bench_scenario(args: argparse.Namespace) -> None:
 
 Measured {dt.date.today().isoformat()} on {machine("numpy", "scipy")}.
 Command: `python bench/bench_nav.py --scenario {args.scenario} --map {" ".join(map(str, args.map))}
---localization {args.localization}{"" if args.goals is None else f" --goals {args.goals}"}` (run
+--localization {args.localization}{"" if args.goals is None else f" --goals {args.goals}"}\
+{"" if args.scenario_seed is None else f" --scenario-seed {args.scenario_seed}"}` (run
 directories `runs/nav_scenario_<map>_<mode>/`; the moved world, keepout mask and goals in their
 `scenario/`). The house of `scenes/house.yaml` with every piece of furniture moved and turned
 (seeded, up to 0.3 m and 0.3 rad) relative to the map, seeded random goals in free space
@@ -278,6 +287,7 @@ def main() -> None:
         help="localisation mode(s) of the scenario",
     )
     ap.add_argument("--goals", type=int, help="goals of the scenario (default: the file's)")
+    ap.add_argument("--scenario-seed", type=int, help="the scenario's seed (default: the file's)")
     args = ap.parse_args()
     if args.scenario is not None:
         bench_scenario(args)

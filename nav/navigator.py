@@ -149,7 +149,7 @@ class Drive:
 
     v: float  # [m/s]
     w: float  # [rad/s]
-    status: str  # idle, planning, driving, stopping, behavior:<name>
+    status: str  # idle, planning, driving, stopping, settling, behavior:<name>
 
 
 @dataclass(frozen=True)
@@ -518,7 +518,8 @@ class Navigator:
     # 4. Actions: stops, behaviours, settles and plans, one tick at a time.
 
     def _act(self, now_ns: int, pose: np.ndarray, moving: bool) -> tuple[float, float, str] | None:
-        """Run the first action; its twist, or None when it ended this tick (popped)."""
+        """Run the first action; its twist, or None when it ended this tick (popped) and the next
+        may run now (a settle's correction ends the tick: the pose must be read again)."""
         a = self._actions[0]
         if isinstance(a, _Stop):
             if a.t0_ns is None:
@@ -552,6 +553,12 @@ class Navigator:
             elif self._goal is not None:
                 self._goal.settles.append(self.corrector.finish_settle())
                 self.counts["settles"] += 1
+                # The correction moved the estimate: this tick's pose is stale. What comes
+                # next (the goal check, a plan from here) waits for the next tick's pose.
+                if not self._actions:
+                    self._anchor = None
+                    self._next_ctrl_ns = now_ns
+                return 0.0, 0.0, "settling"
             return None
         return self._plan_action(a, now_ns, pose)
 

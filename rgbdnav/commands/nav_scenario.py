@@ -30,7 +30,7 @@ import copy
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -365,11 +365,15 @@ def run_scenario(
     overrides: Sequence[str] = (),
     localization: str = "localizer",
     progress: Callable[[int, int], None] | None = None,
+    seed: int | None = None,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
-    """Prepare the scenario, drive it with :func:`run_navigate`; the summary gains "scenario"."""
+    """Prepare the scenario, drive it with :func:`run_navigate`; the summary gains "scenario".
+    ``seed`` replaces the file's (another moved world, other goals, other noise)."""
     from rgbdnav.runners.navigate import run_navigate
 
     scenario = load_scenario(scenario_path)
+    if seed is not None:
+        scenario = replace(scenario, seed=seed)
     overrides = [*scenario.overrides, *overrides]
     world_path, keepout_path, goals = prepare(
         scenario, map_path, out, n_goals, config_files, overrides

@@ -280,3 +280,46 @@ def test_a_goal_held_by_the_caller_past_goal_timeout_fails() -> None:
             break
     out = outcome_of(nav)
     assert out.code == "timeout" and d.w < 0.4  # the spin is being smoothed down to rest
+
+
+class ShiftingCorrector(Corrector):
+    """A pose corrector whose goal settle finds the estimate ``shift`` off (x, y) [m]."""
+
+    def __init__(self, shift: tuple[float, float]) -> None:
+        super().__init__()
+        self.shift = np.array([*shift, 0.0])
+        self.offset = np.zeros(3)  # estimate - truth
+
+    def finish_settle(self) -> str:
+        self.offset = self.offset + self.shift
+        return super().finish_settle()
+
+
+def test_the_goal_is_judged_on_the_pose_a_settle_corrected_not_on_the_one_before() -> None:
+    # The settle at the goal moves the estimate 0.6 m off the goal (the caller's estimate after
+    # the correction): the goal checker must see that pose and drive on, not call the goal
+    # reached on the tick's stale pre-settle pose.
+    navigate = NavigateConfig(goal_settle_spin=6.0, goal_settle_attempts=1)
+    corrector = ShiftingCorrector((0.6, 0.0))
+    nav = Navigator(Sections(navigate=navigate), two_rooms(), corrector=corrector)
+    goal = np.array([1.5, 2.0])
+    nav.set_goal((float(goal[0]), float(goal[1])), 0)
+    truth, t_ns, statuses = np.array([0.5, 1.0, 0.0]), 0, []
+    for _ in range(round(120e9 / DT_NS)):
+        d = nav.tick(t_ns, truth + corrector.offset)
+        statuses.append(d.status)
+        dt = DT_NS / 1e9
+        a = truth[2] + d.w * dt / 2
+        truth = truth + np.array([d.v * dt * math.cos(a), d.v * dt * math.sin(a), d.w * dt])
+        t_ns += DT_NS
+        if not nav.busy:
+            break
+    out = outcome_of(nav)
+    assert out.status == "reached" and out.settles == ("settle 1",)
+    assert out.end_pose is not None
+    tol = FollowerConfig().xy_goal_tolerance
+    estimate = truth + corrector.offset
+    assert math.hypot(*(estimate[:2] - goal)) <= tol  # the corrected estimate is at the goal
+    assert math.hypot(*(out.end_pose[:2] - estimate[:2])) < 0.05  # and the outcome says so
+    after = statuses[statuses.index("settling") :]
+    assert "driving" in after and nav.controller_cycles > 0  # drove on after the settle
