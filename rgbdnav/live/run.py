@@ -262,6 +262,8 @@ class LiveRun:
         self.stop = threading.Event()
         self.shared = _Shared(ObstacleMemory(self.cfg.live.obstacle_memory))
         self.frame_q: queue.Queue[RgbdFrame | None] = queue.Queue(self.cfg.live.frame_queue_size)
+        self._stall_lock = threading.Lock()
+        self._stall_counted = False  # the stall under way is counted already
         self.scan_q: queue.Queue[tuple[Any, np.ndarray] | None] = queue.Queue(
             self.cfg.live.scan_queue_size
         )
@@ -573,14 +575,19 @@ class LiveRun:
     # 2. The threads.
 
     def _camera_loop(self, frames: Iterator[RgbdFrame | None]) -> None:
+        last_arrival: float | None = None
         try:
             for frame in frames:
                 if self.stop.is_set():
                     break
                 if frame is None:
                     continue
+                arrival = time.monotonic()
                 if self._first_frame_at is None:
-                    self._first_frame_at = time.monotonic()
+                    self._first_frame_at = arrival
+                gap = 0.0 if last_arrival is None else arrival - last_arrival
+                last_arrival = arrival
+                self._note_camera_gap(gap)
                 if self._recorded_gps is not None:
                     self._replay_gps(frame.stamp_ns)
                 self.counts.inc("frames_received")
@@ -594,6 +601,15 @@ class LiveRun:
             log.error("camera failed: %s", err)
         finally:
             self.frame_q.put(None)
+
+    def _note_camera_gap(self, gap_s: float, waiting: bool = False) -> None:
+        """Count a camera stall once: seen by the front end waiting on an empty queue, or by the
+        camera thread when a frame comes after a gap (a front end behind on queued frames
+        cannot see the stall; the camera's arrivals can)."""
+        with self._stall_lock:
+            if gap_s >= self.cfg.live.camera_stall_timeout and not self._stall_counted:
+                self.counts.inc("camera_stalls")
+            self._stall_counted = waiting
 
     def _replay_gps(self, stamp_ns: int) -> None:
         """A recorded source's fixes, on the camera's clock, as its frames pass them."""
@@ -632,7 +648,7 @@ class LiveRun:
             except queue.Empty:
                 if not stalled and not self.stop.is_set():
                     stalled = True
-                    self.counts.inc("camera_stalls")
+                    self._note_camera_gap(cfg.live.camera_stall_timeout, waiting=True)
                     log.warning(
                         "no camera frame for %.1f s: mapping paused", cfg.live.camera_stall_timeout
                     )
