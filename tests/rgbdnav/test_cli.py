@@ -282,8 +282,7 @@ def test_an_unreadable_cached_rendering_is_rendered_again(
 ) -> None:
     import logging
 
-    from rgbdnav.cache import cached_recording_path
-    from rgbdnav.cli import _recording_for
+    from rgbdnav.cache import cached_recording_path, recording_for
     from rgbdnav.config import load_config
 
     monkeypatch.setenv("RGBDNAV_CACHE", str(tmp_path / "cache"))
@@ -298,7 +297,7 @@ def test_an_unreadable_cached_rendering_is_rendered_again(
     cached.mkdir(parents=True)
     (cached / "rgb.txt").write_text("not an index\n")  # a crashed or foreign folder
     with caplog.at_level(logging.WARNING, logger="rgbdnav"):
-        path = _recording_for(world, cfg, 0, quiet=True)
+        path = recording_for(world, cfg, 0)  # the cache batch's Dask workers use
     assert path == cached and "rendering again" in caplog.text
     from sensors.recording import Recording
 
