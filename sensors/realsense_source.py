@@ -521,34 +521,47 @@ class RealSenseSource(SourceBase):
 
 
 def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:
-    """A recording's gyro stream as yaw rates (-gyro_y), as fast as it reads; None without one."""
-    config = rs.config()
-    config.enable_device_from_file(str(file), repeat_playback=False)
-    config.enable_stream(rs.stream.gyro)
-    pipeline = rs.pipeline()
+    """A recording's gyro stream as yaw rates (-gyro_y), as fast as it reads; None without one.
+    The playback is taken out of real time before streaming (as the frame reader does): a
+    pipeline starts it in real time, and then drops samples while this process is busy."""
     try:
-        profile = pipeline.start(config)
+        device = rs.context().load_device(str(file))
     except RuntimeError:
-        return None  # no gyro stream in the recording
-    stamps: list[int] = []
-    rates: list[float] = []
-    try:
-        profile.get_device().as_playback().set_real_time(False)
-        while True:
-            ok, frameset = pipeline.try_wait_for_frames(FRAME_TIMEOUT_MS)
-            if not ok:
-                break
-            for frame in frameset:
-                motion = frame.as_motion_frame()
-                if motion:
-                    stamps.append(round(motion.get_timestamp() * NS_PER_MS))
-                    rates.append(yaw_rate(motion))
-    finally:
-        pipeline.stop()
-    if not stamps:
         return None
-    order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
-    return ImuStream(np.asarray(stamps, dtype=np.int64)[order], np.asarray(rates)[order])
+    playback = device.as_playback()
+    playback.set_real_time(False)
+    found = gyro_sensor(rs, device)
+    if found is None:
+        return None
+    sensor, profile = found
+    samples: deque[tuple[int, float]] = deque()  # appended on librealsense's thread
+
+    def on_gyro(frame: Any) -> None:
+        motion = frame.as_motion_frame()
+        if motion:
+            samples.append((round(motion.get_timestamp() * NS_PER_MS), yaw_rate(motion)))
+
+    sensor.open(profile)
+    sensor.start(on_gyro)
+    try:
+        silent_ms, seen = 0, 0
+        while silent_ms < PLAYBACK_STALL_MS:
+            time.sleep(0.05)
+            if len(samples) != seen:
+                seen, silent_ms = len(samples), 0
+                continue
+            if playback.current_status() != rs.playback_status.playing and silent_ms >= 200:
+                break  # the recording ended (and nothing came for a while)
+            silent_ms += 50
+    finally:
+        sensor.stop()
+        sensor.close()
+    if not samples:
+        return None
+    stamps = np.array([t for t, _ in samples], dtype=np.int64)
+    rates = np.array([r for _, r in samples], dtype=np.float64)
+    order = np.argsort(stamps, kind="stable")
+    return ImuStream(stamps[order], rates[order])
 
 
 # --- writing SDK recordings (librealsense's software device) -----------------------------------

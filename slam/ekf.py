@@ -426,7 +426,8 @@ class UpdateResult:
     accepted: bool
     nis: float  # y^T S^-1 y (nan when not computed)
     dof: int
-    reason: str = ""  # "", "initialised", "rejected", "late_refiltered", "dropped_late", ...
+    # "", "initialised", "rejected", "late_refiltered", "dropped_late", "before_start", ...
+    reason: str = ""
 
 
 @dataclass
@@ -436,6 +437,7 @@ class _SensorStats:
     rejected: int = 0
     invalid: int = 0  # messages flagged invalid by the sensor (VO lost): skipped
     dropped_late: int = 0  # older than the filter and not recoverable from history
+    before_start: int = 0  # at or before the instant the filter started without a measurement
     refiltered: int = 0  # late measurements fused by re-filtering from history
     timeouts: int = 0  # times the sensor went silent for longer than sensor_timeout
 
@@ -697,14 +699,28 @@ class PlanarEkf:
             return [UpdateResult(msg.stamp_ns, sensor, "", False, math.nan, 0, "invalid")]
         self._mark_seen(sensor, msg.stamp_ns)
         out: list[UpdateResult] = []
+        # A gyro sample at the very instant a filter started without a measurement would be
+        # read as gyro bias (the start prior holds the robot still to 1e-9, the bias to 1e-4),
+        # and a robot turning at the start kept that bias: it is left out like an earlier one.
+        at_bare_start = (
+            isinstance(msg, ImuSample)
+            and len(self._history) == 1
+            and self._history[0].meas is None
+            and msg.stamp_ns == self.t_ns
+        )
         for m in self._measurements(sensor, msg):
-            if self.t_ns is not None and m.stamp_ns < self.t_ns:
-                res = self._refilter(m)
+            if self.t_ns is not None and (m.stamp_ns < self.t_ns or at_bare_start):
+                res = None if at_bare_start else self._refilter(m)
                 if res is None:
-                    st.dropped_late += 1
+                    start = self._history[0] if self._history else None
+                    early = (
+                        start is not None and start.meas is None and m.stamp_ns <= start.stamp_ns
+                    )
+                    reason = "before_start" if early else "dropped_late"
+                    setattr(st, reason, getattr(st, reason) + 1)
                     out.append(
                         UpdateResult(
-                            m.stamp_ns, sensor, m.kind, False, math.nan, len(m.idx), "dropped_late"
+                            m.stamp_ns, sensor, m.kind, False, math.nan, len(m.idx), reason
                         )
                     )
                     continue

@@ -700,3 +700,20 @@ def test_a_whole_fused_run_matches_filterpys_extended_kalman_filter() -> None:
         np.testing.assert_allclose(ps[k], ref_ps[k], rtol=0, atol=1e-12, err_msg=f"P step {k}")
     yaws = [x[2] for x in xs]
     assert max(yaws) > 3.0 and min(yaws) < -2.0  # the yaw crossed +-pi: the wraps were exercised
+
+
+def test_a_gyro_sample_at_the_bare_start_instant_is_not_read_as_bias() -> None:
+    # A robot already turning when the filter starts (a live run started mid-turn): the start
+    # prior holds it still to 1e-9, so a gyro sample stamped at that very instant could only be
+    # explained as gyro bias (prior 1e-4), which then stuck and slowed the heading by a third.
+    from slam.ekf import GYRO_BIAS, YAW
+
+    rate, period = 0.12, NS_PER_S // 200
+    ekf = PlanarEkf(pose_vo_config(odom0_config=mask("vx")))
+    ekf.start(0)
+    for k in range(201):  # 1 s of a 200 Hz gyro, the first sample at the start instant
+        ekf.process("imu0", ImuSample(k * period, rate))
+    assert ekf.stats.sensors["imu0"]["before_start"] == 1  # counted apart from late ones
+    x, _ = ekf.predicted(NS_PER_S)
+    assert abs(x[GYRO_BIAS]) < 5e-3  # [rad/s] (0.06 when the first sample was read as bias)
+    assert x[YAW] == pytest.approx(rate, abs=2e-3)  # [rad] after 1 s
