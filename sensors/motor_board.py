@@ -1,5 +1,5 @@
 """One interface for the robot's motor boards, the device spec that names one, and the pieces
-every driver shares (host watchdog, wheel split, odometry from RPM).
+every driver shares (host watchdog, wheel split, encoder positions from RPM).
 
 A :class:`MotorBoard` takes wheel speeds in m/s (or a body twist), gives its odometry input
 (cumulative encoder positions stamped with ``time.monotonic_ns()``; boards that measure RPM
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from sensors.config import RobotConfig
-from sensors.types import NS_PER_S, ConfigError, Pose2, SensorError, WheelTicks
+from sensors.types import NS_PER_S, ConfigError, SensorError, WheelTicks
 
 log = logging.getLogger(__name__)
 
@@ -228,38 +228,24 @@ class HostWatchdog:
 
 
 class RpmIntegrator:
-    """Tacho RPM -> cumulative wheel positions and the odometry pose with its covariance.
+    """Tacho RPM -> cumulative wheel positions, as an encoder board would report them.
 
     Each new reading's RPM is held since the previous reading (trapezoid over the interval);
     positions are kept fractional and reported floored, so no travel is lost to rounding. The
-    pose and its 3x3 covariance come from :mod:`slam.diff_drive` with the robot's wheel error
-    model (``robot.wheel_error_*``), as for encoder ticks.
+    pose and its covariance are wheel odometry's job (:class:`slam.diff_drive.WheelOdometry`
+    on these counts), as for any encoder board: sensors import nothing of ours.
     """
 
     def __init__(self, robot: RobotConfig) -> None:
         self.robot = robot
         self.pos = np.zeros(2)  # [positions] left, right
         self.last: WheelRpm | None = None
-        self.pose = np.zeros(3)
-        self.covariance = np.zeros((3, 3))
 
     def update(self, rpm: WheelRpm) -> WheelTicks:
-        from slam.diff_drive import WheelErrorModel, integrate_increments, propagate_covariance
-
         if self.last is not None and rpm.stamp_ns > self.last.stamp_ns:
             dt = (rpm.stamp_ns - self.last.stamp_ns) / NS_PER_S
             mean_rpm = 0.5 * (np.array([rpm.left, rpm.right]) + [self.last.left, self.last.right])
-            delta = mean_rpm / 60.0 * dt * self.robot.ticks_per_revolution  # [positions]
-            self.pos += delta
-            d_left, d_right = delta * self.robot.metres_per_tick  # [m]
-            ds = np.array([(d_left + d_right) / 2])
-            dth = np.array([(d_right - d_left) / self.robot.track_width])
-            model = WheelErrorModel.from_robot(self.robot)
-            self.covariance = propagate_covariance(
-                ds, dth, float(self.pose[2]), self.robot, model, cov0=self.covariance
-            )[-1]
-            x, y, th = integrate_increments(ds, dth, Pose2(*self.pose))
-            self.pose = np.array([x[-1], y[-1], th[-1]])
+            self.pos += mean_rpm / 60.0 * dt * self.robot.ticks_per_revolution  # [positions]
         if self.last is None or rpm.stamp_ns > self.last.stamp_ns:
             self.last = rpm
         return WheelTicks(rpm.stamp_ns, int(math.floor(self.pos[0])), int(math.floor(self.pos[1])))

@@ -31,7 +31,6 @@ import threading
 import time
 from typing import Any, Protocol
 
-import numpy as np
 import serial
 
 from sensors.config import BoardConfig, RobotConfig, ThunderBorgConfig
@@ -301,18 +300,8 @@ class ThunderBorgBoard(MotorBoard):
             "battery_v": None if self.battery_v is None else round(self.battery_v, 2),
             "i2c_read_retries": self.i2c.retries,
             "watchdog_stops": self.watchdog.fired,
-            "rpm_odometry": self._odometry_summary(),
             **self.counts,
         }
-
-    def _odometry_summary(self) -> str:
-        with self._lock:
-            pose, cov = self.odometry.pose.copy(), self.odometry.covariance.copy()
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        return (
-            f"x {pose[0]:.3f} m, y {pose[1]:.3f} m, yaw {math.degrees(pose[2]):.1f} deg "
-            f"(1-sigma {sd[0]:.4f} m, {sd[1]:.4f} m, {math.degrees(sd[2]):.2f} deg)"
-        )
 
     def close(self) -> None:
         self._stop.set()

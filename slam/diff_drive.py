@@ -23,6 +23,7 @@ import numpy as np
 
 from sensors.config import RobotConfig, build_section, param
 from sensors.types import NS_PER_S, Pose2, WheelTicks
+from slam.geometry import wrap_angle
 
 ORIGIN = Pose2(0.0, 0.0, 0.0)
 
@@ -330,3 +331,34 @@ def propagate_covariance_reference(
         f_p[:, 2] += a[i]
         out[i + 1] = f_p @ out[i] @ f_p.T + q[i]
     return out
+
+
+class WheelOdometry:
+    """Encoder counts one reading at a time -> the odom-frame base_link pose and its covariance.
+
+    For a board or simulator that reports counts as it drives (the simulated drive train of
+    ``navigate``, ``rgbdnav board``'s test drive, a tacho board's integrated RPM): nominal
+    geometry, midpoint rule, the robot's wheel error model (``robot.wheel_error_*``). A whole log
+    integrates at once with :func:`integrate_ticks` and :func:`propagate_covariance`.
+    """
+
+    def __init__(self, robot: RobotConfig, first: WheelTicks) -> None:
+        self.robot = robot
+        self.model = WheelErrorModel.from_robot(robot)
+        self.last = first
+        self.pose = np.zeros(3)  # odom starts at the robot's start (REP-105)
+        self.covariance = np.zeros((3, 3))
+        self.distance_m = 0.0
+
+    def update(self, ticks: WheelTicks) -> np.ndarray:
+        left = np.array([self.last.left, ticks.left])
+        right = np.array([self.last.right, ticks.right])
+        ds, dth = wheel_increments(left, right, self.robot)
+        self.covariance = propagate_covariance(
+            ds, dth, float(self.pose[2]), self.robot, self.model, cov0=self.covariance
+        )[-1]
+        x, y, yaw = integrate_increments(ds, dth, Pose2(*self.pose.tolist()))
+        self.pose = np.array([x[-1], y[-1], float(wrap_angle(yaw[-1]))])
+        self.distance_m += float(abs(ds[0]))
+        self.last = ticks
+        return self.pose

@@ -1,8 +1,10 @@
 """`rgbdnav board`: talk to a motor board (or its emulator) through the MotorBoard interface and
-report what it says: which board, firmware, battery, odometry, round-trip time, a test drive."""
+report what it says: which board, firmware, battery, odometry, round-trip time, a test drive
+(with the wheel odometry pose and its 1-sigma)."""
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -11,6 +13,7 @@ import numpy as np
 
 from sensors.motor_board import MotorBoard
 from sensors.types import NS_PER_S, SensorError
+from slam.diff_drive import WheelOdometry
 
 LATENCY_SAMPLES = 50  # board round trips timed
 TEST_DRIVE_SPEED = 0.1  # [m/s] gentle, so a robot on the floor barely moves
@@ -70,13 +73,16 @@ def check_board(board: MotorBoard, spec: str, test_drive: bool) -> BoardReport:
     if test_drive:
         report.add("failsafe", board.arm_failsafe(0.25))
         a = board.ticks()
+        odometry = WheelOdometry(board.robot_cfg, a)
         end = time.monotonic() + TEST_DRIVE_TIME
         while time.monotonic() < end:
             cmd = board.set_velocity(TEST_DRIVE_SPEED, 0.0)
             time.sleep(COMMAND_PERIOD)
+            odometry.update(board.ticks())
         board.stop()
         time.sleep(0.3)
         b = board.ticks()
+        odometry.update(b)
         m = board.robot_cfg.metres_per_tick
         travelled = (b.left - a.left + b.right - a.right) / 2 * m
         span = (b.stamp_ns - a.stamp_ns) / NS_PER_S
@@ -86,10 +92,19 @@ def check_board(board: MotorBoard, spec: str, test_drive: bool) -> BoardReport:
             f"{b.right - a.right} positions = {travelled:.3f} m over {span:.2f} s "
             f"(commanded {TEST_DRIVE_SPEED * TEST_DRIVE_TIME:.3f} m before ramps)",
         )
+        report.add("wheel odometry", _pose_summary(odometry.pose, odometry.covariance))
     extra = {k: v for k, v in board.diagnostics().items() if k not in ("board", "port", "firmware")}
     if extra:
         report.add("diagnostics", ", ".join(f"{k} {v}" for k, v in extra.items()))
     return report
+
+
+def _pose_summary(pose: np.ndarray, covariance: np.ndarray) -> str:
+    sd = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    return (
+        f"x {pose[0]:.3f} m, y {pose[1]:.3f} m, yaw {math.degrees(pose[2]):.1f} deg "
+        f"(1-sigma {sd[0]:.4f} m, {sd[1]:.4f} m, {math.degrees(sd[2]):.2f} deg)"
+    )
 
 
 def _optional(read: Any) -> str:

@@ -45,11 +45,12 @@ from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE
 from rgbdnav.visualize import Visualizer, log_run, make_visualizer, occupied_cells_xy
 from sensors.atomic import atomic_write_text
-from sensors.sim.nav_drive import EmulatedDrive, WheelOdometry
+from sensors.sim.nav_drive import EmulatedDrive
 from sensors.sim.scan import cast_scan, depth_range_sigma
 from sensors.sim.world import FloorPlan, floor_plan, load_world
 from sensors.tum import write_tum_trajectory
 from sensors.types import NS_PER_S, ConfigError, LaserScan, MapError, Pose2
+from slam.diff_drive import WheelOdometry
 from slam.geometry import oplus, path_length, wrap_angle
 from slam.localization import Localizer, MapModel
 from slam.map_bundle import LoadedMap, load_map, load_map_yaml

@@ -1,4 +1,4 @@
-"""The simulated Eddie drive train and wheel odometry for `rgbdnav navigate`, in simulated time.
+"""The simulated Eddie drive train for `rgbdnav navigate`, in simulated time.
 
 Commands take the path a real robot's do: a body twist (v, w) becomes GOSPD wheel speeds
 (:func:`sensors.eddie.wheel_speeds`: v -+ w track / 2 in encoder positions per second, both
@@ -11,9 +11,10 @@ The ground does not follow the encoders exactly (the same error model as the RGB
 ``SimConfig``): each wheel's true diameter differs from nominal by ``wheel_diameter_error``, the
 true track by ``track_width_error``, and each wheel slips by a relative amount that is a
 first-order Gauss-Markov process (std ``wheel_slip``, correlation time ``slip_correlation_time``).
-The true pose integrates the wheels' true ground travel at ``physics_rate``. Wheel odometry reads
-the counts back (as DIST would report them) and integrates them with the *nominal* geometry
-(:mod:`slam.diff_drive`), so it drifts like a real robot's. Gear backlash is not modelled.
+The true pose integrates the wheels' true ground travel at ``physics_rate``. :meth:`ticks` gives
+the counts as DIST would report them; wheel odometry (:class:`slam.diff_drive.WheelOdometry`)
+integrates them with the *nominal* geometry, so it drifts like a real robot's. Gear backlash is
+not modelled.
 """
 
 from __future__ import annotations
@@ -24,9 +25,7 @@ from sensors.config import RobotConfig, SimConfig
 from sensors.eddie import encode_command, wheel_speeds
 from sensors.eddie_emulator import EddieEmulator
 from sensors.sim.motion import diff_drive_step, gauss_markov_step
-from sensors.types import NS_PER_S, Pose2, SensorError, WheelTicks
-from slam.diff_drive import integrate_increments, wheel_increments
-from slam.geometry import wrap_angle
+from sensors.types import NS_PER_S, SensorError, WheelTicks
 
 ACK = b"\r"  # the board's reply to a command that sets something
 
@@ -97,24 +96,4 @@ class EmulatedDrive:
         return 0.5 * (vl + vr), (vr - vl) / self.robot.track_width
 
 
-class WheelOdometry:
-    """Encoder counts -> the odom-frame base_link pose (nominal geometry, midpoint rule)."""
-
-    def __init__(self, robot: RobotConfig, first: WheelTicks) -> None:
-        self.robot = robot
-        self.last = first
-        self.pose = np.zeros(3)  # odom starts at the robot's start (REP-105)
-        self.distance_m = 0.0
-
-    def update(self, ticks: WheelTicks) -> np.ndarray:
-        left = np.array([self.last.left, ticks.left])
-        right = np.array([self.last.right, ticks.right])
-        ds, dth = wheel_increments(left, right, self.robot)
-        x, y, yaw = integrate_increments(ds, dth, Pose2(*self.pose.tolist()))
-        self.pose = np.array([x[-1], y[-1], float(wrap_angle(yaw[-1]))])
-        self.distance_m += float(abs(ds[0]))
-        self.last = ticks
-        return self.pose
-
-
-__all__ = ["EmulatedDrive", "WheelOdometry"]
+__all__ = ["EmulatedDrive"]

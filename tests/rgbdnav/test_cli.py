@@ -192,6 +192,9 @@ def test_board_check_test_drives_every_emulator_and_names_it(kind: str, name: st
 
     m = re.search(r"positions = ([0-9.]+) m", result.output)
     assert m is not None and 0.05 < float(m.group(1)) < 0.15, result.output
+    pose = re.search(r"wheel odometry +x ([0-9.]+) m, .*\(1-sigma ([0-9.]+) m", result.output)
+    assert pose is not None and float(pose.group(1)) == pytest.approx(float(m.group(1)), abs=0.01)
+    assert float(pose.group(2)) > 0, result.output
 
 
 def test_board_check_rejects_a_bad_device_spec() -> None:

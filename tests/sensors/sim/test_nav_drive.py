@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from sensors.config import RobotConfig, SimConfig
-from sensors.sim.nav_drive import EmulatedDrive, WheelOdometry
+from sensors.sim.nav_drive import EmulatedDrive
+from slam.diff_drive import WheelOdometry
 
 ROBOT = RobotConfig()  # Eddie: 0.1524 m wheels, 36 positions/rev, 0.3 m track
 EXACT = SimConfig(wheel_diameter_error=(0.0, 0.0), track_width_error=0.0, wheel_slip=0.0)
