@@ -181,7 +181,7 @@ def bench_planner(
 
 def bench_scenario(args: argparse.Namespace) -> None:
     """Drive the scenario once per map and localisation mode; publish the table."""
-    from rgbdnav.commands.nav_scenario import floor_plan_map, load_scenario, run_scenario
+    from nav_scenario import floor_plan_map, load_scenario, run_scenario  # bench/ is on sys.path
 
     modes = ["groundtruth", "localizer"] if args.localization == "both" else [args.localization]
     maps: list[tuple[str, Path]] = []

@@ -68,6 +68,16 @@ def test_a_command_never_imports_another_command() -> None:
     assert bad == []
 
 
+def test_every_module_in_commands_is_a_verb() -> None:
+    """A module in `rgbdnav/commands/` is there because `cli.py` runs it as a verb; work that
+    no verb runs (a benchmark's scenario, a helper) belongs in `bench/`, `runners/` or below."""
+    verbs = {_verb_of(m) for m in _imports(ROOT / "rgbdnav" / "cli.py")} - {None}
+    commands = {
+        _module_name(path) for path in _modules("rgbdnav/commands") if path.name != "__init__.py"
+    }
+    assert commands - verbs == set()
+
+
 def test_a_run_imports_no_command_and_no_other_run() -> None:
     bad = []
     for path in _modules("rgbdnav/runners"):

@@ -4,13 +4,21 @@ a robot can reach them, keepout zones as a filter mask; and a reduced run of it 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from rgbdnav.commands.nav_scenario import (
+from sensors.sim.world import load_world, world_from_dict
+from sensors.types import ConfigError
+from slam.map_bundle import load_map_yaml
+from slam.occupancy_grid import GridGeometry
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+
+from nav_scenario import (  # noqa: E402  (bench/ is no package)
     draw_goals,
     floor_plan_map,
     goal_candidates,
@@ -19,10 +27,6 @@ from rgbdnav.commands.nav_scenario import (
     move_furniture,
     run_scenario,
 )
-from sensors.sim.world import load_world, world_from_dict
-from sensors.types import ConfigError
-from slam.map_bundle import load_map_yaml
-from slam.occupancy_grid import GridGeometry
 
 REPO = Path(__file__).resolve().parents[2]
 HOUSE = REPO / "scenes" / "house.yaml"

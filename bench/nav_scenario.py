@@ -1,5 +1,6 @@
 """The navigation target scenario: furniture moved relative to the map, seeded random goals, a
-keepout zone; reached %, collisions, keepout entries, clearance, path length, time.
+keepout zone; reached %, collisions, keepout entries, clearance, path length, time. Driven by
+``bench/bench_nav.py --scenario`` over the ``navigate`` run; not a CLI verb, so it lives here.
 
 A scenario file (``scenes/scenarios/nav_house.yaml``)::
 
