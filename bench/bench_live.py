@@ -9,19 +9,18 @@
    scenes/house.yaml``; its summary is read from ``--recorded`` or made there): ATE after SE(2)
    alignment, as ``rgbdnav eval`` computes it (TUM), which the target is judged on, and from the
    start pose (where the map's heading, set in the first metres, shows too).
-2. ``--soak-minutes N``: the route driven again and again for N minutes; resident memory growth
-   after the warm-up (the first ``--warmup`` fraction of the run).
-3. ``--drill-minutes N``: the long fault drills (the suite runs one short cycle): the route driven
+2. ``--drill-minutes N``: the long fault drills (the suite runs one short cycle): the route driven
    again and again for N minutes while, every minute, the board is unplugged (the emulator
    closes its pty) and plugged back 15 s later, and the camera stalls for 3 s. Every drill must
    be counted, every unplug end in a reconnect and every stall pause mapping, and the run must
    end with no error, a map bundle that loads and a map that held (ATE).
 
-Run: ``.venv/bin/python bench/bench_live.py [--duration 300] [--out docs/benchmarks.md]``,
-``.venv/bin/python bench/bench_live.py --soak-minutes 30 [--out docs/benchmarks.md]`` and
+Run: ``.venv/bin/python bench/bench_live.py [--duration 300] [--out docs/benchmarks.md]`` and
 ``.venv/bin/python bench/bench_live.py --drill-minutes 5 [--out docs/benchmarks.md]``.
-Results replace the "live" ("live-soak", "live-drills") section of the output markdown file; the
-drills exit with status 1 when a check fails.
+Results replace the "live" ("live-drills") section of the output markdown file; the drills exit
+with status 1 when a check fails. The soak (memory of every process over an hour) is
+``bench/bench_live_soak.py``. Runs use this tree's code (``python -m rgbdnav.cli``), not
+whatever ``rgbdnav`` script is installed.
 """
 
 from __future__ import annotations
@@ -29,6 +28,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -39,12 +39,11 @@ sys.path.insert(0, str(REPO))
 
 from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
-RGBDNAV = Path(sys.executable).with_name("rgbdnav")
+RGBDNAV = [sys.executable, "-m", "rgbdnav.cli"]  # this tree's code (PYTHONPATH set in _run)
 WORLD = REPO / "scenes" / "house.yaml"
 ATE_RATIO_TARGET = 1.2  # live ATE within 20 % of the recorded run's
 LATENCY_P50_TARGET_MS = 50.0
 LATENCY_P99_TARGET_MS = 100.0
-SOAK_GROWTH_TARGET = 0.10  # memory growth after warm-up
 # The simulated Eddie has no gyro (nor has the real one): the recorded run is made without it.
 NO_GYRO = "ekf.imu0_config=[" + ",".join(["false"] * 15) + "]"
 
@@ -55,13 +54,14 @@ DRILL_STALL_S = 3  # [s] camera stall length (live.camera_stall_timeout is short
 
 def _run(args: list[str]) -> None:
     print("$", " ".join(args), flush=True)
-    subprocess.run(args, cwd=REPO, check=True)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    subprocess.run(args, cwd=REPO, env=env, check=True)
 
 
 def live_run(out: Path, duration_s: float, extra: list[str]) -> dict[str, Any]:
     _run(
         [
-            str(RGBDNAV),
+            *RGBDNAV,
             "live",
             "--out",
             str(out),
@@ -79,7 +79,7 @@ def live_run(out: Path, duration_s: float, extra: list[str]) -> dict[str, Any]:
 def recorded_run(out: Path, extra: list[str]) -> dict[str, Any]:
     summary = out / "summary.json"
     if not summary.exists():
-        _run([str(RGBDNAV), "map", str(WORLD), "--out", str(out), "-q", "--set", NO_GYRO, *extra])
+        _run([*RGBDNAV, "map", str(WORLD), "--out", str(out), "-q", "--set", NO_GYRO, *extra])
     return {
         **json.loads(summary.read_text()),
         "_dir": out.relative_to(REPO) if out.is_relative_to(REPO) else out,
@@ -235,48 +235,6 @@ def report_live(
     return "\n".join(lines)
 
 
-def report_soak(s: dict[str, Any], minutes: float, warmup: float, load: str = "?") -> str:
-    tl = s.get("rss_mb_timeline") or []
-    after = [(t, m) for t, m in tl if t >= warmup * s["wall_s"]]
-    base = after[0][1] if after else float("nan")
-    peak = max((m for _, m in after), default=float("nan"))
-    growth = (peak - base) / base if after else float("nan")
-    c = s["counts"]
-    mp = s.get("mapper") or {}
-    end = tl[-1][1] if tl else float("nan")
-    # Linear growth after warm-up, per 10 min, by least squares over the RSS samples.
-    rate = float("nan")
-    if len(after) >= 2:
-        import numpy as np
-
-        t, m = np.array(after).T
-        rate = float(np.polyfit(t, m, 1)[0]) * 600.0
-    lines = [
-        f"## Live soak ({minutes:.0f} min)",
-        "",
-        f"Date {dt.date.today().isoformat()}; machine: {machine('numpy')}.",
-        f"Command: `.venv/bin/python bench/bench_live.py --soak-minutes {minutes:.0f}` (the "
-        "house route driven again and again while mapping).",
-        "",
-        "| measure | result |",
-        "| --- | --- |",
-        f"| route laps / waypoints reached / skipped | {c.get('route_laps', 0)} / "
-        f"{c.get('waypoints_reached', 0)} / "
-        f"{sum(v for k, v in c.items() if k.startswith('waypoints_skipped'))} |",
-        f"| scans the mapper holds / keyframes | {mp.get('scans_used')} / {mp.get('keyframes')} |",
-        f"| load average (1 min) before / after | {load} |",
-        f"| RSS after warm-up ({warmup:.0%} of the run) / at the end | {base:.0f} / {end:.0f} MB |",
-        f"| peak RSS after warm-up | {peak:.0f} MB |",
-        f"| linear growth after warm-up | {rate:.1f} MB per 10 min |",
-        f"| growth (target < {SOAK_GROWTH_TARGET:.0%}) | {growth:.1%}: "
-        f"{_yes(growth < SOAK_GROWTH_TARGET)} |",
-        f"| frames dropped in the front end | {c.get('frames_dropped_front_end', 0)} of "
-        f"{c.get('frames_received', 0)} |",
-        f"| errors | {'; '.join(s['errors']) or 'none'} |",
-    ]
-    return "\n".join(lines)
-
-
 def drill_schedule(duration_s: float) -> tuple[list[str], int]:
     """``--drill`` arguments for whole cycles within ``duration_s`` (board unplugged at +10 s,
     back at +25 s, camera stalled at +40 s of each minute) and the number of cycles."""
@@ -364,8 +322,6 @@ def report_drills(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--duration", type=float, default=300.0, help="live run length [s]")
-    ap.add_argument("--soak-minutes", type=float, default=None)
-    ap.add_argument("--warmup", type=float, default=0.2, help="soak warm-up fraction")
     ap.add_argument(
         "--recorded",
         type=Path,
@@ -409,17 +365,6 @@ def main() -> None:
             "live-drills",
         )
         sys.exit(0 if all(ok for _, _, ok in checks) else 1)
-    if args.soak_minutes:
-        load0 = _loadavg()
-        s = live_run(
-            REPO / "runs" / "bench_live_soak", args.soak_minutes * 60, ["--repeat-route", *extra]
-        )
-        publish(
-            report_soak(s, args.soak_minutes, args.warmup, f"{load0} / {_loadavg()}"),
-            args.out,
-            "live-soak",
-        )
-        return
     load0 = _loadavg()
     s = live_run(REPO / "runs" / "bench_live", args.duration, extra)
     load = f"{load0} / {_loadavg()} (1-min load average)"
