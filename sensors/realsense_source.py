@@ -56,6 +56,8 @@ LIVE_MODE = (640, 480, 30)  # [px], [px], [Hz]
 FRAME_TIMEOUT_MS = 2000  # [ms] a camera silent this long is gone
 PLAYBACK_STALL_MS = 30_000  # [ms] a playback "playing" yet silent this long is taken as ended
 NS_PER_MS = 1_000_000  # [ns/ms] librealsense stamps are milliseconds
+GYRO_POLL_MS = 50  # [ms] read_gyro looks at its samples this often
+GYRO_SETTLE_MS = 200  # [ms] and takes a stopped playback as ended after this long without one
 # librealsense colour formats -> channel order to RGB
 COLOUR_FORMATS = {"rgb8": [0, 1, 2], "bgr8": [2, 1, 0], "rgba8": [0, 1, 2], "bgra8": [2, 1, 0]}
 UDEV_HELP = (
@@ -136,6 +138,53 @@ def gyro_sensor(rs: ModuleType, device: Any) -> tuple[Any, Any] | None:
         if gyros:
             return sensor, min(gyros, key=lambda p: abs(p.fps() - GYRO_FPS))
     return None
+
+
+class GyroSamples:
+    """Gyro motion frames as librealsense's thread delivers them (a deque append is
+    thread-safe) -> :class:`ImuStream` yaw rates on the device clock, in stamp order."""
+
+    def __init__(self) -> None:
+        self._samples: deque[tuple[int, float]] = deque()  # (device stamp [ns], yaw rate)
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    def on_frame(self, frame: Any) -> None:
+        motion = frame.as_motion_frame()
+        if motion:
+            self._samples.append((round(motion.get_timestamp() * NS_PER_MS), yaw_rate(motion)))
+
+    def take(self) -> ImuStream:
+        """The samples that arrived since the last call."""
+        got = [self._samples.popleft() for _ in range(len(self._samples))]
+        stamps = np.array([t for t, _ in got], dtype=np.int64)
+        order = np.argsort(stamps, kind="stable")
+        return ImuStream(stamps[order], np.array([r for _, r in got], dtype=np.float64)[order])
+
+
+def load_recording(rs: ModuleType, file: Path, *, realtime: bool) -> Any:
+    """An SDK recording's playback device, in real time or as fast as it is read. Set before
+    streaming: a playback starts in real time, and real-time dispatch drops frames (now and then
+    the first) and gyro samples while the reader is busy."""
+    try:
+        device = rs.context().load_device(str(file))
+    except RuntimeError as err:
+        raise SensorError(f"{file}: RealSense SDK cannot read it: {err}") from err
+    device.as_playback().set_real_time(realtime)
+    return device
+
+
+def playback_ended(rs: ModuleType, playback: Any, silent_ms: int, where: str) -> bool:
+    """Whether a playback that has delivered nothing for ``silent_ms`` is over: it stopped
+    playing, or it still says "playing" but has been silent for PLAYBACK_STALL_MS (shorter
+    silences are a loaded machine keeping the reader waiting)."""
+    if playback.current_status() != rs.playback_status.playing:
+        return True
+    if silent_ms >= PLAYBACK_STALL_MS:
+        log.warning("%s: playback silent for %d s: ended", where, silent_ms // 1000)
+        return True
+    return False
 
 
 def _pick_streams(rs: ModuleType, device: Any, *, live: bool, where: str) -> dict[Any, Any]:
@@ -226,8 +275,7 @@ class RealSenseSource(SourceBase):
         # run moves the recording's gyro onto its clock with it (slam.front_end.MessageFeed).
         self.stamp_offset_ns = 0
         self._gyro: ImuStream | None | object = _UNREAD  # imu(): read once
-        # Live (realtime): the gyro streams into _gyro_samples as (device stamp [ns], yaw rate).
-        self._gyro_samples: deque[tuple[int, float]] = deque()
+        self._gyro_samples = GyroSamples()  # live (realtime): the streaming gyro
         self._gyro_sensor: Any = None
         gyro = gyro_sensor(rs, device)
         self.gyro_fps = int(gyro[1].fps()) if gyro is not None else 0  # [Hz] 0: no IMU
@@ -289,7 +337,7 @@ class RealSenseSource(SourceBase):
             for sensor in self._sensors:
                 sensor.start(self._on_frame)
             if self._gyro_sensor is not None:
-                self._gyro_sensor.start(self._on_gyro)
+                self._gyro_sensor.start(self._gyro_samples.on_frame)
         except RuntimeError:
             self.close()
             raise
@@ -337,18 +385,11 @@ class RealSenseSource(SourceBase):
         if target.file is not None and not target.file.is_file():
             raise SensorError(f"{target.file}: no such RealSense recording")
         rs = load_pyrealsense2()
-        ctx = rs.context()
         if target.file is not None:
-            try:
-                device = ctx.load_device(str(target.file))
-            except RuntimeError as err:
-                raise SensorError(f"{target.file}: RealSense SDK cannot read it: {err}") from err
-            # Set before streaming: a playback starts in real time, and real-time dispatch
-            # drops frames (now and then the first) while the reader is busy.
-            device.as_playback().set_real_time(realtime)
+            device = load_recording(rs, target.file, realtime=realtime)
             where = f"{target.file}"
         else:
-            device = cls._find_camera(rs, ctx, target.serial)
+            device = cls._find_camera(rs, rs.context(), target.serial)
             where = f"RealSense camera {_info(rs, device, 'serial_number')}"
         streams = _pick_streams(rs, device, live=target.file is None, where=where)
         try:
@@ -434,15 +475,9 @@ class RealSenseSource(SourceBase):
                 if self._frames_q is None:
                     return  # closed while waiting
                 if self._playback is not None:
-                    # Still playing: the reader was kept waiting (a loaded machine), not the end.
-                    playing = self._playback.current_status() == rs.playback_status.playing
-                    if playing and silent_ms < PLAYBACK_STALL_MS:
-                        continue
-                    if playing:
-                        log.warning(
-                            "%s: playback silent for %d s: ended", self.path, silent_ms // 1000
-                        )
-                    return  # the recording ended
+                    if playback_ended(rs, self._playback, silent_ms, self.path):
+                        return
+                    continue
                 raise SensorError(
                     f"{self.path}: no frames for {FRAME_TIMEOUT_MS / 1000:g} s; was the camera "
                     "unplugged?"
@@ -497,18 +532,10 @@ class RealSenseSource(SourceBase):
                     self.skipped["queue_full"] = self.skipped.get("queue_full", 0) + 1
                     return
 
-    def _on_gyro(self, frame: Any) -> None:
-        """librealsense's thread: one gyro sample (a deque append is thread-safe)."""
-        motion = frame.as_motion_frame()
-        if motion:
-            self._gyro_samples.append((round(motion.get_timestamp() * NS_PER_MS), yaw_rate(motion)))
-
     def take_imu(self) -> ImuStream:
         """Live: the gyro samples (yaw rates) that arrived since the last call, on the device
         clock (``stamp_offset_ns`` moves them onto the frames'), as the camera delivers them."""
-        got = [self._gyro_samples.popleft() for _ in range(len(self._gyro_samples))]
-        stamps = np.array([t for t, _ in got], dtype=np.int64)
-        return ImuStream(stamps, np.array([r for _, r in got], dtype=np.float64))
+        return self._gyro_samples.take()
 
     def imu(self) -> ImuStream | None:
         """A recording's gyro as yaw rate, read in a second pass, once; None without one, and
@@ -522,46 +549,33 @@ class RealSenseSource(SourceBase):
 
 def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:
     """A recording's gyro stream as yaw rates (-gyro_y), as fast as it reads; None without one.
-    The playback is taken out of real time before streaming (as the frame reader does): a
-    pipeline starts it in real time, and then drops samples while this process is busy."""
+    The same playback, gyro callback and end-of-playback test as the frame reader's."""
     try:
-        device = rs.context().load_device(str(file))
-    except RuntimeError:
+        device = load_recording(rs, file, realtime=False)
+    except SensorError:
         return None
-    playback = device.as_playback()
-    playback.set_real_time(False)
     found = gyro_sensor(rs, device)
     if found is None:
         return None
     sensor, profile = found
-    samples: deque[tuple[int, float]] = deque()  # appended on librealsense's thread
-
-    def on_gyro(frame: Any) -> None:
-        motion = frame.as_motion_frame()
-        if motion:
-            samples.append((round(motion.get_timestamp() * NS_PER_MS), yaw_rate(motion)))
-
+    playback, samples = device.as_playback(), GyroSamples()
     sensor.open(profile)
-    sensor.start(on_gyro)
+    sensor.start(samples.on_frame)
     try:
         silent_ms, seen = 0, 0
-        while silent_ms < PLAYBACK_STALL_MS:
-            time.sleep(0.05)
+        while True:
+            time.sleep(GYRO_POLL_MS / 1000)
             if len(samples) != seen:
                 seen, silent_ms = len(samples), 0
                 continue
-            if playback.current_status() != rs.playback_status.playing and silent_ms >= 200:
-                break  # the recording ended (and nothing came for a while)
-            silent_ms += 50
+            silent_ms += GYRO_POLL_MS
+            if silent_ms >= GYRO_SETTLE_MS and playback_ended(rs, playback, silent_ms, str(file)):
+                break
     finally:
         sensor.stop()
         sensor.close()
-    if not samples:
-        return None
-    stamps = np.array([t for t, _ in samples], dtype=np.int64)
-    rates = np.array([r for _, r in samples], dtype=np.float64)
-    order = np.argsort(stamps, kind="stable")
-    return ImuStream(stamps[order], rates[order])
+    imu = samples.take()
+    return imu if len(imu.stamps_ns) else None
 
 
 # --- writing SDK recordings (librealsense's software device) -----------------------------------

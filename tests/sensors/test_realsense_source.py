@@ -182,9 +182,9 @@ def test_a_recording_played_as_a_camera_keeps_its_timing(route) -> None:
     assert wall >= 0.9 * (truth[-1].stamp_ns - truth[0].stamp_ns) / 1e9  # paced in real time
 
 
-def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) -> None:
-    path, _ = route
-    out = tmp_path / "live"
+def _live(path: Path, out: Path) -> dict:
+    """``rgbdnav live`` for 3 s on the recording ``path`` played as the camera (no board); its
+    summary."""
     res = runner.invoke(
         app,
         [
@@ -201,7 +201,12 @@ def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) 
         ],
     )
     assert res.exit_code == 0, res.output
-    s = json.loads((out / "summary.json").read_text())
+    return json.loads((out / "summary.json").read_text())
+
+
+def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) -> None:
+    path, _ = route
+    s = _live(path, tmp_path / "live")
     assert s["errors"] == [] and s["counts"]["frames_processed"] >= 5
     assert s["counts"]["scans_mapped"] >= 1
     # One clock with the host, not 1970. The stamp offset is fixed at the first frame, so a first
@@ -214,26 +219,10 @@ def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) 
 def _live_yaw_error(path: Path, out: Path) -> tuple[float, dict]:
     """Live on ``path`` (no board): |odometry yaw - true yaw| at the last frame, and the summary.
     The route turns at YAW_RATE from its first frame (odom.tum's first row)."""
-    res = runner.invoke(
-        app,
-        [
-            "live",
-            "--camera",
-            f"realsense://{path}",
-            "--board",
-            "none",
-            "--out",
-            str(out),
-            "--duration",
-            "3",
-            "-q",
-        ],
-    )
-    assert res.exit_code == 0, res.output
+    summary = _live(path, out)
     odom = np.loadtxt(out / "odom.tum", ndmin=2)
     yaw = 2.0 * math.atan2(odom[-1, 6], odom[-1, 7])
     truth = YAW_RATE * (odom[-1, 0] - odom[0, 0])
-    summary = json.loads((out / "summary.json").read_text())
     return abs(yaw - truth), {**summary, "odom_span_s": odom[-1, 0] - odom[0, 0]}
 
 
