@@ -20,11 +20,8 @@ import argparse
 import datetime as dt
 import json
 import os
-import resource
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import yaml
@@ -32,43 +29,21 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
+from common import figure_section, folder_mb, machine, publish, run_cli  # noqa: E402
 
 HOUSE = REPO / "scenes" / "house.yaml"
 SECTION = "demo"
 SAME_FILES = ("trajectory.tum", "odom.tum", "map/map.pgm", "map/grid.npz")
 
 
-def _cli(*args: str) -> tuple[float, float]:
-    """Run ``rgbdnav ARGS -q`` from this tree; (wall [s], CPU user + system [s] of the child
-    and its own children)."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    subprocess.run(
-        [sys.executable, "-m", "rgbdnav.cli", *args, "-q"],
-        check=True,
-        env=env,
-        stdout=subprocess.DEVNULL,
-    )
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return wall, cpu
-
-
-def _size_mb(folder: Path) -> float:
-    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file()) / 2**20
-
-
 def run(world: Path, tmp: Path) -> dict:
     rec, via_disk, direct = tmp / "recording", tmp / "via_disk", tmp / "direct"
     load = [os.getloadavg()[0]]
-    render = _cli("simulate", str(world), "--out", str(rec))
-    cache_mb = _size_mb(rec)
-    mapped = _cli("map", str(rec), "--out", str(via_disk))
+    render = run_cli("simulate", str(world), "--out", str(rec))
+    cache_mb = folder_mb(rec)
+    mapped = run_cli("map", str(rec), "--out", str(via_disk))
     load.append(os.getloadavg()[0])
-    streamed = _cli("map", str(world), "--out", str(direct))
+    streamed = run_cli("map", str(world), "--out", str(direct))
     load.append(os.getloadavg()[0])
     same = all((via_disk / f).read_bytes() == (direct / f).read_bytes() for f in SAME_FILES)
     s = json.loads((direct / "summary.json").read_text())
@@ -114,19 +89,16 @@ def report(world: Path, cut: int | None, r: dict) -> str:
     ]
     shown = world.relative_to(REPO) if world.is_relative_to(REPO) else world
     cut_arg = f" --cut {cut}" if cut else ""
-    lines = [
-        "## `make demo`'s command: world rendered on demand vs through a recording (issue 27)",
-        "",
-        f"Measured {dt.date.today()} on {machine('numpy', 'cv2')}; 1-min load average "
-        f"{r['load'][0]:.1f}-{r['load'][1]:.1f} during the runs (wall times scale with it; "
-        "CPU times much less).",
-        f"Command: `python bench/bench_demo.py --world {shown}{cut_arg}`.",
-        "",
-        "| figure | value |",
-        "| --- | --- |",
-        *(f"| {k} | {v} |" for k, v in rows),
-    ]
-    return "\n".join(lines)
+    return figure_section(
+        "`make demo`'s command: world rendered on demand vs through a recording (issue 27)",
+        [
+            f"Measured {dt.date.today()} on {machine('numpy', 'cv2')}; 1-min load average "
+            f"{r['load'][0]:.1f}-{r['load'][1]:.1f} during the runs (wall times scale with it; "
+            "CPU times much less).",
+            f"Command: `python bench/bench_demo.py --world {shown}{cut_arg}`.",
+        ],
+        rows,
+    )
 
 
 def main() -> int:

@@ -18,16 +18,14 @@ import argparse
 import datetime as dt
 import json
 import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
+from common import figure_section, folder_mb, machine, publish, run_cli  # noqa: E402
 
 HOUSE = REPO / "scenes" / "house.yaml"
 SECTION = "house_route"
@@ -35,30 +33,13 @@ ATE_TARGET_M = 0.05  # [m] issue #6, SE(2)-aligned
 IOU_TARGET = 0.9  # [-] grid vs floor plan, aligned, one-cell tolerance
 
 
-def _cli(*args: str) -> float:
-    """Run ``rgbdnav ARGS`` from this tree in a child process; its wall time [s]."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    t0 = time.perf_counter()
-    subprocess.run(
-        [sys.executable, "-m", "rgbdnav.cli", *args, "-q"],
-        check=True,
-        env=env,
-        stdout=subprocess.DEVNULL,
-    )
-    return time.perf_counter() - t0
-
-
-def _size_mb(folder: Path) -> float:
-    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file()) / 2**20
-
-
 def run(world: Path) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-house-") as tmp:
         rec, out = Path(tmp) / "recording", Path(tmp) / "run"
         load = os.getloadavg()[0]
-        render_s = _cli("simulate", str(world), "--out", str(rec))
-        cache_mb = _size_mb(rec)
-        map_s = _cli("map", str(rec), "--out", str(out))
+        render_s = run_cli("simulate", str(world), "--out", str(rec))[0]
+        cache_mb = folder_mb(rec)
+        map_s = run_cli("map", str(rec), "--out", str(out))[0]
         load = max(load, os.getloadavg()[0])
         s = json.loads((out / "summary.json").read_text())
     return {"render_s": render_s, "cache_mb": cache_mb, "map_s": map_s, "load": load, "s": s}
@@ -110,18 +91,15 @@ def report(world: Path, r: dict) -> str:
         ("loop closures accepted", str(s["counts"]["loop_closures"]["accepted"])),
         ("peak RSS of the mapping run", f"{s['peak_rss_mb']:.0f} MB"),
     ]
-    lines = [
-        "## House route end to end (`make demo`'s run, render vs mapping)",
-        "",
-        f"Measured {dt.date.today()} on {machine('numpy', 'cv2')}; 1-min load average up to "
-        f"{r['load']:.1f} during the run.",
-        f"Command: `python bench/bench_house_route.py --world {_shown(world)}`.",
-        "",
-        "| figure | value |",
-        "| --- | --- |",
-        *(f"| {k} | {v} |" for k, v in rows),
-    ]
-    return "\n".join(lines)
+    return figure_section(
+        "House route end to end (`make demo`'s run, render vs mapping)",
+        [
+            f"Measured {dt.date.today()} on {machine('numpy', 'cv2')}; 1-min load average up to "
+            f"{r['load']:.1f} during the run.",
+            f"Command: `python bench/bench_house_route.py --world {_shown(world)}`.",
+        ],
+        rows,
+    )
 
 
 def main() -> int:

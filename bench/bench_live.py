@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -37,9 +36,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
+from common import TREE_CLI, figure_section, machine, publish, tree_env  # noqa: E402
 
-RGBDNAV = [sys.executable, "-m", "rgbdnav.cli"]  # this tree's code (PYTHONPATH set in _run)
 WORLD = REPO / "scenes" / "house.yaml"
 ATE_RATIO_TARGET = 1.2  # live ATE within 20 % of the recorded run's
 LATENCY_P50_TARGET_MS = 50.0
@@ -54,14 +52,13 @@ DRILL_STALL_S = 3  # [s] camera stall length (live.camera_stall_timeout is short
 
 def _run(args: list[str]) -> None:
     print("$", " ".join(args), flush=True)
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    subprocess.run(args, cwd=REPO, env=env, check=True)
+    subprocess.run(args, cwd=REPO, env=tree_env(), check=True)
 
 
 def live_run(out: Path, duration_s: float, extra: list[str]) -> dict[str, Any]:
     _run(
         [
-            *RGBDNAV,
+            *TREE_CLI,
             "live",
             "--out",
             str(out),
@@ -79,7 +76,7 @@ def live_run(out: Path, duration_s: float, extra: list[str]) -> dict[str, Any]:
 def recorded_run(out: Path, extra: list[str]) -> dict[str, Any]:
     summary = out / "summary.json"
     if not summary.exists():
-        _run([*RGBDNAV, "map", str(WORLD), "--out", str(out), "-q", "--set", NO_GYRO, *extra])
+        _run([*TREE_CLI, "map", str(WORLD), "--out", str(out), "-q", "--set", NO_GYRO, *extra])
     return {
         **json.loads(summary.read_text()),
         "_dir": out.relative_to(REPO) if out.is_relative_to(REPO) else out,
@@ -220,19 +217,17 @@ def report_live(
         ),
         ("errors", "; ".join(s["errors"]) or "none"),
     ]
-    lines = [
-        f"## Live run on the simulated robot ({duration_s:.0f} s)",
-        "",
-        f"Date {dt.date.today().isoformat()}; machine: {machine('numpy', 'cv2')}.",
-        f"Command: `.venv/bin/python bench/bench_live.py --duration {duration_s:.0f}{sets}`. The "
-        "simulated robot (renderer + board emulator) runs in its own process on the same 2 "
-        "cores, so the host gets what the renderer leaves.",
-        "",
-        "| measure | result |",
-        "| --- | --- |",
-        *[f"| {a} | {b} |" for a, b in rows],
-    ]
-    return "\n".join(lines)
+    return figure_section(
+        f"Live run on the simulated robot ({duration_s:.0f} s)",
+        [
+            f"Date {dt.date.today().isoformat()}; machine: {machine('numpy', 'cv2')}.",
+            f"Command: `.venv/bin/python bench/bench_live.py --duration {duration_s:.0f}{sets}`. "
+            "The simulated robot (renderer + board emulator) runs in its own process on the same "
+            "2 cores, so the host gets what the renderer leaves.",
+        ],
+        rows,
+        header=("measure", "result"),
+    )
 
 
 def drill_schedule(duration_s: float) -> tuple[list[str], int]:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
 import subprocess
 import sys
 import time
@@ -32,7 +31,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
+from common import TREE_CLI, machine, publish, tree_env  # noqa: E402  (bench/ is on sys.path)
 
 from sensors.atomic import atomic_write_text  # noqa: E402
 
@@ -180,9 +179,7 @@ def soak(
     """Run the live soak, sampling its processes; (the run's summary, the samples)."""
     out.mkdir(parents=True, exist_ok=True)
     cmd = [
-        sys.executable,
-        "-m",
-        "rgbdnav.cli",
+        *TREE_CLI,
         "live",
         "--out",
         str(out),
@@ -195,9 +192,8 @@ def soak(
         *extra,
     ]
     print("$", " ".join(cmd), flush=True)
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
     log = (out.parent / f"{out.name}.log").open("w")
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(cmd, cwd=REPO, env=tree_env(), stdout=log, stderr=subprocess.STDOUT)
     t0 = time.monotonic()
     rec: dict[str, Any] = {
         "command": cmd,

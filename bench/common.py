@@ -1,8 +1,15 @@
-"""Shared by the benchmark scripts: results go into docs/benchmarks.md, one marked section each."""
+"""Shared by the benchmark scripts: results go into docs/benchmarks.md, one marked section each;
+the rgbdnav they run is this tree's (``python -m rgbdnav.cli`` with the tree on the path)."""
 
 from __future__ import annotations
 
+import os
 import re
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 
@@ -47,3 +54,44 @@ def publish(body: str, out: Path | None, section: str) -> None:
     if out:
         write_section(out, section, body)
         print(f"updated {out}")
+
+
+REPO = Path(__file__).resolve().parents[1]
+TREE_CLI = [sys.executable, "-m", "rgbdnav.cli"]  # this tree's rgbdnav, not an installed script
+
+
+def tree_env() -> dict[str, str]:
+    """The environment for a child running :data:`TREE_CLI`: this tree first on the path."""
+    return {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+def run_cli(*args: str) -> tuple[float, float]:
+    """Run ``rgbdnav ARGS -q`` from this tree in a child process (its output discarded); (wall
+    [s], CPU user + system [s] of the child and its own children, the renderer's process too)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run([*TREE_CLI, *args, "-q"], check=True, env=tree_env(), stdout=subprocess.DEVNULL)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def folder_mb(folder: Path) -> float:
+    """The size of the files below ``folder`` [MiB]."""
+    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file()) / 2**20
+
+
+def figure_section(
+    title: str,
+    preamble: Sequence[str],
+    rows: Iterable[tuple[str, str]],
+    header: tuple[str, str] = ("figure", "value"),
+) -> str:
+    """A benchmark's markdown section: ``## title``, the preamble lines (date, machine, load,
+    command), then a two-column table of (figure, value) rows."""
+    table = [
+        f"| {header[0]} | {header[1]} |",
+        "| --- | --- |",
+        *(f"| {k} | {v} |" for k, v in rows),
+    ]
+    return "\n".join([f"## {title}", "", *preamble, "", *table])
