@@ -51,6 +51,24 @@ def _in_frame(poses: np.ndarray, frame: tuple[float, float, float]) -> np.ndarra
     )
 
 
+def _localize(
+    source: Path,
+    map_path: Path,
+    out: Path,
+    *extra: str,
+    initial: tuple[float, float, float] | np.ndarray | None = None,
+    code: int = 0,
+):
+    """``rgbdnav localize SOURCE --map MAP --out OUT -q [--initial-pose X Y YAW] EXTRA``; the
+    result, its exit code checked."""
+    args = ["localize", str(source), "--map", str(map_path), "--out", str(out), "-q", *extra]
+    if initial is not None:
+        args += ["--initial-pose", *(f"{v}" for v in initial)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == code, result.output
+    return result
+
+
 def _trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
     stamps, xyz, quat = load_tum_trajectory(path)
     return stamps, np.column_stack([xyz[:, :2], yaw_from_quaternion(quat)])
@@ -88,10 +106,7 @@ def test_localize_without_initial_pose_relocalises_globally_and_tracks_within_3c
 ) -> None:
     log, truth = second_session
     out = tmp_path / "run"
-    result = runner.invoke(
-        app, ["localize", str(log), "--map", str(mapped), "--out", str(out), "-q"]
-    )
-    assert result.exit_code == 0, result.output
+    result = _localize(log, mapped, out)
     assert "relocalisation" in result.output
     summary = json.loads((out / "summary.json").read_text())
     c = summary["counts"]
@@ -126,24 +141,7 @@ def test_localize_with_initial_pose_tracks_from_the_first_scan(
 ) -> None:
     log, truth = second_session
     out = tmp_path / "run"
-    x, y, yaw = truth[0] + np.array([0.1, -0.08, 0.05])  # a rough click in RViz
-    result = runner.invoke(
-        app,
-        [
-            "localize",
-            str(log),
-            "--map",
-            str(mapped),
-            "--out",
-            str(out),
-            "--initial-pose",
-            f"{x}",
-            f"{y}",
-            f"{yaw}",
-            "-q",
-        ],
-    )
-    assert result.exit_code == 0, result.output
+    _localize(log, mapped, out, initial=truth[0] + np.array([0.1, -0.08, 0.05]))  # RViz click
     summary = json.loads((out / "summary.json").read_text())
     assert summary["counts"]["tracking"] == len(truth)
     assert summary["relocalisations"]["count"] == 0
@@ -159,26 +157,7 @@ def test_localize_with_rrd_saves_a_rerun_recording_of_poses_scans_and_map(
     log, truth = second_session
     out = tmp_path / "run"
     rrd = out / "run.rrd"
-    x, y, yaw = truth[0]
-    result = runner.invoke(
-        app,
-        [
-            "localize",
-            str(log),
-            "--map",
-            str(mapped),
-            "--out",
-            str(out),
-            "--initial-pose",
-            f"{x}",
-            f"{y}",
-            f"{yaw}",
-            "--rrd",
-            str(rrd),
-            "-q",
-        ],
-    )
-    assert result.exit_code == 0, result.output
+    result = _localize(log, mapped, out, "--rrd", str(rrd), initial=truth[0])
     assert "rerun recording" in result.output
     data = rrd.read_bytes()
     # The documented entity paths are in the recording (rrd keeps them as plain strings).
@@ -196,10 +175,7 @@ def test_localize_in_a_plain_map_yaml_from_another_tool(
         (foreign / name).write_bytes((mapped / name).read_bytes())
     log, truth = second_session
     out = tmp_path / "run"
-    result = runner.invoke(
-        app, ["localize", str(log), "--map", str(foreign / "map.yaml"), "--out", str(out), "-q"]
-    )
-    assert result.exit_code == 0, result.output
+    _localize(log, foreign / "map.yaml", out)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["map"]["kind"] == "map.yaml"
     assert summary["relocalisations"]["count"] == 1
@@ -240,11 +216,7 @@ def test_localize_refuses_a_bad_map_in_one_line(
         map_yaml.write_text(yaml_text)
     log, _ = second_session
     out = tmp_path / "run"
-    result = runner.invoke(
-        app, ["localize", str(log), "--map", str(map_yaml), "--out", str(out), "-q"]
-    )
-    assert result.exit_code == 1
-    text = result.output.strip()
+    text = _localize(log, map_yaml, out, code=1).output.strip()
     assert text.startswith("error:") and "\n" not in text and match in text, text
     assert not out.exists()  # refused before anything was written
 
@@ -254,23 +226,7 @@ def test_localize_with_an_initial_pose_in_a_wall_reports_lost_and_never_a_wrong_
 ) -> None:
     log, truth = second_session
     out = tmp_path / "run"
-    result = runner.invoke(
-        app,
-        [
-            "localize",
-            str(log),
-            "--map",
-            str(mapped),
-            "--out",
-            str(out),
-            "--initial-pose",
-            "8.0",
-            "3.0",
-            "0.0",
-            "-q",
-        ],
-    )
-    assert result.exit_code == 0, result.output
+    _localize(log, mapped, out, initial=(8.0, 3.0, 0.0))
     summary = json.loads((out / "summary.json").read_text())
     assert summary["initial_pose"]["cell"] in ("occupied", "unknown", "outside")
     lost = summary["lost_episodes"]
@@ -317,24 +273,7 @@ def test_localize_an_rgbd_recording_of_the_house_tracks_within_6cm_of_the_ground
     )
     assert result.exit_code == 0, result.output
     out = tmp_path / "run"
-    x, y, yaw = world.start
-    result = runner.invoke(
-        app,
-        [
-            "localize",
-            str(rec),
-            "--map",
-            str(tmp_path / "map.yaml"),
-            "--initial-pose",
-            str(x),
-            str(y),
-            str(yaw),
-            "--out",
-            str(out),
-            "-q",
-        ],
-    )
-    assert result.exit_code == 0, result.output
+    _localize(rec, tmp_path / "map.yaml", out, initial=world.start)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frame"] == "base_link"
     assert summary["counts"]["tracking"] == summary["counts"]["scans"] >= RGBD_FRAMES - 2
@@ -368,26 +307,7 @@ def test_localize_in_a_rotated_ascii_nav2_map_tracks_as_in_the_original(
     )
     log, truth = second_session
     out = tmp_path / "run"
-    x, y, yaw = truth[0]
-    result = runner.invoke(
-        app,
-        [
-            "localize",
-            str(log),
-            "--map",
-            str(tmp_path / "turned.yaml"),
-            "--out",
-            str(out),
-            "--initial-pose",
-            f"{x}",
-            f"{y}",
-            f"{yaw}",
-            "-q",
-            "--format",
-            "euroc",
-        ],
-    )
-    assert result.exit_code == 0, result.output
+    result = _localize(log, tmp_path / "turned.yaml", out, "--format", "euroc", initial=truth[0])
     _, est = _trajectory(out / "trajectory.tum")
     d, _ = _errors(est, truth)
     assert np.median(d) < 0.03 and d.max() < 0.1, (np.median(d), d.max())
@@ -411,11 +331,7 @@ def test_seed_without_a_world_is_refused_not_ignored(
     second_session: tuple[Path, np.ndarray], mapped: Path, tmp_path: Path
 ) -> None:
     log, _ = second_session
-    result = runner.invoke(
-        app,
-        ["localize", str(log), "--map", str(mapped), "--out", str(tmp_path / "run"), "--seed", "3"],
-    )
-    assert result.exit_code == 1
+    result = _localize(log, mapped, tmp_path / "run", "--seed", "3", code=1)
     assert result.output.strip() == (
         "error: --seed: only with a world SOURCE (it seeds the rendering); it would be ignored here"
     )

@@ -461,12 +461,9 @@ def corridor(period_m: float | None) -> np.ndarray:
 OUT_AND_BACK = legs_route((2.0, 1.0, 0.0), [(12.0, 0.0), (12.0, math.pi)])
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_aliased_loop_candidates_do_not_corrupt_the_map(seed: int) -> None:
-    # Niches every 1.2 m and a 3 m range: places 1.2 m apart look identical, and late on the
-    # return leg the loop search window (3 sigma of 3 %/m drift) spans more than one period.
-    # Measured (seeds 0, 1, 2): accepted closures off by at most 0.15, 0.10, 0.14 m; map max error
-    # 0.13, 0.08, 0.09 m; odometry 0.39, 0.60, 0.37 m.
+def out_and_back(niche_period: float | None, seed: int) -> tuple[list[LaserScan], np.ndarray]:
+    """Short-range scans (1 cm noise) of the corridor with niches every ``niche_period`` (None:
+    bare walls) along OUT_AND_BACK, and odometry 3 % long with per-step noise; seeded."""
     odom = corrupt_odometry(
         OUT_AND_BACK,
         scale_error=0.03,
@@ -476,8 +473,18 @@ def test_aliased_loop_candidates_do_not_corrupt_the_map(seed: int) -> None:
         seed=seed,
     )
     scans = scans_along(
-        corridor(ALIAS_PERIOD), OUT_AND_BACK, noise_m=0.01, seed=seed, range_max=SHORT_RANGE
+        corridor(niche_period), OUT_AND_BACK, noise_m=0.01, seed=seed, range_max=SHORT_RANGE
     )
+    return scans, odom
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_aliased_loop_candidates_do_not_corrupt_the_map(seed: int) -> None:
+    # Niches every 1.2 m and a 3 m range: places 1.2 m apart look identical, and late on the
+    # return leg the loop search window (3 sigma of 3 %/m drift) spans more than one period.
+    # Measured (seeds 0, 1, 2): accepted closures off by at most 0.15, 0.10, 0.14 m; map max error
+    # 0.13, 0.08, 0.09 m; odometry 0.39, 0.60, 0.37 m.
+    scans, odom = out_and_back(ALIAS_PERIOD, seed)
     result = run_mapper(scans, odom)
     loops = [e for e in result.edges if e["kind"] == "loop"]
     assert loops  # closures were found, so the aliasing was actually exercised
@@ -495,18 +502,7 @@ def test_aliased_loop_candidates_do_not_corrupt_the_map(seed: int) -> None:
 def test_featureless_corridor_map_is_no_worse_than_odometry() -> None:
     # Before the degeneracy-aware fusion (seeds 0-2) the map ended 1.05-1.35 m off where odometry
     # was 0.37-0.60 m off: ICP's faked information along the corridor won over odometry.
-    seed = 0
-    odom = corrupt_odometry(
-        OUT_AND_BACK,
-        scale_error=0.03,
-        yaw_bias_rad_per_m=0.0,
-        sigma_xy_m=0.005,
-        sigma_yaw_rad=0.002,
-        seed=seed,
-    )
-    scans = scans_along(
-        corridor(None), OUT_AND_BACK, noise_m=0.01, seed=seed, range_max=SHORT_RANGE
-    )
+    scans, odom = out_and_back(None, seed=0)
     result = run_mapper(scans, odom, MapperConfig(do_loop_closing=False))
     pos, _ = errors(result.scan_poses, OUT_AND_BACK)
     odom_pos, _ = errors(odom, OUT_AND_BACK)
