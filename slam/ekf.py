@@ -734,17 +734,7 @@ class PlanarEkf:
         """(passes, NIS) of ``sensor``'s Mahalanobis gate for ``msg`` against the filter's
         prediction at its stamp, without fusing it. (True, nan) when there is nothing to
         compare with (no state yet, older than the history): :meth:`process` then decides."""
-        spec = self.specs[sensor]
-        z = np.array([msg.vx, msg.vy, msg.vyaw])
-        made = self._make(
-            sensor,
-            msg.stamp_ns,
-            "twist",
-            spec.twist_mask,
-            z,
-            _cov3(msg.covariance),
-            spec.twist_threshold,
-        )
+        made = self._measurements(sensor, msg)  # a twist: no per-sensor state is touched
         if not made or self.t_ns is None:
             return True, math.nan
         m = made[0]
