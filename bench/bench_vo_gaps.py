@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 
 from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
 
-from rgbdnav.cli import _recording_for  # noqa: E402
+from rgbdnav.cache import recording_for  # noqa: E402
 from rgbdnav.config import load_config  # noqa: E402
 from rgbdnav.scan_stream import RGBD_PROFILE  # noqa: E402
 from sensors.recording import Recording  # noqa: E402
@@ -101,7 +101,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, help="markdown file to update (docs/benchmarks.md)")
     args = ap.parse_args()
-    recording = _recording_for(args.source, load_config([], []), 0, True)
+    recording = recording_for(args.source, load_config([], []), 0)
     rec = Recording.open(recording)
     cfg = load_config([RGBD_PROFILE, LIVE_PROFILE], [NO_GYRO])
     ws, wl, wr = rec.wheels()

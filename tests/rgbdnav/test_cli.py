@@ -280,6 +280,14 @@ def test_odometry_refuses_a_source_without_wheels_whose_frames_vo_cannot_track(
     assert message in result.output
 
 
+def test_the_suite_renders_no_cache_into_the_users_home() -> None:
+    """tests/conftest.py points the render cache into pytest's temporary directory."""
+    from rgbdnav.cache import cache_root
+
+    home_cache = Path.home() / ".cache"
+    assert not cache_root().resolve().is_relative_to(home_cache.resolve()), cache_root()
+
+
 def test_an_unreadable_cached_rendering_is_rendered_again(
     tmp_path: Path, monkeypatch, caplog
 ) -> None:
