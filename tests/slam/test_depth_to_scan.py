@@ -18,6 +18,7 @@ from slam.depth_to_scan import (
     DepthToScanError,
     nearest_per_beam_reference,
 )
+from tests.sim_worlds import room, wall_ahead
 
 CAMERA = CameraConfig()
 ROBOT = RobotConfig()
@@ -27,23 +28,6 @@ INTRINSICS = CameraIntrinsics(
 )
 TILT_RAD = 0.35  # [rad] nose down
 RANGE_TOL_M = 0.01  # [m]
-
-
-def room(walls: list[dict], furniture: list[dict] | None = None) -> dict:
-    return {
-        "name": "test",
-        "walls": walls,
-        "furniture": furniture or [],
-        "start": [0.0, 0.0, 0.0],
-        "route": [[1.0, 0.0]],
-    }
-
-
-def wall_ahead(distance: float, yaw_deg: float = 0.0) -> dict:
-    """A 20 m wall, 0.1 m thick, crossing the x axis at ``distance``, turned by ``yaw_deg``."""
-    a = math.radians(yaw_deg)
-    dx, dy = -math.sin(a) * 10, math.cos(a) * 10
-    return {"from": [distance - dx, -dy], "to": [distance + dx, dy], "thickness": 0.1}
 
 
 def true_depth(world: dict, robot: RobotConfig = ROBOT) -> np.ndarray:

@@ -11,35 +11,10 @@ import pytest
 from sensors.config import CameraConfig, RobotConfig, SimConfig
 from sensors.sim.render import KinectRenderer, camera_pose_in_world
 from sensors.sim.world import world_from_dict
+from tests.sim_worlds import NOISELESS, room, wall_ahead
 
 CAMERA = CameraConfig()
 ROBOT = RobotConfig()
-NOISELESS = replace(
-    SimConfig(),
-    disparity_noise=0.0,
-    disparity_subpixel=10**6,
-    depth_dropout=0.0,
-    depth_edge_threshold=0.0,
-    shadows=False,
-    rgb_noise=0.0,
-)
-
-
-def room(walls: list[dict], furniture: list[dict] | None = None) -> dict:
-    return {
-        "name": "test",
-        "walls": walls,
-        "furniture": furniture or [],
-        "start": [0.0, 0.0, 0.0],
-        "route": [[1.0, 0.0]],
-    }
-
-
-def wall_ahead(distance: float, yaw_deg: float = 0.0) -> dict:
-    """A 20 m wall crossing the x axis at ``distance``, turned by ``yaw_deg`` from facing us."""
-    a = math.radians(yaw_deg)
-    dx, dy = -math.sin(a) * 10, math.cos(a) * 10
-    return {"from": [distance - dx, -dy], "to": [distance + dx, dy], "thickness": 0.1}
 
 
 def renderer(
