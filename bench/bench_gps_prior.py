@@ -13,7 +13,6 @@ and wall seconds to the fix. Prints a markdown table.
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import sys
 import time
@@ -25,20 +24,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 from bench_localization import (  # noqa: E402  (bench/ is on sys.path)
     MAX_RELOC_SCANS,
-    ODOM_SCALE_ERROR,
-    ODOM_SEED,
-    ODOM_SIGMA_XY,
-    ODOM_SIGMA_YAW,
-    ODOM_YAW_BIAS,
     RADISH,
     SUCCESS_M,
     SUCCESS_RAD,
     _build_map,
     pose_errors,
+    radish_case,
 )
-from bench_mapper import corrupt_trajectory  # noqa: E402
 
-from sensors.carmen import CarmenSource  # noqa: E402
 from sensors.geo import GeoAnchor  # noqa: E402
 from sensors.gps import SimGpsConfig, simulate_gps  # noqa: E402
 from slam.config import LocalizerConfig  # noqa: E402
@@ -50,21 +43,8 @@ STARTS_SEED = 0
 
 
 def run(name: str, starts: int, sigma: float) -> list[str]:
-    logging.getLogger("sensors.carmen").setLevel(logging.ERROR)
-    logging.getLogger("slam.localization").setLevel(logging.WARNING)
-    src = CarmenSource(RADISH[name])
-    scans = list(src.scans())
-    stream = src.laser_poses()
-    truth = np.column_stack([stream.x, stream.y, stream.yaw])
+    _, scans, truth, odom = radish_case(name)
     stamps = np.array([s.stamp_ns for s in scans], np.int64)
-    odom = corrupt_trajectory(
-        truth,
-        ODOM_SCALE_ERROR,
-        ODOM_YAW_BIAS,
-        ODOM_SIGMA_XY,
-        ODOM_SIGMA_YAW,
-        np.random.default_rng(ODOM_SEED),
-    )
     model = _build_map(scans, truth)
     cfg = LocalizerConfig()
     gps = simulate_gps(stamps, truth[:, :2], ANCHOR, SimGpsConfig(sigma_m=sigma), GPS_SEED)

@@ -221,14 +221,14 @@ def _build_map(scans: list[Any], poses: np.ndarray) -> Any:
     return MapModel.from_grid(grid, LocalizerConfig(), mc.occupied_thresh, mc.free_thresh)
 
 
-def run_case(spec: CaseSpec) -> dict[str, Any]:
+def radish_case(name: str) -> tuple[Any, list[Any], np.ndarray, np.ndarray]:
+    """A Radish log's source, its scans, its corrected poses (the truth) and the fake odometry
+    made from them (seeded, as ``bench_mapper`` makes it)."""
     from sensors.carmen import CarmenSource
-    from slam.config import LocalizerConfig
-    from slam.localization import Localizer
 
     logging.getLogger("sensors.carmen").setLevel(logging.ERROR)  # Radish ODOM stamps are all 0
     logging.getLogger("slam.localization").setLevel(logging.WARNING)
-    src = CarmenSource(RADISH[spec.name])
+    src = CarmenSource(RADISH[name])
     scans = list(src.scans())
     stream = src.laser_poses()
     assert stream is not None
@@ -241,6 +241,14 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
         ODOM_SIGMA_YAW,
         np.random.default_rng(ODOM_SEED),
     )
+    return src, scans, truth, odom
+
+
+def run_case(spec: CaseSpec) -> dict[str, Any]:
+    from slam.config import LocalizerConfig
+    from slam.localization import Localizer
+
+    src, scans, truth, odom = radish_case(spec.name)
     cfg = LocalizerConfig()
     t0 = time.perf_counter()
     model = _build_map(scans, truth)
