@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -44,13 +46,23 @@ from slam.ekf import (
     wheel_twist_inputs,
 )
 from slam.metrics import interpolate_poses
-from slam.visual_odometry import VisualOdometry, VoResult
+from slam.visual_odometry import Features, VisualOdometry, VoResult
 
 log = logging.getLogger(__name__)
 
 OdometryMessage = PoseInput | TwistInput
 GAP_PERIODS = 1.5  # a VO pair longer than this many camera frame periods spans a lost frame
 MIN_HISTORY_S = 1.0  # [s] EKF history for spans fused late (a gap of up to ~1 s)
+
+_STAGE: list[ThreadPoolExecutor] = []  # the frame stage's thread (FrontEnd.prefetch), made once
+if hasattr(os, "register_at_fork"):  # a forked child has no threads: it makes its own
+    os.register_at_fork(after_in_child=_STAGE.clear)
+
+
+def _stage() -> ThreadPoolExecutor:
+    if not _STAGE:
+        _STAGE.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-stage"))
+    return _STAGE[0]
 
 
 @dataclass(frozen=True)
@@ -78,8 +90,8 @@ class FrontEndStep:
     scan: LaserScan | None  # depth -> scan in base_link (planar mode with scans on)
     vo: VoResult | None  # None: VO off, or skipped on this frame
     camera_pose: np.ndarray | None  # (4, 4) handheld: camera in the first camera's optical frame
-    vo_ms: float = math.nan  # [ms] VO time (incl. fusing its twist)
-    scan_ms: float = math.nan  # [ms] depth -> scan time
+    vo_ms: float = math.nan  # [ms] VO time (incl. fusing its twist, and the features made ahead)
+    scan_ms: float = math.nan  # [ms] depth -> scan time (made ahead or not)
     ekf_ms: float = math.nan  # [ms] the pose query
 
 
@@ -106,6 +118,16 @@ def pose_only_odom0(cfg: EkfConfig) -> EkfConfig:
         flags[STATE_NAMES.index(pose_name)] = flags[STATE_NAMES.index(rate_name)]
         flags[STATE_NAMES.index(rate_name)] = False
     return replace(cfg, odom0_config=tuple(flags), odom0_differential=True)
+
+
+@dataclass(frozen=True, eq=False)
+class _OwnWork:
+    """What :meth:`FrontEnd.prefetch` made of a frame ahead, with the times it took."""
+
+    features: Features | None
+    features_ms: float
+    scan: LaserScan | None
+    scan_ms: float
 
 
 class FrontEnd:
@@ -153,6 +175,8 @@ class FrontEnd:
         self._d2s: DepthToScan | None = None
         self._vo_prev_ns: int | None = None  # the frame VO last ran on
         self._vo_skipped: list[int] = []  # frames VO skipped since then
+        # prefetch: the frames whose own work runs ahead on the stage thread, and that work
+        self._ahead: deque[tuple[RgbdFrame, Future[_OwnWork]]] = deque()
 
     @property
     def vo_stats(self) -> dict[str, int]:
@@ -212,13 +236,43 @@ class FrontEnd:
 
     # 2. Frames.
 
-    def frame(self, frame: RgbdFrame, skip_vo: bool = False) -> FrontEndStep:
-        """VO (unless ``skip_vo``: a live front end behind), the pose at the frame's stamp and
-        the scan. A skipped frame's motion is fused with the next VO pair, spread over both."""
+    def _stages(self, frame: RgbdFrame) -> None:
+        """VO and depth -> scan for the camera of the first frame seen."""
         if self._vo is None and self.options.vo:
             self._vo = VisualOdometry(frame.intrinsics, self.vo_cfg, self.robot)
         if self._d2s is None and self.options.scan and self.options.planar:
             self._d2s = DepthToScan(frame.intrinsics, self.robot, self.d2s_cfg)
+
+    def prefetch(self, frame: RgbdFrame) -> None:
+        """Start the work of ``frame`` that depends on nothing but the frame (its ORB features,
+        its depth scan) on the stage thread, to run while the frame before it goes through VO
+        matching, the EKF and the mapper; the next :meth:`frame` of this very frame takes the
+        results. Both are pure functions of the frame and the config, so the output is bit for
+        bit the sequential one; ORB, OpenCV's resizes and numpy's large-array kernels release
+        the GIL, so the two stages share the two cores (docs/design/speed.md)."""
+        self._stages(frame)
+        feats = self._vo is not None and self._vo.features_every_frame
+        if feats or self._d2s is not None:
+            self._ahead.append((frame, _stage().submit(self._own_work, frame, feats)))
+
+    def _own_work(self, frame: RgbdFrame, feats: bool) -> _OwnWork:
+        t0 = time.perf_counter()
+        f = self._vo.extract(frame) if feats and self._vo is not None else None
+        t1 = time.perf_counter()
+        scan = self._d2s.from_frame(frame).scan if self._d2s is not None else None
+        return _OwnWork(f, 1e3 * (t1 - t0), scan, 1e3 * (time.perf_counter() - t1))
+
+    def frame(self, frame: RgbdFrame, skip_vo: bool = False) -> FrontEndStep:
+        """VO (unless ``skip_vo``: a live front end behind), the pose at the frame's stamp and
+        the scan. A skipped frame's motion is fused with the next VO pair, spread over both."""
+        self._stages(frame)
+        own = None
+        if any(f is frame for f, _ in self._ahead):
+            while own is None:  # (work made ahead for frames never processed is dropped)
+                f, work = self._ahead.popleft()
+                own = work.result() if f is frame else None
+        if own is not None and own.features is not None and self._vo is not None:
+            self._vo.give_features(frame, own.features)
         if self.ekf is not None and (self.vo_carries or self.options.wheels):
             # The odom frame is where the robot starts; with wheels, where it stands at the
             # first frame unless their first motion came before it. Frames before the board's
@@ -232,11 +286,16 @@ class FrontEnd:
         ekf_ms = 1e3 * (time.perf_counter() - t0)
         scan, scan_ms = None, math.nan
         if self._d2s is not None and odom is not None:
-            t0 = time.perf_counter()
-            scan = self._d2s.from_frame(frame).scan
-            scan_ms = 1e3 * (time.perf_counter() - t0)
+            if own is not None and own.scan is not None:
+                scan, scan_ms = own.scan, own.scan_ms
+            else:
+                t0 = time.perf_counter()
+                scan = self._d2s.from_frame(frame).scan
+                scan_ms = 1e3 * (time.perf_counter() - t0)
         if self.options.pose_before_vo:  # VO corrects the filter for the frames that follow
             res, vo_ms = self._visual_odometry(frame, skip_vo)
+        if res is not None and own is not None and own.features is not None:
+            vo_ms += own.features_ms
         camera = None
         if not self.options.planar and self._vo is not None:
             camera = self._vo.T_odom_cam.copy()
@@ -456,17 +515,42 @@ class MessageFeed:
 
 
 def replay(
-    src: Source, fe: FrontEnd, progress: Callable[[int, int], None] | None = None
+    src: Source,
+    fe: FrontEnd,
+    progress: Callable[[int, int], None] | None = None,
+    ahead: bool = True,
 ) -> Iterator[FrontEndStep]:
     """``src``'s streams through ``fe`` in time order: before each frame every wheel reading,
-    odometry message and IMU sample stamped at or before it (:class:`MessageFeed`)."""
+    odometry message and IMU sample stamped at or before it (:class:`MessageFeed`). With
+    ``ahead`` the next frame is read before this one is processed and its own work (features,
+    scan) runs on the stage thread meanwhile (:meth:`FrontEnd.prefetch`; the same steps)."""
     messages = MessageFeed(src, fe)
     n = len(src.stream_stamps().get("rgb", ()))
-    for j, frame in enumerate(src.frames()):
+    frames = src.frames()
+    if not ahead:
+        for j, frame in enumerate(frames):
+            messages.until(frame.stamp_ns)
+            yield fe.frame(frame)
+            if progress is not None:
+                progress(j + 1, n)
+        return
+    nxt = next(frames, None)
+    j = 0
+    while nxt is not None:
+        frame, error = nxt, None
+        try:
+            nxt = next(frames, None)
+        except Exception as err:  # a bad next frame: raised where it was before, after this one
+            nxt, error = None, err
+        if nxt is not None:
+            fe.prefetch(nxt)
         messages.until(frame.stamp_ns)
         yield fe.frame(frame)
+        j += 1
         if progress is not None:
-            progress(j + 1, n)
+            progress(j, n)
+        if error is not None:
+            raise error
 
 
 __all__ = [

@@ -148,3 +148,52 @@ def test_live_frames_before_the_boards_first_motion_get_the_start_pose_and_are_m
     assert isinstance(live.scan_q.get_nowait(), tuple)  # scans went to the mapper
     posed = live.odom_track.load()
     assert len(posed) == len(frames) and np.abs(posed[:, 1:]).max() < 0.05  # near the start
+
+
+def test_features_and_scans_made_ahead_on_the_stage_thread_give_the_sequential_steps(
+    recording: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import threading
+
+    from rgbdnav.scan_stream import source_config
+    from slam.visual_odometry import VisualOdometry
+
+    where: list[str] = []
+    extract = VisualOdometry.extract
+
+    def spy(self: VisualOdometry, frame: object) -> object:
+        where.append(threading.current_thread().name)
+        return extract(self, frame)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(VisualOdometry, "extract", spy)
+    runs = {}
+    for ahead in (False, True):
+        where.clear()
+        with open_source(recording) as src:
+            cfg = source_config(src, [], [])[2]  # `rgbdnav map`'s config: ORB on every frame
+            fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, options_for(src))
+            runs[ahead] = list(replay(src, fe, ahead=ahead))
+        n = len(runs[ahead])
+        on_main = where.count(threading.main_thread().name)
+        # Sequential: every frame's features on the caller's thread; ahead: all but the first.
+        assert (len(where), on_main) == ((n, n) if not ahead else (n, 1)), where
+    seq, pipe = runs[False], runs[True]
+    assert len(seq) == len(pipe) == 45
+    tracked = 0
+    for a, b in zip(seq, pipe, strict=True):
+        assert a.stamp_ns == b.stamp_ns and a.timed_out == b.timed_out
+        assert (a.odom is None) == (b.odom is None)
+        if a.odom is not None and b.odom is not None:
+            assert a.odom.pose == b.odom.pose
+            assert np.array_equal(a.odom.covariance, b.odom.covariance)
+        assert a.scan is not None and b.scan is not None
+        assert np.array_equal(a.scan.ranges, b.scan.ranges)
+        assert a.vo is not None and b.vo is not None
+        assert (a.vo.success, a.vo.reason, a.vo.inliers) == (
+            b.vo.success,
+            b.vo.reason,
+            b.vo.inliers,
+        )
+        assert np.array_equal(a.vo.T_prev_curr, b.vo.T_prev_curr)
+        tracked += a.vo.success
+    assert tracked >= 40  # the comparison covers tracked frames, not failures
