@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import sys
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator
@@ -53,6 +54,10 @@ log = logging.getLogger(__name__)
 OdometryMessage = PoseInput | TwistInput
 GAP_PERIODS = 1.5  # a VO pair longer than this many camera frame periods spans a lost frame
 MIN_HISTORY_S = 1.0  # [s] EKF history for spans fused late (a gap of up to ~1 s)
+# [s] Python's GIL switch interval while replay() runs the frame stage (default 5 ms): a stage
+# thread back from a GIL-free OpenCV call waits up to this for the main thread to let go, many
+# times a frame (docs/design/speed.md)
+STAGE_SWITCH_INTERVAL_S = 0.0005
 
 _STAGE: list[ThreadPoolExecutor] = []  # the frame stage's thread (FrontEnd.prefetch), made once
 if hasattr(os, "register_at_fork"):  # a forked child has no threads: it makes its own
@@ -144,7 +149,7 @@ class FrontEnd:
     ) -> None:
         self.options = options
         self.robot = robot
-        vo = vo_for_interval(vo, options.frame_interval_s, options.camera_rate_hz)
+        vo_given, vo = vo, vo_for_interval(vo, options.frame_interval_s, options.camera_rate_hz)
         self.vo_cfg = vo if options.planar else replace(vo, force_3dof=False)
         self.d2s_cfg = depth_to_scan
         if options.odometry == "pose" and not options.wheels:
@@ -166,6 +171,13 @@ class FrontEnd:
             self.inputs = tuple(
                 sorted(n for n, on in wanted.items() if on and any(getattr(ekf, f"{n}_config")))
             )
+        if self.vo_cfg.every_n_frames > 1 and "odom0" in self.inputs:  # pairs n frames apart
+            period = max(options.frame_interval_s, 1.0 / options.camera_rate_hz)
+            span = period * self.vo_cfg.every_n_frames
+            self.vo_cfg = replace(
+                vo_for_interval(vo_given, span, options.camera_rate_hz),
+                force_3dof=self.vo_cfg.force_3dof,
+            )
         self.counts: Counter[str] = Counter()
         self._recent: deque[WheelTicks] = deque()
         self._gate = EncoderGate(robot)
@@ -177,6 +189,7 @@ class FrontEnd:
         self._vo_skipped: list[int] = []  # frames VO skipped since then
         # prefetch: the frames whose own work runs ahead on the stage thread, and that work
         self._ahead: deque[tuple[RgbdFrame, Future[_OwnWork]]] = deque()
+        self._n_frames = 0  # frames through frame() so far
 
     @property
     def vo_stats(self) -> dict[str, int]:
@@ -251,7 +264,8 @@ class FrontEnd:
         bit the sequential one; ORB, OpenCV's resizes and numpy's large-array kernels release
         the GIL, so the two stages share the two cores (docs/design/speed.md)."""
         self._stages(frame)
-        feats = self._vo is not None and self._vo.features_every_frame
+        due = self._vo_due(self._n_frames + len(self._ahead))  # frames come in order
+        feats = due and self._vo is not None and self._vo.features_every_frame
         if feats or self._d2s is not None:
             self._ahead.append((frame, _stage().submit(self._own_work, frame, feats)))
 
@@ -266,6 +280,8 @@ class FrontEnd:
         """VO (unless ``skip_vo``: a live front end behind), the pose at the frame's stamp and
         the scan. A skipped frame's motion is fused with the next VO pair, spread over both."""
         self._stages(frame)
+        stride = not self._vo_due(self._n_frames)  # vo.every_n_frames: not this one
+        self._n_frames += 1
         own = None
         if any(f is frame for f, _ in self._ahead):
             while own is None:  # (work made ahead for frames never processed is dropped)
@@ -280,7 +296,7 @@ class FrontEnd:
             self.ekf.start(frame.stamp_ns)
         res, vo_ms = (None, math.nan)
         if not self.options.pose_before_vo:
-            res, vo_ms = self._visual_odometry(frame, skip_vo)
+            res, vo_ms = self._visual_odometry(frame, skip_vo, stride)
         t0 = time.perf_counter()
         odom, timed_out = self._pose_at(frame.stamp_ns)
         ekf_ms = 1e3 * (time.perf_counter() - t0)
@@ -293,7 +309,7 @@ class FrontEnd:
                 scan = self._d2s.from_frame(frame).scan
                 scan_ms = 1e3 * (time.perf_counter() - t0)
         if self.options.pose_before_vo:  # VO corrects the filter for the frames that follow
-            res, vo_ms = self._visual_odometry(frame, skip_vo)
+            res, vo_ms = self._visual_odometry(frame, skip_vo, stride)
         if res is not None and own is not None and own.features is not None:
             vo_ms += own.features_ms
         camera = None
@@ -302,6 +318,12 @@ class FrontEnd:
         return FrontEndStep(
             frame.stamp_ns, odom, timed_out, scan, res, camera, vo_ms, scan_ms, ekf_ms
         )
+
+    def _vo_due(self, index: int) -> bool:
+        """VO runs on frame ``index`` (0 = the first): every frame, or with ``vo.every_n_frames``
+        n > 1 every n-th one while the wheels or odometry messages carry the filter between."""
+        n = self.vo_cfg.every_n_frames
+        return n <= 1 or "odom0" not in self.inputs or index % n == 0
 
     def _pose_at(self, stamp_ns: int) -> tuple[Odometry2D | None, bool]:
         if self.ekf is None:
@@ -313,13 +335,15 @@ class FrontEnd:
             return None, False
         return od, self.ekf.is_timed_out(stamp_ns)
 
-    def _visual_odometry(self, frame: RgbdFrame, skip: bool) -> tuple[VoResult | None, float]:
+    def _visual_odometry(
+        self, frame: RgbdFrame, skip: bool, stride: bool = False
+    ) -> tuple[VoResult | None, float]:
         """VO between ``frame`` and the last frame VO ran on, fused as the pair's mean twist
         over every frame it spans; (result or None when skipped or off, ms)."""
         if self._vo is None:
             return None, math.nan
-        if skip and self._vo_prev_ns is not None:
-            self.counts["vo_skipped_behind"] += 1
+        if (skip or stride) and self._vo_prev_ns is not None:
+            self.counts["vo_skipped_behind" if skip else "vo_skipped_stride"] += 1
             self._vo_skipped.append(frame.stamp_ns)
             return None, math.nan
         t0 = time.perf_counter()
@@ -534,7 +558,24 @@ def replay(
             if progress is not None:
                 progress(j + 1, n)
         return
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(min(switch, STAGE_SWITCH_INTERVAL_S))
+    try:
+        yield from _replay_ahead(frames, messages, fe, progress, n)
+    finally:
+        sys.setswitchinterval(switch)
+
+
+def _replay_ahead(
+    frames: Iterator[RgbdFrame],
+    messages: MessageFeed,
+    fe: FrontEnd,
+    progress: Callable[[int, int], None] | None,
+    n: int,
+) -> Iterator[FrontEndStep]:
     nxt = next(frames, None)
+    if nxt is not None:  # (the first frame too: frames are announced in order)
+        fe.prefetch(nxt)
     j = 0
     while nxt is not None:
         frame, error = nxt, None
