@@ -13,7 +13,7 @@ child's CPU time (user + system, every thread). Real-time factor = seconds of da
 seconds. With ``--base`` the two trees' trajectories, odometry and grids are compared byte for
 byte (a speed-up that should not change the map says so; exit 1 if it did not hold and
 ``--same`` was given). The accuracy of the map (ATE vs the ground truth) is printed for both.
-Results replace the "map_speed" section of the output markdown file, with the machine and load.
+Results replace the "map_speed" (or with ``--world`` "map_speed_world") section of the output markdown file, with the machine and load.
 """
 
 from __future__ import annotations
@@ -97,7 +97,9 @@ def run(recording: Path, trees: dict[str, tuple[Path, list[str]]], repeat: int, 
     return {"runs": runs, "same": same, "load": (min(load), max(load)), "s": summaries}
 
 
-def report(recording: Path, r: dict, base: str | None, repeat: int, frames: int | None) -> str:
+def report(
+    recording: Path, r: dict, command: str, repeat: int, frames: int | None, world: bool
+) -> str:
     names = list(r["runs"])
     data_s = r["s"][names[-1]]["data_duration_s"]
     n_frames = r["s"][names[-1]]["counts"]["scans"]
@@ -114,19 +116,18 @@ def report(recording: Path, r: dict, base: str | None, repeat: int, frames: int 
             f"| {slam['ate_rmse_aligned_m']:.4f} / {slam['ate_rmse_m']:.4f} |"
         )
     lines = [
-        "## `rgbdnav map` of a recorded VGA stream: real-time factor (issue 27, target 1)",
+        "## `rgbdnav map` of a world rendered on demand (`make demo`'s path): real-time factor"
+        if world
+        else "## `rgbdnav map` of a recorded VGA stream: real-time factor (issue 27, target 1)",
         "",
         f"Measured {dt.date.today()} on {machine('numpy', 'cv2')}; 1-min load average "
         f"{r['load'][0]:.1f}-{r['load'][1]:.1f} during the runs (the machine was shared: wall "
         "times scale with the load, CPU times much less; compare the rows, not the absolute "
         "figures).",
-        f"Recording: {n_frames} frames, {data_s:.1f} s of data"
+        f"{'World' if world else 'Recording'}: {n_frames} frames, {data_s:.1f} s of data"
         + (f" (the house route's first {frames} frames)" if frames else f" ({recording})")
         + f"; median of {repeat} runs per tree, the trees alternating.",
-        "Command: `python bench/bench_map_speed.py"
-        + (f" --frames {frames}" if frames else f" --recording/--world {recording}")
-        + (f" --base {base}" if base else "")
-        + f" --repeat {repeat}`.",
+        f"Command: `python bench/bench_map_speed.py {command}`.",
         "",
         "| tree | wall [s] | CPU [s] | real time (data / wall) | data / CPU "
         "| ATE aligned / start-anchored [m] |",
@@ -189,7 +190,10 @@ def main() -> int:
     shown = args.world if args.world is not None else rec
     if args.cut:
         shown = Path(f"{shown} --cut {args.cut}")
-    publish(report(shown, r, args.base, args.repeat, frames), args.out, SECTION)
+    command = " ".join(a for a in sys.argv[1:] if a != "--out" and not a.endswith(".md"))
+    world = args.world is not None
+    body = report(shown, r, command, args.repeat, frames, world)
+    publish(body, args.out, SECTION + ("_world" if world else ""))
     return 1 if args.same and not r["same"] else 0
 
 
