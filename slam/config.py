@@ -328,6 +328,12 @@ class VoConfig:
     max_rotation: float = param(
         0.78, unit="rad", gt=0.0, doc="reject a frame-to-frame turn larger than this"
     )
+    every_n_frames: int = param(
+        1,
+        ge=1,
+        doc="with wheels or /odom in the EKF, VO on every n-th frame only (the pair spans the "
+        "frames between; docs/design/speed.md)",
+    )
 
     cor_type: Literal["features", "optical_flow"] = param(
         "features",

@@ -21,9 +21,12 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import sys
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -44,13 +47,27 @@ from slam.ekf import (
     wheel_twist_inputs,
 )
 from slam.metrics import interpolate_poses
-from slam.visual_odometry import VisualOdometry, VoResult
+from slam.visual_odometry import Features, VisualOdometry, VoResult
 
 log = logging.getLogger(__name__)
 
 OdometryMessage = PoseInput | TwistInput
 GAP_PERIODS = 1.5  # a VO pair longer than this many camera frame periods spans a lost frame
 MIN_HISTORY_S = 1.0  # [s] EKF history for spans fused late (a gap of up to ~1 s)
+# [s] Python's GIL switch interval while replay() runs the frame stage (default 5 ms): a stage
+# thread back from a GIL-free OpenCV call waits up to this for the main thread to let go, many
+# times a frame (docs/design/speed.md)
+STAGE_SWITCH_INTERVAL_S = 0.0005
+
+_STAGE: list[ThreadPoolExecutor] = []  # the frame stage's thread (FrontEnd.prefetch), made once
+if hasattr(os, "register_at_fork"):  # a forked child has no threads: it makes its own
+    os.register_at_fork(after_in_child=_STAGE.clear)
+
+
+def _stage() -> ThreadPoolExecutor:
+    if not _STAGE:
+        _STAGE.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-stage"))
+    return _STAGE[0]
 
 
 @dataclass(frozen=True)
@@ -78,8 +95,8 @@ class FrontEndStep:
     scan: LaserScan | None  # depth -> scan in base_link (planar mode with scans on)
     vo: VoResult | None  # None: VO off, or skipped on this frame
     camera_pose: np.ndarray | None  # (4, 4) handheld: camera in the first camera's optical frame
-    vo_ms: float = math.nan  # [ms] VO time (incl. fusing its twist)
-    scan_ms: float = math.nan  # [ms] depth -> scan time
+    vo_ms: float = math.nan  # [ms] VO time (incl. fusing its twist, and the features made ahead)
+    scan_ms: float = math.nan  # [ms] depth -> scan time (made ahead or not)
     ekf_ms: float = math.nan  # [ms] the pose query
 
 
@@ -108,6 +125,16 @@ def pose_only_odom0(cfg: EkfConfig) -> EkfConfig:
     return replace(cfg, odom0_config=tuple(flags), odom0_differential=True)
 
 
+@dataclass(frozen=True, eq=False)
+class _OwnWork:
+    """What :meth:`FrontEnd.prefetch` made of a frame ahead, with the times it took."""
+
+    features: Features | None
+    features_ms: float
+    scan: LaserScan | None
+    scan_ms: float
+
+
 class FrontEnd:
     """Feed messages in time order (live: as they arrive; late ones are re-filtered when
     ``ekf.smooth_lagged_data`` is on); :meth:`frame` gives the step of each RGB-D frame."""
@@ -122,7 +149,7 @@ class FrontEnd:
     ) -> None:
         self.options = options
         self.robot = robot
-        vo = vo_for_interval(vo, options.frame_interval_s, options.camera_rate_hz)
+        vo_given, vo = vo, vo_for_interval(vo, options.frame_interval_s, options.camera_rate_hz)
         self.vo_cfg = vo if options.planar else replace(vo, force_3dof=False)
         self.d2s_cfg = depth_to_scan
         if options.odometry == "pose" and not options.wheels:
@@ -144,6 +171,13 @@ class FrontEnd:
             self.inputs = tuple(
                 sorted(n for n, on in wanted.items() if on and any(getattr(ekf, f"{n}_config")))
             )
+        if self.vo_cfg.every_n_frames > 1 and "odom0" in self.inputs:  # pairs n frames apart
+            period = max(options.frame_interval_s, 1.0 / options.camera_rate_hz)
+            span = period * self.vo_cfg.every_n_frames
+            self.vo_cfg = replace(
+                vo_for_interval(vo_given, span, options.camera_rate_hz),
+                force_3dof=self.vo_cfg.force_3dof,
+            )
         self.counts: Counter[str] = Counter()
         self._recent: deque[WheelTicks] = deque()
         self._gate = EncoderGate(robot)
@@ -153,6 +187,9 @@ class FrontEnd:
         self._d2s: DepthToScan | None = None
         self._vo_prev_ns: int | None = None  # the frame VO last ran on
         self._vo_skipped: list[int] = []  # frames VO skipped since then
+        # prefetch: the frames whose own work runs ahead on the stage thread, and that work
+        self._ahead: deque[tuple[RgbdFrame, Future[_OwnWork]]] = deque()
+        self._n_frames = 0  # frames through frame() so far
 
     @property
     def vo_stats(self) -> dict[str, int]:
@@ -212,13 +249,46 @@ class FrontEnd:
 
     # 2. Frames.
 
-    def frame(self, frame: RgbdFrame, skip_vo: bool = False) -> FrontEndStep:
-        """VO (unless ``skip_vo``: a live front end behind), the pose at the frame's stamp and
-        the scan. A skipped frame's motion is fused with the next VO pair, spread over both."""
+    def _stages(self, frame: RgbdFrame) -> None:
+        """VO and depth -> scan for the camera of the first frame seen."""
         if self._vo is None and self.options.vo:
             self._vo = VisualOdometry(frame.intrinsics, self.vo_cfg, self.robot)
         if self._d2s is None and self.options.scan and self.options.planar:
             self._d2s = DepthToScan(frame.intrinsics, self.robot, self.d2s_cfg)
+
+    def prefetch(self, frame: RgbdFrame) -> None:
+        """Start the work of ``frame`` that depends on nothing but the frame (its ORB features,
+        its depth scan) on the stage thread, to run while the frame before it goes through VO
+        matching, the EKF and the mapper; the next :meth:`frame` of this very frame takes the
+        results. Both are pure functions of the frame and the config, so the output is bit for
+        bit the sequential one; ORB, OpenCV's resizes and numpy's large-array kernels release
+        the GIL, so the two stages share the two cores (docs/design/speed.md)."""
+        self._stages(frame)
+        due = self._vo_due(self._n_frames + len(self._ahead))  # frames come in order
+        feats = due and self._vo is not None and self._vo.features_every_frame
+        if feats or self._d2s is not None:
+            self._ahead.append((frame, _stage().submit(self._own_work, frame, feats)))
+
+    def _own_work(self, frame: RgbdFrame, feats: bool) -> _OwnWork:
+        t0 = time.perf_counter()
+        f = self._vo.extract(frame) if feats and self._vo is not None else None
+        t1 = time.perf_counter()
+        scan = self._d2s.from_frame(frame).scan if self._d2s is not None else None
+        return _OwnWork(f, 1e3 * (t1 - t0), scan, 1e3 * (time.perf_counter() - t1))
+
+    def frame(self, frame: RgbdFrame, skip_vo: bool = False) -> FrontEndStep:
+        """VO (unless ``skip_vo``: a live front end behind), the pose at the frame's stamp and
+        the scan. A skipped frame's motion is fused with the next VO pair, spread over both."""
+        self._stages(frame)
+        stride = not self._vo_due(self._n_frames)  # vo.every_n_frames: not this one
+        self._n_frames += 1
+        own = None
+        if any(f is frame for f, _ in self._ahead):
+            while own is None:  # (work made ahead for frames never processed is dropped)
+                f, work = self._ahead.popleft()
+                own = work.result() if f is frame else None
+        if own is not None and own.features is not None and self._vo is not None:
+            self._vo.give_features(frame, own.features)
         if self.ekf is not None and (self.vo_carries or self.options.wheels):
             # The odom frame is where the robot starts; with wheels, where it stands at the
             # first frame unless their first motion came before it. Frames before the board's
@@ -226,23 +296,34 @@ class FrontEnd:
             self.ekf.start(frame.stamp_ns)
         res, vo_ms = (None, math.nan)
         if not self.options.pose_before_vo:
-            res, vo_ms = self._visual_odometry(frame, skip_vo)
+            res, vo_ms = self._visual_odometry(frame, skip_vo, stride)
         t0 = time.perf_counter()
         odom, timed_out = self._pose_at(frame.stamp_ns)
         ekf_ms = 1e3 * (time.perf_counter() - t0)
         scan, scan_ms = None, math.nan
         if self._d2s is not None and odom is not None:
-            t0 = time.perf_counter()
-            scan = self._d2s.from_frame(frame).scan
-            scan_ms = 1e3 * (time.perf_counter() - t0)
+            if own is not None and own.scan is not None:
+                scan, scan_ms = own.scan, own.scan_ms
+            else:
+                t0 = time.perf_counter()
+                scan = self._d2s.from_frame(frame).scan
+                scan_ms = 1e3 * (time.perf_counter() - t0)
         if self.options.pose_before_vo:  # VO corrects the filter for the frames that follow
-            res, vo_ms = self._visual_odometry(frame, skip_vo)
+            res, vo_ms = self._visual_odometry(frame, skip_vo, stride)
+        if res is not None and own is not None and own.features is not None:
+            vo_ms += own.features_ms
         camera = None
         if not self.options.planar and self._vo is not None:
             camera = self._vo.T_odom_cam.copy()
         return FrontEndStep(
             frame.stamp_ns, odom, timed_out, scan, res, camera, vo_ms, scan_ms, ekf_ms
         )
+
+    def _vo_due(self, index: int) -> bool:
+        """VO runs on frame ``index`` (0 = the first): every frame, or with ``vo.every_n_frames``
+        n > 1 every n-th one while the wheels or odometry messages carry the filter between."""
+        n = self.vo_cfg.every_n_frames
+        return n <= 1 or "odom0" not in self.inputs or index % n == 0
 
     def _pose_at(self, stamp_ns: int) -> tuple[Odometry2D | None, bool]:
         if self.ekf is None:
@@ -254,13 +335,15 @@ class FrontEnd:
             return None, False
         return od, self.ekf.is_timed_out(stamp_ns)
 
-    def _visual_odometry(self, frame: RgbdFrame, skip: bool) -> tuple[VoResult | None, float]:
+    def _visual_odometry(
+        self, frame: RgbdFrame, skip: bool, stride: bool = False
+    ) -> tuple[VoResult | None, float]:
         """VO between ``frame`` and the last frame VO ran on, fused as the pair's mean twist
         over every frame it spans; (result or None when skipped or off, ms)."""
         if self._vo is None:
             return None, math.nan
-        if skip and self._vo_prev_ns is not None:
-            self.counts["vo_skipped_behind"] += 1
+        if (skip or stride) and self._vo_prev_ns is not None:
+            self.counts["vo_skipped_behind" if skip else "vo_skipped_stride"] += 1
             self._vo_skipped.append(frame.stamp_ns)
             return None, math.nan
         t0 = time.perf_counter()
@@ -456,17 +539,59 @@ class MessageFeed:
 
 
 def replay(
-    src: Source, fe: FrontEnd, progress: Callable[[int, int], None] | None = None
+    src: Source,
+    fe: FrontEnd,
+    progress: Callable[[int, int], None] | None = None,
+    ahead: bool = True,
 ) -> Iterator[FrontEndStep]:
     """``src``'s streams through ``fe`` in time order: before each frame every wheel reading,
-    odometry message and IMU sample stamped at or before it (:class:`MessageFeed`)."""
+    odometry message and IMU sample stamped at or before it (:class:`MessageFeed`). With
+    ``ahead`` the next frame is read before this one is processed and its own work (features,
+    scan) runs on the stage thread meanwhile (:meth:`FrontEnd.prefetch`; the same steps)."""
     messages = MessageFeed(src, fe)
     n = len(src.stream_stamps().get("rgb", ()))
-    for j, frame in enumerate(src.frames()):
+    frames = src.frames()
+    if not ahead:
+        for j, frame in enumerate(frames):
+            messages.until(frame.stamp_ns)
+            yield fe.frame(frame)
+            if progress is not None:
+                progress(j + 1, n)
+        return
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(min(switch, STAGE_SWITCH_INTERVAL_S))
+    try:
+        yield from _replay_ahead(frames, messages, fe, progress, n)
+    finally:
+        sys.setswitchinterval(switch)
+
+
+def _replay_ahead(
+    frames: Iterator[RgbdFrame],
+    messages: MessageFeed,
+    fe: FrontEnd,
+    progress: Callable[[int, int], None] | None,
+    n: int,
+) -> Iterator[FrontEndStep]:
+    nxt = next(frames, None)
+    if nxt is not None:  # (the first frame too: frames are announced in order)
+        fe.prefetch(nxt)
+    j = 0
+    while nxt is not None:
+        frame, error = nxt, None
+        try:
+            nxt = next(frames, None)
+        except Exception as err:  # a bad next frame: raised where it was before, after this one
+            nxt, error = None, err
+        if nxt is not None:
+            fe.prefetch(nxt)
         messages.until(frame.stamp_ns)
         yield fe.frame(frame)
+        j += 1
         if progress is not None:
-            progress(j + 1, n)
+            progress(j, n)
+        if error is not None:
+            raise error
 
 
 __all__ = [

@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import threading
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -193,15 +194,17 @@ def _orb(n: int, tuning: VoTuning, levels: int) -> cv2.ORB:
 
 
 _WORKER: list[ThreadPoolExecutor] = []  # one worker thread, made on first use
+_WORKER_LOCK = threading.Lock()  # the front end's stage thread extracts too (prefetch)
 if hasattr(os, "register_at_fork"):  # a forked child has no threads: it makes its own worker
     os.register_at_fork(after_in_child=_WORKER.clear)
 
 
 def _worker() -> ThreadPoolExecutor:
     """The second thread of the pipeline (ORB's upper pyramid levels)."""
-    if not _WORKER:
-        _WORKER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="vo-worker"))
-    return _WORKER[0]
+    with _WORKER_LOCK:
+        if not _WORKER:
+            _WORKER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="vo-worker"))
+        return _WORKER[0]
 
 
 def _keypoints(kps: Sequence[Any], desc: Any, scale: float, level0: int) -> tuple[np.ndarray, ...]:
@@ -1344,6 +1347,7 @@ class VisualOdometry:
         # Optical flow: (keyframe point indices, their pixels in the last frame)
         self._tracks: tuple[np.ndarray, np.ndarray] | None = None
         self._gray: np.ndarray | None = None  # the keyframe's grey image (optical flow)
+        self._given: tuple[RgbdFrame, Features] | None = None  # give_features
 
     def reset(self) -> None:
         if self._icp is not None:
@@ -1353,6 +1357,7 @@ class VisualOdometry:
         self.T_odom_cam = np.eye(4)
         self._prior_holds = False
         self._tracks, self._gray = None, None
+        self._given = None
 
     def process(self, frame: RgbdFrame) -> VoResult:
         if self._icp is not None and self.cfg.method == "depth_icp":
@@ -1483,8 +1488,26 @@ class VisualOdometry:
             self._tracks = (tracks[0], tracks[1]) if tracks else None
         return self._finish(res, t_last_curr, t0)
 
-    def _features(self, frame: RgbdFrame) -> Features:
+    @property
+    def features_every_frame(self) -> bool:
+        """Every frame's ORB features are extracted (not optical flow, not depth ICP alone)."""
+        return self.cfg.method == "orb_pnp" and self.cfg.cor_type == "features"
+
+    def extract(self, frame: RgbdFrame) -> Features:
+        """``frame``'s features: a pure function of the frame and the config, so a caller may
+        compute them ahead on another thread and hand them in with :meth:`give_features`."""
         return extract_features(frame.rgb, frame.depth_m, self.k, self.cfg, self.tuning)
+
+    def give_features(self, frame: RgbdFrame, feats: Features) -> None:
+        """``frame``'s features, made ahead by :meth:`extract`: the next :meth:`process` of
+        this very frame uses them instead of extracting again."""
+        self._given = (frame, feats)
+
+    def _features(self, frame: RgbdFrame) -> Features:
+        given, self._given = self._given, None
+        if given is not None and given[0] is frame:
+            return given[1]
+        return self.extract(frame)
 
     def _new_keyframe(self, feats: Features, gray: np.ndarray | None) -> None:
         """``feats`` become the keyframe; with optical flow (``gray``, this frame's grey image)

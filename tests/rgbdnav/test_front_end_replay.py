@@ -13,7 +13,7 @@ import pytest
 
 from rgbdnav.live.run import LiveOptions, LiveRun
 from sensors.source import open_source
-from sensors.types import WheelTicks
+from sensors.types import RgbdFrame, WheelTicks
 from slam.front_end import FrontEnd, options_for, replay
 from slam.geometry import wrap_angle
 
@@ -148,3 +148,87 @@ def test_live_frames_before_the_boards_first_motion_get_the_start_pose_and_are_m
     assert isinstance(live.scan_q.get_nowait(), tuple)  # scans went to the mapper
     posed = live.odom_track.load()
     assert len(posed) == len(frames) and np.abs(posed[:, 1:]).max() < 0.05  # near the start
+
+
+def test_features_and_scans_made_ahead_on_the_stage_thread_give_the_sequential_steps(
+    recording: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import itertools
+    import threading
+
+    from rgbdnav.scan_stream import source_config
+    from slam.visual_odometry import VisualOdometry
+
+    where: list[str] = []
+    extract = VisualOdometry.extract
+
+    def spy(self: VisualOdometry, frame: object) -> object:
+        where.append(threading.current_thread().name)
+        return extract(self, frame)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(VisualOdometry, "extract", spy)
+    runs = {}
+    for ahead in (False, True):
+        where.clear()
+        with open_source(recording) as src:
+            cfg = source_config(src, [], [])[2]  # `rgbdnav map`'s config: ORB on every frame
+            fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, options_for(src))
+            runs[ahead] = list(itertools.islice(replay(src, fe, ahead=ahead), 25))
+        n = len(runs[ahead])
+        on_main = where.count(threading.main_thread().name)
+        # Sequential: every frame's features on the caller's thread; ahead: on the stage's,
+        # and one frame more (the 26th, read ahead when the 25th was processed).
+        assert (len(where), on_main) == ((n, n) if not ahead else (n + 1, 0)), where
+    seq, pipe = runs[False], runs[True]
+    assert len(seq) == len(pipe) == 25
+    tracked = 0
+    for a, b in zip(seq, pipe, strict=True):
+        assert a.stamp_ns == b.stamp_ns and a.timed_out == b.timed_out
+        assert (a.odom is None) == (b.odom is None)
+        if a.odom is not None and b.odom is not None:
+            assert a.odom.pose == b.odom.pose
+            assert np.array_equal(a.odom.covariance, b.odom.covariance)
+        assert a.scan is not None and b.scan is not None
+        assert np.array_equal(a.scan.ranges, b.scan.ranges)
+        assert a.vo is not None and b.vo is not None
+        assert (a.vo.success, a.vo.reason, a.vo.inliers) == (
+            b.vo.success,
+            b.vo.reason,
+            b.vo.inliers,
+        )
+        assert np.array_equal(a.vo.T_prev_curr, b.vo.T_prev_curr)
+        tracked += a.vo.success
+    assert tracked >= 22  # the comparison covers tracked frames, not failures
+
+
+def test_vo_on_every_second_frame_with_wheels_spans_the_frame_between(
+    recording: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rgbdnav.scan_stream import source_config
+    from slam.visual_odometry import VisualOdometry
+
+    made: list[int] = []
+    extract = VisualOdometry.extract
+
+    def spy(self: VisualOdometry, frame: RgbdFrame) -> object:
+        made.append(frame.stamp_ns)
+        return extract(self, frame)
+
+    monkeypatch.setattr(VisualOdometry, "extract", spy)
+    with open_source(recording) as src:
+        cfg = source_config(src, [], ["vo.every_n_frames=2"])[2]
+        fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, options_for(src))
+        assert fe.vo_cfg.max_translation == pytest.approx(2 * cfg.vo.max_translation)
+        steps = list(replay(src, fe))
+        truth = src.groundtruth()
+    assert truth is not None
+    # VO (and the features made ahead for it) on frames 0, 2, 4, ... only.
+    assert [s.vo is not None for s in steps] == [k % 2 == 0 for k in range(len(steps))]
+    assert sorted(made) == [s.stamp_ns for s in steps[::2]]
+    assert fe.counts["vo_skipped_stride"] == len(steps) // 2
+    assert sum(s.vo.success for s in steps if s.vo is not None) >= 20  # pairs 2 frames apart
+    assert all(s.odom is not None and s.scan is not None for s in steps)  # a pose every frame
+    p = np.array([[s.odom.pose.x, s.odom.pose.y] for s in steps if s.odom is not None])
+    moved = np.hypot(*(p[-1] - p[0]))
+    true = np.hypot(truth.x[-1] - truth.x[0], truth.y[-1] - truth.y[0])
+    assert moved > 0.3 and abs(moved - true) < 0.03
