@@ -6,8 +6,9 @@ against the world's floor plan at the true camera pose (one beam per ``SCAN_COLU
 image columns, Kinect range noise); the localiser (``localization="localizer"``, the default) or
 ground truth gives the navigator its pose; the scan marks and clears the costmap's obstacle layer;
 the navigator (:class:`nav.navigator.Navigator`, the one ``rgbdnav live`` ticks in wall time)
-plans, follows, checks progress, replans, recovers and smooths the command; the command goes to
-the wheels as ``GOSPD`` through the Eddie board emulator (:mod:`sensors.sim.nav_drive`). Why each
+plans, follows, checks progress, replans, recovers and smooths the command; the collision monitor
+(:class:`nav.collision_monitor.CollisionMonitor`, as in ``live``) limits it on what the camera saw;
+it goes to the wheels as ``GOSPD`` through the Eddie board emulator. Why each
 step is as it is (the localiser's gates, settles, replanning on moved furniture) and the run
 directory's files are in ``docs/design/navigate_simulation.md``.
 
