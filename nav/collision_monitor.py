@@ -1,16 +1,18 @@
 """A last line of defence between any controller and the wheels, after Nav2's collision_monitor:
-a *stop* zone and a *slowdown* zone, checked against recent obstacle points.
+a *stop* box and a *slowdown* box ahead of the robot, checked against recent obstacle points.
 
 A Kinect sees nothing nearer than ~0.5 m, exactly where a door frame is when the robot is about
 to hit it; so the points are a short memory of recent scans carried along by odometry
-(:class:`ObstacleMemory`), not only the current scan. The zones are the circular footprint
-(radius + ``lateral_margin``) swept along the commanded arc (v, w) for ``stop_distance`` and for
-``slowdown_distance`` (Nav2's approach model projects the footprint along the twist the same
-way): a point the sweep comes within reach of, and nearer than it is now, stops the forward
-motion (turning in place stays allowed: the footprint is a circle) or scales it by
-``slowdown_ratio``. A point the motion moves away from (a jamb already beside or behind the
-robot) limits nothing, so a robot that came too close can drive out. Reversing is not limited:
-the camera looks forward only, so there is nothing to check against.
+(:class:`ObstacleMemory`), not only the current scan. Boxes (base_link, x forward):
+
+    stop:      -radius <= x <= radius + stop_distance,      |y| <= radius + lateral_margin
+    slowdown:  -radius <= x <= radius + slowdown_distance,  |y| <= radius + lateral_margin
+
+(x from -radius: a door frame beside the robot counts while the robot still turns towards it.)
+
+Forward motion with a point in the stop box is cut to 0 (turning in place stays allowed); in the
+slowdown box it is scaled by ``slowdown_ratio``. Reversing is not limited: the camera looks
+forward only, so there is nothing to check against.
 
 :class:`CollisionMonitor` is the one stage both drivers put between their command and the wheels
 (``rgbdnav navigate``'s simulated robot and ``rgbdnav live``'s board): the navigator plans and
@@ -21,33 +23,12 @@ Why: docs/design/navigator.md ("Grazing a door jamb").
 
 from __future__ import annotations
 
-import math
 from collections import Counter, deque
 
 import numpy as np
 
 from nav.config import CollisionMonitorConfig
 from slam.geometry import ominus, oplus
-
-ARC_STEP_M = 0.02  # [m] spacing of the footprint positions along a swept arc
-
-
-def swept_hits(points: np.ndarray, v: float, w: float, distance: float, reach: float) -> bool:
-    """A point (N, 2) that a circle of ``reach`` [m], its centre driven ``distance`` [m] along
-    the arc of (v > 0, w), comes within reach of and nearer than it is now."""
-    d0 = np.hypot(points[:, 0], points[:, 1])
-    near = points[d0 < distance + reach]
-    if len(near) == 0:
-        return False
-    n = max(1, math.ceil(distance / ARC_STEP_M))
-    s = np.linspace(distance / n, distance, n)
-    k = w / v  # [1/m] curvature
-    if abs(k) < 1e-9:
-        cx, cy = s, np.zeros(n)
-    else:
-        cx, cy = np.sin(k * s) / k, (1.0 - np.cos(k * s)) / k
-    d = np.hypot(near[:, :1] - cx, near[:, 1:] - cy).min(axis=1)
-    return bool(np.any((d < reach) & (d < d0[d0 < distance + reach])))
 
 
 def limit_twist(
@@ -63,10 +44,11 @@ def limit_twist(
     """(v, w, action) with action "" (free), "slowdown" or "stop"; ``points_base`` (N, 2) [m]."""
     if v <= 0.0 or len(points_base) == 0:
         return v, w, ""
-    reach = radius + lateral_margin
-    if swept_hits(points_base, v, w, stop_distance, reach):
+    x, y = points_base[:, 0], points_base[:, 1]
+    ahead = (x >= -radius) & (np.abs(y) <= radius + lateral_margin)
+    if np.any(ahead & (x <= radius + stop_distance)):
         return 0.0, w, "stop"
-    if swept_hits(points_base, v, w, slowdown_distance, reach):
+    if np.any(ahead & (x <= radius + slowdown_distance)):
         return v * slowdown_ratio, w, "slowdown"
     return v, w, ""
 
@@ -133,4 +115,4 @@ class CollisionMonitor:
         return v, w, action
 
 
-__all__ = ["CollisionMonitor", "ObstacleMemory", "limit_twist", "swept_hits"]
+__all__ = ["CollisionMonitor", "ObstacleMemory", "limit_twist"]
