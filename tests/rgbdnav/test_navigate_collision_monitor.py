@@ -1,6 +1,6 @@
-"""The collision monitor in `rgbdnav navigate`: a localiser drifting 0.32 m off sends the robot at a door
-jamb; what the camera saw, carried by odometry, stops it before the footprint touches the jamb
-(the nav-scenario's seed-2 graze, docs/design/navigator.md)."""
+"""The collision monitor in `rgbdnav navigate`: a localiser drifting 0.32 m off sends the robot
+at a door jamb; what the camera saw, carried by odometry, stops it before the footprint touches
+the jamb (the nav-scenario's seed-2 graze, docs/design/navigator.md)."""
 
 from __future__ import annotations
 
