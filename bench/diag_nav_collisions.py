@@ -140,8 +140,6 @@ def main() -> None:
     )
     for e in events:
         print(e)
-    # The steps before the first step of each event: what the robot was doing.
-    rows = navigate_runner  # noqa: F841
     print(f"run directory: {out}")
 
 
