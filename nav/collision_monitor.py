@@ -13,14 +13,21 @@ to hit it; so the points are a short memory of recent scans carried along by odo
 Forward motion with a point in the stop box is cut to 0 (turning in place stays allowed); in the
 slowdown box it is scaled by ``slowdown_ratio``. Reversing is not limited: the camera looks
 forward only, so there is nothing to check against.
+
+:class:`CollisionMonitor` is the one stage both drivers put between their command and the wheels
+(``rgbdnav navigate``'s simulated robot and ``rgbdnav live``'s board): the navigator plans and
+follows on the map pose, which the localiser may have wrong by a door jamb's width; the monitor
+judges on what the camera saw relative to the robot, which odometry keeps right over seconds.
+Why: docs/design/navigator.md ("Grazing a door jamb").
 """
 
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 
 import numpy as np
 
+from nav.config import CollisionMonitorConfig
 from slam.geometry import ominus, oplus
 
 
@@ -73,4 +80,39 @@ class ObstacleMemory:
         return rel[:, :2]
 
 
-__all__ = ["ObstacleMemory", "limit_twist"]
+class CollisionMonitor:
+    """Scans in (:meth:`add_scan`, base_link points at an odom pose), commands out limited
+    (:meth:`limit`); ``counts`` has the stops and slowdowns, each counted when it begins."""
+
+    def __init__(self, cfg: CollisionMonitorConfig, radius: float) -> None:
+        self.cfg, self.radius = cfg, radius
+        self.memory = ObstacleMemory(cfg.observation_memory)
+        self.counts: Counter[str] = Counter()
+        self.action = ""  # the last command's action: "", "slowdown" or "stop"
+
+    def add_scan(self, stamp_ns: int, odom_pose: np.ndarray, points_base: np.ndarray) -> None:
+        self.memory.add(stamp_ns, odom_pose, points_base)
+
+    def limit(self, v: float, w: float, odom_pose: np.ndarray) -> tuple[float, float, str]:
+        """(v, w, action) for the wheels at the odom pose ``odom_pose``."""
+        c = self.cfg
+        if not c.enabled:
+            return v, w, ""
+        pts = self.memory.points_in_base(odom_pose) if v > 0.0 else np.zeros((0, 2))
+        v, w, action = limit_twist(
+            pts,
+            v,
+            w,
+            self.radius,
+            c.stop_distance,
+            c.slowdown_distance,
+            c.slowdown_ratio,
+            c.lateral_margin,
+        )
+        if action and action != self.action:
+            self.counts[f"collision_monitor_{action}s"] += 1
+        self.action = action
+        return v, w, action
+
+
+__all__ = ["CollisionMonitor", "ObstacleMemory", "limit_twist"]

@@ -288,3 +288,35 @@ class NavigateConfig:
         "this many consecutive scans whose matches the localiser gated (its estimate and the "
         "scans disagree), then replan (0 = never)",
     )
+
+
+@dataclass(frozen=True)
+class CollisionMonitorConfig:
+    """Nav2's collision_monitor, between any command (navigator, teleop) and the wheels.
+
+    A stop and a slowdown zone ahead of the footprint, checked against what the camera saw in
+    base_link (scans carried by wheel odometry), never against the map pose."""
+
+    enabled: bool = param(True, doc="limit every command before it reaches the wheels")
+    stop_distance: float = param(
+        0.12,
+        unit="m",
+        ge=0.0,
+        doc="stop zone: no forward motion with a point this far ahead of the footprint",
+    )
+    slowdown_distance: float = param(
+        0.4, unit="m", ge=0.0, doc="slowdown zone: slow down with a point this far ahead"
+    )
+    slowdown_ratio: float = param(
+        0.4, gt=0.0, le=1.0, doc="forward speed factor in the slowdown zone (Nav2's name)"
+    )
+    lateral_margin: float = param(
+        0.05, unit="m", ge=0.0, doc="both zones this much wider than the footprint on each side"
+    )
+    observation_memory: float = param(
+        10.0,
+        unit="s",
+        gt=0.0,
+        doc="scans kept, carried by wheel odometry: the Kinect is blind nearer than 0.45 m and "
+        "beside its 58 deg view, so a door jamb is seen seconds before the robot passes it",
+    )

@@ -19,8 +19,9 @@ that never blocks: each :meth:`Navigator.tick` decides one command and returns i
   and every ``1 / navigate.replan_frequency`` s. A replan whose plans fail runs the round (clear,
   spin, wait, back up) one behaviour per failure. ``navigate.max_replans`` replans, an exhausted
   round or ``navigate.goal_timeout`` end the goal as *failed*, with the reason.
-- **Settle** (optional, :class:`PoseCorrector`): at a goal the estimate reaches, and when the
-  localiser keeps disagreeing with its scans, turn in place and let the caller correct the pose.
+- **Settle** (optional, :class:`PoseCorrector`): at a goal the estimate reaches, when the
+  localiser keeps disagreeing with its scans, and when the caller's collision monitor stopped the
+  robot (``collision_stop``), turn in place and let the caller correct the pose.
 """
 
 from __future__ import annotations
@@ -244,6 +245,7 @@ class _Goal:
     first_plan: np.ndarray | None = None
     controller_failures: int = 0  # recovery round-robin position of FollowPath failures
     goal_settles: int = 0
+    collision_settles: int = 0  # settles after a collision-monitor stop
 
 
 class Navigator:
@@ -289,6 +291,7 @@ class Navigator:
         self._periodic: int | None = None  # ticket of a periodic plan in flight
         self._pose: np.ndarray | None = None  # the last estimate ticked with
         self._path_checked: tuple[int, int, int] | None = None  # (costmap, revision, path) ids
+        self._collision_stop = False  # the caller's collision monitor stopped the last command
 
     # 1. Goals.
 
@@ -330,9 +333,14 @@ class Navigator:
 
     # 2. The tick.
 
-    def tick(self, now_ns: int, pose: np.ndarray, moving: bool = False) -> Drive:
-        """The smoothed command for now at the estimated ``pose``."""
+    def tick(
+        self, now_ns: int, pose: np.ndarray, moving: bool = False, collision_stop: bool = False
+    ) -> Drive:
+        """The smoothed command for now at the estimated ``pose``. ``collision_stop``: the
+        collision monitor cut the last command's forward motion (what the camera saw is in the
+        way, where the map pose saw free space)."""
         self._pose = np.asarray(pose, dtype=np.float64).copy()
+        self._collision_stop = collision_stop
         v, w, status = self._decide(now_ns, self._pose, moving)
         return self._smooth(now_ns, v, w, status)
 
@@ -393,6 +401,16 @@ class Navigator:
         ):
             # The localiser's estimate and its scans disagree: a wide look decides before the
             # robot drives on, on a pose that may be drifting; then plan again from there.
+            self._queue_settle()
+            self._actions.append(_Plan("settle"))
+            return False
+        if self._collision_stop and self.settle_max > 0 and g.collision_settles < self.settle_max:
+            # The collision monitor stopped the robot before something the camera saw and the
+            # costmap, at the estimated pose, did not have: the estimate is off (a door jamb
+            # where the map pose puts the middle of the door). A wide look corrects it; then
+            # plan again from there (docs/design/navigator.md, "Grazing a door jamb").
+            g.collision_settles += 1
+            self.counts["collision_stop_settles"] += 1
             self._queue_settle()
             self._actions.append(_Plan("settle"))
             return False

@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from nav.config import (
+    CollisionMonitorConfig,
     CostmapConfig,
     FollowerConfig,
     NavigateConfig,
@@ -93,27 +94,11 @@ class LiveConfig:
     board_kill_switch: int = param(
         1, unit="s", ge=0, le=26, doc="WATCH: board stops the motors without commands (0 = off)"
     )
-    collision_stop_distance: float = param(
-        0.12,
-        unit="m",
-        ge=0.0,
-        doc="collision monitor: no forward motion with a point this far ahead of the footprint",
-    )
-    collision_slowdown_distance: float = param(
-        0.4, unit="m", ge=0.0, doc="collision monitor: slow down with a point this far ahead"
-    )
-    collision_slowdown_ratio: float = param(
-        0.4, gt=0.0, le=1.0, doc="collision monitor: forward speed factor in the slowdown box"
-    )
-    collision_lateral_margin: float = param(
-        0.05, unit="m", ge=0.0, doc="collision monitor: boxes this much wider than the footprint"
-    )
     obstacle_memory: float = param(
         5.0,
         unit="s",
         gt=0.0,
-        doc="collision monitor: scans kept (carried by odometry); the "
-        "Kinect is blind nearer than 0.45 m and beside its 58 deg view",
+        doc="scans of this long ago replayed into the obstacle layer of each new live costmap",
     )
     sim_initial_pose: bool = param(
         True,
@@ -196,6 +181,7 @@ class Config:
     follower: FollowerConfig = field(default_factory=FollowerConfig)
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     navigate: NavigateConfig = field(default_factory=NavigateConfig)
+    collision_monitor: CollisionMonitorConfig = field(default_factory=CollisionMonitorConfig)
     board: BoardConfig = field(default_factory=BoardConfig)
     thunderborg: ThunderBorgConfig = field(default_factory=ThunderBorgConfig)
     arduino_bridge: BridgeConfig = field(default_factory=BridgeConfig)

@@ -5,7 +5,7 @@ already have. Our sections use the upstream names, so a parameter maps to the sa
 section that owns the node: ``ekf_filter_node`` -> ``ekf``, ``slam_toolbox`` -> ``mapper``,
 ``amcl`` -> ``localizer``, ``global_costmap`` -> ``costmap``, ``controller_server``'s
 RegulatedPurePursuit ``FollowPath`` -> ``follower``, ``planner_server``'s Navfn ``GridBased`` ->
-``planner``, ``velocity_smoother`` -> ``smoother``, ``collision_monitor`` -> ``live``. A few
+``planner``, ``velocity_smoother`` -> ``smoother``, ``collision_monitor`` keeps its name. A few
 need converting (a 15x15 covariance -> its diagonal, ``odom0``/``imu0`` topics -> ``topics``).
 Everything else is listed as ignored, with the reason. The result is a list of
 ``section.key=value`` overrides applied over ``--config`` and under ``--set``; every value is
@@ -248,9 +248,9 @@ def _collision_monitor(blocks: Mapping[str, Any]) -> Any:
     def mapper(key: str, value: Any, what: str) -> tuple[str, Any, str] | str:
         name, _, leaf = key.rpartition(".")
         if leaf == "slowdown_ratio" and blocks.get(f"{name}.action_type") == "slowdown":
-            return "live.collision_slowdown_ratio", value, ""
+            return "collision_monitor.slowdown_ratio", value, ""
         if leaf in ("points", "radius", "type", "action_type"):
-            return "zone shapes: rgbdnav's boxes are the footprint + live.collision_*_distance"
+            return "zone shapes: rgbdnav's boxes are the footprint + collision_monitor.*_distance"
         if leaf.endswith(("_frame_id", "_topic", "_timeout", "topic")):
             return NO_ROS
         return "collision_monitor parameter rgbdnav does not implement"

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from nav.collision_monitor import ObstacleMemory, limit_twist
+from nav.collision_monitor import CollisionMonitor
 from nav.teleop import TeleopState, teleop_key
 from rgbdnav.config import (
     Config,
@@ -189,7 +189,7 @@ class Counters:
 class _Shared:
     """State handed between threads (each field written by one thread, read under the lock)."""
 
-    obstacles: ObstacleMemory  # recent scans for the collision monitor
+    monitor: CollisionMonitor  # recent scans, the last word on every command
     lock: threading.Lock = field(default_factory=threading.Lock)
     odom: np.ndarray | None = None  # latest odom -> base_link
     map_to_odom: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -260,7 +260,7 @@ class LiveRun:
             self.initial_pose = initial_pose_array(opts.initial_pose)
         self.counts = Counters()
         self.stop = threading.Event()
-        self.shared = _Shared(ObstacleMemory(self.cfg.live.obstacle_memory))
+        self.shared = _Shared(CollisionMonitor(self.cfg.collision_monitor, self.cfg.robot.radius))
         self.frame_q: queue.Queue[RgbdFrame | None] = queue.Queue(self.cfg.live.frame_queue_size)
         self._stall_lock = threading.Lock()
         self._stall_counted = False  # the stall under way is counted already
@@ -698,7 +698,7 @@ class LiveRun:
             self.stage_ms["wheels_ekf"].add(wheels_ms + step.ekf_ms)
             with self.shared.lock:
                 self.shared.odom = odom
-                self.shared.obstacles.add(frame.stamp_ns, odom, scan_points(scan))
+                self.shared.monitor.add_scan(frame.stamp_ns, odom, scan_points(scan))
                 m2o = self.shared.map_to_odom
             latency = (time.monotonic_ns() - frame.stamp_ns) / 1e6
             self.latency_ms.add(latency)
@@ -861,18 +861,9 @@ class LiveRun:
             # 2. The collision monitor has the last word: stop before what the camera saw.
             with self.shared.lock:
                 odom = self.shared.odom
-                pts = None if odom is None else self.shared.obstacles.points_in_base(odom)
-            if pts is not None:
-                v, w, action = limit_twist(
-                    pts,
-                    v,
-                    w,
-                    self.cfg.robot.radius,
-                    lc.collision_stop_distance,
-                    lc.collision_slowdown_distance,
-                    lc.collision_slowdown_ratio,
-                    lc.collision_lateral_margin,
-                )
+                if odom is not None:
+                    v, w, action = self.shared.monitor.limit(v, w, odom)
+            if odom is not None:
                 if action == "stop" and guard != "stop":
                     self.counts.inc("collision_monitor_stops")
                 guard = action

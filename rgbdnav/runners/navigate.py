@@ -6,8 +6,9 @@ against the world's floor plan at the true camera pose (one beam per ``SCAN_COLU
 image columns, Kinect range noise); the localiser (``localization="localizer"``, the default) or
 ground truth gives the navigator its pose; the scan marks and clears the costmap's obstacle layer;
 the navigator (:class:`nav.navigator.Navigator`, the one ``rgbdnav live`` ticks in wall time)
-plans, follows, checks progress, replans, recovers and smooths the command; the command goes to
-the wheels as ``GOSPD`` through the Eddie board emulator (:mod:`sensors.sim.nav_drive`). Why each
+plans, follows, checks progress, replans, recovers and smooths the command; the collision monitor
+(:class:`nav.collision_monitor.CollisionMonitor`, as in ``live``) limits it on what the camera saw;
+it goes to the wheels as ``GOSPD`` through the Eddie board emulator. Why each
 step is as it is (the localiser's gates, settles, replanning on moved furniture) and the run
 directory's files are in ``docs/design/navigate_simulation.md``.
 
@@ -35,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from nav.behaviors import Behavior, next_waypoint, wait_at_waypoint, waypoints
+from nav.collision_monitor import CollisionMonitor
 from nav.config import NavigateConfig
 from nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, Costmap
 from nav.navigator import MAX_STOP_S, Navigator
@@ -55,6 +57,7 @@ from slam.geometry import oplus, path_length, wrap_angle
 from slam.localization import Localizer, MapModel
 from slam.map_bundle import LoadedMap, load_map, load_map_yaml
 from slam.occupancy_grid import OccupancyGrid
+from slam.scan_matching import scan_points
 
 log = logging.getLogger(__name__)
 
@@ -179,6 +182,9 @@ class _Sim:
         self.navigator = Navigator(
             replace(cfg, navigate=nav), costmap, corrector=self if localizer is not None else None
         )
+        # Between the navigator and the wheels, as in `rgbdnav live`: what the camera saw, carried
+        # by odometry, has the last word (the map pose may be off by a door jamb's width).
+        self.monitor = CollisionMonitor(cfg.collision_monitor, self.radius)
         self.keepout_dist: np.ndarray | None = None
         self.keepout_geometry = None if keepout is None else keepout.geometry
         if keepout is not None:
@@ -244,6 +250,9 @@ class _Sim:
         )
         if self.localizer is not None:
             self.localize(scan)
+        pts = scan_points(scan)
+        base = oplus(self.T_base_laser, np.column_stack([pts, np.zeros(len(pts))]))
+        self.monitor.add_scan(self.t_ns, self.odometry.pose, base[:, :2])
         self.costmap.update_scan(scan, Pose2(*oplus(self.estimate, self.T_base_laser).tolist()))
         self.scans += 1
         return True
@@ -308,11 +317,17 @@ class _Sim:
         if hold is not None:
             d = nav.hold(self.t_ns, hold, status or "holding")
         else:
-            d = nav.tick(self.t_ns, self.estimate, moving=bool(np.any(self.drive.speeds)))
+            d = nav.tick(
+                self.t_ns,
+                self.estimate,
+                moving=bool(np.any(self.drive.speeds)),
+                collision_stop=self.monitor.action == "stop",
+            )
         if d.status == "driving":
             self.control_s += time.perf_counter() - w0
-        self.cmd, self.vel = nav.target, (d.v, d.w)
-        self.drive.command(d.v, d.w)
+        v, w, _ = self.monitor.limit(d.v, d.w, self.odometry.pose)
+        self.cmd, self.vel = nav.target, (v, w)
+        self.drive.command(v, w)
         self.drive.advance(self.dt_ns)
         self.odometry.update(self.drive.ticks())
         x, y = float(self.pose[0]), float(self.pose[1])
@@ -694,6 +709,11 @@ def run_navigate(
             ),
         },
         "recoveries": sum(len(o["recoveries"]) for o in outcomes),
+        "collision_monitor": {
+            "enabled": cfg.collision_monitor.enabled,
+            "stops": sim.monitor.counts["collision_monitor_stops"],
+            "slowdowns": sim.monitor.counts["collision_monitor_slowdowns"],
+        },
         "path_length_m": round(path_length(poses[:, :2]), 3),
         "sim_time_s": round(sim_s, 2),
         "scans": sim.scans,

@@ -86,7 +86,7 @@ def test_nav2_params_map_costmap_rpp_smoother_collision_monitor_and_amcl():
     assert cfg.follower.controller_frequency == 20.0 and cfg.follower.xy_goal_tolerance == 0.25
     assert cfg.smoother.max_velocity == (0.26, 0.0, 1.0)
     assert cfg.smoother.max_decel == (-2.5, 0.0, -3.2)
-    assert cfg.live.collision_slowdown_ratio == 0.3
+    assert cfg.collision_monitor.slowdown_ratio == 0.3
     assert (cfg.localizer.alpha1, cfg.localizer.update_min_d) == (0.2, 0.25)
     assert cfg.planner.tolerance == 0.5 and cfg.planner.allow_unknown is True
     assert "particle filter" in reasons(rows, "amcl")["max_particles"]
