@@ -37,9 +37,10 @@ from rgbdnav.cache import open_world_or_source  # noqa: E402
 from rgbdnav.config import load_config  # noqa: E402
 from rgbdnav.runners.map import IOU_TOLERANCE_CELLS, _true_surface, occupancy_iou  # noqa: E402
 from sensors.sim.world import floor_plan, load_world  # noqa: E402
+from sensors.tum import load_tum_trajectory  # noqa: E402
 from slam.config import MapperConfig  # noqa: E402
 from slam.map_bundle import load_bundle  # noqa: E402
-from slam.metrics import interpolate_poses  # noqa: E402
+from slam.metrics import align_se2, interpolate_poses  # noqa: E402
 from slam.occupancy_grid import integrate_scans  # noqa: E402
 
 OFF_M = 0.05  # [m] a keyframe further than this from the truth is drawn orange
@@ -48,10 +49,17 @@ OFF_M = 0.05  # [m] a keyframe further than this from the truth is drawn orange
 def breakdown(run: Path, world: Path) -> tuple[dict, np.ndarray]:
     bundle = load_bundle(run / "map")
     summary = json.loads((run / "summary.json").read_text())
-    a = summary["grid_vs_floor_plan_aligned"]["alignment"]
-    th = math.radians(a["yaw_deg"])
-    rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
-    t = np.array([a["x_m"], a["y_m"]])  # world = rot @ map + t
+    # The run's own source (a recording of the world, or the world) holds its ground truth.
+    source = Path(summary.get("source", world))
+    gt = open_world_or_source(source if source.exists() else world, load_config([], []), 0)
+    gt = gt.groundtruth()
+    if gt is None:
+        raise SystemExit(f"error: {source}: no ground truth")
+    # The scorer's SE(2) alignment (world = rot @ map + t), from the trajectory as it does.
+    stamps_ns, xyz, _ = load_tum_trajectory(run / "trajectory.tum")
+    rx, ry, _, inside = interpolate_poses(gt.stamps_ns, gt.x, gt.y, gt.yaw, stamps_ns)
+    rot, t = align_se2(xyz[inside, :2], np.column_stack([rx, ry])[inside])
+    th = math.atan2(rot[1, 0], rot[0, 0])
     grid = bundle.grid
     g = grid.geometry
     thresh = bundle.occupied_thresh
@@ -64,12 +72,6 @@ def breakdown(run: Path, world: Path) -> tuple[dict, np.ndarray]:
     to_truth = cv2.distanceTransform((~truth).astype(np.uint8), cv2.DIST_L2, 5)[fp]
     lo = grid.log_odds
     # The same keyframe scans at their true poses (in the map frame: map = rot^T (world - t)).
-    # The run's own source (a recording of the world, or the world) holds its ground truth.
-    source = Path(summary.get("source", world))
-    gt = open_world_or_source(source if source.exists() else world, load_config([], []), 0)
-    gt = gt.groundtruth()
-    if gt is None:
-        raise SystemExit(f"error: {source}: no ground truth")
     stamps = bundle.keyframe_stamps_ns
     x, y, yaw, _ = interpolate_poses(gt.stamps_ns, gt.x, gt.y, gt.yaw, stamps)
     true_xy = (np.column_stack([x, y]) - t) @ rot
@@ -145,7 +147,7 @@ def main() -> int:
     ap.add_argument("--world", type=Path, required=True, help="the world YAML it was mapped in")
     ap.add_argument("--png", type=Path, help="write the difference picture here")
     args = ap.parse_args()
-    for need in (args.run / "map", args.run / "summary.json", args.world):
+    for need in (*(args.run / f for f in ("map", "summary.json", "trajectory.tum")), args.world):
         if not need.exists():
             print(f"error: {need}: not found", file=sys.stderr)
             return 2
