@@ -825,14 +825,16 @@ class Mapper:
             self.loops.rejected[reason] += 1
             self._held.append(_Held(j, k, ominus(poses[j], match.pose), loop_cov, reason))
             return
+        # A closure the graph finds inconsistent is undone by restoring the graph, not by
+        # removing the edge: remove-and-update leaves iSAM2's estimate nudged by the trial.
+        before = self.graph.snapshot()
         edge = self.graph.add_edge(
             j, k, ominus(poses[j], match.pose), loop_cov, kind="loop", robust=True
         )
         self.graph.update(extra_iterations=LOOP_EXTRA_ITERATIONS)
         chi2 = self.graph.edge_chi2(edge)
         if chi2 > cfg.loop_closure_max_chi2:
-            self.graph.remove_edge(edge)
-            self.graph.update()
+            self.graph.restore(before)
             reason = "inconsistent with the graph"
             self.loops.rejected[reason] += 1
             self._held.append(_Held(j, k, ominus(poses[j], match.pose), loop_cov, reason))

@@ -17,6 +17,7 @@ Levenberg-Marquardt on the whole graph and re-seeds iSAM2 with the result.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
@@ -163,6 +164,12 @@ def _make_robust(kernel: RobustKernel, width: float) -> gtsam.noiseModel.mEstima
     if kernel == "cauchy":
         return gtsam.noiseModel.mEstimator.Cauchy.Create(width)
     return None
+
+
+def _copied(value: Any) -> Any:
+    """A shallow copy of a list or dict (the graph's containers); anything else as it is (GTSAM
+    objects the graph replaces rather than mutates, numbers)."""
+    return copy.copy(value) if isinstance(value, list | dict) else value
 
 
 @dataclass
@@ -631,6 +638,27 @@ class PoseGraph:
                     values.insert(k, gtsam.Pose2(*self._initial[k]))
             graph.add(self._factors[eid])
         return float(graph.error(values))
+
+    # ---------------------------------------------------------------------------------------------
+    # Trials: try a change, judge it, undo it without a trace
+    # ---------------------------------------------------------------------------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        """The whole graph state now, for :meth:`restore`. Removing an edge after an ``update``
+        does not give the estimate back: iSAM2 keeps the linearisation point and the relinearised
+        cliques the trial moved. A trial (add a loop closure, update, judge its chi-square) that
+        is rejected and restored leaves the graph bit-identical to never having tried (issue
+        #12: a rejected closure must not move the map). iSAM2 is copied (GTSAM's copy
+        constructor, a deep copy of the Bayes tree); the rest are shallow copies of containers
+        whose elements are never mutated."""
+        state = {k: _copied(v) for k, v in vars(self).items() if k != "_isam"}
+        state["_isam"] = gtsam.ISAM2(self._isam)
+        return state
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Put the graph back as :meth:`snapshot` found it (the snapshot stays reusable)."""
+        for k, v in state.items():
+            setattr(self, k, gtsam.ISAM2(v) if k == "_isam" else _copied(v))
 
     # ---------------------------------------------------------------------------------------------
     # Saving and restoring (graph.json keyframes + edges)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sensors.types import MapError
-from slam.geometry import compose
+from slam.geometry import compose, oplus
 from slam.pose_graph import (
     CHI2_3DOF_99,
     Edge,
@@ -437,3 +437,47 @@ def test_mitb_batch_from_odometry_lowers_the_error_but_stops_in_a_local_minimum(
     # Levenberg-Marquardt from the odometry guess settles at 385.1, above the 257.85 the
     # incremental solver reaches: the classic poor-initial-guess trap of this dataset.
     assert run["final_error"] == pytest.approx(385.12, rel=1e-3)
+
+
+def _square_loop(graph: PoseGraph, rng: np.random.Generator) -> list[np.ndarray]:
+    """A noisy square of odometry edges (one node a metre), solved; the true poses."""
+    truth = [np.array([0.0, 0.0, 0.0])]
+    for k in range(1, 4 * SIDE + 1):
+        truth.append(oplus(truth[-1], np.array([1.0, 0.0, math.pi / 2 if k % SIDE == 0 else 0])))
+    graph.add_node(truth[0])
+    for k in range(1, len(truth)):
+        d = relative(truth[k - 1], truth[k]) + rng.normal(0, ODOM_SIGMAS)
+        graph.add_node(oplus(graph.pose(k - 1), d))
+        graph.add_edge(k - 1, k, d, ODOM_COV)
+        graph.update()
+    return truth
+
+
+def test_a_restored_trial_edge_leaves_the_graph_bit_identical_to_never_trying_it():
+    """Issue #12: a loop closure added, optimised and judged wrong must not move the graph.
+    Removing it and updating leaves iSAM2 nudged; restoring the snapshot does not, now and
+    through the updates after it."""
+    tried, never, removed = (PoseGraph() for _ in range(3))
+    for g in (tried, never, removed):
+        _square_loop(g, np.random.default_rng(7))
+    n = tried.num_nodes
+    wrong = np.array([WRONG_OFFSET, 0.0, 0.3])
+    before = tried.snapshot()
+    for g in (tried, removed):
+        e = g.add_edge(0, n - 1, wrong, LOOP_COV, kind="loop", robust=True)
+        g.update(extra_iterations=2)
+        assert g.edge_chi2(e) > CHI2_3DOF_99  # the trial moved the graph: judged inconsistent
+    tried.restore(before)
+    removed.remove_edge(e)
+    removed.update()
+    assert np.array_equal(tried.poses(), never.poses())
+    assert [x.id for x in tried.edges] == [x.id for x in never.edges]
+    assert not np.array_equal(removed.poses(), never.poses())  # what the old path left
+    # ... and stays identical as the graph grows and a correct closure comes in.
+    for g in (tried, never):
+        g.add_node(oplus(g.pose(n - 1), np.array([1.0, 0.0, 0.0])))
+        g.add_edge(n - 1, n, np.array([1.0, 0.0, 0.0]), ODOM_COV)
+        g.add_edge(0, n - 1, np.zeros(3), LOOP_COV, kind="loop", robust=True)
+        g.update(extra_iterations=2)
+    assert np.array_equal(tried.poses(), never.poses())
+    assert np.array_equal(tried.marginal_covariance(n), never.marginal_covariance(n))
