@@ -753,3 +753,18 @@ def test_reference_normals_without_ties_are_the_k_nearest_fit() -> None:
     ref = build_reference(pts)
     # A straight wall: every normal is +-y, from exactly 5 neighbours (no ties in random data).
     assert np.all(np.abs(np.abs(ref.normals[:-1, 1]) - 1.0) < 0.05)
+
+
+def test_a_polished_icp_ends_where_it_ends_whatever_its_start() -> None:
+    # Stopped at a step < 5e-4, ICP's pose still carries its start (the odometry prior or the
+    # correlative optimum, and a CPU's rounding) at the 0.1 mm level; polished to 1e-5 two
+    # starts land together (issue #12: the mapper's two tracking paths flipped maps).
+    ref = build_reference(world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.03, seed=5))
+    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270), noise_m=0.03, seed=6)
+    offset = np.array([0.08, -0.08, math.radians(3)])
+    starts = [ICP_TRUTH + offset, ICP_TRUTH - offset]
+    plain = [icp_refine(ref, pts, s, MAX_CORRESPONDENCE) for s in starts]
+    polished = [icp_refine(ref, pts, s, MAX_CORRESPONDENCE, 30, polish=1e-5) for s in starts]
+    assert all(r.converged for r in plain + polished)
+    assert np.abs(plain[0].pose - plain[1].pose).max() > 1e-4
+    assert np.abs(polished[0].pose - polished[1].pose).max() < 1e-6
