@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from sensors.types import LaserScan
 from slam.geometry import compose, wrap_angle
 from slam.scan_matching import (
+    NORMAL_TIE_RTOL,
     IcpResult,
     LikelihoodField,
     ReferenceCloud,
@@ -598,7 +599,7 @@ def reference_normals(points: np.ndarray) -> np.ndarray:
     dist, idx = dist.reshape(len(points), -1), idx.reshape(len(points), -1)
     sxx, syy, sxy = (np.empty(len(points)) for _ in range(3))
     for m in range(len(points)):
-        nb = points[idx[m][dist[m] <= dist[m, k - 1] * (1 + 1e-9)]]
+        nb = points[idx[m][dist[m] <= dist[m, k - 1] * (1 + NORMAL_TIE_RTOL)]]
         d = nb - nb.mean(axis=0)
         sxx[m], syy[m], sxy[m] = (d[:, 0] @ d[:, 0], d[:, 1] @ d[:, 1], d[:, 0] @ d[:, 1])
         sxx[m], syy[m], sxy[m] = sxx[m] / len(nb), syy[m] / len(nb), sxy[m] / len(nb)
