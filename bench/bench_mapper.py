@@ -137,16 +137,21 @@ class CaseSpec:
     range_noise_m: float = 0.0  # [m] sigma of Gaussian noise added to every range (perturbation)
     noise_seed: int = 1
     float32_ranges: bool = False  # ranges rounded to float32 (perturbation)
+    trace: bool = False  # return the mapper's decisions (bench/diag_mapper_flips.py)
 
 
 def _run_mapper(
-    scans: list[Any], odom: np.ndarray, overrides: tuple[tuple[str, float], ...]
+    scans: list[Any],
+    odom: np.ndarray,
+    overrides: tuple[tuple[str, float], ...],
+    decisions: list[Any] | None = None,
 ) -> tuple[Any, float]:
     from slam.config import MapperConfig
     from slam.mapper import Mapper
 
     changed: dict[str, Any] = dict(overrides)
     mapper = Mapper(dataclasses.replace(MapperConfig(), **changed))
+    mapper.decisions = decisions
     t0 = time.perf_counter()
     for scan, pose in zip(scans, odom, strict=True):
         mapper.add_scan(scan, pose)
@@ -202,7 +207,11 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
             logged, ODOM_SCALE_ERROR, ODOM_YAW_BIAS, ODOM_SIGMA_XY, ODOM_SIGMA_YAW, rng
         )
     cpu0 = time.process_time()
-    result, wall = _run_mapper(scans, odom, spec.overrides)
+    decisions: list[Any] | None = [] if spec.trace else None
+    result, wall = _run_mapper(scans, odom, spec.overrides, decisions)
+    if decisions is not None:
+        out["decisions"] = decisions
+        out["poses"] = result.poses
     out.update(
         wall_s=wall,
         cpu_s=time.process_time() - cpu0,  # all threads: above wall when both cores work

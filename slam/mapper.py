@@ -72,6 +72,11 @@ UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 ROTATED_RIVAL_WINDOW = math.pi / 4  # [rad] loop angular half-window from which turned twins count
 ROTATED_RIVAL_ANGLES = np.radians([90.0, 180.0, -90.0])  # [rad] yaw offsets of a turned twin
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
+# ICP goes on after converging (step < 5e-4) until its step is below this, for at most this many
+# more iterations: a match then depends on the map and the scan, not on where ICP started (the
+# odometry prior, the correlative optimum, a CPU's rounding); issue #12, mapper_stability.md.
+ICP_POLISH = 1e-5  # [m, rad]
+ICP_POLISH_ITERATIONS = 10
 GRID_MARGIN_M = 1.0  # [m] unknown border around the mapped area in the built grid
 REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
 # The second core: local maps (likelihood field, k-d tree, normals) are built here while the
@@ -269,6 +274,14 @@ class Mapper:
         self._relocalise = False  # continuing a saved map: place the first scan in it first
         self.relocalised: dict[str, object] | None = None
         self._localizer: Localizer | None = None
+        # Every accept/reject decision with the numbers it was taken on, when a caller sets a
+        # list here (bench/diag_mapper_flips.py diffs two runs' lists to find the first flip).
+        self.decisions: list[tuple[Any, ...]] | None = None
+
+    def _note(self, *row: Any) -> None:
+        """Record one decision (kind, keyframe or scan, outcome, numbers) when tracing."""
+        if self.decisions is not None:
+            self.decisions.append(row)
 
     # 3a. Input ---------------------------------------------------------------------------------
 
@@ -494,7 +507,8 @@ class Mapper:
             kf.match_points,
             coarse.pose,
             cfg.icp_max_correspondence_distance,
-            max_iterations=cfg.icp_max_iterations,
+            max_iterations=cfg.icp_max_iterations + ICP_POLISH_ITERATIONS,
+            polish=ICP_POLISH,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=huber_m,
         )
@@ -526,7 +540,8 @@ class Mapper:
             kf.match_points,
             prior,
             cfg.icp_max_correspondence_distance,
-            max_iterations=cfg.icp_max_iterations,
+            max_iterations=cfg.icp_max_iterations + ICP_POLISH_ITERATIONS,
+            polish=ICP_POLISH,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=cfg.icp_huber_width,
         )
@@ -584,8 +599,9 @@ class Mapper:
             self._local = self._build_tracking_map(self._tracking_points())
         fast = self._icp_first(kf, prior)
         if fast is not None:
+            self._note("track", self._scans_seen, "icp-first", fast.response, fast.inlier_fraction)
             return fast
-        return self._match(
+        match = self._match(
             kf,
             prior,
             self._local,
@@ -596,6 +612,14 @@ class Mapper:
             penalise=True,
             huber_m=cfg.icp_huber_width,
         )
+        self._note(
+            "track",
+            self._scans_seen,
+            match.reason or "search",
+            match.response,
+            match.inlier_fraction,
+        )
+        return match
 
     # 3c. Continuing a saved map ----------------------------------------------------------------
 
@@ -788,6 +812,7 @@ class Mapper:
             huber_m=cfg.loop_icp_huber_width,
             min_coarse=cfg.loop_match_minimum_response_coarse,
         )
+        self._note("loop", k, j, match.reason or "matched", match.response, match.inlier_fraction)
         if not match.ok:
             self.loops.rejected[match.reason] += 1
             return
@@ -812,6 +837,7 @@ class Mapper:
                     angles_rad=ROTATED_RIVAL_ANGLES,
                 )
                 rival = max(rival, turned)
+            self._note("rival", k, j, rival / best if best > 0 else math.inf)
             if rival > cfg.loop_match_maximum_ambiguity * best:
                 self.loops.rejected["ambiguous (a rival pose scores as well)"] += 1
                 log.debug("loop %d-%d ambiguous: rival %.3f vs %.3f", j, k, rival, best)
@@ -839,10 +865,12 @@ class Mapper:
             self.loops.rejected[reason] += 1
             self._held.append(_Held(j, k, ominus(poses[j], match.pose), loop_cov, reason))
             log.debug("loop %d-%d held back: chi2 %.1f", j, k, chi2)
+            self._note("chi2", k, j, False, chi2)
             return
         self.loops.accepted += 1
         self._local = None  # the closure moved the recent keyframes
         self.loop_edges.append((j, k))
+        self._note("chi2", k, j, True, chi2)
 
     def _vote(self) -> None:
         """At the end every loop closure votes, the accepted ones and those held back (found
@@ -859,6 +887,7 @@ class Mapper:
             for h in held
         }
         out = self.graph.robust_edge_outliers(self.config.loop_closure_max_chi2)
+        self._note("vote", sorted((e.i, e.j) for e in self.graph.edges if e.id in out))
         for eid in sorted(out):
             e = self.graph.remove_edge(eid)
             if eid in held_ids:

@@ -195,6 +195,7 @@ class PoseGraph:
         relinearize_threshold: float = 0.01,
         relinearize_skip: int = 1,
         factorization: Literal["cholesky", "qr"] = "qr",
+        wildfire_threshold: float = 0.0,
     ) -> None:
         if robust_kernel not in get_args(RobustKernel):
             raise PoseGraphError(
@@ -204,6 +205,8 @@ class PoseGraph:
             raise PoseGraphError(f"robust_kernel_width must be > 0, got {robust_kernel_width}")
         if not (math.isfinite(relinearize_threshold) and relinearize_threshold >= 0):
             raise PoseGraphError(f"relinearize_threshold must be >= 0, got {relinearize_threshold}")
+        if not (math.isfinite(wildfire_threshold) and wildfire_threshold >= 0):
+            raise PoseGraphError(f"wildfire_threshold must be >= 0, got {wildfire_threshold}")
         if relinearize_skip < 1:
             raise PoseGraphError(f"relinearize_skip must be >= 1, got {relinearize_skip}")
         if factorization not in ("cholesky", "qr"):
@@ -218,6 +221,14 @@ class PoseGraph:
         self._params.setRelinearizeThreshold(float(relinearize_threshold))
         self._params.relinearizeSkip = int(relinearize_skip)
         self._params.setFactorization(factorization.upper())
+        # Wildfire 0: every Gauss-Newton step reaches every variable it changes. GTSAM's default
+        # (0.001) stops back-substitution where a change is smaller, a cut that rounding moves:
+        # the estimate then differed by 1e-7..1e-2 m between two CPUs' BLAS kernels within 60
+        # keyframes of aces, enough to move the points of a local map across voxel boundaries
+        # and flip later matches (issue #12, docs/design/mapper_stability.md).
+        gauss_newton = gtsam.ISAM2GaussNewtonParams()
+        gauss_newton.setWildfireThreshold(float(wildfire_threshold))
+        self._params.setOptimizationParams(gauss_newton)
         self._isam = gtsam.ISAM2(self._params)
 
         self._initial: list[np.ndarray] = []  # initial guess per node

@@ -37,6 +37,8 @@ from sensors.types import LaserScan
 from slam.geometry import wrap_angle
 
 NORMAL_NEIGHBOURS = 5  # points used to fit each reference point's line (incl. itself)
+NORMAL_TIE_EXTRA = 3  # further neighbours looked at for a tie with the k-th
+NORMAL_TIE_RTOL = 1e-9  # a neighbour this much (relative) farther than the k-th still ties
 MIN_POINTS = 10  # fewer matched points than this is not a match
 SCORE_CHUNK_ELEMENTS = 2**17  # candidate x scan point indices per gather (1 MiB: in cache)
 PLANARITY_MAX = 0.2  # smaller/larger eigenvalue ratio above which a neighbourhood is no line
@@ -424,13 +426,26 @@ def build_reference(points: np.ndarray) -> ReferenceCloud:
     """Normals by PCA of each point's ``NORMAL_NEIGHBOURS`` nearest neighbours (vectorised)."""
     tree = cKDTree(points)
     m, k = len(points), min(NORMAL_NEIGHBOURS, len(points))
-    _, idx = tree.query(points, k=k)
-    idx = np.asarray(idx).reshape(m, k)
-    # Neighbourhoods as (M, k) planes of x and of y: the sums over k run along contiguous rows.
+    # The k nearest, and any further neighbour exactly as near as the k-th: a laser's equally
+    # spaced returns tie often (three beams of equal range), and which tied point the tree lists
+    # first is decided by rounding, so a fixed k flipped normals between CPUs (issue #12).
+    kq = min(k + NORMAL_TIE_EXTRA, m)
+    dist, idx = tree.query(points, k=kq)
+    dist, idx = np.asarray(dist).reshape(m, kq), np.asarray(idx).reshape(m, kq)
+    tied = dist <= dist[:, k - 1 : k] * (1 + NORMAL_TIE_RTOL)
+    tied[:, :k] = True
+    w = tied.astype(np.float64)
+    n_nb = w.sum(axis=1)
+    # Neighbourhoods as (M, kq) planes of x and of y: the sums run along contiguous rows; without
+    # a tie the extra columns weigh 0 and the sums are those over the k nearest.
     nbx, nby = points[:, 0][idx], points[:, 1][idx]
-    dx = nbx - nbx.mean(axis=1, keepdims=True)
-    dy = nby - nby.mean(axis=1, keepdims=True)
-    sxx, syy, sxy = (dx * dx).sum(axis=1) / k, (dy * dy).sum(axis=1) / k, (dx * dy).sum(axis=1) / k
+    dx = (nbx - ((w * nbx).sum(axis=1) / n_nb)[:, None]) * w
+    dy = (nby - ((w * nby).sum(axis=1) / n_nb)[:, None]) * w
+    sxx, syy, sxy = (
+        (dx * dx).sum(axis=1) / n_nb,
+        (dy * dy).sum(axis=1) / n_nb,
+        (dx * dy).sum(axis=1) / n_nb,
+    )
     # Closed-form 2x2 eigen-decomposition: the line direction is at angle phi, the normal at
     # phi + 90 deg; the eigenvalues are mean -+ radius.
     phi = 0.5 * np.arctan2(2 * sxy, sxx - syy)
@@ -505,8 +520,15 @@ def icp_refine(
     huber_m: float = 0.05,
     min_sigma_m: float = 0.01,
     tolerance: float = 5e-4,
+    polish: float | None = None,
 ) -> IcpResult:
     """Point-to-line Gauss-Newton from ``initial`` (see module docstring).
+
+    ``converged``: the last step was below ``tolerance`` [m, rad]. With ``polish`` (< tolerance)
+    a converged ICP goes on until its step is below ``polish`` (or ``max_iterations``): stopped
+    at ``tolerance`` the result still depends on where ICP started by up to about that much, so
+    the two paths of the mapper (ICP from odometry, or from the correlative optimum) and two
+    CPUs' rounding gave poses 0.1-1 mm apart that the next matches amplified (issue #12).
 
     Per iteration this is one k-d tree query, one gather of the neighbours' rows and a few
     vector operations on preallocated buffers (the ICP is a third of the mapper's time); the
@@ -546,8 +568,9 @@ def icp_refine(
         if info != 0:  # exactly singular
             return failed
         pose -= step
-        if abs(step[0]) + abs(step[1]) < tolerance and abs(step[2]) < tolerance:
-            converged = True
+        moved, turned = abs(step[0]) + abs(step[1]), abs(step[2])
+        converged = moved < tolerance and turned < tolerance
+        if converged and (polish is None or (moved < polish and turned < polish)):
             break
     pose[2] = float(wrap_angle(pose[2]))
     wsum = float(np.sum(wts))

@@ -5,6 +5,7 @@ loop-closure candidates, and the shape of the graph it hands back."""
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -591,3 +592,24 @@ def test_local_maps_built_on_the_second_core_give_the_same_map(
         assert result.counts == run.result.counts
     assert run.result.counts["loop_closures"]["accepted"] > 0  # some searches moved the poses
     assert 0 < used < prebuilt  # prebuilt maps were kept, and dropped after a closure
+
+
+def test_the_decision_trace_records_every_loop_candidate_and_changes_nothing(
+    corrupted_loop: LoopRun,
+) -> None:
+    """``Mapper.decisions`` (bench/diag_mapper_flips.py diffs two runs' traces to find the
+    first flipped decision, issue #12): one "loop" row per proposed closure, one "track" row
+    per correlative or ICP-first match, and the same map as without it."""
+    run = corrupted_loop
+    mapper = Mapper(CFG)
+    mapper.decisions = []
+    for scan, pose in zip(run.scans, run.odom, strict=True):
+        mapper.add_scan(scan, pose)
+    result = mapper.finish()
+    assert np.array_equal(result.poses, run.result.poses)
+    kinds = Counter(row[0] for row in mapper.decisions)
+    assert kinds["loop"] == result.counts["loop_closures"]["proposed"] > 0
+    assert kinds["track"] == len(run.scans) - 1  # every scan but the first is matched
+    loops = result.counts["loop_closures"]
+    accepted_then = sum(row[0] == "chi2" and row[3] for row in mapper.decisions)
+    assert accepted_then == loops["accepted"] - loops["readmitted"] + loops["outvoted"]

@@ -113,6 +113,35 @@ def test_isam2_that_relinearises_everything_matches_batch_to_1e_8():
     np.testing.assert_allclose(graph.poses(), incremental, atol=1e-8)
 
 
+def _ring_of_loops(wildfire_threshold: float) -> float:
+    """How far the incremental estimate of a graph with many loops ends from the batch optimum."""
+    rng = np.random.default_rng(0)
+    g = PoseGraph(robust_kernel="none", wildfire_threshold=wildfire_threshold)
+    g.add_node([0.0, 0.0, 0.0])
+    cov = np.diag([1e-4, 1e-4, 1e-4])
+    for k in range(1, 80):
+        g.add_node(g.pose(k - 1) + [0.5, 0.0, 0.0])
+        step = [0.5, 0.0, 2 * math.pi / 40] + rng.normal(0.0, 0.01, 3)
+        g.add_edge(k - 1, k, step, cov)
+        if k >= 40 and k % 5 == 0:
+            g.add_edge(k - 40, k, rng.normal(0.0, 0.01, 3), cov, kind="loop")
+        g.update()
+    for _ in range(5):
+        g.update(extra_iterations=1)
+    batch = PoseGraph.from_arrays(g.poses(), g.edges, update=False, robust_kernel="none")
+    batch.optimize_batch()
+    return float(np.abs(g.poses() - batch.poses()).max())
+
+
+def test_an_isam2_update_reaches_every_variable_it_moves():
+    # GTSAM's default wildfire threshold (0.001) stops back-substitution where a change is
+    # smaller: the estimate lags the optimum there, by an amount rounding decides (issue #12).
+    # The graph's default (0) propagates every change.
+    assert _ring_of_loops(0.0) < 0.6 * _ring_of_loops(0.001)
+    with pytest.raises(PoseGraphError, match="wildfire"):
+        PoseGraph(wildfire_threshold=-1.0)
+
+
 def test_total_error_is_half_chi2_without_robust_edges_or_prior():
     graph, _, _ = closed_square(kernel="none")
     prior_error = graph.total_error() - 0.5 * graph.total_chi2()

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from sensors.types import LaserScan
 from slam.geometry import compose, wrap_angle
 from slam.scan_matching import (
+    NORMAL_TIE_RTOL,
     IcpResult,
     LikelihoodField,
     ReferenceCloud,
@@ -591,14 +592,17 @@ def test_rival_score_is_zero_when_the_window_holds_no_far_pose() -> None:
 
 
 def reference_normals(points: np.ndarray) -> np.ndarray:
-    """PCA normals of the ``k`` nearest neighbours, written as (M, k, 2) einsums; (M, 2)."""
+    """PCA normals of the ``k`` nearest neighbours and any tied with the k-th, written as
+    per-point loops over the neighbourhood; (M, 2)."""
     k = min(5, len(points))
-    _, idx = cKDTree(points).query(points, k=k)
-    nb = points[np.asarray(idx).reshape(len(points), k)]
-    d = nb - nb.mean(axis=1, keepdims=True)
-    sxx = np.einsum("mk,mk->m", d[..., 0], d[..., 0]) / k
-    syy = np.einsum("mk,mk->m", d[..., 1], d[..., 1]) / k
-    sxy = np.einsum("mk,mk->m", d[..., 0], d[..., 1]) / k
+    dist, idx = cKDTree(points).query(points, k=min(k + 3, len(points)))
+    dist, idx = dist.reshape(len(points), -1), idx.reshape(len(points), -1)
+    sxx, syy, sxy = (np.empty(len(points)) for _ in range(3))
+    for m in range(len(points)):
+        nb = points[idx[m][dist[m] <= dist[m, k - 1] * (1 + NORMAL_TIE_RTOL)]]
+        d = nb - nb.mean(axis=0)
+        sxx[m], syy[m], sxy[m] = (d[:, 0] @ d[:, 0], d[:, 1] @ d[:, 1], d[:, 0] @ d[:, 1])
+        sxx[m], syy[m], sxy[m] = sxx[m] / len(nb), syy[m] / len(nb), sxy[m] / len(nb)
     phi = 0.5 * np.arctan2(2 * sxy, sxx - syy)
     normals = np.column_stack([-np.sin(phi), np.cos(phi)])
     mean, radius = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
@@ -654,7 +658,7 @@ def reference_icp(
     return IcpResult(pose, 0.5 * (cov + cov.T), rmse, inliers, it, converged)
 
 
-def test_build_reference_normals_equal_the_einsum_reference_on_random_clouds() -> None:
+def test_build_reference_normals_equal_the_per_point_reference_on_random_clouds() -> None:
     rng = np.random.default_rng(11)
     clouds = [
         world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.01, seed=3),
@@ -664,7 +668,7 @@ def test_build_reference_normals_equal_the_einsum_reference_on_random_clouds() -
     ]
     for pts in clouds:
         ref = build_reference(pts)
-        np.testing.assert_array_equal(ref.normals[:-1], reference_normals(pts))
+        np.testing.assert_allclose(ref.normals[:-1], reference_normals(pts), atol=1e-9)
         np.testing.assert_array_equal(ref.points[:-1], pts)
         np.testing.assert_array_equal(ref.columns[:, -1], 0.0)  # the missing-neighbour row
 
@@ -726,3 +730,42 @@ def test_flat_levels_hold_the_levels_followed_by_a_zero_tail() -> None:
         assert len(flat) >= h * w + (field.max_window_cells + 1) * (w + 1)
         assert not flat[h * w :].any()
     assert field.field.dtype == np.float32 and field.field.max() == 1.0  # exp(0)
+
+
+def test_reference_normals_do_not_depend_on_which_tied_neighbour_the_tree_lists_first() -> None:
+    # Point 0's 5th-nearest neighbour is a tie at 0.1 m: (0, 0.1) off the wall and (-0.1, 0)
+    # on it. A fixed k took whichever the k-d tree listed first, so the input order (and, on
+    # real scans, the rounding of a CPU's BLAS kernels) decided whether 0 had a normal (issue
+    # #12: aces mapped 0.27 m vs 0.39 m under two OpenBLAS core types). Both tied points count.
+    pts = np.array(
+        [[0, 0], [0.05, 0], [-0.05, 0], [0.08, 0], [0, 0.1], [-0.1, 0]]
+        + [[3 + 0.05 * i, 3.0] for i in range(5)]
+    )
+    normals = []
+    for order in (list(range(11)), [0, 1, 2, 3, 5, 4, *range(6, 11)], list(range(10, -1, -1))):
+        ref = build_reference(pts[order])
+        normals.append(ref.normals[order.index(0)])
+    assert all(np.array_equal(n, normals[0]) for n in normals)
+
+
+def test_reference_normals_without_ties_are_the_k_nearest_fit() -> None:
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([np.linspace(0, 2, 40), 0.002 * rng.standard_normal(40)])
+    ref = build_reference(pts)
+    # A straight wall: every normal is +-y, from exactly 5 neighbours (no ties in random data).
+    assert np.all(np.abs(np.abs(ref.normals[:-1, 1]) - 1.0) < 0.05)
+
+
+def test_a_polished_icp_ends_where_it_ends_whatever_its_start() -> None:
+    # Stopped at a step < 5e-4, ICP's pose still carries its start (the odometry prior or the
+    # correlative optimum, and a CPU's rounding) at the 0.1 mm level; polished to 1e-5 two
+    # starts land together (issue #12: the mapper's two tracking paths flipped maps).
+    ref = build_reference(world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.03, seed=5))
+    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270), noise_m=0.03, seed=6)
+    offset = np.array([0.08, -0.08, math.radians(3)])
+    starts = [ICP_TRUTH + offset, ICP_TRUTH - offset]
+    plain = [icp_refine(ref, pts, s, MAX_CORRESPONDENCE) for s in starts]
+    polished = [icp_refine(ref, pts, s, MAX_CORRESPONDENCE, 30, polish=1e-5) for s in starts]
+    assert all(r.converged for r in plain + polished)
+    assert np.abs(plain[0].pose - plain[1].pose).max() > 1e-4
+    assert np.abs(polished[0].pose - polished[1].pose).max() < 1e-6
