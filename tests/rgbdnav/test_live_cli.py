@@ -50,7 +50,7 @@ def test_a_drill_that_does_not_parse_names_the_expected_form() -> None:
 def test_live_sim_maps_while_driving_the_route_and_checkpoints_the_bundle(tmp_path: Path) -> None:
     out = tmp_path / "live"
     s = _live(
-        out, "--duration", "14", "--set", "live.checkpoint_period=4", "--rrd", str(out / "run.rrd")
+        out, "--duration", "10", "--set", "live.checkpoint_period=4", "--rrd", str(out / "run.rrd")
     )
     c = s["counts"]
     assert s["mode"] == "mapping" and s["errors"] == []
@@ -350,7 +350,7 @@ def test_record_writes_what_the_robot_saw_as_a_recording_that_maps_offline(
     from sensors.recording import Recording
 
     out, rec_dir = tmp_path / "live", tmp_path / "rec"
-    s = _live(out, "--duration", "8", "--record", str(rec_dir))
+    s = _live(out, "--duration", "5", "--record", str(rec_dir))
     rec = s["recording"]
     assert "error" not in rec and rec["frames"] >= 10
     # Every frame the front end took is in it (or counted as left out), with the encoder
