@@ -1,5 +1,6 @@
-"""Fixtures shared by the CLI tests: a short house recording rendered once per session (it was
-rendered once per module that needed it) and only read by the tests that use it."""
+"""Fixtures shared by the CLI tests, each made once per session and only read by the tests that
+use it: a short house recording (it was rendered once per module that needed it) and the map of
+a real Radish log (it was mapped by two modules)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from typer.testing import CliRunner
 from rgbdnav.cli import app
 
 HOUSE = Path(__file__).resolve().parents[2] / "scenes" / "house.yaml"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+OREBRO = DATA / "radish" / "orebro-corrected.log.gz"
 
 
 @pytest.fixture(scope="session")
@@ -20,5 +23,17 @@ def house_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     result = CliRunner().invoke(
         app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45", "--seed", "2", "--quiet"]
     )
+    assert result.exit_code == 0, result.output
+    return out
+
+
+@pytest.fixture(scope="session")
+def orebro_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """`rgbdnav map` of the Radish orebro log (../shared/data; skipped where it is absent): the
+    run's folder. Copy its ``map`` before changing it."""
+    if not OREBRO.is_file():
+        pytest.skip("../shared/data/radish is absent")
+    out = tmp_path_factory.mktemp("orebro") / "run"
+    result = CliRunner().invoke(app, ["map", str(OREBRO), "--out", str(out), "-q"])
     assert result.exit_code == 0, result.output
     return out

@@ -47,16 +47,17 @@ def _invoke(*args: object):
 
 
 @pytest.fixture(scope="module")
-def maps(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def maps(tmp_path_factory: pytest.TempPathFactory, orebro_map: Path) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("fleet")
     text_a, text_b = split(read_log_lines(ACES), 0.6, 0.4, SHIFT)
     (root / "a.log").write_text(text_a)
     (root / "b.log").write_text(text_b)
     out = {}
-    for name, log in (("a", root / "a.log"), ("b", root / "b.log"), ("other", OREBRO)):
+    for name, log in (("a", root / "a.log"), ("b", root / "b.log")):
         result = _invoke("map", log, "--out", root / name, "-q")
         assert result.exit_code == 0, result.output
         out[name] = root / name / "map"
+    out["other"] = orebro_map / "map"  # another building: `rgbdnav map` of the orebro log
     out["root"] = root
     return out
 

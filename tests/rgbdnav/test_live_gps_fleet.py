@@ -64,13 +64,14 @@ def test_a_fleet_robot_with_gps_drives_and_tracks_in_its_placed_map_and_world_vi
     )
     out = tmp_path / "runs" / "r1"
     # The world's route (world frame) driven in r1's map frame; 10 Hz for a loaded machine.
+    # 8 s from the first frame: 7 fixes and 1.6 m towards the first waypoint at load 22.
     live = LiveRun(
         LiveOptions(
             out=out,
             world=world,
             fleet=tmp_path / "fleet.yaml",
             robot="r1",
-            duration_s=12.0,
+            duration_s=8.0,
             overrides=["sim.camera_rate=10"],
         )
     )
