@@ -165,14 +165,27 @@ class GyroSamples:
 
 def load_recording(rs: ModuleType, file: Path, *, realtime: bool) -> Any:
     """An SDK recording's playback device, in real time or as fast as it is read. Set before
-    streaming: a playback starts in real time, and real-time dispatch drops frames (now and then
-    the first) and gyro samples while the reader is busy."""
+    streaming: a playback starts in real time, and real-time dispatch drops frames and gyro
+    samples while the reader is busy (the first frames: :func:`start_sensors`)."""
     try:
         device = rs.context().load_device(str(file))
     except RuntimeError as err:
         raise SensorError(f"{file}: RealSense SDK cannot read it: {err}") from err
     device.as_playback().set_real_time(realtime)
     return device
+
+
+def start_sensors(playback: Any, starts: Sequence[tuple[Any, Callable[[Any], None]]]) -> None:
+    """Start opened sensors with their frame callbacks. A playback starts reading when its first
+    sensor starts and silently drops the frames of a sensor not started yet (under load, or while
+    the first sensor's callbacks hold the GIL, the first colour frames): so it is paused while
+    they start, then resumed, which rewinds it to its start with every sensor listening."""
+    if playback is not None:
+        playback.pause()  # paused: the one read at start is dropped, resume() reads it again
+    for sensor, callback in starts:
+        sensor.start(callback)
+    if playback is not None:
+        playback.resume()
 
 
 def playback_ended(rs: ModuleType, playback: Any, silent_ms: int, where: str) -> bool:
@@ -334,10 +347,10 @@ class RealSenseSource(SourceBase):
                 assert gyro is not None
                 gyro[0].open(gyro[1])
                 self._gyro_sensor = gyro[0]
-            for sensor in self._sensors:
-                sensor.start(self._on_frame)
+            starts = [(sensor, self._on_frame) for sensor in self._sensors]
             if self._gyro_sensor is not None:
-                self._gyro_sensor.start(self._gyro_samples.on_frame)
+                starts.append((self._gyro_sensor, self._gyro_samples.on_frame))
+            start_sensors(self._playback, starts)
         except RuntimeError:
             self.close()
             raise
@@ -560,8 +573,8 @@ def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:
     sensor, profile = found
     playback, samples = device.as_playback(), GyroSamples()
     sensor.open(profile)
-    sensor.start(samples.on_frame)
     try:
+        start_sensors(playback, [(sensor, samples.on_frame)])
         silent_ms, seen = 0, 0
         while True:
             time.sleep(GYRO_POLL_MS / 1000)
