@@ -26,6 +26,7 @@ rules (``99-realsense-libusb.rules``) must be installed, see docs/guide.md.
 
 from __future__ import annotations
 
+import atexit
 import importlib
 import itertools
 import logging
@@ -33,6 +34,7 @@ import math
 import queue
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -59,7 +61,7 @@ PLAYBACK_STALL_MS = 30_000  # [ms] a playback "playing" yet silent this long is 
 NS_PER_MS = 1_000_000  # [ns/ms] librealsense stamps are milliseconds
 GYRO_POLL_MS = 50  # [ms] read_gyro looks at its samples this often
 GYRO_SETTLE_MS = 200  # [ms] and takes a stopped playback as ended after this long without one
-GYRO_QUEUE = 10 * GYRO_FPS  # [samples] live gyro held between two take_imu() (10 s; 40 kB)
+GYRO_QUEUE = 10 * GYRO_FPS  # [samples] live gyro held between two take_imu() (10 s)
 # librealsense colour formats -> channel order to RGB
 COLOUR_FORMATS = {"rgb8": [0, 1, 2], "bgr8": [2, 1, 0], "rgba8": [0, 1, 2], "bgra8": [2, 1, 0]}
 UDEV_HELP = (
@@ -275,6 +277,15 @@ class FramePairing:
 
 
 _UNREAD = object()  # RealSenseSource's gyro before it is read
+# Sources not closed yet. librealsense's threads calling into an interpreter that is shutting
+# down abort or segfault it (a failed test's source, a Ctrl-C): they are closed at exit.
+_OPEN: weakref.WeakSet[RealSenseSource] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_open_sources() -> None:
+    for src in list(_OPEN):
+        src.close()
 
 
 class RealSenseSource(SourceBase):
@@ -297,6 +308,7 @@ class RealSenseSource(SourceBase):
         self.target = target
         self._rs = rs
         self._sensors: list[Any] = []  # started, stopped by close()
+        _OPEN.add(self)
         # Colour and depth frames from the sensors' threads; None once closed.
         self._frames_q: queue.Queue[Any] | None = queue.Queue(FRAME_QUEUE)
         self._closing = threading.Event()
@@ -461,6 +473,8 @@ class RealSenseSource(SourceBase):
         return devices[serials.index(serial)]
 
     def close(self) -> None:
+        """Stop and close the sensors (again: nothing); at exit for a source left open."""
+        _OPEN.discard(self)
         sensors = [self._gyro_sensor] if self._gyro_sensor is not None else []
         sensors += self._sensors
         self._gyro_sensor, self._sensors, self._frames_q = None, [], None

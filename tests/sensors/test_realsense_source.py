@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -145,6 +148,28 @@ def test_a_playback_loses_no_frame_however_late_its_sensors_start(route) -> None
     assert sorted(got) == ["Color", "Depth"]
     for stream, stamps in got.items():
         assert stamps == pytest.approx(want, abs=1e-3), stream
+
+
+def test_a_source_left_open_does_not_crash_the_interpreter_at_exit(route) -> None:
+    """A failed test's or a Ctrl-C'd run's source still playing at exit: librealsense's threads
+    called into the dying interpreter ("FATAL: exception not rethrown", SIGABRT or SIGSEGV)."""
+    path, _ = route
+    script = (
+        "from sensors.realsense_source import RealSenseSource\n"
+        f"src = RealSenseSource.open('realsense://{path}', realtime=True)\n"
+        "next(iter(src.frames()))\n"
+        "print('left open', flush=True)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-X", "faulthandler", "-c", script],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 0 and "left open" in res.stdout, res.stderr[-2000:]
+    assert "Fatal" not in res.stderr, res.stderr[-2000:]
 
 
 def test_colour_and_depth_pair_by_stamp_whichever_comes_first() -> None:
