@@ -148,11 +148,10 @@ class GyroSamples:
     """Gyro motion frames as librealsense's thread delivers them (a deque append is
     thread-safe) -> :class:`ImuStream` yaw rates on the device clock, in stamp order.
 
-    Streaming in real time (a camera, a recording played as one), the motion sensor's thread
-    hands a sample over and drops the next while the previous one waits: a Python callback
-    waiting for the GIL (held by the live run's VO) lost a third to a half of them. With ``rs``
-    the samples go to librealsense's own ``frame_queue`` (no GIL, GYRO_QUEUE deep) and are
-    converted in :meth:`take` instead; :meth:`sink` is what the sensor is started with."""
+    Live (``rs`` given) the samples go to librealsense's own ``frame_queue`` (GYRO_QUEUE deep)
+    and are converted in :meth:`take`: the motion sensor's thread, which holds one sample at a
+    time, never waits for the GIL (held by the live run's VO) to hand it over. :meth:`sink` is
+    what the sensor is started with."""
 
     def __init__(self, rs: ModuleType | None = None) -> None:
         self._samples: deque[tuple[int, float]] = deque()  # (device stamp [ns], yaw rate)
