@@ -31,7 +31,7 @@ demo: $(STAMP)
 
 # pytest's exit code is kept in .venv/pytest-exit-code so .ci/run can tell "no tests" (5) apart.
 test: $(STAMP)
-	@rc=0; $(PY) -m pytest $(PYTEST_ARGS) || rc=$$?; echo $$rc > $(VENV)/pytest-exit-code; exit $$rc
+	@rc=0; $(PY) -X faulthandler -m pytest $(PYTEST_ARGS) || rc=$$?; echo $$rc > $(VENV)/pytest-exit-code; exit $$rc
 
 bench: $(STAMP)
 	$(PY) bench/bench_simulator.py --out docs/benchmarks.md

@@ -11,7 +11,8 @@ the ``depth_units`` option, extrinsics the device's (or recording's); ``describe
 
 Stamps: live (``SourceOptions.realtime``) device stamps are shifted by a constant, fixed at the
 first frame, onto the live run's clock (``time.monotonic_ns``, as the board's). A recording then
-plays in real time, stamped the same way: the live run cannot tell it from a camera. Offline, a
+plays in real time (paced here: the SDK's real-time playback drops frames and gyro samples),
+stamped the same way: the live run cannot tell it from a camera. Offline, a
 recording plays as fast as it is read with its recorded clock, and a camera's ``global_time``
 stamps (D400 default: host wall time) are kept.
 
@@ -25,6 +26,7 @@ rules (``99-realsense-libusb.rules``) must be installed, see docs/guide.md.
 
 from __future__ import annotations
 
+import atexit
 import importlib
 import itertools
 import logging
@@ -32,6 +34,7 @@ import math
 import queue
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -58,6 +61,7 @@ PLAYBACK_STALL_MS = 30_000  # [ms] a playback "playing" yet silent this long is 
 NS_PER_MS = 1_000_000  # [ns/ms] librealsense stamps are milliseconds
 GYRO_POLL_MS = 50  # [ms] read_gyro looks at its samples this often
 GYRO_SETTLE_MS = 200  # [ms] and takes a stopped playback as ended after this long without one
+GYRO_QUEUE = 10 * GYRO_FPS  # [samples] live gyro held between two take_imu() (10 s)
 # librealsense colour formats -> channel order to RGB
 COLOUR_FORMATS = {"rgb8": [0, 1, 2], "bgr8": [2, 1, 0], "rgba8": [0, 1, 2], "bgra8": [2, 1, 0]}
 UDEV_HELP = (
@@ -142,13 +146,24 @@ def gyro_sensor(rs: ModuleType, device: Any) -> tuple[Any, Any] | None:
 
 class GyroSamples:
     """Gyro motion frames as librealsense's thread delivers them (a deque append is
-    thread-safe) -> :class:`ImuStream` yaw rates on the device clock, in stamp order."""
+    thread-safe) -> :class:`ImuStream` yaw rates on the device clock, in stamp order.
 
-    def __init__(self) -> None:
+    Live (``rs`` given) the samples go to librealsense's own ``frame_queue`` (GYRO_QUEUE deep)
+    and are converted in :meth:`take`: the motion sensor's thread, which holds one sample at a
+    time, never waits for the GIL (held by the live run's VO) to hand it over. :meth:`sink` is
+    what the sensor is started with."""
+
+    def __init__(self, rs: ModuleType | None = None) -> None:
         self._samples: deque[tuple[int, float]] = deque()  # (device stamp [ns], yaw rate)
+        self._queue = rs.frame_queue(GYRO_QUEUE, keep_frames=True) if rs is not None else None
 
     def __len__(self) -> int:
         return len(self._samples)
+
+    @property
+    def sink(self) -> Any:
+        """The sensor's frame callback: the frame queue, else :meth:`on_frame`."""
+        return self._queue if self._queue is not None else self.on_frame
 
     def on_frame(self, frame: Any) -> None:
         motion = frame.as_motion_frame()
@@ -157,22 +172,40 @@ class GyroSamples:
 
     def take(self) -> ImuStream:
         """The samples that arrived since the last call."""
+        if self._queue is not None:
+            while frame := self._queue.poll_for_frame():
+                self.on_frame(frame)
         got = [self._samples.popleft() for _ in range(len(self._samples))]
         stamps = np.array([t for t, _ in got], dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         return ImuStream(stamps[order], np.array([r for _, r in got], dtype=np.float64)[order])
 
 
-def load_recording(rs: ModuleType, file: Path, *, realtime: bool) -> Any:
-    """An SDK recording's playback device, in real time or as fast as it is read. Set before
-    streaming: a playback starts in real time, and real-time dispatch drops frames (now and then
-    the first) and gyro samples while the reader is busy."""
+def load_recording(rs: ModuleType, file: Path) -> Any:
+    """An SDK recording's playback device, played as fast as it is read: librealsense's
+    real-time playback reads ahead and drops a frame or gyro sample whenever a sensor's
+    one-deep dispatch queue is still full (a third to a half of a 200 Hz gyro, more under
+    load), so a recording played live is paced by the reader instead (``RealSenseSource``).
+    Set before streaming: a playback starts in real time."""
     try:
         device = rs.context().load_device(str(file))
     except RuntimeError as err:
         raise SensorError(f"{file}: RealSense SDK cannot read it: {err}") from err
-    device.as_playback().set_real_time(realtime)
+    device.as_playback().set_real_time(False)
     return device
+
+
+def start_sensors(playback: Any, starts: Sequence[tuple[Any, Callable[[Any], None]]]) -> None:
+    """Start opened sensors with their frame callbacks. A playback starts reading when its first
+    sensor starts and silently drops the frames of a sensor not started yet (under load, or while
+    the first sensor's callbacks hold the GIL, the first colour frames): so it is paused while
+    they start, then resumed, which rewinds it to its start with every sensor listening."""
+    if playback is not None:
+        playback.pause()  # paused: the one read at start is dropped, resume() reads it again
+    for sensor, callback in starts:
+        sensor.start(callback)
+    if playback is not None:
+        playback.resume()
 
 
 def playback_ended(rs: ModuleType, playback: Any, silent_ms: int, where: str) -> bool:
@@ -243,6 +276,15 @@ class FramePairing:
 
 
 _UNREAD = object()  # RealSenseSource's gyro before it is read
+# Sources not closed yet. librealsense's threads calling into an interpreter that is shutting
+# down abort or segfault it (a failed test's source, a Ctrl-C): they are closed at exit.
+_OPEN: weakref.WeakSet[RealSenseSource] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_open_sources() -> None:
+    for src in list(_OPEN):
+        src.close()
 
 
 class RealSenseSource(SourceBase):
@@ -265,17 +307,23 @@ class RealSenseSource(SourceBase):
         self.target = target
         self._rs = rs
         self._sensors: list[Any] = []  # started, stopped by close()
+        _OPEN.add(self)
         # Colour and depth frames from the sensors' threads; None once closed.
         self._frames_q: queue.Queue[Any] | None = queue.Queue(FRAME_QUEUE)
         self._closing = threading.Event()
         self._realtime = realtime
+        # A recording played live: (first device stamp [ms], host time [ns]) its frames are
+        # delivered on, set by the first frame (see load_recording).
+        self._pace = realtime and target.file is not None
+        self._pace_base: tuple[float, int] | None = None
+        self._pace_lock = threading.Lock()
         self._clock = clock
         self._max_difference_ns = max_difference_ns
         # [ns] added to device stamps to give the frames' (fixed at the first frame): the live
         # run moves the recording's gyro onto its clock with it (slam.front_end.MessageFeed).
         self.stamp_offset_ns = 0
         self._gyro: ImuStream | None | object = _UNREAD  # imu(): read once
-        self._gyro_samples = GyroSamples()  # live (realtime): the streaming gyro
+        self._gyro_samples = GyroSamples(rs)  # live (realtime): the streaming gyro
         self._gyro_sensor: Any = None
         gyro = gyro_sensor(rs, device)
         self.gyro_fps = int(gyro[1].fps()) if gyro is not None else 0  # [Hz] 0: no IMU
@@ -334,10 +382,10 @@ class RealSenseSource(SourceBase):
                 assert gyro is not None
                 gyro[0].open(gyro[1])
                 self._gyro_sensor = gyro[0]
-            for sensor in self._sensors:
-                sensor.start(self._on_frame)
+            starts = [(sensor, self._on_frame) for sensor in self._sensors]
             if self._gyro_sensor is not None:
-                self._gyro_sensor.start(self._gyro_samples.on_frame)
+                starts.append((self._gyro_sensor, self._gyro_samples.sink))
+            start_sensors(self._playback, starts)
         except RuntimeError:
             self.close()
             raise
@@ -386,7 +434,7 @@ class RealSenseSource(SourceBase):
             raise SensorError(f"{target.file}: no such RealSense recording")
         rs = load_pyrealsense2()
         if target.file is not None:
-            device = load_recording(rs, target.file, realtime=realtime)
+            device = load_recording(rs, target.file)
             where = f"{target.file}"
         else:
             device = cls._find_camera(rs, rs.context(), target.serial)
@@ -424,6 +472,8 @@ class RealSenseSource(SourceBase):
         return devices[serials.index(serial)]
 
     def close(self) -> None:
+        """Stop and close the sensors (again: nothing); at exit for a source left open."""
+        _OPEN.discard(self)
         sensors = [self._gyro_sensor] if self._gyro_sensor is not None else []
         sensors += self._sensors
         self._gyro_sensor, self._sensors, self._frames_q = None, [], None
@@ -520,7 +570,10 @@ class RealSenseSource(SourceBase):
     def _on_frame(self, frame: Any) -> None:
         """librealsense's threads: a colour or depth frame. Offline it waits while the queue is
         full, so a playback not in real time waits for the reader; live a frame the reader has
-        no room for is dropped (``queue_full``), as a camera's."""
+        no room for is dropped (``queue_full``), as a camera's. A recording played live is
+        delivered at its recorded pace: the playback (not in real time) waits meanwhile."""
+        if self._pace and not self._wait_until_due(frame.get_timestamp()):
+            return  # closed while waiting
         while not self._closing.is_set() and (frames_q := self._frames_q) is not None:
             try:
                 frames_q.put(
@@ -531,6 +584,16 @@ class RealSenseSource(SourceBase):
                 if self._realtime:
                     self.skipped["queue_full"] = self.skipped.get("queue_full", 0) + 1
                     return
+
+    def _wait_until_due(self, stamp_ms: float) -> bool:
+        """Sleep until a frame's recorded time, counted from the first frame's arrival; False
+        if closed meanwhile."""
+        with self._pace_lock:
+            if self._pace_base is None:
+                self._pace_base = (stamp_ms, time.monotonic_ns())
+            base_ms, base_ns = self._pace_base
+        wait_ns = base_ns + round((stamp_ms - base_ms) * NS_PER_MS) - time.monotonic_ns()
+        return not (wait_ns > 0 and self._closing.wait(wait_ns / 1e9))
 
     def take_imu(self) -> ImuStream:
         """Live: the gyro samples (yaw rates) that arrived since the last call, on the device
@@ -551,7 +614,7 @@ def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:
     """A recording's gyro stream as yaw rates (-gyro_y), as fast as it reads; None without one.
     The same playback, gyro callback and end-of-playback test as the frame reader's."""
     try:
-        device = load_recording(rs, file, realtime=False)
+        device = load_recording(rs, file)
     except SensorError:
         return None
     found = gyro_sensor(rs, device)
@@ -560,8 +623,8 @@ def read_gyro(rs: ModuleType, file: Path) -> ImuStream | None:
     sensor, profile = found
     playback, samples = device.as_playback(), GyroSamples()
     sensor.open(profile)
-    sensor.start(samples.on_frame)
     try:
+        start_sensors(playback, [(sensor, samples.on_frame)])
         silent_ms, seen = 0, 0
         while True:
             time.sleep(GYRO_POLL_MS / 1000)

@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -19,7 +22,9 @@ from sensors.realsense_source import (
     FramePairing,
     RealSenseSource,
     RealSenseTarget,
+    load_recording,
     parse_target,
+    start_sensors,
     write_sdk_recording,
 )
 from sensors.source import ImuStream, SourceOptions, open_source
@@ -95,6 +100,76 @@ def test_a_recording_reads_its_own_intrinsics_depth_units_and_frames(route) -> N
         valid = np.isfinite(want.depth_m) & (want.depth_m > 0) & (want.depth_m < 30.0)
         err = np.abs(got.depth_m[valid] - want.depth_m[valid])
         assert np.median(err) <= DEPTH_UNITS  # quantised to the recording's units, not mm
+
+
+def test_a_playback_loses_no_frame_however_late_its_sensors_start(route) -> None:
+    """A playback reads from its first sensor's start and drops what a sensor not started yet
+    is sent: a reader descheduled between two starts (a loaded machine) lost the first colour
+    frames. Started paused and rewound, each sensor gets every frame, whichever starts late."""
+    import pyrealsense2 as rs
+
+    path, truth = route
+
+    class Late:  # a sensor whose start returns 0.3 s late, as on a starved machine
+        def __init__(self, sensor) -> None:
+            self.sensor = sensor
+
+        def start(self, callback) -> None:
+            self.sensor.start(callback)
+            time.sleep(0.3)
+
+    device = load_recording(rs, path)
+    playback, got = device.as_playback(), {}
+    sensors = [s for s in device.query_sensors() if not s.is_motion_sensor()]
+    for sensor in sensors:
+        sensor.open(sensor.get_stream_profiles()[0])
+    try:
+        start_sensors(
+            playback,
+            [
+                (
+                    Late(s),
+                    lambda f: got.setdefault(f.get_profile().stream_name(), []).append(
+                        f.get_timestamp()
+                    ),
+                )
+                for s in sensors
+            ],
+        )
+        deadline = time.monotonic() + 60.0
+        while playback.current_status() == rs.playback_status.playing:
+            assert time.monotonic() < deadline, "playback did not end"
+            time.sleep(0.05)
+    finally:
+        for sensor in sensors:
+            sensor.stop()
+            sensor.close()
+    want = [f.stamp_ns / 1e6 for f in truth]
+    assert sorted(got) == ["Color", "Depth"]
+    for stream, stamps in got.items():
+        assert stamps == pytest.approx(want, abs=1e-3), stream
+
+
+def test_a_source_left_open_does_not_crash_the_interpreter_at_exit(route) -> None:
+    """A failed test's or a Ctrl-C'd run's source still playing at exit: librealsense's threads
+    called into the dying interpreter ("FATAL: exception not rethrown", SIGABRT or SIGSEGV)."""
+    path, _ = route
+    script = (
+        "from sensors.realsense_source import RealSenseSource\n"
+        f"src = RealSenseSource.open('realsense://{path}', realtime=True)\n"
+        "next(iter(src.frames()))\n"
+        "print('left open', flush=True)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-X", "faulthandler", "-c", script],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 0 and "left open" in res.stdout, res.stderr[-2000:]
+    assert "Fatal" not in res.stderr, res.stderr[-2000:]
 
 
 def test_colour_and_depth_pair_by_stamp_whichever_comes_first() -> None:
@@ -237,10 +312,10 @@ def test_live_fuses_the_streaming_gyro_and_turns_as_the_route(route, tmp_path: P
     imu0, imu0_plain = (s["ekf"]["sensors"]["imu0"] for s in (summary, summary_plain))
     assert summary["camera_imu"] == "gyro 200 Hz as imu0"
     assert summary_plain["camera_imu"] == "no IMU (the recording has no gyro stream)"
-    # Fed up to the last frame processed. librealsense's real-time playback delivers about half
-    # of a recording's gyro samples (a camera delivers all): at least a quarter of 200 Hz.
+    # Fed up to the last frame processed: every sample, as a camera delivers them (the recording
+    # is paced by the reader; librealsense's real-time playback dropped a third to a half).
     span_s = summary["odom_span_s"]
-    assert imu0["received"] >= 0.25 * span_s * 1e9 / GYRO_PERIOD_NS, (imu0, span_s)
+    assert imu0["received"] >= span_s * 1e9 / GYRO_PERIOD_NS, (imu0, span_s)
     assert imu0["fused"] > 0 and imu0["dropped_late"] == 0, imu0
     assert imu0_plain["received"] == 0  # no gyro: the live run as before
     assert with_gyro < 0.03, with_gyro  # the gyro's yaw, on the frames' clock

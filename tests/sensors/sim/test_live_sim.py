@@ -14,6 +14,8 @@ from sensors.types import SensorError
 
 WORLD = Path(__file__).resolve().parents[3] / "scenes" / "house.yaml"
 FRAME_TIMEOUT_S = 5.0  # [s] generous: CI machines are shared
+WAIT_S = 30.0  # [s] for MIN_FRAMES on a starved machine (idle: done in the drive's 1.5 s)
+MIN_FRAMES = 10  # frames taken in the run: the camera keeps streaming
 
 
 @pytest.fixture
@@ -35,10 +37,16 @@ def test_gospd_through_the_driver_moves_the_camera_forward(robot: SimRobot, tmp_
         board.stop()
         left, right = board.distance()
     stopped_ns = time.monotonic_ns()
-    last = None
-    deadline = time.monotonic() + FRAME_TIMEOUT_S
-    while time.monotonic() < deadline and (last is None or last.stamp_ns < stopped_ns):
-        last = robot.next_frame(FRAME_TIMEOUT_S) or last
+    # A frame imaged after the stop, and MIN_FRAMES taken in all: a starved machine renders
+    # below 30 Hz (9 frames in 1.5 s at load 38), so wait for them rather than a fixed time.
+    last, taken = None, 1
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline and (
+        last is None or last.stamp_ns < stopped_ns or taken < MIN_FRAMES
+    ):
+        frame = robot.next_frame(FRAME_TIMEOUT_S)
+        if frame is not None:
+            last, taken = frame, taken + 1
     stats = robot.stop()
     assert last is not None
     dx = last.true_pose[0] - first.true_pose[0]
@@ -46,7 +54,7 @@ def test_gospd_through_the_driver_moves_the_camera_forward(robot: SimRobot, tmp_
     assert 0.1 < dx < 0.35
     assert abs(last.true_pose[1] - first.true_pose[1]) < 0.05
     assert left > 0 and right > 0 and abs(left - right) <= 2
-    assert stats.frames_rendered >= 10 and stats.collisions == 0
+    assert taken >= MIN_FRAMES and stats.frames_rendered >= taken and stats.collisions == 0
     assert stats.truth_poses >= stats.frames_rendered
     assert (tmp_path / "groundtruth.tum").read_text().count("\n") == stats.truth_poses + 2
 
