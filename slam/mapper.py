@@ -72,11 +72,6 @@ UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 ROTATED_RIVAL_WINDOW = math.pi / 4  # [rad] loop angular half-window from which turned twins count
 ROTATED_RIVAL_ANGLES = np.radians([90.0, 180.0, -90.0])  # [rad] yaw offsets of a turned twin
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
-# ICP goes on after converging (step < 5e-4) until its step is below this, for at most this many
-# more iterations: a match then depends on the map and the scan, not on where ICP started (the
-# odometry prior, the correlative optimum, a CPU's rounding); issue #12, mapper_stability.md.
-ICP_POLISH = 1e-5  # [m, rad]
-ICP_POLISH_ITERATIONS = 10
 GRID_MARGIN_M = 1.0  # [m] unknown border around the mapped area in the built grid
 REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
 # The second core: local maps (likelihood field, k-d tree, normals) are built here while the
@@ -507,8 +502,7 @@ class Mapper:
             kf.match_points,
             coarse.pose,
             cfg.icp_max_correspondence_distance,
-            max_iterations=cfg.icp_max_iterations + ICP_POLISH_ITERATIONS,
-            polish=ICP_POLISH,
+            max_iterations=cfg.icp_max_iterations,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=huber_m,
         )
@@ -540,8 +534,7 @@ class Mapper:
             kf.match_points,
             prior,
             cfg.icp_max_correspondence_distance,
-            max_iterations=cfg.icp_max_iterations + ICP_POLISH_ITERATIONS,
-            polish=ICP_POLISH,
+            max_iterations=cfg.icp_max_iterations,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=cfg.icp_huber_width,
         )
