@@ -5,20 +5,17 @@ the jamb (the nav-scenario's seed-2 graze, docs/design/navigator.md)."""
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from typer.testing import CliRunner
 
-from rgbdnav.cli import app
 from sensors.sim.world import floor_plan, load_world
 from slam.map_bundle import save_map_yaml
 from slam.occupancy_grid import GridGeometry, OccupancyGrid
+from tests.rgbdnav.test_navigate_cli import _navigate
 
-runner = CliRunner()
 BIAS_X = 0.32  # [m] the estimate drifts this far ahead (+x) of the truth, over RAMP_SCANS
 RAMP_SCANS = 15  # [-] localiser answers (5 Hz) until the full bias
 HALL = {
@@ -76,26 +73,16 @@ def test_navigate_puts_the_collision_monitor_between_the_navigator_and_the_wheel
     import rgbdnav.runners.navigate as navigate_run
 
     monkeypatch.setattr(navigate_run, "Localizer", _drifting_localizer())
-    result = runner.invoke(
-        app,
-        [
-            "navigate",
-            "--map",
-            str(hall["map"]),
-            "--sim",
-            str(hall["world"]),
-            "--out",
-            str(tmp_path),
-            "-q",
-            "--goal",
-            "3.0,4.0",
-            "--goal-timeout",
-            "15",
-            "--set",
-            "navigate.max_replans=1",
-        ],
+    _, output, summary = _navigate(
+        hall,
+        tmp_path,
+        "--goal",
+        "3.0,4.0",
+        "--goal-timeout",
+        "15",
+        "--set",
+        "navigate.max_replans=1",
     )
-    assert (tmp_path / "summary.json").is_file(), result.output
-    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary, output
     assert summary["collisions"]["events"] == 0, summary["collisions"]
     assert summary["collision_monitor"]["enabled"] and summary["collision_monitor"]["stops"] >= 1

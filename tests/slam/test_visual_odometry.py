@@ -37,18 +37,10 @@ from slam.visual_odometry import (
     rotation_angle,
     se3_exp,
 )
+from tests.sim_worlds import NOISELESS
 
 CAMERA = CameraConfig()
 ROBOT = RobotConfig()
-NOISELESS = replace(
-    SimConfig(),
-    disparity_noise=0.0,
-    disparity_subpixel=10**6,
-    depth_dropout=0.0,
-    depth_edge_threshold=0.0,
-    shadows=False,
-    rgb_noise=0.0,
-)
 VO6 = VoConfig(force_3dof=False)
 CABINET = (
     Path(__file__).resolve().parents[3]
