@@ -5,7 +5,13 @@ import logging
 import numpy as np
 import pytest
 
-from sensors.recording import Recording, RecordingWriter, associate
+from sensors.recording import (
+    Recording,
+    RecordingWriter,
+    associate,
+    counts_to_depth,
+    depth_to_counts,
+)
 from sensors.types import CameraIntrinsics, RgbdFrame, SensorError
 
 MS = 1_000_000  # [ns]
@@ -289,3 +295,17 @@ def test_camera_intrinsics_refuse_nan_and_non_positive_values_wherever_they_are_
     for bad in (float("nan"), float("inf")) if field in ("cx",) else (float("nan"), 0, -1.0):
         with pytest.raises(SensorError, match="must be finite"):
             CameraIntrinsics(**{**good, field: bad})
+
+
+def test_depth_to_counts_zeroes_what_a_uint16_cannot_hold_and_writes_into_a_given_slot() -> None:
+    depth = np.array(
+        [[np.nan, np.inf, -np.inf, -0.5], [0.0, 1.00001, 13.107, 13.1072], [1e-5, 2.5, 7e-5, 1.0]],
+        np.float32,
+    )
+    want = np.array([[0, 0, 0, 0], [0, 5000, 65535, 0], [0, 12500, 0, 5000]], np.uint16)
+    got = depth_to_counts(depth, 5000.0)
+    assert got.dtype == np.uint16 and np.array_equal(got, want)
+    slot = np.full(depth.shape, 7, np.uint16)
+    assert depth_to_counts(depth, 5000.0, out=slot) is slot and np.array_equal(slot, want)
+    back = counts_to_depth(want, 5000.0)
+    assert back.dtype == np.float32 and back[1, 1] == np.float32(1.0) and back[0, 0] == 0.0
