@@ -29,7 +29,12 @@ def read_bounded(
                 f"{max_bytes} allowed)"
             )
         with open(path, "rb") as f:
-            data = f.read(max_bytes + 1)
+            # The size stat() saw, plus one byte to notice growth: read(max_bytes + 1) would
+            # allocate max_bytes at once (0.55 instead of 0.1 ms for a 0.6 MB PNG). A file
+            # that grew since is read on, up to the limit, as before.
+            data = f.read(min(st.st_size, max_bytes) + 1)
+            if len(data) > st.st_size:
+                data += f.read(max_bytes + 1 - len(data))
     except OSError as err:
         raise error(f"{path}: cannot read {what} ({err.strerror or err})") from None
     if len(data) > max_bytes:  # it grew while we read it
