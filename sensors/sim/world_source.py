@@ -14,7 +14,8 @@ temporary folder and read back by :class:`~sensors.recording.Recording`, so they
 the same text round trip as a rendered recording's and every consumer sees the same numbers.
 The images travel through shared memory: QUEUE_FRAMES slots the renderer fills and the consumer
 copies out and hands back, only slot numbers going through the queues (pickling 1.5 MB a frame
-through a pipe cost ~2 ms of CPU in each process; docs/design/speed.md, "Session 16").
+through a pipe cost ~2 ms of CPU in the renderer and ~3 in the consumer, against ~0.4 each;
+docs/design/speed.md, "Session 16").
 """
 
 from __future__ import annotations
