@@ -379,3 +379,10 @@ class SimConfig:
     gyro_enabled: bool = param(True)
     gyro_bias: float = param(0.002, unit="rad/s")
     gyro_noise: float = param(0.005, unit="rad/s", ge=0.0)
+    # GPS receiver riding base_link, in worlds with a geo anchor (consumer receivers: 2-5 m).
+    gps_sigma: float = param(3.0, unit="m", gt=0.0, doc="per-axis noise of a fix")
+    gps_rate: float = param(1.0, unit="Hz", gt=0.0, doc="fixes per second")
+    gps_outage_probability: float = param(
+        0.05, ge=0.0, le=1.0, doc="chance per fix of entering an outage"
+    )
+    gps_mean_outage: float = param(5.0, unit="s", gt=0.0, doc="mean outage length")

@@ -28,6 +28,7 @@ from typing import IO
 import numpy as np
 
 from sensors.atomic import atomic_write_text
+from sensors.config import SimConfig
 from sensors.geo import GeoAnchor
 from sensors.tum import read_stamped_text
 from sensors.types import NS_PER_S, SensorError, format_stamp
@@ -142,6 +143,11 @@ class SimGpsConfig:
     rate_hz: float = 1.0  # [Hz] fixes
     p_drop: float = 0.05  # probability per fix of entering an outage
     mean_outage_s: float = 5.0  # [s] mean outage length
+
+    @classmethod
+    def from_sim(cls, sim: SimConfig) -> SimGpsConfig:
+        """The receiver of the ``sim`` config section (``sim.gps_*``)."""
+        return cls(sim.gps_sigma, sim.gps_rate, sim.gps_outage_probability, sim.gps_mean_outage)
 
 
 class SimGpsReceiver:

@@ -465,7 +465,9 @@ class MapperConfig:
     2026-11-22, and are now refused as unknown keys (widening the search on a weak response,
     tried on MIT CSAIL, accepted wrong matches: 6-9 deg rotation error)."""
 
-    resolution: float = param(0.05, unit="m/cell", gt=0.0, doc="occupancy grid resolution")
+    resolution: float = param(
+        0.05, unit="m/cell", ge=0.005, le=1.0, doc="occupancy grid resolution"
+    )
     max_laser_range: float = param(20.0, unit="m", gt=0.0, doc="longest ray used to build the grid")
     minimum_time_interval: float = param(
         0.5, unit="s", ge=0.0, doc="min time between processed scans"

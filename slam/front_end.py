@@ -331,7 +331,7 @@ class FrontEnd:
         try:
             od = self.ekf.state_at(stamp_ns)
         except EkfError:  # no input yet, or the frame is older than the kept history
-            self.counts["frames_without_odometry"] += 1
+            self.counts["frames_without_filter_pose"] += 1
             return None, False
         return od, self.ekf.is_timed_out(stamp_ns)
 

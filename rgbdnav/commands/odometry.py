@@ -213,7 +213,7 @@ def _wheel_odometry(
         "wheel_readings_dropped_glitch": clean.glitches_dropped,
         "wheel_jumps_taken_as_no_motion": clean.jumps_zeroed,
         "trajectory_poses": int(ok.sum()),
-        "frames_without_odometry": int((~ok).sum()),
+        "frames_outside_wheel_readings": int((~ok).sum()),
         "final_pose_sigma": {
             "x_m": float(np.sqrt(cov[-1, 0, 0])),
             "y_m": float(np.sqrt(cov[-1, 1, 1])),

@@ -429,7 +429,9 @@ class LiveRun:
             )
             self.route = self._in_map(np.column_stack([route, np.zeros(len(route))]))[:, :2]
             if world.geo is not None and opts.camera == "sim":  # a receiver riding base_link
-                self._sim_gps = SimGpsReceiver(world.geo, SimGpsConfig(), seed=opts.seed)
+                self._sim_gps = SimGpsReceiver(
+                    world.geo, SimGpsConfig.from_sim(cfg.sim), seed=opts.seed
+                )
                 self.gps_source = "simulated receiver"
             self._set_map_anchor(world.geo)
             self.sim = SimRobot(

@@ -193,9 +193,9 @@ def plan_simulation(
     gt_t = sample_times(duration_ns, sim.groundtruth_rate)
     gt_x, gt_y, gt_yaw = traj.interpolate(gt_t)
     gps = None
-    if world.geo is not None:  # a receiver riding base_link (sensors/gps.py defaults)
+    if world.geo is not None:  # a receiver riding base_link (sim.gps_*)
         gps_xy = np.column_stack([gt_x, gt_y])
-        gps = simulate_gps(gt_t, gps_xy, world.geo, SimGpsConfig(), seed)
+        gps = simulate_gps(gt_t, gps_xy, world.geo, SimGpsConfig.from_sim(sim), seed)
 
     # 3. Each camera frame is rendered at its true capture time.
     cam_x, cam_y, cam_yaw = traj.interpolate(capture)

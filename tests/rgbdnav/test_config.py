@@ -123,6 +123,11 @@ def test_wrong_literal_choice_lists_the_choices() -> None:
             r"robot\.wheel_diameter: 0(\.0)? m is out of range \(must be > 0",
         ),
         ("smoother.max_decel=[-2.5, 0.5, -3.2]", r"smoother\.max_decel\[1\]: 0\.5 .* <= 0\.0"),
+        # A cell of 1e12 m made a one-cell map without a word.
+        (
+            "mapper.resolution=1e12",
+            r"mapper\.resolution: 10+\.0 m/cell is out of range \(must be <= 1\.0",
+        ),
     ],
 )
 def test_out_of_range_value_names_key_and_range(override: str, pattern: str) -> None:

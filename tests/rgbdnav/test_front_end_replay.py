@@ -143,7 +143,7 @@ def test_live_frames_before_the_boards_first_motion_get_the_start_pose_and_are_m
     live._front_end_loop()
     live.odom_track.close()
     counts = live.counts.as_dict()
-    assert counts.get("frames_without_odometry", 0) == 0
+    assert counts.get("frames_without_filter_pose", 0) == 0
     assert counts["frames_processed"] == len(frames)
     assert isinstance(live.scan_q.get_nowait(), tuple)  # scans went to the mapper
     posed = live.odom_track.load()

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sensors.config import CameraConfig, RobotConfig, SimConfig
+from sensors.config import CameraConfig, RobotConfig, SimConfig, build_section
 from sensors.recording import Recording
 from sensors.sim.simulator import camera_stamps, simulate
 from sensors.tum import load_tum_trajectory
@@ -110,22 +110,22 @@ def test_replays_a_real_pioneer_trajectory_in_the_hall(tmp_path: Path) -> None:
 
 
 def test_a_world_with_a_geo_anchor_records_gps_fixes_near_the_truth(tmp_path: Path) -> None:
-    from dataclasses import replace
-
     from sensors.geo import GeoAnchor
 
     assert run(tmp_path / "rec", seed=3).gps() is None  # the plain house has no anchor
     world = tmp_path / "house_geo.yaml"
     anchor = "geo: {latitude: 44.98, longitude: -93.27, altitude: 256.0, heading_deg: 30.0}"
     world.write_text(HOUSE.read_text() + "\n" + anchor + "\n")
-    # Few, small frames (2 Hz, 160x120): the fixes are what is tested, not the images.
-    sim = replace(SimConfig(), camera_rate=2.0)
+    # Few, small frames (2 Hz, 160x120): the fixes are what is tested, not the images. The
+    # receiver is set by the `sim.gps_*` keys (defaults: 1 Hz, 3 m, outages).
+    keys = {"camera_rate": 2.0, "gps_rate": 5, "gps_sigma": 0.5, "gps_outage_probability": 0}
+    sim = build_section(SimConfig, keys, "sim")
     cam = CameraConfig(width=160, height=120, fx=131.25, fy=131.25, cx=79.5, cy=59.5)
     simulate(world, tmp_path / "geo", RobotConfig(), cam, sim, seed=3, duration_s=20.0)
     rec = Recording.open(tmp_path / "geo")
     gps = rec.gps()
-    assert gps is not None and 10 <= len(gps) <= 21  # 1 Hz, some lost to dropouts
+    assert gps is not None and 99 <= len(gps) <= 101  # 5 Hz for 20 s, no outage
     t, x, y, _ = rec.groundtruth_planar()
     xy = gps.in_map(GeoAnchor(44.98, -93.27, 256.0, 30.0))
     err = xy - np.column_stack([np.interp(gps.stamps_ns, t, x), np.interp(gps.stamps_ns, t, y)])
-    assert float(np.median(np.hypot(err[:, 0], err[:, 1]))) < 4 * 3.0  # sigma 3 m per axis
+    assert float(np.median(np.hypot(err[:, 0], err[:, 1]))) < 2 * 0.5  # sigma 0.5 m per axis
