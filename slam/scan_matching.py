@@ -40,8 +40,12 @@ NORMAL_NEIGHBOURS = 5  # points used to fit each reference point's line (incl. i
 NORMAL_TIE_EXTRA = 3  # further neighbours looked at for a tie with the k-th
 NORMAL_TIE_RTOL = 1e-9  # a neighbour this much (relative) farther than the k-th still ties
 MIN_POINTS = 10  # fewer matched points than this is not a match
+BLEND_NEIGHBOURS = 3  # reference lines blended per scan point (icp_refine's blend_sigma_m)
 SCORE_CHUNK_ELEMENTS = 2**17  # candidate x scan point indices per gather (1 MiB: in cache)
 PLANARITY_MAX = 0.2  # smaller/larger eigenvalue ratio above which a neighbourhood is no line
+# ICP weighs a normal 1 up to this ratio, then less and less, 0 at PLANARITY_MAX: a hard cut let
+# 1e-6 m of range noise switch a normal on or off and move a match by millimetres (issue #12).
+PLANARITY_FULL = 0.1
 DEGENERATE_EIGENVALUE = 1e-9  # information floor relative to the strongest direction
 GRID_GRADIENT_SIGMA_CELLS = 1.0  # [cells] occupancy blur before the gradient (grid normals)
 GRID_TENSOR_SIGMA_CELLS = 1.5  # [cells] structure tensor window (grid normals)
@@ -409,13 +413,16 @@ class ReferenceCloud:
     points: np.ndarray  # (M + 1, 2) [m]
     normals: np.ndarray  # (M + 1, 2) unit; (0, 0) where the neighbourhood is no line
     tree: cKDTree
+    # (M + 1,) ICP weight of each normal in [0, 1], 0 where there is none; None: 1 where there is
+    weights: np.ndarray | None = None
 
     @cached_property
     def columns(self) -> np.ndarray:
-        """(5, M + 1) float64 rows q_x [m], q_y [m], n_x, n_y, has-a-normal (1.0 or 0.0): all
-        that ICP needs of a neighbour, gathered with one ``np.take`` per iteration."""
+        """(5, M + 1) float64 rows q_x [m], q_y [m], n_x, n_y, normal weight: all that ICP
+        needs of a neighbour, gathered with one ``np.take`` per iteration."""
         has_normal = np.any(self.normals != 0, axis=1)
-        return np.vstack([self.points.T, self.normals.T, has_normal])
+        weight = has_normal if self.weights is None else self.weights * has_normal
+        return np.vstack([self.points.T, self.normals.T, weight])
 
     @property
     def size(self) -> int:
@@ -451,10 +458,13 @@ def build_reference(points: np.ndarray) -> ReferenceCloud:
     phi = 0.5 * np.arctan2(2 * sxy, sxx - syy)
     mean, radius = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
     linear = (mean - radius) <= PLANARITY_MAX * np.maximum(mean + radius, 1e-12)
-    padded, normals = np.zeros((m + 1, 2)), np.zeros((m + 1, 2))
+    padded, normals, weights = np.zeros((m + 1, 2)), np.zeros((m + 1, 2)), np.zeros(m + 1)
     padded[:m] = points
     normals[:m][linear] = np.column_stack([-np.sin(phi[linear]), np.cos(phi[linear])])
-    return ReferenceCloud(padded, normals, tree)
+    ratio = (mean - radius) / np.maximum(mean + radius, 1e-12)
+    weights[:m] = np.clip((PLANARITY_MAX - ratio) / (PLANARITY_MAX - PLANARITY_FULL), 0.0, 1.0)
+    weights[:m][~linear] = 0.0
+    return ReferenceCloud(padded, normals, tree, weights)
 
 
 def build_grid_reference(
@@ -521,6 +531,7 @@ def icp_refine(
     min_sigma_m: float = 0.01,
     tolerance: float = 5e-4,
     polish: float | None = None,
+    blend_sigma_m: float | None = None,
 ) -> IcpResult:
     """Point-to-line Gauss-Newton from ``initial`` (see module docstring).
 
@@ -549,15 +560,20 @@ def icp_refine(
         rx, ry = c * px - s * py, s * px + c * py  # R p; dR/dyaw p = (-ry, rx)
         np.add(rx, pose[0], out=wx)
         np.add(ry, pose[1], out=wy)
-        _, idx = ref.tree.query(world, distance_upper_bound=max_correspondence_m)
-        # A missing neighbour (index M) has zero normal and point: zero residual and Jacobian.
-        qx, qy, nx, ny, has_normal = np.take(ref.columns, idx, axis=1)
-        r = nx * (wx - qx) + ny * (wy - qy)
+        if blend_sigma_m is None:
+            _, idx = ref.tree.query(world, distance_upper_bound=max_correspondence_m)
+            # A missing neighbour (index M) has zero normal and point: zero residual and Jacobian.
+            qx, qy, nx, ny, normal_weight = np.take(ref.columns, idx, axis=1)
+            r = nx * (wx - qx) + ny * (wy - qy)
+        else:
+            idx, r, nx, ny, normal_weight = _blended_lines(
+                ref, world, max_correspondence_m, blend_sigma_m
+            )
         jac[:, 0], jac[:, 1] = nx, ny
         np.subtract(ny * rx, nx * ry, out=jac[:, 2])
-        # Huber: 1 inside the width, width / |r| beyond (huber_m > 0); 0 without a normal.
+        # Huber: 1 inside the width, width / |r| beyond (huber_m > 0), times the normal's weight.
         wts = huber_m / np.maximum(np.abs(r), huber_m)
-        wts *= has_normal
+        wts *= normal_weight
         n_used = int(np.count_nonzero(wts))
         if n_used < MIN_POINTS:
             return failed
@@ -583,6 +599,34 @@ def icp_refine(
     cov = sigma2 * (evecs / evals) @ evecs.T
     inliers = float(np.count_nonzero(idx < ref.size)) / n
     return IcpResult(pose, 0.5 * (cov + cov.T), rmse, inliers, it, converged)
+
+
+def _blended_lines(
+    ref: ReferenceCloud, world: np.ndarray, max_correspondence_m: float, sigma_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Point-to-line terms against a Gaussian blend of the ``BLEND_NEIGHBOURS`` nearest
+    reference lines instead of the nearest one: returns the nearest index, the blended residual,
+    normal (x, y) and weight per point. With one neighbour the residual jumps wherever the
+    nearest neighbour changes, so ICP has many fixed points millimetres apart along a weakly
+    constrained axis and which one it stops in is decided by its start (1e-6 m of range noise
+    moved a match 1.7 cm, issue #12); blended, the terms vary smoothly with the pose."""
+    dist, idx = ref.tree.query(world, k=BLEND_NEIGHBOURS, distance_upper_bound=max_correspondence_m)
+    qx, qy, nx, ny, nw = np.take(ref.columns, idx, axis=1)  # each (N, K)
+    # Normals are signless: turn each to agree with the nearest one before averaging.
+    sign = np.where(nx * nx[:, :1] + ny * ny[:, :1] < 0, -1.0, 1.0)
+    nx, ny = nx * sign, ny * sign
+    # A neighbour on another wall (a corner) draws the point off its own line: it counts by
+    # the square of its normal's agreement with the nearest one's.
+    agree = np.square(nx * nx[:, :1] + ny * ny[:, :1])
+    g = np.exp(-0.5 * np.square(np.minimum(dist, 1e3) / sigma_m)) * nw * agree  # 0 if missing
+    gsum = g.sum(axis=1)
+    b = g / np.maximum(gsum, 1e-300)[:, None]
+    bx, by = (b * nx).sum(axis=1), (b * ny).sum(axis=1)
+    r = (b * (nx * (world[:, :1] - qx) + ny * (world[:, 1:] - qy))).sum(axis=1)
+    # The point's weight: the blend's mean normal weight (continuous as neighbours change).
+    a = np.exp(-0.5 * np.square(np.minimum(dist, 1e3) / sigma_m))
+    weight = np.where(gsum > 0, gsum / np.maximum(a.sum(axis=1), 1e-300), 0.0)
+    return idx[:, 0], r, bx, by, weight
 
 
 def release_degenerate_axis(
