@@ -72,6 +72,7 @@ UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 ROTATED_RIVAL_WINDOW = math.pi / 4  # [rad] loop angular half-window from which turned twins count
 ROTATED_RIVAL_ANGLES = np.radians([90.0, 180.0, -90.0])  # [rad] yaw offsets of a turned twin
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
+ICP_BLEND_SPACINGS = 1.2  # ICP blends reference lines over this many point spacings (issue #12)
 GRID_MARGIN_M = 1.0  # [m] unknown border around the mapped area in the built grid
 REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
 # The second core: local maps (likelihood field, k-d tree, normals) are built here while the
@@ -467,7 +468,14 @@ class Mapper:
         penalise: bool,
         huber_m: float,
         min_coarse: float = 0.0,
+        candidate: np.ndarray | None = None,
     ) -> MatchOutcome:
+        """Correlative search around ``prior``, then ICP from its optimum -- or from
+        ``candidate`` (where ICP from the prior got to) when the optimum is within one lattice
+        step of it: the search then confirms that pose rather than restarting ICP from a
+        lattice point, so whether ICP from the prior passed its checks (convergence, inlier
+        fraction: thresholds that 1e-6 m of range noise tips) no longer decides where the
+        match ends (issue #12)."""
         cfg = self.config
         if len(kf.match_points) < MIN_SCAN_POINTS:
             return MatchOutcome(False, "too few scan points", prior, np.eye(3), 0.0, 0.0)
@@ -497,14 +505,20 @@ class Mapper:
             return MatchOutcome(
                 False, "coarse response below threshold", prior, np.eye(3), coarse.score, 0.0
             )
+        start = coarse.pose
+        if candidate is not None and _within_one_step(
+            candidate, coarse.pose, local.field.resolution, angle_step
+        ):
+            start = candidate
         icp = icp_refine(
             local.reference,
             kf.match_points,
-            coarse.pose,
+            start,
             cfg.icp_max_correspondence_distance,
             max_iterations=cfg.icp_max_iterations,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=huber_m,
+            blend_sigma_m=_blend_sigma(cfg),
         )
         if not np.all(np.isfinite(icp.pose)) or icp.rmse == math.inf:
             return MatchOutcome(False, "ICP failed", prior, np.eye(3), coarse.score, 0.0)
@@ -521,14 +535,17 @@ class Mapper:
             reason == "", reason, icp.pose, icp.covariance, response, icp.inlier_fraction
         )
 
-    def _icp_first(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome | None:
+    def _icp_first(
+        self, kf: Keyframe, prior: np.ndarray
+    ) -> tuple[MatchOutcome | None, np.ndarray | None]:
         """Most scans follow odometry closely: ICP straight from the prior, accepted when it
         stays well inside the search window and nearly every point finds the map; otherwise
-        (None) the full correlative search runs."""
+        (None) the full correlative search runs. Second: the pose ICP reached (None if it
+        failed), for the search to confirm (:meth:`_match`'s ``candidate``)."""
         cfg = self.config
         local = self._local
         if local is None or len(kf.match_points) < MIN_SCAN_POINTS:
-            return None
+            return None, None
         icp = icp_refine(
             local.reference,
             kf.match_points,
@@ -537,20 +554,23 @@ class Mapper:
             max_iterations=cfg.icp_max_iterations,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=cfg.icp_huber_width,
+            blend_sigma_m=_blend_sigma(cfg),
         )
         step = icp.pose - prior
         inside = (
             math.hypot(step[0], step[1]) <= cfg.correlation_search_space_dimension / 4
             and abs(wrap_angle(step[2])) <= cfg.coarse_search_angle_offset / 2
         )
+        reached = icp.pose if inside and np.all(np.isfinite(icp.pose)) else None
         if not (
             icp.converged and inside and icp.inlier_fraction >= cfg.icp_first_min_inlier_fraction
         ):
-            return None
+            return None, reached
         response = _response(local.field, kf.match_points, icp.pose)
         if response < cfg.link_match_minimum_response_fine:
-            return None
-        return MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction)
+            return None, reached
+        ok = MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction)
+        return ok, reached
 
     def _tracking_points(self) -> np.ndarray:
         """World points of the tracking map: the keyframes around the anchor, at the graph's
@@ -590,7 +610,7 @@ class Mapper:
         cfg = self.config
         if self._local is None:
             self._local = self._build_tracking_map(self._tracking_points())
-        fast = self._icp_first(kf, prior)
+        fast, reached = self._icp_first(kf, prior)
         if fast is not None:
             self._note("track", self._scans_seen, "icp-first", fast.response, fast.inlier_fraction)
             return fast
@@ -604,6 +624,7 @@ class Mapper:
             min_response=cfg.link_match_minimum_response_fine,
             penalise=True,
             huber_m=cfg.icp_huber_width,
+            candidate=reached,
         )
         self._note(
             "track",
@@ -1049,6 +1070,23 @@ def _done(value: Any) -> Future[Any]:
 def _reference(points: np.ndarray, voxel_m: float) -> ReferenceCloud:
     """The ICP reference of a local map's points (thinned to half the scan voxel)."""
     return build_reference(voxel_filter(points, voxel_m))
+
+
+def _blend_sigma(cfg: MapperConfig) -> float | None:
+    """[m] width of ICP's blend of neighbouring reference lines (:func:`icp_refine`): 1.2 times
+    the spacing of the local map's points (thinned to half the scan voxel); None without
+    thinning."""
+    sigma = ICP_BLEND_SPACINGS * cfg.scan_voxel_size / 2
+    return sigma if sigma > 0 else None
+
+
+def _within_one_step(a: np.ndarray, b: np.ndarray, resolution: float, angle_step: float) -> bool:
+    """Whether two poses are within one correlative lattice step of each other on every axis
+    (the search cannot tell them apart)."""
+    return bool(
+        max(abs(a[0] - b[0]), abs(a[1] - b[1])) <= resolution
+        and abs(float(wrap_angle(a[2] - b[2]))) <= angle_step
+    )
 
 
 def _response(fld: LikelihoodField, points: np.ndarray, pose: np.ndarray) -> float:
