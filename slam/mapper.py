@@ -72,7 +72,6 @@ UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
 ROTATED_RIVAL_WINDOW = math.pi / 4  # [rad] loop angular half-window from which turned twins count
 ROTATED_RIVAL_ANGLES = np.radians([90.0, 180.0, -90.0])  # [rad] yaw offsets of a turned twin
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
-ICP_BLEND_SPACINGS = 1.2  # ICP blends reference lines over this many point spacings (issue #12)
 GRID_MARGIN_M = 1.0  # [m] unknown border around the mapped area in the built grid
 REVISIT_MAX_PATH_M = 2.0  # [m] re-anchor only on a keyframe this close through the graph
 # The second core: local maps (likelihood field, k-d tree, normals) are built here while the
@@ -518,7 +517,6 @@ class Mapper:
             max_iterations=cfg.icp_max_iterations,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=huber_m,
-            blend_sigma_m=_blend_sigma(cfg),
         )
         if not np.all(np.isfinite(icp.pose)) or icp.rmse == math.inf:
             return MatchOutcome(False, "ICP failed", prior, np.eye(3), coarse.score, 0.0)
@@ -554,7 +552,6 @@ class Mapper:
             max_iterations=cfg.icp_max_iterations,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=cfg.icp_huber_width,
-            blend_sigma_m=_blend_sigma(cfg),
         )
         step = icp.pose - prior
         inside = (
@@ -1070,14 +1067,6 @@ def _done(value: Any) -> Future[Any]:
 def _reference(points: np.ndarray, voxel_m: float) -> ReferenceCloud:
     """The ICP reference of a local map's points (thinned to half the scan voxel)."""
     return build_reference(voxel_filter(points, voxel_m))
-
-
-def _blend_sigma(cfg: MapperConfig) -> float | None:
-    """[m] width of ICP's blend of neighbouring reference lines (:func:`icp_refine`): 1.2 times
-    the spacing of the local map's points (thinned to half the scan voxel); None without
-    thinning."""
-    sigma = ICP_BLEND_SPACINGS * cfg.scan_voxel_size / 2
-    return sigma if sigma > 0 else None
 
 
 def _within_one_step(a: np.ndarray, b: np.ndarray, resolution: float, angle_step: float) -> bool:

@@ -40,7 +40,6 @@ NORMAL_NEIGHBOURS = 5  # points used to fit each reference point's line (incl. i
 NORMAL_TIE_EXTRA = 3  # further neighbours looked at for a tie with the k-th
 NORMAL_TIE_RTOL = 1e-9  # a neighbour this much (relative) farther than the k-th still ties
 MIN_POINTS = 10  # fewer matched points than this is not a match
-BLEND_NEIGHBOURS = 3  # reference lines blended per scan point (icp_refine's blend_sigma_m)
 SCORE_CHUNK_ELEMENTS = 2**17  # candidate x scan point indices per gather (1 MiB: in cache)
 PLANARITY_MAX = 0.2  # smaller/larger eigenvalue ratio above which a neighbourhood is no line
 # ICP weighs a normal 1 up to this ratio, then less and less, 0 at PLANARITY_MAX: a hard cut let
@@ -531,7 +530,6 @@ def icp_refine(
     min_sigma_m: float = 0.01,
     tolerance: float = 5e-4,
     polish: float | None = None,
-    blend_sigma_m: float | None = None,
 ) -> IcpResult:
     """Point-to-line Gauss-Newton from ``initial`` (see module docstring).
 
@@ -560,15 +558,10 @@ def icp_refine(
         rx, ry = c * px - s * py, s * px + c * py  # R p; dR/dyaw p = (-ry, rx)
         np.add(rx, pose[0], out=wx)
         np.add(ry, pose[1], out=wy)
-        if blend_sigma_m is None:
-            _, idx = ref.tree.query(world, distance_upper_bound=max_correspondence_m)
-            # A missing neighbour (index M) has zero normal and point: zero residual and Jacobian.
-            qx, qy, nx, ny, normal_weight = np.take(ref.columns, idx, axis=1)
-            r = nx * (wx - qx) + ny * (wy - qy)
-        else:
-            idx, r, nx, ny, normal_weight = _blended_lines(
-                ref, world, max_correspondence_m, blend_sigma_m
-            )
+        _, idx = ref.tree.query(world, distance_upper_bound=max_correspondence_m)
+        # A missing neighbour (index M) has zero normal and point: zero residual and Jacobian.
+        qx, qy, nx, ny, normal_weight = np.take(ref.columns, idx, axis=1)
+        r = nx * (wx - qx) + ny * (wy - qy)
         jac[:, 0], jac[:, 1] = nx, ny
         np.subtract(ny * rx, nx * ry, out=jac[:, 2])
         # Huber: 1 inside the width, width / |r| beyond (huber_m > 0), times the normal's weight.
@@ -599,34 +592,6 @@ def icp_refine(
     cov = sigma2 * (evecs / evals) @ evecs.T
     inliers = float(np.count_nonzero(idx < ref.size)) / n
     return IcpResult(pose, 0.5 * (cov + cov.T), rmse, inliers, it, converged)
-
-
-def _blended_lines(
-    ref: ReferenceCloud, world: np.ndarray, max_correspondence_m: float, sigma_m: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Point-to-line terms against a Gaussian blend of the ``BLEND_NEIGHBOURS`` nearest
-    reference lines instead of the nearest one: returns the nearest index, the blended residual,
-    normal (x, y) and weight per point. With one neighbour the residual jumps wherever the
-    nearest neighbour changes, so ICP has many fixed points millimetres apart along a weakly
-    constrained axis and which one it stops in is decided by its start (1e-6 m of range noise
-    moved a match 1.7 cm, issue #12); blended, the terms vary smoothly with the pose."""
-    dist, idx = ref.tree.query(world, k=BLEND_NEIGHBOURS, distance_upper_bound=max_correspondence_m)
-    qx, qy, nx, ny, nw = np.take(ref.columns, idx, axis=1)  # each (N, K)
-    # Normals are signless: turn each to agree with the nearest one before averaging.
-    sign = np.where(nx * nx[:, :1] + ny * ny[:, :1] < 0, -1.0, 1.0)
-    nx, ny = nx * sign, ny * sign
-    # A neighbour on another wall (a corner) draws the point off its own line: it counts by
-    # the square of its normal's agreement with the nearest one's.
-    agree = np.square(nx * nx[:, :1] + ny * ny[:, :1])
-    g = np.exp(-0.5 * np.square(np.minimum(dist, 1e3) / sigma_m)) * nw * agree  # 0 if missing
-    gsum = g.sum(axis=1)
-    b = g / np.maximum(gsum, 1e-300)[:, None]
-    bx, by = (b * nx).sum(axis=1), (b * ny).sum(axis=1)
-    r = (b * (nx * (world[:, :1] - qx) + ny * (world[:, 1:] - qy))).sum(axis=1)
-    # The point's weight: the blend's mean normal weight (continuous as neighbours change).
-    a = np.exp(-0.5 * np.square(np.minimum(dist, 1e3) / sigma_m))
-    weight = np.where(gsum > 0, gsum / np.maximum(a.sum(axis=1), 1e-300), 0.0)
-    return idx[:, 0], r, bx, by, weight
 
 
 def release_degenerate_axis(

@@ -327,9 +327,7 @@ def test_a_scan_between_keyframes_costs_the_mapper_under_150_bytes() -> None:
     assert grown / 2000 < 150, f"{grown / 2000:.0f} B per scan"
     result = mapper.finish()
     assert result.scan_poses.shape == (2050, 3)
-    # ICP blends neighbouring reference lines (issue #12), so a noise-free scan that repeats
-    # its map point for point no longer sits exactly (1e-6) on it: 30 um here.
-    np.testing.assert_allclose(result.scan_poses, np.tile(pose, (2050, 1)), atol=1e-4)
+    np.testing.assert_allclose(result.scan_poses, np.tile(pose, (2050, 1)), atol=1e-6)
 
 
 # 4. Bad input is counted, not raised -------------------------------------------------------------
