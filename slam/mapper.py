@@ -467,14 +467,7 @@ class Mapper:
         penalise: bool,
         huber_m: float,
         min_coarse: float = 0.0,
-        candidate: np.ndarray | None = None,
     ) -> MatchOutcome:
-        """Correlative search around ``prior``, then ICP from its optimum -- or from
-        ``candidate`` (where ICP from the prior got to) when the optimum is within one lattice
-        step of it: the search then confirms that pose rather than restarting ICP from a
-        lattice point, so whether ICP from the prior passed its checks (convergence, inlier
-        fraction: thresholds that 1e-6 m of range noise tips) no longer decides where the
-        match ends (issue #12)."""
         cfg = self.config
         if len(kf.match_points) < MIN_SCAN_POINTS:
             return MatchOutcome(False, "too few scan points", prior, np.eye(3), 0.0, 0.0)
@@ -504,15 +497,10 @@ class Mapper:
             return MatchOutcome(
                 False, "coarse response below threshold", prior, np.eye(3), coarse.score, 0.0
             )
-        start = coarse.pose
-        if candidate is not None and _within_one_step(
-            candidate, coarse.pose, local.field.resolution, angle_step
-        ):
-            start = candidate
         icp = icp_refine(
             local.reference,
             kf.match_points,
-            start,
+            coarse.pose,
             cfg.icp_max_correspondence_distance,
             max_iterations=cfg.icp_max_iterations,
             min_sigma_m=cfg.scan_match_min_sigma,
@@ -533,17 +521,14 @@ class Mapper:
             reason == "", reason, icp.pose, icp.covariance, response, icp.inlier_fraction
         )
 
-    def _icp_first(
-        self, kf: Keyframe, prior: np.ndarray
-    ) -> tuple[MatchOutcome | None, np.ndarray | None]:
+    def _icp_first(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome | None:
         """Most scans follow odometry closely: ICP straight from the prior, accepted when it
         stays well inside the search window and nearly every point finds the map; otherwise
-        (None) the full correlative search runs. Second: the pose ICP reached (None if it
-        failed), for the search to confirm (:meth:`_match`'s ``candidate``)."""
+        (None) the full correlative search runs."""
         cfg = self.config
         local = self._local
         if local is None or len(kf.match_points) < MIN_SCAN_POINTS:
-            return None, None
+            return None
         icp = icp_refine(
             local.reference,
             kf.match_points,
@@ -558,16 +543,14 @@ class Mapper:
             math.hypot(step[0], step[1]) <= cfg.correlation_search_space_dimension / 4
             and abs(wrap_angle(step[2])) <= cfg.coarse_search_angle_offset / 2
         )
-        reached = icp.pose if inside and np.all(np.isfinite(icp.pose)) else None
         if not (
             icp.converged and inside and icp.inlier_fraction >= cfg.icp_first_min_inlier_fraction
         ):
-            return None, reached
+            return None
         response = _response(local.field, kf.match_points, icp.pose)
         if response < cfg.link_match_minimum_response_fine:
-            return None, reached
-        ok = MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction)
-        return ok, reached
+            return None
+        return MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction)
 
     def _tracking_points(self) -> np.ndarray:
         """World points of the tracking map: the keyframes around the anchor, at the graph's
@@ -607,7 +590,7 @@ class Mapper:
         cfg = self.config
         if self._local is None:
             self._local = self._build_tracking_map(self._tracking_points())
-        fast, reached = self._icp_first(kf, prior)
+        fast = self._icp_first(kf, prior)
         if fast is not None:
             self._note("track", self._scans_seen, "icp-first", fast.response, fast.inlier_fraction)
             return fast
@@ -621,7 +604,6 @@ class Mapper:
             min_response=cfg.link_match_minimum_response_fine,
             penalise=True,
             huber_m=cfg.icp_huber_width,
-            candidate=reached,
         )
         self._note(
             "track",
@@ -1067,15 +1049,6 @@ def _done(value: Any) -> Future[Any]:
 def _reference(points: np.ndarray, voxel_m: float) -> ReferenceCloud:
     """The ICP reference of a local map's points (thinned to half the scan voxel)."""
     return build_reference(voxel_filter(points, voxel_m))
-
-
-def _within_one_step(a: np.ndarray, b: np.ndarray, resolution: float, angle_step: float) -> bool:
-    """Whether two poses are within one correlative lattice step of each other on every axis
-    (the search cannot tell them apart)."""
-    return bool(
-        max(abs(a[0] - b[0]), abs(a[1] - b[1])) <= resolution
-        and abs(float(wrap_angle(a[2] - b[2]))) <= angle_step
-    )
 
 
 def _response(fld: LikelihoodField, points: np.ndarray, pose: np.ndarray) -> float:

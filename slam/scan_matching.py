@@ -42,9 +42,6 @@ NORMAL_TIE_RTOL = 1e-9  # a neighbour this much (relative) farther than the k-th
 MIN_POINTS = 10  # fewer matched points than this is not a match
 SCORE_CHUNK_ELEMENTS = 2**17  # candidate x scan point indices per gather (1 MiB: in cache)
 PLANARITY_MAX = 0.2  # smaller/larger eigenvalue ratio above which a neighbourhood is no line
-# ICP weighs a normal 1 up to this ratio, then less and less, 0 at PLANARITY_MAX: a hard cut let
-# 1e-6 m of range noise switch a normal on or off and move a match by millimetres (issue #12).
-PLANARITY_FULL = 0.1
 DEGENERATE_EIGENVALUE = 1e-9  # information floor relative to the strongest direction
 GRID_GRADIENT_SIGMA_CELLS = 1.0  # [cells] occupancy blur before the gradient (grid normals)
 GRID_TENSOR_SIGMA_CELLS = 1.5  # [cells] structure tensor window (grid normals)
@@ -412,16 +409,13 @@ class ReferenceCloud:
     points: np.ndarray  # (M + 1, 2) [m]
     normals: np.ndarray  # (M + 1, 2) unit; (0, 0) where the neighbourhood is no line
     tree: cKDTree
-    # (M + 1,) ICP weight of each normal in [0, 1], 0 where there is none; None: 1 where there is
-    weights: np.ndarray | None = None
 
     @cached_property
     def columns(self) -> np.ndarray:
-        """(5, M + 1) float64 rows q_x [m], q_y [m], n_x, n_y, normal weight: all that ICP
-        needs of a neighbour, gathered with one ``np.take`` per iteration."""
+        """(5, M + 1) float64 rows q_x [m], q_y [m], n_x, n_y, has-a-normal (1.0 or 0.0): all
+        that ICP needs of a neighbour, gathered with one ``np.take`` per iteration."""
         has_normal = np.any(self.normals != 0, axis=1)
-        weight = has_normal if self.weights is None else self.weights * has_normal
-        return np.vstack([self.points.T, self.normals.T, weight])
+        return np.vstack([self.points.T, self.normals.T, has_normal])
 
     @property
     def size(self) -> int:
@@ -457,13 +451,10 @@ def build_reference(points: np.ndarray) -> ReferenceCloud:
     phi = 0.5 * np.arctan2(2 * sxy, sxx - syy)
     mean, radius = 0.5 * (sxx + syy), np.hypot(0.5 * (sxx - syy), sxy)
     linear = (mean - radius) <= PLANARITY_MAX * np.maximum(mean + radius, 1e-12)
-    padded, normals, weights = np.zeros((m + 1, 2)), np.zeros((m + 1, 2)), np.zeros(m + 1)
+    padded, normals = np.zeros((m + 1, 2)), np.zeros((m + 1, 2))
     padded[:m] = points
     normals[:m][linear] = np.column_stack([-np.sin(phi[linear]), np.cos(phi[linear])])
-    ratio = (mean - radius) / np.maximum(mean + radius, 1e-12)
-    weights[:m] = np.clip((PLANARITY_MAX - ratio) / (PLANARITY_MAX - PLANARITY_FULL), 0.0, 1.0)
-    weights[:m][~linear] = 0.0
-    return ReferenceCloud(padded, normals, tree, weights)
+    return ReferenceCloud(padded, normals, tree)
 
 
 def build_grid_reference(
@@ -560,13 +551,13 @@ def icp_refine(
         np.add(ry, pose[1], out=wy)
         _, idx = ref.tree.query(world, distance_upper_bound=max_correspondence_m)
         # A missing neighbour (index M) has zero normal and point: zero residual and Jacobian.
-        qx, qy, nx, ny, normal_weight = np.take(ref.columns, idx, axis=1)
+        qx, qy, nx, ny, has_normal = np.take(ref.columns, idx, axis=1)
         r = nx * (wx - qx) + ny * (wy - qy)
         jac[:, 0], jac[:, 1] = nx, ny
         np.subtract(ny * rx, nx * ry, out=jac[:, 2])
-        # Huber: 1 inside the width, width / |r| beyond (huber_m > 0), times the normal's weight.
+        # Huber: 1 inside the width, width / |r| beyond (huber_m > 0); 0 without a normal.
         wts = huber_m / np.maximum(np.abs(r), huber_m)
-        wts *= normal_weight
+        wts *= has_normal
         n_used = int(np.count_nonzero(wts))
         if n_used < MIN_POINTS:
             return failed

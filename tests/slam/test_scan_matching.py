@@ -638,8 +638,6 @@ def reference_icp(
         absr = np.abs(r)
         wts = np.where(absr <= huber_m, 1.0, huber_m / np.maximum(absr, 1e-12))
         wts *= (nx != 0) | (ny != 0)
-        if ref.weights is not None:  # the normal's weight (planarity ramp)
-            wts *= ref.weights[idx]
         n_used = int(np.count_nonzero(wts))
         if n_used < 10:
             return failed
@@ -758,25 +756,10 @@ def test_reference_normals_without_ties_are_the_k_nearest_fit() -> None:
     assert np.all(np.abs(np.abs(ref.normals[:-1, 1]) - 1.0) < 0.05)
 
 
-def test_a_normal_fades_out_of_icp_instead_of_switching_off() -> None:
-    # A point lifted off a straight wall step by step: its neighbourhood stops being a line
-    # (eigenvalue ratio PLANARITY_MAX) somewhere on the way. Its ICP weight must fall from 1 to
-    # 0 without a jump there: a hard cut let 1e-6 m of range noise switch a normal on or off
-    # and move a match by millimetres (issue #12).
-    weights = []
-    for lift in np.linspace(0.0, 0.1, 2001):  # [m] in steps of 50 um
-        pts = np.column_stack([np.arange(-4, 5) * 0.05, np.zeros(9)])
-        pts[4, 1] = lift
-        weights.append(build_reference(pts).columns[4, 4])
-    assert weights[0] == 1.0 and weights[-1] == 0.0
-    assert np.abs(np.diff(weights)).max() < 0.01
-
-
 def test_a_polished_icp_ends_where_it_ends_whatever_its_start() -> None:
-    # Stopped at a step < 5e-4, ICP's pose carried its start (the odometry prior or the
-    # correlative optimum, and a CPU's rounding) at the 0.1 mm level while normals switched on
-    # and off at the planarity threshold; with them fading out, two starts stop within 10 um,
-    # and polished to 1e-5 within 1 um (issue #12: the mapper's two tracking paths flipped maps).
+    # Stopped at a step < 5e-4, ICP's pose still carries its start (the odometry prior or the
+    # correlative optimum, and a CPU's rounding) at the 0.1 mm level; polished to 1e-5 two
+    # starts land together (issue #12: the mapper's two tracking paths flipped maps).
     ref = build_reference(world_points(ROOM, REF_POSE, n_beams=720, noise_m=0.03, seed=5))
     pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270), noise_m=0.03, seed=6)
     offset = np.array([0.08, -0.08, math.radians(3)])
@@ -784,5 +767,5 @@ def test_a_polished_icp_ends_where_it_ends_whatever_its_start() -> None:
     plain = [icp_refine(ref, pts, s, MAX_CORRESPONDENCE) for s in starts]
     polished = [icp_refine(ref, pts, s, MAX_CORRESPONDENCE, 30, polish=1e-5) for s in starts]
     assert all(r.converged for r in plain + polished)
-    assert np.abs(plain[0].pose - plain[1].pose).max() < 1e-5
+    assert np.abs(plain[0].pose - plain[1].pose).max() > 1e-4
     assert np.abs(polished[0].pose - polished[1].pose).max() < 1e-6
