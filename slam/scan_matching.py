@@ -565,7 +565,7 @@ def icp_refine(
         np.add(ry, pose[1], out=wy)
         _, idx = ref.tree.query(world, distance_upper_bound=max_correspondence_m)
         # A missing neighbour (index M) has zero normal and point: zero residual and Jacobian.
-        qx, qy, nx, ny, has_normal = np.take(ref.columns, idx, axis=1)
+        qx, qy, nx, ny, has_normal = ref.columns.take(idx, axis=1)
         r = nx * (wx - qx) + ny * (wy - qy)
         jac[:, 0], jac[:, 1] = nx, ny
         np.subtract(ny * rx, nx * ry, out=jac[:, 2])
@@ -578,7 +578,7 @@ def icp_refine(
         jw = jac * wts[:, None]
         hess = jw.T @ jac
         # LAPACK's gesv, which np.linalg.solve wraps, without the wrapper's overhead.
-        _, _, step, info = gesv(hess + 1e-9 * np.trace(hess) * EYE3, jw.T @ r)
+        _, _, step, info = gesv(hess + 1e-9 * hess.trace() * EYE3, jw.T @ r)
         if info != 0:  # exactly singular
             return failed
         pose -= step
