@@ -375,15 +375,15 @@ def rival_score(
     # and point, with lookup_xy's arithmetic, and a sample adds its row and column indices.
     yaws = pose[2] + np.asarray(angles_rad, dtype=np.float64)
     best: list[tuple[float, float, float, float]] = []  # (score, dx, dy, yaw)
-    h, w = field.field.shape
+    height, width = field.field.shape
     flat = field.flat_levels[0]
     for yaw in yaws:
         c, s = math.cos(yaw), math.sin(yaw)
         wx = c * points[:, 0] - s * points[:, 1] + pose[0]
         wy = s * points[:, 0] + c * points[:, 1] + pose[1]
-        col = field.cell_index(wx[None, :] + offs[:, None], 0, w)  # (offsets, points)
-        row = field.cell_index(wy[None, :] + offs[:, None], 1, h)
-        row *= w
+        col = field.cell_index(wx[None, :] + offs[:, None], 0, width)  # (offsets, points)
+        row = field.cell_index(wy[None, :] + offs[:, None], 1, height)
+        row *= width
         for lo in range(0, len(dx), AMBIGUITY_CHUNK):
             sx, sy = dx[lo : lo + AMBIGUITY_CHUNK], dy[lo : lo + AMBIGUITY_CHUNK]
             idx = row[ky[lo : lo + AMBIGUITY_CHUNK]]
