@@ -47,6 +47,7 @@ from slam.map_bundle import GraphEdge, MapBundle
 from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
 from slam.pose_graph import Edge, EdgeKind, PoseGraph
 from slam.scan_matching import (
+    IcpResult,
     LikelihoodField,
     ReferenceCloud,
     build_likelihood_field,
@@ -467,7 +468,11 @@ class Mapper:
         penalise: bool,
         huber_m: float,
         min_coarse: float = 0.0,
+        tried: tuple[np.ndarray, IcpResult] | None = None,
     ) -> MatchOutcome:
+        """Correlative search in the window, then ICP from its optimum. ``tried``: an ICP of
+        these scan points on this map with these settings, from the pose it holds; reused when
+        the optimum is that pose (the same computation)."""
         cfg = self.config
         if len(kf.match_points) < MIN_SCAN_POINTS:
             return MatchOutcome(False, "too few scan points", prior, np.eye(3), 0.0, 0.0)
@@ -497,15 +502,18 @@ class Mapper:
             return MatchOutcome(
                 False, "coarse response below threshold", prior, np.eye(3), coarse.score, 0.0
             )
-        icp = icp_refine(
-            local.reference,
-            kf.match_points,
-            coarse.pose,
-            cfg.icp_max_correspondence_distance,
-            max_iterations=cfg.icp_max_iterations,
-            min_sigma_m=cfg.scan_match_min_sigma,
-            huber_m=huber_m,
-        )
+        if tried is not None and np.array_equal(tried[0], coarse.pose):
+            icp = tried[1]
+        else:
+            icp = icp_refine(
+                local.reference,
+                kf.match_points,
+                coarse.pose,
+                cfg.icp_max_correspondence_distance,
+                max_iterations=cfg.icp_max_iterations,
+                min_sigma_m=cfg.scan_match_min_sigma,
+                huber_m=huber_m,
+            )
         if not np.all(np.isfinite(icp.pose)) or icp.rmse == math.inf:
             return MatchOutcome(False, "ICP failed", prior, np.eye(3), coarse.score, 0.0)
         response = _response(local.field, kf.match_points, icp.pose)
@@ -521,14 +529,16 @@ class Mapper:
             reason == "", reason, icp.pose, icp.covariance, response, icp.inlier_fraction
         )
 
-    def _icp_first(self, kf: Keyframe, prior: np.ndarray) -> MatchOutcome | None:
+    def _icp_first(
+        self, kf: Keyframe, prior: np.ndarray
+    ) -> tuple[MatchOutcome | None, IcpResult | None]:
         """Most scans follow odometry closely: ICP straight from the prior, accepted when it
         stays well inside the search window and nearly every point finds the map; otherwise
-        (None) the full correlative search runs."""
+        (None) the full correlative search runs. Also returns the ICP (for that search)."""
         cfg = self.config
         local = self._local
         if local is None or len(kf.match_points) < MIN_SCAN_POINTS:
-            return None
+            return None, None
         icp = icp_refine(
             local.reference,
             kf.match_points,
@@ -546,11 +556,11 @@ class Mapper:
         if not (
             icp.converged and inside and icp.inlier_fraction >= cfg.icp_first_min_inlier_fraction
         ):
-            return None
+            return None, icp
         response = _response(local.field, kf.match_points, icp.pose)
         if response < cfg.link_match_minimum_response_fine:
-            return None
-        return MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction)
+            return None, icp
+        return MatchOutcome(True, "", icp.pose, icp.covariance, response, icp.inlier_fraction), icp
 
     def _tracking_points(self) -> np.ndarray:
         """World points of the tracking map: the keyframes around the anchor, at the graph's
@@ -590,7 +600,7 @@ class Mapper:
         cfg = self.config
         if self._local is None:
             self._local = self._build_tracking_map(self._tracking_points())
-        fast = self._icp_first(kf, prior)
+        fast, icp = self._icp_first(kf, prior)
         if fast is not None:
             self._note("track", self._scans_seen, "icp-first", fast.response, fast.inlier_fraction)
             return fast
@@ -604,6 +614,7 @@ class Mapper:
             min_response=cfg.link_match_minimum_response_fine,
             penalise=True,
             huber_m=cfg.icp_huber_width,
+            tried=None if icp is None else (prior, icp),
         )
         self._note(
             "track",

@@ -581,7 +581,7 @@ class PoseGraph:
         if self._poses_cache is None:
             out = np.array(self._initial, dtype=np.float64).reshape(-1, 3)
             if self._estimate.size():
-                keys = np.array(sorted(self._estimate.keys()), dtype=np.int64)
+                keys = np.asarray(self._estimate.keys(), dtype=np.int64)  # in key order
                 out[keys] = gtsam.utilities.extractPose2(self._estimate)
             self._poses_cache = out
         return self._poses_cache.copy()

@@ -120,13 +120,17 @@ class LikelihoodField:
         """Field value at world points given as two arrays of one shape (e.g. candidate poses x
         scan points), 0 outside the grid (nearest cell)."""
         h, w = self.field.shape
-        col = np.floor((x - self.origin[0]) / self.resolution).astype(np.int64)
-        row = np.floor((y - self.origin[1]) / self.resolution).astype(np.int64)
-        np.minimum(np.maximum(col, 0, out=col), w - 1, out=col)  # np.clip, without its overhead
-        np.minimum(np.maximum(row, 0, out=row), h - 1, out=row)
+        col = self.cell_index(x, 0, w)
+        row = self.cell_index(y, 1, h)
         row *= w
         row += col
         return np.take(self.flat_levels[0], row)
+
+    def cell_index(self, v: np.ndarray, axis: int, size: int) -> np.ndarray:
+        """Column (``axis`` 0, x) or row (1, y) index of world coordinates ``v``, clamped to the
+        grid: the border cell (0) holds what lies beyond it."""
+        i = np.floor((v - self.origin[axis]) / self.resolution).astype(np.int64)
+        return np.minimum(np.maximum(i, 0, out=i), size - 1, out=i)  # np.clip, without overhead
 
 
 def build_likelihood_field(
@@ -360,21 +364,31 @@ def rival_score(
     res = field.resolution
     n = int(math.ceil(linear_window_m / res))
     offs = np.arange(-n, n + 1, stride_cells, dtype=np.float64) * res
-    dx, dy = (v.ravel() for v in np.meshgrid(offs, offs))
+    kx, ky = (v.ravel() for v in np.meshgrid(np.arange(len(offs)), np.arange(len(offs))))
+    dx, dy = offs[kx], offs[ky]
     far = np.hypot(dx, dy) > exclude_m
     if len(points) == 0 or not far.any():
         return 0.0
-    dx, dy = dx[far], dy[far]
-    # Coarse: every stride-th cell, a few yaw offsets, all at once per yaw (bounded chunks).
+    dx, dy, kx, ky = dx[far], dy[far], kx[far], ky[far]
+    # Coarse: every stride-th cell, a few yaw offsets, all at once per yaw (bounded chunks). A
+    # sample's cell is (row of wy + dy, column of wx + dx): both are computed once per offset
+    # and point, with lookup_xy's arithmetic, and a sample adds its row and column indices.
     yaws = pose[2] + np.asarray(angles_rad, dtype=np.float64)
     best: list[tuple[float, float, float, float]] = []  # (score, dx, dy, yaw)
+    height, width = field.field.shape
+    flat = field.flat_levels[0]
     for yaw in yaws:
         c, s = math.cos(yaw), math.sin(yaw)
         wx = c * points[:, 0] - s * points[:, 1] + pose[0]
         wy = s * points[:, 0] + c * points[:, 1] + pose[1]
+        col = field.cell_index(wx[None, :] + offs[:, None], 0, width)  # (offsets, points)
+        row = field.cell_index(wy[None, :] + offs[:, None], 1, height)
+        row *= width
         for lo in range(0, len(dx), AMBIGUITY_CHUNK):
             sx, sy = dx[lo : lo + AMBIGUITY_CHUNK], dy[lo : lo + AMBIGUITY_CHUNK]
-            sc = field.lookup_xy(wx[None, :] + sx[:, None], wy[None, :] + sy[:, None]).mean(axis=1)
+            idx = row[ky[lo : lo + AMBIGUITY_CHUNK]]
+            idx += col[kx[lo : lo + AMBIGUITY_CHUNK]]
+            sc = flat.take(idx).mean(axis=1)
             top = np.argsort(sc)[-AMBIGUITY_REFINED:]
             best.extend((float(sc[t]), float(sx[t]), float(sy[t]), float(yaw)) for t in top)
     best.sort(reverse=True)
@@ -551,7 +565,7 @@ def icp_refine(
         np.add(ry, pose[1], out=wy)
         _, idx = ref.tree.query(world, distance_upper_bound=max_correspondence_m)
         # A missing neighbour (index M) has zero normal and point: zero residual and Jacobian.
-        qx, qy, nx, ny, has_normal = np.take(ref.columns, idx, axis=1)
+        qx, qy, nx, ny, has_normal = ref.columns.take(idx, axis=1)
         r = nx * (wx - qx) + ny * (wy - qy)
         jac[:, 0], jac[:, 1] = nx, ny
         np.subtract(ny * rx, nx * ry, out=jac[:, 2])
@@ -564,7 +578,7 @@ def icp_refine(
         jw = jac * wts[:, None]
         hess = jw.T @ jac
         # LAPACK's gesv, which np.linalg.solve wraps, without the wrapper's overhead.
-        _, _, step, info = gesv(hess + 1e-9 * np.trace(hess) * EYE3, jw.T @ r)
+        _, _, step, info = gesv(hess + 1e-9 * hess.trace() * EYE3, jw.T @ r)
         if info != 0:  # exactly singular
             return failed
         pose -= step

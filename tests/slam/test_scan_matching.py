@@ -702,6 +702,73 @@ def test_icp_refine_equals_the_reference_kernel_when_too_few_points_match() -> N
     np.testing.assert_array_equal(fast.pose, plain.pose)
 
 
+def reference_rival(
+    field: LikelihoodField,
+    points: np.ndarray,
+    pose: np.ndarray,
+    linear_window_m: float,
+    exclude_m: float,
+    angles_rad: np.ndarray,
+    stride: int = 4,
+    refined: int = 5,
+    chunk: int = 2048,
+) -> float:
+    """rival_score with every coarse sample looked up point by point (``lookup_xy`` of the
+    shifted points), in the same chunks."""
+    n = int(math.ceil(linear_window_m / field.resolution))
+    offs = np.arange(-n, n + 1, stride, dtype=np.float64) * field.resolution
+    dx, dy = (v.ravel() for v in np.meshgrid(offs, offs))
+    far = np.hypot(dx, dy) > exclude_m
+    if len(points) == 0 or not far.any():
+        return 0.0
+    dx, dy = dx[far], dy[far]
+    best = []
+    for yaw in pose[2] + angles_rad:
+        c, s = math.cos(yaw), math.sin(yaw)
+        wx = c * points[:, 0] - s * points[:, 1] + pose[0]
+        wy = s * points[:, 0] + c * points[:, 1] + pose[1]
+        for lo in range(0, len(dx), chunk):
+            sx, sy = dx[lo : lo + chunk], dy[lo : lo + chunk]
+            sc = field.lookup_xy(wx[None, :] + sx[:, None], wy[None, :] + sy[:, None]).mean(axis=1)
+            best.extend((float(sc[t]), sx[t], sy[t], yaw) for t in np.argsort(sc)[-refined:])
+    best.sort(reverse=True)
+    fine = np.arange(-(stride // 2), stride // 2 + 1, dtype=np.float64) * field.resolution
+    fx, fy = (v.ravel() for v in np.meshgrid(fine, fine))
+    rival = 0.0
+    for score, bx, by, yaw in best[:refined]:
+        rival = max(rival, score)
+        ox, oy = bx + fx, by + fy
+        keep = np.hypot(ox, oy) > exclude_m
+        c, s = math.cos(yaw), math.sin(yaw)
+        wx = c * points[:, 0] - s * points[:, 1] + pose[0]
+        wy = s * points[:, 0] + c * points[:, 1] + pose[1]
+        if keep.any():
+            sc = field.lookup_xy(wx[None, :] + ox[keep][:, None], wy[None, :] + oy[keep][:, None])
+            rival = max(rival, float(sc.mean(axis=1).max()))
+    return rival
+
+
+def test_rival_score_equals_the_point_by_point_reference_to_the_bit() -> None:
+    # rival_score adds per-offset row and column indices instead of looking every sample up:
+    # the same cells, so the same score; one window reaches past the grid.
+    from slam.mapper import ROTATED_RIVAL_ANGLES
+    from slam.scan_matching import AMBIGUITY_ANGLES
+
+    corridor = _periodic_corridor()
+    near = _segment_points(corridor)
+    near = near[np.abs(near[:, 0]) < 6.0]
+    field = build_likelihood_field(near, RES, SMEAR, 3.0, N_LEVELS)
+    pose = np.array([0.3, 1.1, 0.05])
+    pts = body_points(corridor, pose, range_max=8.0, noise_m=0.01, seed=7)
+    for window, exclude, angles in (
+        (3.0, 1.0, AMBIGUITY_ANGLES),
+        (2.0, -1.0, ROTATED_RIVAL_ANGLES),
+    ):
+        plain = reference_rival(field, pts, pose, window, exclude, angles)
+        assert plain > 0.0
+        assert rival_score(field, pts, pose, window, exclude, angles_rad=angles) == plain
+
+
 def test_voxel_filter_equals_np_unique_first_occurrence_on_random_clouds() -> None:
     rng = np.random.default_rng(4)
     for n, voxel in ((1, 0.1), (50, 0.5), (2000, 0.05), (2000, 0.3)):
