@@ -115,6 +115,29 @@ def fuse_with_odometry(
     )
 
 
+def _to_body(cov: np.ndarray, yaw: float) -> np.ndarray:
+    """A (3, 3) map-frame pose covariance in the body frame of a pose at heading ``yaw``."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return rot @ cov @ rot.T
+
+
+def loop_covariance(match_cov: np.ndarray, yaw: float, degeneracy_ratio: float) -> np.ndarray:
+    """A loop closure's noise from the covariance of the matched pose in the map (ICP's).
+
+    - Its weak translational axis (a corridor's length: noisy wall normals fake information
+      along it) is released as for tracking (:func:`release_degenerate_axis`): in a corridor a
+      closure holds the lateral offset and the heading, not where along the corridor it is.
+    - It is turned into the body frame of the matched pose (heading ``yaw``): GTSAM's
+      ``BetweenFactor`` measures its error there (Karto's ``LinkInfo`` turns a match covariance
+      into its edge's frame too). Left in the map frame, a closure in a corridor running north
+      pinned the corridor's length with its lateral sigma and freed its width (issue #12)."""
+    cov, _ = release_degenerate_axis(match_cov, degeneracy_ratio, UNOBSERVED_VARIANCE)
+    return _to_body(cov, yaw) + np.diag(
+        [LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[1] ** 2]
+    )
+
+
 # 2. Records ------------------------------------------------------------------------------------
 
 
@@ -846,8 +869,8 @@ class Mapper:
                 self.loops.rejected["ambiguous (a rival pose scores as well)"] += 1
                 log.debug("loop %d-%d ambiguous: rival %.3f vs %.3f", j, k, rival, best)
                 return
-        loop_cov = match.covariance + np.diag(
-            [LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[1] ** 2]
+        loop_cov = loop_covariance(
+            match.covariance, float(match.pose[2]), cfg.scan_match_degeneracy_ratio
         )
         if rival > cfg.loop_match_hold_ambiguity * best:
             # Nearly ambiguous: no evidence to bend the graph with now, a vote at the end.

@@ -18,7 +18,8 @@ from scan_scenes import ROOM, raycast
 from sensors.types import LaserScan
 from slam.config import MapperConfig
 from slam.geometry import wrap_angle
-from slam.mapper import Mapper, MapperResult, ominus, oplus
+from slam.mapper import Mapper, MapperResult, loop_covariance, ominus, oplus
+from slam.pose_graph import PoseGraph
 
 CFG = MapperConfig()
 SCAN_PERIOD_NS = 500_000_000  # [ns] 2 Hz: never gated by minimum_time_interval (0.5 s)
@@ -508,6 +509,24 @@ def test_featureless_corridor_map_is_no_worse_than_odometry() -> None:
     pos, _ = errors(result.scan_poses, OUT_AND_BACK)
     odom_pos, _ = errors(odom, OUT_AND_BACK)
     assert pos.max() <= odom_pos.max() + 0.1
+
+
+def test_a_loop_closure_in_a_corridor_holds_its_width_and_leaves_its_length_to_odometry() -> None:
+    # A corridor running north (the robot at yaw 90 deg): the match pins the map's x, not its y.
+    # The closure says node 1 is 5 m north of node 0; odometry says 6 m north and 0.3 m west.
+    # Left in the map frame, GTSAM read the corridor's length as pinned and its width as free
+    # (node 1 ended 5 m north, 0.3 m west).
+    match_cov = np.diag([0.01**2, 0.3**2, 0.005**2])
+    graph = PoseGraph()
+    graph.add_node([0.0, 0.0, math.pi / 2])
+    graph.add_node([0.0, 5.0, math.pi / 2])
+    cov = loop_covariance(match_cov, math.pi / 2, CFG.scan_match_degeneracy_ratio)
+    graph.add_edge(0, 1, [5.0, 0.0, 0.0], cov, kind="loop")
+    graph.add_edge(0, 1, [6.0, 0.3, 0.0], np.diag([0.1**2, 0.1**2, 0.05**2]), kind="odometry")
+    graph.update(extra_iterations=3)
+    x, y, _ = graph.pose(1)
+    assert y == pytest.approx(6.0, abs=0.05)  # the length: odometry's
+    assert abs(x) < 0.05  # the width: the closure's
 
 
 # 6. The graph handed back ------------------------------------------------------------------------
