@@ -28,7 +28,9 @@ from collections import Counter, deque
 import numpy as np
 
 from nav.config import CollisionMonitorConfig
+from sensors.types import LaserScan
 from slam.geometry import ominus, oplus
+from slam.scan_matching import scan_points, transform_points
 
 
 def limit_twist(
@@ -90,7 +92,15 @@ class CollisionMonitor:
         self.counts: Counter[str] = Counter()
         self.action = ""  # the last command's action: "", "slowdown" or "stop"
 
-    def add_scan(self, stamp_ns: int, odom_pose: np.ndarray, points_base: np.ndarray) -> None:
+    def add_scan(self, odom_pose: np.ndarray, scan: LaserScan, scan_in_base: np.ndarray) -> None:
+        """A scan taken at the odom pose ``odom_pose``, in the frame at ``scan_in_base`` (x, y,
+        yaw) in base_link: ``rgbdnav navigate``'s laser at the camera, ``rgbdnav live``'s
+        ``depth_to_scan.output_frame`` (:func:`slam.depth_to_scan.scan_frame_in_base`)."""
+        pts = transform_points(np.asarray(scan_in_base, dtype=np.float64), scan_points(scan))
+        self.add_points(scan.stamp_ns, odom_pose, pts)
+
+    def add_points(self, stamp_ns: int, odom_pose: np.ndarray, points_base: np.ndarray) -> None:
+        """Obstacle points (N, 2) in base_link seen at the odom pose ``odom_pose``."""
         self.memory.add(stamp_ns, odom_pose, points_base)
 
     def limit(self, v: float, w: float, odom_pose: np.ndarray) -> tuple[float, float, str]:

@@ -47,6 +47,21 @@ def base_from_optical(robot: RobotConfig) -> tuple[np.ndarray, np.ndarray]:
     return optical_in_base(robot)
 
 
+def scan_frame_in_base(robot: RobotConfig, cfg: DepthToScanConfig) -> np.ndarray:
+    """(x, y, yaw = 0): the pose in base_link of the frame the scans of ``cfg.output_frame`` are
+    in, base_link itself or the optical centre's floor projection (axes along base_link's).
+    Whoever carries a scan into base_link (the collision monitor) takes it from here."""
+    if cfg.output_frame in ROBOT_FRAMES:
+        return np.zeros(3)
+    if cfg.output_frame.startswith(CAMERA_FRAME_PREFIX):
+        t_base_opt = base_from_optical(robot)[1]
+        return np.array([t_base_opt[0], t_base_opt[1], 0.0])
+    raise DepthToScanError(
+        f"depth_to_scan.output_frame: {cfg.output_frame!r} is not one of "
+        f"{list(ROBOT_FRAMES)} or a '{CAMERA_FRAME_PREFIX}*' frame"
+    )
+
+
 def row_band(height_px: int, cy: float, scan_height: int) -> tuple[int, int]:
     """Rows [start, stop) used: depthimage_to_laserscan's ``offset = int(cy - scan_height / 2)``
     and ``scan_height`` rows from there, clipped to the image; 0 = every row."""
@@ -189,15 +204,7 @@ class DepthToScan:
         self.intrinsics, self.robot, self.cfg, self.reduction = intrinsics, robot, cfg, reduction
         # 1. Extrinsics and the scan origin (base_link or the camera's floor projection).
         r_base_opt, t_base_opt = base_from_optical(robot)
-        if cfg.output_frame in ROBOT_FRAMES:
-            origin = np.zeros(2)
-        elif cfg.output_frame.startswith(CAMERA_FRAME_PREFIX):
-            origin = t_base_opt[:2].copy()
-        else:
-            raise DepthToScanError(
-                f"depth_to_scan.output_frame: {cfg.output_frame!r} is not one of "
-                f"{list(ROBOT_FRAMES)} or a '{CAMERA_FRAME_PREFIX}*' frame"
-            )
+        origin = scan_frame_in_base(robot, cfg)[:2]
         self._offset_xy = t_base_opt[:2] - origin  # optical centre in the scan frame
         self.camera_z_m = float(t_base_opt[2])
         # 2. Rays of the row band, their horizontal scale and bearing at infinity.

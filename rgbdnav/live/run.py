@@ -84,6 +84,7 @@ from sensors.motor_board import MotorBoard
 from sensors.source import Source, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, RgbdNavError, SensorError, WheelTicks
+from slam.depth_to_scan import scan_frame_in_base
 from slam.fleet import FleetRobot, load_fleet
 from slam.front_end import FrontEnd, FrontEndOptions, MessageFeed
 from slam.geometry import ominus, oplus, path_length
@@ -638,6 +639,7 @@ class LiveRun:
             camera_rate_hz=cfg.camera.rate,
         )
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
+        scan_in_base = scan_frame_in_base(cfg.robot, cfg.depth_to_scan)  # for the monitor
         self.front_end = fe
         imu_feed: MessageFeed | None = None  # built at the first frame, when its clock is known
         last_mapped_ns = -(2**62)  # [ns] stamp of the last scan handed to the mapper
@@ -700,15 +702,15 @@ class LiveRun:
             self.stage_ms["wheels_ekf"].add(wheels_ms + step.ekf_ms)
             with self.shared.lock:
                 self.shared.odom = odom
-                self.shared.monitor.add_scan(frame.stamp_ns, odom, scan_points(scan))
+                self.shared.monitor.add_scan(odom, scan, scan_in_base)
                 m2o = self.shared.map_to_odom
             latency = (time.monotonic_ns() - frame.stamp_ns) / 1e6
             self.latency_ms.add(latency)
             self.frame_windows.add(latency)
             self.counts.inc("frames_processed")
             self.odom_track.add(frame.stamp_ns, float(odom[0]), float(odom[1]), float(odom[2]))
-            if self.navigator is not None:  # the scan is in base_link: laser = base pose
-                self.navigator.add_scan(scan, oplus(m2o, odom))
+            if self.navigator is not None:  # the scan's frame in the map
+                self.navigator.add_scan(scan, oplus(oplus(m2o, odom), scan_in_base))
             rate = cfg.live.mapper_rate
             if rate and frame.stamp_ns - last_mapped_ns < 1e9 / rate:
                 self.counts.inc("scans_thinned_mapper_rate")

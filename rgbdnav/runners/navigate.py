@@ -57,7 +57,6 @@ from slam.geometry import oplus, path_length, wrap_angle
 from slam.localization import Localizer, MapModel
 from slam.map_bundle import LoadedMap, load_map, load_map_yaml
 from slam.occupancy_grid import OccupancyGrid
-from slam.scan_matching import scan_points
 
 log = logging.getLogger(__name__)
 
@@ -250,9 +249,7 @@ class _Sim:
         )
         if self.localizer is not None:
             self.localize(scan)
-        pts = scan_points(scan)
-        base = oplus(self.T_base_laser, np.column_stack([pts, np.zeros(len(pts))]))
-        self.monitor.add_scan(self.t_ns, self.odometry.pose, base[:, :2])
+        self.monitor.add_scan(self.odometry.pose, scan, self.T_base_laser)
         self.costmap.update_scan(scan, Pose2(*oplus(self.estimate, self.T_base_laser).tolist()))
         self.scans += 1
         return True

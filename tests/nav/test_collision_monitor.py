@@ -55,3 +55,23 @@ def test_memory_forgets_scans_older_than_its_window() -> None:
     mem.add(0, np.zeros(3), np.array([[1.0, 0.0]]))
     mem.add(int(1.5e9), np.zeros(3), np.array([[2.0, 0.0]]))
     np.testing.assert_allclose(mem.points_in_base(np.zeros(3)), [[2.0, 0.0]])
+
+
+@pytest.mark.parametrize(("frame", "x_base"), [("base_link", 0.5), ("camera_link", 0.6)])
+def test_a_scan_lands_in_base_link_through_its_frames_offset(frame: str, x_base: float) -> None:
+    # One return 0.5 m straight ahead of the scan frame's origin; the camera sits 0.1 m forward,
+    # so in a camera-frame scan the point is 0.6 m ahead of base_link (rgbdnav live once
+    # stored it at 0.5 m, without the offset).
+    from nav.collision_monitor import CollisionMonitor
+    from nav.config import CollisionMonitorConfig
+    from sensors.config import RobotConfig
+    from sensors.types import LaserScan
+    from slam.config import DepthToScanConfig
+    from slam.depth_to_scan import scan_frame_in_base
+
+    robot = RobotConfig(camera_x=0.1)
+    at = scan_frame_in_base(robot, DepthToScanConfig(output_frame=frame))
+    monitor = CollisionMonitor(CollisionMonitorConfig(), radius=R)
+    scan = LaserScan(0, 0.0, 0.0, np.array([0.5], dtype=np.float32), 0.1, 4.0)
+    monitor.add_scan(np.zeros(3), scan, at)
+    assert monitor.memory.points_in_base(np.zeros(3)) == pytest.approx(np.array([[x_base, 0.0]]))

@@ -363,7 +363,7 @@ def test_an_estimate_off_by_a_jamb_stops_at_it_settles_and_drives_through_the_do
     jamb = np.array([[1.95, 2.0], [2.05, 2.0], [1.95, 1.0], [2.05, 1.0]])  # door corners
     for k in range(round(60e9 / DT_NS)):
         if k % 4 == 0:  # 5 Hz scans
-            monitor.add_scan(t_ns, truth, _camera_points(walls, truth))
+            monitor.add_points(t_ns, truth, _camera_points(walls, truth))
         d = nav.tick(t_ns, truth + corrector.offset, collision_stop=monitor.action == "stop")
         v, w, _ = monitor.limit(d.v, d.w, truth)
         dt = DT_NS / 1e9
