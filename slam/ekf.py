@@ -497,14 +497,16 @@ class PlanarEkf:
     filter starts at the first measurement: measured variables are copied into the state (as
     robot_localization does), the rest stay at ``x0``; P starts at initial_estimate_covariance.
 
-    A twist or gyro update corrects the rates and the gyro bias, never the pose: the pose is the
-    integral of the filtered rates, so the odom frame stays continuous (REP-105). The textbook
-    update (``twist_moves_pose``) also moves the pose through its cross-covariance with the
-    rates, and the gyro bias, which remembers the whole run, turned every VO or wheel yaw-rate
-    innovation into a sideways jump of up to 3 cm (docs/design/ekf_lateral.md).
+    A twist or gyro update moves the pose (x, y, yaw) only as it would if the gyro bias were
+    known (robot_localization has no bias state): the bias remembers the whole run, and through
+    its cross-covariance with the pose the textbook update turned every VO or wheel yaw-rate
+    innovation into a retroactive jump, sideways by up to 3.4 cm on the house route, which a
+    differential drive cannot make and the odom frame must not (REP-105: continuous). The rates'
+    own short-memory correction of the pose is kept. ``twist_moves_pose`` restores the textbook
+    update for comparison (docs/design/ekf_lateral.md).
     """
 
-    twist_moves_pose = False  # True: the textbook EKF update (kept for comparison benches)
+    twist_moves_pose = False  # True: the textbook update (bench/diag_ekf_lateral.py --textbook)
 
     def __init__(
         self,
@@ -654,8 +656,10 @@ class PlanarEkf:
         dt = (m.stamp_ns - self.t_ns) / NS_PER_S
         x, P = (self.x, self.P) if dt <= 0 else predict(self.x, self.P, dt, self.Q)
         H = _observation(m)
-        held = POSE_IDX if m.kind == "twist" and not self.twist_moves_pose else None
-        xu, Pu, _, _, nis = update(x, P, m.z, H, m.R, angle_residual(m.idx == YAW), held, GYRO_BIAS)
+        bias_known = POSE_IDX if m.kind == "twist" and not self.twist_moves_pose else None
+        xu, Pu, _, _, nis = update(
+            x, P, m.z, H, m.R, angle_residual(m.idx == YAW), bias_known, GYRO_BIAS
+        )
         accepted = passes_gate(nis, m.threshold)
         if accepted:
             xu[YAW] = wrap_angle(xu[YAW])

@@ -168,6 +168,23 @@ def test_update_2d_matches_filterpy_joseph_form() -> None:
     assert nis == pytest.approx(y @ np.linalg.inv(s) @ y, rel=1e-12)
 
 
+def test_rows_updated_as_if_a_state_were_known_take_none_of_its_correction() -> None:
+    # States (p, r, b): p correlated with the measured r only through b, as a heading integrated
+    # a gyro bias. With b known, r's innovation says nothing about p: p stays, r and b move, and
+    # P is the Joseph-form covariance of that gain (symmetric, PSD).
+    p = np.array([[4.0, 0.4, 0.5], [0.4, 0.2, 0.1], [0.5, 0.1, 0.125]])
+    x, z, h, r = np.zeros(3), np.array([1.0]), np.array([[0.0, 1.0, 0.0]]), np.array([[0.1]])
+    xn, pn, *_ = update(x, p, z, h, r, rows=np.array([0]), known=2)
+    x_tb, *_ = update(x, p, z, h, r)
+    assert x_tb[0] == pytest.approx(0.4 / 0.3)  # textbook: p moves with the bias's correlation
+    assert xn[0] == pytest.approx(0.0, abs=1e-12)
+    assert xn[1:] == pytest.approx(x_tb[1:])
+    k = np.array([0.0, *(p @ h.T / (h @ p @ h.T + r))[1:, 0]])[:, None]
+    ikh = np.eye(3) - k @ h
+    np.testing.assert_allclose(pn, ikh @ p @ ikh.T + k @ r @ k.T, atol=1e-12)
+    assert np.linalg.eigvalsh(pn).min() > 0
+
+
 def test_joseph_form_keeps_covariance_symmetric_psd_under_near_exact_measurements() -> None:
     rng = np.random.default_rng(3)
     a = rng.standard_normal((6, 6)) * 100
