@@ -644,8 +644,12 @@ class PlanarEkf:
         """Predict to the measurement's time, gate, update; record the state in the history."""
         st = self._stats[m.sensor]
         if self.t_ns is None:
-            # robot_localization: the first measurement sets the measured variables.
+            # robot_localization (FilterBase::processMeasurement): the first measurement sets
+            # the measured variables and their covariance. Left at initial_estimate_covariance
+            # (1e-9), a first wheel yaw rate was taken as exact and the gyro's first sample
+            # beside it set the gyro bias to the wheel's noise.
             self.x[m.idx] = m.z
+            self.P[np.ix_(m.idx, m.idx)] = m.R
             self.x[YAW] = wrap_angle(self.x[YAW])
             self.t_ns = m.stamp_ns
             self._history.append(_Entry(m.stamp_ns, self.x.copy(), self.P.copy(), m, True))
