@@ -155,15 +155,23 @@ def update(
     H: np.ndarray,
     R: np.ndarray,
     residual_fn: Residual = np.subtract,
+    rows: np.ndarray | None = None,
+    known: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """Kalman update -> (x, P, innovation, S, nis).
 
     K = P H^T S^-1;  x += K y;  Joseph form P = (I - K H) P (I - K H)^T + K R K^T, which stays
     symmetric positive semi-definite for any gain (unlike (I - K H) P), then symmetrised against
-    round-off.
+    round-off. With ``rows`` and ``known``, the gain of those state rows is the one they would
+    have if state ``known`` were exact: their covariance conditioned on it,
+    ``P[r] - P[r, k] P[k] / P[k, k]``, so they take no share of its correction (the Joseph form
+    keeps P the covariance of that estimate).
     """
     y, S, nis = innovate(x, P, z, H, R, residual_fn)
     K = np.linalg.solve(S, H @ P).T  # = P H^T S^-1, S and P symmetric
+    if rows is not None and known is not None and P[known, known] > 0:
+        pr = P[rows] - np.outer(P[rows, known], P[known]) / P[known, known]
+        K[rows] = np.linalg.solve(S, H @ pr.T).T
     xn = x + K @ y
     ikh = np.eye(len(x)) - K @ H
     Pn = ikh @ P @ ikh.T + K @ R @ K.T
@@ -488,7 +496,17 @@ class PlanarEkf:
     Use :meth:`process` with messages in arrival order and :meth:`state_at` for outputs. The
     filter starts at the first measurement: measured variables are copied into the state (as
     robot_localization does), the rest stay at ``x0``; P starts at initial_estimate_covariance.
+
+    A twist or gyro update moves the pose (x, y, yaw) only as it would if the gyro bias were
+    known (robot_localization has no bias state): the bias remembers the whole run, and through
+    its cross-covariance with the pose the textbook update turned every VO or wheel yaw-rate
+    innovation into a retroactive jump, sideways by up to 3.4 cm on the house route, which a
+    differential drive cannot make and the odom frame must not (REP-105: continuous). The rates'
+    own short-memory correction of the pose is kept. ``twist_moves_pose`` restores the textbook
+    update for comparison (docs/design/ekf_lateral.md).
     """
+
+    twist_moves_pose = False  # True: the textbook update (bench/diag_ekf_lateral.py --textbook)
 
     def __init__(
         self,
@@ -626,8 +644,12 @@ class PlanarEkf:
         """Predict to the measurement's time, gate, update; record the state in the history."""
         st = self._stats[m.sensor]
         if self.t_ns is None:
-            # robot_localization: the first measurement sets the measured variables.
+            # robot_localization (FilterBase::processMeasurement): the first measurement sets
+            # the measured variables and their covariance. Left at initial_estimate_covariance
+            # (1e-9), a first wheel yaw rate was taken as exact and the gyro's first sample
+            # beside it set the gyro bias to the wheel's noise.
             self.x[m.idx] = m.z
+            self.P[np.ix_(m.idx, m.idx)] = m.R
             self.x[YAW] = wrap_angle(self.x[YAW])
             self.t_ns = m.stamp_ns
             self._history.append(_Entry(m.stamp_ns, self.x.copy(), self.P.copy(), m, True))
@@ -638,7 +660,10 @@ class PlanarEkf:
         dt = (m.stamp_ns - self.t_ns) / NS_PER_S
         x, P = (self.x, self.P) if dt <= 0 else predict(self.x, self.P, dt, self.Q)
         H = _observation(m)
-        xu, Pu, _, _, nis = update(x, P, m.z, H, m.R, angle_residual(m.idx == YAW))
+        bias_known = POSE_IDX if m.kind == "twist" and not self.twist_moves_pose else None
+        xu, Pu, _, _, nis = update(
+            x, P, m.z, H, m.R, angle_residual(m.idx == YAW), bias_known, GYRO_BIAS
+        )
         accepted = passes_gate(nis, m.threshold)
         if accepted:
             xu[YAW] = wrap_angle(xu[YAW])

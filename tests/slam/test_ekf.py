@@ -168,6 +168,23 @@ def test_update_2d_matches_filterpy_joseph_form() -> None:
     assert nis == pytest.approx(y @ np.linalg.inv(s) @ y, rel=1e-12)
 
 
+def test_rows_updated_as_if_a_state_were_known_take_none_of_its_correction() -> None:
+    # States (p, r, b): p correlated with the measured r only through b, as a heading integrated
+    # a gyro bias. With b known, r's innovation says nothing about p: p stays, r and b move, and
+    # P is the Joseph-form covariance of that gain (symmetric, PSD).
+    p = np.array([[4.0, 0.4, 0.5], [0.4, 0.2, 0.1], [0.5, 0.1, 0.125]])
+    x, z, h, r = np.zeros(3), np.array([1.0]), np.array([[0.0, 1.0, 0.0]]), np.array([[0.1]])
+    xn, pn, *_ = update(x, p, z, h, r, rows=np.array([0]), known=2)
+    x_tb, *_ = update(x, p, z, h, r)
+    assert x_tb[0] == pytest.approx(0.4 / 0.3)  # textbook: p moves with the bias's correlation
+    assert xn[0] == pytest.approx(0.0, abs=1e-12)
+    assert xn[1:] == pytest.approx(x_tb[1:])
+    k = np.array([0.0, *(p @ h.T / (h @ p @ h.T + r))[1:, 0]])[:, None]
+    ikh = np.eye(3) - k @ h
+    np.testing.assert_allclose(pn, ikh @ p @ ikh.T + k @ r @ k.T, atol=1e-12)
+    assert np.linalg.eigvalsh(pn).min() > 0
+
+
 def test_joseph_form_keeps_covariance_symmetric_psd_under_near_exact_measurements() -> None:
     rng = np.random.default_rng(3)
     a = rng.standard_normal((6, 6)) * 100
@@ -717,3 +734,41 @@ def test_a_gyro_sample_at_the_bare_start_instant_is_not_read_as_bias() -> None:
     x, _ = ekf.predicted(NS_PER_S)
     assert abs(x[GYRO_BIAS]) < 5e-3  # [rad/s] (0.06 when the first sample was read as bias)
     assert x[YAW] == pytest.approx(rate, abs=2e-3)  # [rad] after 1 s
+
+
+def test_a_straight_drive_with_quantised_ticks_gyro_and_vo_makes_no_sideways_step() -> None:
+    """A differential drive cannot move sideways. With wheels (one 13 mm tick per 20 ms or
+    none), a biased gyro and noisy VO, each VO or wheel yaw-rate innovation told the gyro bias
+    state a little, and the textbook update moved the pose by the bias's whole history through
+    its cross-covariance: sideways jumps of up to 9 mm between frames here (1-3.4 cm on the
+    house route). The pose's gain is now the one it would have with the bias known."""
+    from slam.geometry import ominus
+
+    robot, rng = RobotConfig(), np.random.default_rng(0)
+    v, end = 0.3, 10.0  # [m/s], [s]
+    wheel_t = np.arange(0.0, end, 0.02)  # 50 Hz board
+    ticks = np.floor(v * wheel_t / robot.metres_per_tick)
+
+    def ns(t: np.ndarray) -> np.ndarray:
+        return (t * NS_PER_S).round().astype(np.int64)
+
+    wheels = wheel_twist_inputs(ns(wheel_t), ticks, ticks, robot)
+    gyro = [
+        ImuSample(int(s), 0.002 + 0.005 * rng.standard_normal())
+        for s in ns(np.arange(0, end, 0.01))
+    ]
+    frames = ns(np.arange(0.0, end, 1 / 30))
+    sigma = np.array([0.002, 0.002, 0.003])  # [m, m, rad] per frame, as the house's VO
+    vo = [
+        motion_twist(
+            int(b),
+            Pose2(*(np.array([v / 30, 0.0, 0.0]) + sigma * rng.standard_normal(3))),
+            np.diag(sigma**2),
+            1 / 30,
+        )
+        for b in frames[1:]
+    ]
+    out = fuse({"odom0": wheels, "imu0": gyro, "vo0": vo}, EkfConfig(), frames[1:], 1e-4)
+    poses = np.column_stack([out.x, out.y, out.yaw])
+    sideways = ominus(poses[:-1], poses[1:])[:, 1]
+    assert np.abs(sideways).max() < 0.002  # [m] (0.0094 with PlanarEkf.twist_moves_pose)
