@@ -42,7 +42,7 @@ from sensors.types import NS_PER_S, ImuSample, Odometry2D, Pose2, RgbdNavError
 from slam.config import STATE_NAMES, EkfConfig
 from slam.diff_drive import WheelErrorModel, wheel_increments
 from slam.geometry import between as se2_between
-from slam.geometry import wrap_angle
+from slam.geometry import rotate_covariance, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -191,12 +191,6 @@ def pose_update(
 def passes_gate(nis: float, threshold_sigma: float) -> bool:
     """robot_localization's checkMahalanobisThreshold: accept while NIS < threshold^2."""
     return nis < threshold_sigma * threshold_sigma
-
-
-def _rotation3(yaw: float) -> np.ndarray:
-    """Rotation of (x, y) by ``yaw`` with the angle row untouched."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 # --- inputs -----------------------------------------------------------------------------------
@@ -590,8 +584,7 @@ class PlanarEkf:
         if spec.relative:
             first = self._first_pose.setdefault(sensor, pose)
             pose = se2_between(first, pose)
-            rot = _rotation3(-first.yaw)
-            cov = rot @ cov @ rot.T
+            cov = rotate_covariance(cov, -first.yaw)
         z = np.array([pose.x, pose.y, pose.yaw])
         return self._make(sensor, msg.stamp_ns, "pose", spec.pose_mask, z, cov, spec.pose_threshold)
 
@@ -612,8 +605,7 @@ class PlanarEkf:
         if dt <= 0:
             return []
         d = se2_between(p_prev, msg.pose)
-        rot = _rotation3(-p_prev.yaw)
-        R = rot @ (c_prev + cov) @ rot.T / dt**2
+        R = rotate_covariance(c_prev + cov, -p_prev.yaw) / dt**2
         z = np.array([d.x, d.y, d.yaw]) / dt
         return self._make(
             spec.name, msg.stamp_ns, "twist", spec.pose_mask, z, R, spec.pose_threshold

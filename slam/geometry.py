@@ -60,6 +60,14 @@ def ominus(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
 
 
+def rotate_covariance(cov: np.ndarray, yaw: float) -> np.ndarray:
+    """A planar (x, y, yaw) covariance with its (x, y) axes turned by ``yaw``: ``R cov R^T``.
+    ``yaw`` = the heading of a body frame takes it from that frame to the map; ``-yaw`` back."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return rot @ cov @ rot.T
+
+
 def path_length(xy: ArrayLike) -> float:
     """Length [m] of the polyline through the points (N, 2); 0 for fewer than two."""
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)

@@ -41,7 +41,7 @@ import numpy as np
 from sensors.types import LaserScan, MapError
 from slam.config import LocalizerConfig, MapperConfig
 from slam.ekf import pose_update
-from slam.geometry import ominus, oplus, wrap_angle
+from slam.geometry import ominus, oplus, rotate_covariance, wrap_angle
 from slam.localization import Localizer, MapModel
 from slam.map_bundle import GraphEdge, MapBundle
 from slam.occupancy_grid import GridGeometry, OccupancyGrid, bounds_of_scans, integrate_scans
@@ -103,9 +103,7 @@ def fuse_with_odometry(
     """Kalman update of the odometry prediction by the scan match, with the match's weak axis
     (a featureless corridor) left to the prediction (:func:`release_degenerate_axis`).
     ``prior_cov_robot`` is in the robot frame of the prediction; the result is in the map."""
-    c, s = math.cos(prior[2]), math.sin(prior[2])
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    p_cov = rot @ prior_cov_robot @ rot.T
+    p_cov = rotate_covariance(prior_cov_robot, prior[2])
     r_cov, degenerate = release_degenerate_axis(
         match.covariance, degeneracy_ratio, UNOBSERVED_VARIANCE
     )
@@ -113,13 +111,6 @@ def fuse_with_odometry(
     return MatchOutcome(
         match.ok, match.reason, pose, cov, match.response, match.inlier_fraction, degenerate
     )
-
-
-def _to_body(cov: np.ndarray, yaw: float) -> np.ndarray:
-    """A (3, 3) map-frame pose covariance in the body frame of a pose at heading ``yaw``."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    return rot @ cov @ rot.T
 
 
 def loop_covariance(match_cov: np.ndarray, yaw: float, degeneracy_ratio: float) -> np.ndarray:
@@ -133,7 +124,7 @@ def loop_covariance(match_cov: np.ndarray, yaw: float, degeneracy_ratio: float) 
       into its edge's frame too). Left in the map frame, a closure in a corridor running north
       pinned the corridor's length with its lateral sigma and freed its width (issue #12)."""
     cov, _ = release_degenerate_axis(match_cov, degeneracy_ratio, UNOBSERVED_VARIANCE)
-    return _to_body(cov, yaw) + np.diag(
+    return rotate_covariance(cov, -yaw) + np.diag(
         [LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[0] ** 2, LOOP_MIN_SIGMA[1] ** 2]
     )
 
