@@ -1,6 +1,7 @@
 """Fixtures shared by the CLI tests, each made once per session and only read by the tests that
-use it: a short house recording (it was rendered once per module that needed it) and the map of
-a real Radish log (it was mapped by two modules)."""
+use it: a short house recording (it was rendered once per module that needed it), the map of
+a real Radish log (it was mapped by two modules) and a short `live --record` run (two modules
+each drove one)."""
 
 from __future__ import annotations
 
@@ -37,3 +38,15 @@ def orebro_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
     result = CliRunner().invoke(app, ["map", str(OREBRO), "--out", str(out), "-q"])
     assert result.exit_code == 0, result.output
     return out
+
+
+@pytest.fixture(scope="session")
+def live_recorded_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """5 s of `rgbdnav live` on the simulated house with ``--record``: the run's folder and its
+    recording's. Export it with ``--out`` elsewhere; map the recording into another folder."""
+    root = tmp_path_factory.mktemp("live_rec")
+    out, rec = root / "live", root / "rec"
+    args = ["live", "--out", str(out), "--sim-world", str(HOUSE), "-q", "--duration", "5"]
+    result = CliRunner().invoke(app, [*args, "--record", str(rec)])
+    assert result.exit_code == 0, result.output
+    return out, rec

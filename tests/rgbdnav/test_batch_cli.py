@@ -85,25 +85,27 @@ def test_batch_map_on_two_workers_reports_each_source_and_resumes(
     assert f"| house | done | ATE {sim['accuracy']['ate_rmse_m']:.3f} m |" in md
     assert "no laser scans" in md
 
-    # Rerun after losing mit-b's row: mit-a is skipped (untouched), mit-b runs again.
-    first_summary = (out / "mit-a" / "summary.json").stat().st_mtime_ns
-    (out / "mit-b" / "batch.json").unlink()
-    again = runner.invoke(app, args)
-    assert again.exit_code == 1, again.output
-    report = _report(out)
-    rows = {r["name"]: r for r in report["rows"]}
-    assert report["skipped_as_done"] == 2 and rows["mit-a"].get("resumed") is True
-    assert rows["house"].get("resumed") is True
-    assert rows["mit-b"]["status"] == "done" and not rows["mit-b"].get("resumed")
-    assert (out / "mit-a" / "summary.json").stat().st_mtime_ns == first_summary
-    assert "2 skipped as done before" in again.output
-
-    # batch eval on a cluster already running (--scheduler): the two runs against the full
-    # benchmark's relations score as the map tasks scored them.
+    # Rerun after losing mit-b's row, and batch eval, on one cluster already running
+    # (--scheduler; a LocalCluster starting costs seconds): mit-a is skipped (untouched), mit-b
+    # runs again; the eval of the two runs against the full benchmark's relations scores as the
+    # map tasks scored them.
     from distributed import LocalCluster
 
+    first_summary = (out / "mit-a" / "summary.json").stat().st_mtime_ns
+    (out / "mit-b" / "batch.json").unlink()
     ev = tmp_path / "eval"
     with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster:
+        on_cluster = ["--scheduler", cluster.scheduler_address]
+        again = runner.invoke(app, [*args[:-2], *on_cluster])  # args without --workers 2
+        assert again.exit_code == 1, again.output
+        report = _report(out)
+        rows = {r["name"]: r for r in report["rows"]}
+        assert report["skipped_as_done"] == 2 and rows["mit-a"].get("resumed") is True
+        assert rows["house"].get("resumed") is True
+        assert rows["mit-b"]["status"] == "done" and not rows["mit-b"].get("resumed")
+        assert (out / "mit-a" / "summary.json").stat().st_mtime_ns == first_summary
+        assert "2 skipped as done before" in again.output
+
         result = runner.invoke(
             app,
             [
@@ -115,8 +117,7 @@ def test_batch_map_on_two_workers_reports_each_source_and_resumes(
                 str(MIT.with_suffix(".relations")),
                 "--out",
                 str(ev),
-                "--scheduler",
-                cluster.scheduler_address,
+                *on_cluster,
             ],
         )
     assert result.exit_code == 0, result.output

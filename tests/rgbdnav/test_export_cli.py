@@ -327,24 +327,12 @@ def test_a_localize_run_carries_the_map_it_localised_in(laser_run: Path, tmp_pat
 
 
 def test_a_live_run_with_its_recording_exports_images_and_the_optimised_path(
-    tmp_path: Path,
+    live_recorded_run: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    run = tmp_path / "live"
-    res = _cli(
-        "live",
-        "--out",
-        run,
-        "--sim-world",
-        REPO / "scenes" / "house.yaml",
-        "-q",
-        "--duration",
-        "5",
-        "--record",
-        run / "recording",
-    )
-    assert res.exit_code == 0, res.output
-    assert _cli("export", run, "--to", "mcap", "-q").exit_code == 0
-    msgs = _read(run / "rosbag2")
+    run, rec = live_recorded_run  # `live --duration 5 --record REC`, shared with test_live_cli
+    bag = tmp_path / "rosbag2"  # the shared run stays as it was
+    assert _cli("export", run, "--to", "mcap", "--out", bag, "-q").exit_code == 0
+    msgs = _read(bag)
     stamps, poses = _trajectory(run / "trajectory.tum")
     t, composed, _ = _chain(msgs["/tf"])
     assert np.array_equal(t, stamps)
@@ -355,7 +343,7 @@ def test_a_live_run_with_its_recording_exports_images_and_the_optimised_path(
     path_xy = np.array([[p.pose.position.x, p.pose.position.y] for p in path.poses])
     assert np.abs(path_xy - opt[:, :2]).max() < TOL_M
     images = msgs["/camera/color/image_raw/compressed"]
-    index = (run / "recording" / "rgb.txt").read_text().splitlines()
+    index = (rec / "rgb.txt").read_text().splitlines()
     recorded = len([ln for ln in index if ln and not ln.startswith("#")])
     assert 0 < len(images) <= recorded
     assert all(stamps[0] <= ns <= stamps[-1] for ns, _ in images)

@@ -345,12 +345,12 @@ def test_live_runs_optical_flow_vo_unless_told_otherwise(tmp_path: Path) -> None
 
 
 def test_record_writes_what_the_robot_saw_as_a_recording_that_maps_offline(
-    tmp_path: Path,
+    live_recorded_run: tuple[Path, Path], tmp_path: Path
 ) -> None:
     from sensors.recording import Recording
 
-    out, rec_dir = tmp_path / "live", tmp_path / "rec"
-    s = _live(out, "--duration", "5", "--record", str(rec_dir))
+    out, rec_dir = live_recorded_run  # `live --duration 5 --record REC`, shared with export
+    s = json.loads((out / "summary.json").read_text())
     rec = s["recording"]
     assert "error" not in rec and rec["frames"] >= 10
     # Every frame the front end took is in it (or counted as left out), with the encoder

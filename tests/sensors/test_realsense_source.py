@@ -279,9 +279,16 @@ def _live(path: Path, out: Path) -> dict:
     return json.loads((out / "summary.json").read_text())
 
 
-def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) -> None:
-    path, _ = route
-    s = _live(path, tmp_path / "live")
+@pytest.fixture(scope="module")
+def live_run(route, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """`_live` on the route's recording (with its gyro): the run's folder, read by two tests."""
+    out = tmp_path_factory.mktemp("rs_live") / "gyro"
+    _live(route[0], out)
+    return out
+
+
+def test_live_maps_from_a_recording_played_as_the_camera(live_run: Path) -> None:
+    s = json.loads((live_run / "summary.json").read_text())
     assert s["errors"] == [] and s["counts"]["frames_processed"] >= 5
     assert s["counts"]["scans_mapped"] >= 1
     # One clock with the host, not 1970. The stamp offset is fixed at the first frame, so a first
@@ -291,24 +298,28 @@ def test_live_maps_from_a_recording_played_as_the_camera(route, tmp_path: Path) 
     assert s["ekf"]["sensors"]["imu0"]["fused"] > 0, s["ekf"]  # the D435i's gyro
 
 
-def _live_yaw_error(path: Path, out: Path) -> tuple[float, dict]:
-    """Live on ``path`` (no board): |odometry yaw - true yaw| at the last frame, and the summary.
-    The route turns at YAW_RATE from its first frame (odom.tum's first row)."""
-    summary = _live(path, out)
+def _yaw_error(out: Path) -> tuple[float, dict]:
+    """Of the live run in ``out`` on a recording of the route: |odometry yaw - true yaw| at the
+    last frame, and the summary. The route turns at YAW_RATE from its first frame (odom.tum's
+    first row)."""
+    summary = json.loads((out / "summary.json").read_text())
     odom = np.loadtxt(out / "odom.tum", ndmin=2)
     yaw = 2.0 * math.atan2(odom[-1, 6], odom[-1, 7])
     truth = YAW_RATE * (odom[-1, 0] - odom[0, 0])
     return abs(yaw - truth), {**summary, "odom_span_s": odom[-1, 0] - odom[0, 0]}
 
 
-def test_live_fuses_the_streaming_gyro_and_turns_as_the_route(route, tmp_path: Path) -> None:
+def test_live_fuses_the_streaming_gyro_and_turns_as_the_route(
+    route, live_run: Path, tmp_path: Path
+) -> None:
     """The recording played as the camera goes through a live D435i's code: the motion sensor
     streams beside the pipeline (take_imu), stamped as the frames."""
-    path, frames = route
+    _, frames = route
     plain = tmp_path / "no_gyro.db3"  # the same frames, as a D435 (no IMU) records them
     write_sdk_recording(plain, frames, depth_units=DEPTH_UNITS, pace=True)
-    with_gyro, summary = _live_yaw_error(path, tmp_path / "gyro")
-    without, summary_plain = _live_yaw_error(plain, tmp_path / "plain")
+    with_gyro, summary = _yaw_error(live_run)  # `_live` on the recording with the gyro
+    _live(plain, tmp_path / "plain")
+    without, summary_plain = _yaw_error(tmp_path / "plain")
     imu0, imu0_plain = (s["ekf"]["sensors"]["imu0"] for s in (summary, summary_plain))
     assert summary["camera_imu"] == "gyro 200 Hz as imu0"
     assert summary_plain["camera_imu"] == "no IMU (the recording has no gyro stream)"
