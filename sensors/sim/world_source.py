@@ -94,6 +94,32 @@ def _render_worker(plan: SimulationPlan, slots: _Slots, free: Any, filled: Any) 
         filled.put(f"{type(err).__name__}: {err}")
 
 
+class _RenderProcess:
+    """The renderer child process of one pass over the frames: spawned (no fork of a process
+    that runs threads), its slots and queues, and ending it."""
+
+    def __init__(self, plan: SimulationPlan, height: int, width: int) -> None:
+        ctx = mp.get_context("spawn")
+        self.slots = _Slots(ctx, height, width)
+        self.free, self.filled = ctx.Queue(), ctx.Queue()
+        for slot in range(QUEUE_FRAMES):
+            self.free.put(slot)
+        self.proc = ctx.Process(
+            target=_render_worker,
+            args=(plan, self.slots, self.free, self.filled),
+            name="render",
+            daemon=True,
+        )
+        self.proc.start()
+
+    def close(self) -> None:
+        if self.proc.is_alive():  # the consumer stopped early, or an error
+            self.proc.terminate()
+        self.proc.join()
+        self.free.close()
+        self.filled.close()
+
+
 class RenderedRecording(Recording):
     """A world's recording whose images are rendered when read: :meth:`frames` streams them
     from a renderer process, :meth:`frame` renders one here. Everything else was read from the
@@ -102,6 +128,7 @@ class RenderedRecording(Recording):
     plan: SimulationPlan
     _streams: dict[str, Any]
     _renderer: KinectRenderer | None = None
+    _started: _RenderProcess | None = None
 
     def keep_streams(self) -> None:
         """Read the stream files once, so the folder may go."""
@@ -124,6 +151,21 @@ class RenderedRecording(Recording):
     def groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         return self._streams["groundtruth"]  # type: ignore[no-any-return]
 
+    def start_rendering(self) -> None:
+        """Start the renderer process of the next :meth:`frames` now, so its start-up (a new
+        interpreter's imports, the texture atlas, the noise banks: ~1.5 s of CPU) and its
+        first QUEUE_FRAMES frames overlap the caller's own start-up (the front end's and the
+        mapper's set-up) instead of following it. The plan is handed over as it is now. A
+        no-op in a daemonic process (no children allowed) or when already started."""
+        if self._started is None and not mp.current_process().daemon:
+            self._started = _RenderProcess(self.plan, self.intrinsics.height, self.intrinsics.width)
+
+    def close(self) -> None:
+        """End a renderer started ahead whose frames were never read."""
+        started, self._started = self._started, None
+        if started is not None:
+            started.close()
+
     def frames(self, skip_bad: bool = False) -> Iterator[RgbdFrame]:
         """The frames in order, rendered in a child process up to QUEUE_FRAMES ahead (here, in
         a daemonic process, which may not have children)."""
@@ -138,18 +180,10 @@ class RenderedRecording(Recording):
             for k, f in enumerate(render_frames(plan)):
                 yield self._frame(k, f.rgb, depth_to_counts(f.depth_m, scale))
             return
-        ctx = mp.get_context("spawn")  # no fork of a process that runs threads
-        slots = _Slots(ctx, self.intrinsics.height, self.intrinsics.width)
-        free, filled = ctx.Queue(), ctx.Queue()
-        for slot in range(QUEUE_FRAMES):
-            free.put(slot)
-        proc = ctx.Process(
-            target=_render_worker,
-            args=(self.plan, slots, free, filled),
-            name="render",
-            daemon=True,
-        )
-        proc.start()
+        self.start_rendering()
+        child, self._started = self._started, None  # a second pass starts its own
+        assert child is not None
+        slots, free, filled, proc = child.slots, child.free, child.filled, child.proc
         try:
             for k in range(n):
                 item = self._next(filled, proc)
@@ -161,11 +195,7 @@ class RenderedRecording(Recording):
             if self._next(filled, proc) is not None:
                 raise SensorError(f"rendering {self.plan.world.name}: more frames than planned")
         finally:
-            if proc.is_alive():  # the consumer stopped early, or an error
-                proc.terminate()
-            proc.join()
-            free.close()
-            filled.close()
+            child.close()
 
     def _next(self, frames_q: Any, proc: Any) -> Any:
         while True:
@@ -209,6 +239,9 @@ class WorldSource(RecordingSource):
     def describe(self) -> str:
         return f"world rendered on demand (no images on disk): {super().describe()}"
 
+    def close(self) -> None:
+        self.recording.close()
+
 
 def open_world(
     world_path: str | Path,
@@ -218,10 +251,16 @@ def open_world(
     seed: int = 0,
     frames: int | None = None,
     skip_bad: bool = True,
+    render_ahead: bool = False,
 ) -> WorldSource:
     """A world rendered on demand, as :func:`sensors.sim.simulator.simulate` would record it
-    with the same arguments. Nothing stays on disk."""
+    with the same arguments. Nothing stays on disk. With ``render_ahead`` the renderer process
+    starts as soon as the plan is made (:meth:`RenderedRecording.start_rendering`): its start-up
+    then overlaps the writing of the streams here and the caller's own set-up."""
     plan = plan_simulation(world_path, robot, camera, sim, seed, frames=frames)
+    ahead = None
+    if render_ahead and not mp.current_process().daemon:
+        ahead = _RenderProcess(plan, plan.intrinsics.height, plan.intrinsics.width)
     tmp = Path(tempfile.mkdtemp(prefix="rgbdnav-world-"))
     try:
         with RecordingWriter(tmp / "streams", plan.intrinsics, plan.scene, images=False) as w:
@@ -231,10 +270,15 @@ def open_world(
         rec = RenderedRecording.open(tmp / "streams")
         assert isinstance(rec, RenderedRecording)  # Recording.open builds cls
         rec.keep_streams()
+    except BaseException:
+        if ahead is not None:
+            ahead.close()
+        raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     rec.path = Path(world_path)  # what error messages and the summary name
     rec.plan = plan
+    rec._started = ahead
     return WorldSource(rec, skip_bad=skip_bad)
 
 

@@ -156,6 +156,22 @@ def test_slip_noise_has_the_configured_sigma_and_correlation_time() -> None:
     assert corr == pytest.approx(math.exp(-1), abs=0.05)
 
 
+def test_slip_noise_is_scipys_lfilter_of_the_same_draws_to_the_bit() -> None:
+    """correlated_noise runs the AR(1) recursion itself (importing scipy.signal cost ~1.5 s of
+    a world run's start-up): the simulated wheels must stay the recordings' bit for bit."""
+    from scipy.signal import lfilter
+
+    from sensors.sim.motion import correlated_noise
+
+    for n, tau in ((1, 0.5), (2, 0.5), (5000, 0.5), (5000, 1e-4), (5000, 1e4)):
+        a = math.exp(-0.005 / tau)
+        x = correlated_noise(n, 0.01, tau, 0.005, np.random.default_rng(n))
+        rng = np.random.default_rng(n)
+        white = rng.standard_normal(n) * 0.01 * math.sqrt(1 - a * a)
+        white[0] = 0.01 * rng.standard_normal()
+        assert np.array_equal(x, lfilter([1.0], [1.0, -a], white))
+
+
 def test_a_route_the_robot_cannot_finish_in_time_names_the_waypoint(monkeypatch) -> None:
     import sensors.sim.motion as motion
     from sensors.types import WorldError

@@ -38,7 +38,7 @@ def _args() -> tuple[RobotConfig, CameraConfig, SimConfig]:
 def test_streamed_world_equals_its_recording_on_disk(tmp_path: Path, world: Path) -> None:
     simulate(world, tmp_path / "rec", *_args(), seed=3, frames=FRAMES)
     disk = RecordingSource(Recording.open(tmp_path / "rec"))
-    live = open_world(world, *_args(), seed=3, frames=FRAMES)
+    live = open_world(world, *_args(), seed=3, frames=FRAMES, render_ahead=True)
     try:
         want, got = list(disk.frames()), list(live.frames())
         assert len(got) == len(want) == FRAMES
@@ -58,6 +58,14 @@ def test_streamed_world_equals_its_recording_on_disk(tmp_path: Path, world: Path
         assert live.recording.scene == disk.recording.scene
     finally:
         live.close()
+
+
+def test_a_renderer_started_ahead_and_never_read_ends_with_its_source(world: Path) -> None:
+    src = open_world(world, *_args(), seed=3, frames=2, render_ahead=True)
+    started = src.recording._started
+    assert started is not None and started.proc.is_alive()
+    src.close()
+    assert not started.proc.is_alive() and src.recording._started is None
 
 
 def test_a_daemonic_process_renders_in_itself(world: Path, monkeypatch: pytest.MonkeyPatch) -> None:
