@@ -533,8 +533,10 @@ def match_scan(
         d = ominus(prior, p)
         return math.hypot(d[0], d[1]) <= lin + tol and abs(d[2]) <= ang + tol
 
-    def polish(pose: np.ndarray, score: float) -> tuple[np.ndarray, float, str]:
-        """4c. The sub-cell polish of a match; ICP's pose when it leaves ICP's cell."""
+    def polish(pose: np.ndarray, score: float, cov: np.ndarray) -> tuple[np.ndarray, float, str]:
+        """4c. The sub-cell polish of a match; ICP's pose when it leaves ICP's cell. Along a
+        corridor (ICP's weak axis, as release_degenerate_axis finds it) the polish would only
+        slide to a ripple of the blurred wall cells: its move there is dropped."""
         if cfg.refine_max_iterations == 0:
             return pose, score, "off"
         res = refine_on_field(
@@ -547,14 +549,19 @@ def match_scan(
         )
         if not res.ok:
             return pose, score, f"fallback: {res.reason}"
-        return res.pose, model.score(points, res.pose), "polished"
+        out = res.pose.copy()
+        evals, evecs = np.linalg.eigh(cov[:2, :2])
+        if evals[1] > cfg.scan_match_degeneracy_ratio * max(float(evals[0]), 1e-12):
+            well = evecs[:, 0]
+            out[:2] = pose[:2] + well * float(well @ (res.pose[:2] - pose[:2]))
+        return out, model.score(points, out), "polished"
 
     # 4a. ICP straight from the prior: most scans follow odometry closely.
     pose, cov, score, converged = icp(prior)
     step = ominus(prior, pose)
     inside = math.hypot(step[0], step[1]) <= lin / 2 and abs(step[2]) <= ang / 2
     if converged and inside and score >= cfg.min_score:
-        pose, score, refined = polish(pose, score)
+        pose, score, refined = polish(pose, score, cov)
         return MatchOutcome(True, "", pose, cov, score, "icp", refined)
     # 4b. Exact correlative search in the window, then ICP from its best lattice pose. Only
     #     poses inside the window compete: ICP can slide far off (a mirror-image room) and the
@@ -574,7 +581,7 @@ def match_scan(
             False, "no match inside the search window", prior, cov, 0.0, "correlative"
         )
     score, pose, cov = max(candidates, key=lambda c: c[0])
-    pose, score, refined = polish(pose, score)
+    pose, score, refined = polish(pose, score, cov)
     if score < cfg.min_score:
         return MatchOutcome(
             False,
