@@ -15,11 +15,10 @@ that never blocks: each :meth:`Navigator.tick` decides one command and returns i
 - **Replan** when the path ahead is blocked (checked as the costmap changes), when the arc is
   blocked (FollowPath fails: the next recovery of the round first), when no progress is made
   (SimpleProgressChecker: ``required_movement_radius`` within ``movement_time_allowance``, or
-  within ``collision_hold_allowance`` of the caller's collision monitor cutting the command to
-  a stop: clear the costmap, back up), and every ``1 / navigate.replan_frequency`` s. A replan
-  whose plans fail runs the round (clear, spin, wait, back up) one behaviour per failure. A
-  goal that looks blocked gets one costmap clear; ``navigate.max_replans`` replans, an exhausted
-  round or ``navigate.goal_timeout`` end the goal as *failed*, with the reason.
+  ``collision_hold_allowance`` of the caller's collision monitor stopping it: clear, back up),
+  and every ``1 / navigate.replan_frequency`` s. A replan whose plans fail runs the round (clear,
+  spin, wait, back up) one behaviour per failure; a goal that looks blocked is cleared once.
+  ``navigate.max_replans`` replans, an exhausted round or ``navigate.goal_timeout`` fail the goal.
 - **Settle** (optional, :class:`PoseCorrector`): at a goal the estimate reaches, when the
   localiser keeps disagreeing with its scans, and when the caller's collision monitor stopped the
   robot (``collision_stop``), turn in place and let the caller correct the pose.
