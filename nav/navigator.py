@@ -17,7 +17,7 @@ that never blocks: each :meth:`Navigator.tick` decides one command and returns i
   (SimpleProgressChecker: ``required_movement_radius`` within ``movement_time_allowance``, or
   ``collision_hold_allowance`` of the caller's collision monitor stopping it: clear, back up),
   and every ``1 / navigate.replan_frequency`` s. A replan whose plans fail runs the round (clear,
-  spin, wait, back up) one behaviour per failure; a goal that looks blocked is cleared once.
+  spin, wait, back up) one behaviour per failure; a goal that looks blocked fails at once.
   ``navigate.max_replans`` replans, an exhausted round or ``navigate.goal_timeout`` fail the goal.
 - **Settle** (optional, :class:`PoseCorrector`): at a goal the estimate reaches, when the
   localiser keeps disagreeing with its scans, and when the caller's collision monitor stopped the
@@ -246,7 +246,6 @@ class _Goal:
     controller_failures: int = 0  # recovery round-robin position of FollowPath failures
     goal_settles: int = 0
     collision_settles: int = 0  # settles after a collision-monitor stop
-    goal_cleared: bool = False  # the costmap was cleared once because the goal looked blocked
 
 
 class Navigator:
@@ -534,9 +533,8 @@ class Navigator:
                 f"gave up after {nav.max_replans} replans; last: {why}",
             )
             return False
-        goal_blocked = int(self.costmap.cost_at(*g.xy)) in (INSCRIBED, LETHAL)
-        if goal_blocked and g.goal_cleared:
-            # Every plan would end there, and clearing did not help: replanning cannot.
+        if int(self.costmap.cost_at(*g.xy)) in (INSCRIBED, LETHAL):
+            # Every plan would end there, so replanning cannot help.
             self._finish(
                 now_ns,
                 "failed",
@@ -547,14 +545,7 @@ class Navigator:
         g.replans += 1
         self.counts["replans"] += 1
         log.debug("goal (%.2f, %.2f): replanning (%s)", *g.xy, why)
-        if goal_blocked:
-            # What the camera saw near the goal may be marked where a wrong estimate put it
-            # (0.2 m off next to moved furniture): forget it once, as Nav2's recovery would,
-            # and plan again; only a goal that looks blocked after that fails.
-            g.goal_cleared = True
-            self.counts["goal_blocked_clears"] += 1
-            self._actions.extend((_Stop(), _Run(RECOVERY_SEQUENCE[0], "recovery")))
-        elif cause == "stuck":
+        if cause == "stuck":
             self._actions.append(_Stop())
             self._actions.extend(_Run(b, "recovery") for b in STUCK_BEHAVIORS)
         elif cause == "blocked":
