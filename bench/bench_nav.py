@@ -5,7 +5,8 @@ Planner and costmap: ``.venv/bin/python bench/bench_nav.py [--out docs/benchmark
 Scenario (issue #8's target: the house with furniture moved relative to the map, 20 seeded
 random goals, keepout zones): ``.venv/bin/python bench/bench_nav.py --scenario
 scenes/scenarios/nav_house.yaml --map runs/demo/map [--localization both] [--out docs/benchmarks.md]``
-drives the scenario on each map with each localisation mode (``runs/nav_scenario_*``)
+drives the scenario on each map with each localisation mode
+(``runs/nav_scenario_<scenario>_*``)
 and replaces the "nav-scenario" section. Global planning cost: a seeded room with walls
 and furniture-sized boxes is rasterised once; the costmap is inflated Nav2-style (lethal 254,
 inscribed 253 within robot_radius, exp(-cost_scaling_factor (d - r)) decay out to
@@ -187,7 +188,8 @@ def bench_scenario(args: argparse.Namespace) -> None:
     maps: list[tuple[str, Path]] = []
     for m in args.map:
         if m == "floorplan":
-            d = REPO / "runs" / "nav_scenario_maps" / "floorplan"
+            # One directory per scenario: parallel house and office runs must not share it.
+            d = REPO / "runs" / "nav_scenario_maps" / f"floorplan_{args.scenario.stem}"
             d.mkdir(parents=True, exist_ok=True)
             maps.append(
                 ("floor plan", floor_plan_map(load_scenario(args.scenario), d / "map.yaml"))
@@ -199,7 +201,7 @@ def bench_scenario(args: argparse.Namespace) -> None:
         for mode in modes:
             tag = "floorplan" if label == "floor plan" else Path(map_path).name
             seed = "" if args.scenario_seed is None else f"_seed{args.scenario_seed}"
-            out = REPO / "runs" / f"nav_scenario_{tag}_{mode}{seed}"
+            out = REPO / "runs" / f"nav_scenario_{args.scenario.stem}_{tag}_{mode}{seed}"
             _, summary = run_scenario(
                 args.scenario,
                 map_path,
@@ -234,7 +236,7 @@ Measured {dt.date.today().isoformat()} on {machine("numpy", "scipy")}.
 Command: `python bench/bench_nav.py --scenario {args.scenario} --map {" ".join(map(str, args.map))}
 --localization {args.localization}{"" if args.goals is None else f" --goals {args.goals}"}\
 {"" if args.scenario_seed is None else f" --scenario-seed {args.scenario_seed}"}` (run
-directories `runs/nav_scenario_<map>_<mode>/`; the moved world, keepout mask and goals in their
+directories `runs/nav_scenario_<scenario>_<map>_<mode>/`; the moved world, keepout mask and goals in their
 `scenario/`). The house of `scenes/house.yaml` with every piece of furniture moved and turned
 (seeded, up to 0.3 m and 0.3 rad) relative to the map, seeded random goals in free space
 reachable in both, two keepout zones; the robot drives the Eddie board emulator through GOSPD

@@ -36,7 +36,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="extra config overrides")
     args = ap.parse_args()
 
-    from rgbdnav.commands.nav_scenario import floor_plan_map, load_scenario, run_scenario
+    from nav_scenario import floor_plan_map, load_scenario, run_scenario  # bench/
 
     base = navigate_runner._Sim
     events: list[dict] = []
@@ -116,7 +116,7 @@ def main() -> None:
     navigate_runner._Sim = Traced
     sc = load_scenario(args.scenario)
     if args.map == "floorplan":
-        d = REPO / "runs" / "nav_scenario_maps" / "floorplan"
+        d = REPO / "runs" / "nav_scenario_maps" / f"floorplan_{args.scenario.stem}"
         d.mkdir(parents=True, exist_ok=True)
         map_path = floor_plan_map(sc, d / "map.yaml")
     else:

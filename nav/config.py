@@ -255,6 +255,16 @@ class NavigateConfig:
     movement_time_allowance: float = param(
         10.0, unit="s", gt=0.0, doc="... within this long, or recover (clear costmap, back up)"
     )
+    collision_hold_allowance: float = param(
+        0.0,
+        unit="s",
+        ge=0.0,
+        doc="the progress checker's allowance while the collision monitor holds the robot: "
+        "this long cut to a stop (in total) without moving required_movement_radius, and it "
+        "recovers as when stuck (clear costmap, back up: the camera, blind nearer than 0.45 m, "
+        "sees what is too close again) and replans (0 = off: movement_time_allowance only; "
+        "3 s was measured and not kept, docs/design/navigator.md)",
+    )
     global_relocalization: bool = param(
         False,
         doc="let the localiser relocalise globally while driving (turning in place until it "

@@ -14,11 +14,11 @@ that never blocks: each :meth:`Navigator.tick` decides one command and returns i
   ``clearRobotCell``), and on that way out the arc check only stops the robot for walls.
 - **Replan** when the path ahead is blocked (checked as the costmap changes), when the arc is
   blocked (FollowPath fails: the next recovery of the round first), when no progress is made
-  (SimpleProgressChecker:
-  ``required_movement_radius`` within ``movement_time_allowance``: clear the costmap, back up),
+  (SimpleProgressChecker: ``required_movement_radius`` within ``movement_time_allowance``, or
+  ``collision_hold_allowance`` of the caller's collision monitor stopping it: clear, back up),
   and every ``1 / navigate.replan_frequency`` s. A replan whose plans fail runs the round (clear,
-  spin, wait, back up) one behaviour per failure. ``navigate.max_replans`` replans, an exhausted
-  round or ``navigate.goal_timeout`` end the goal as *failed*, with the reason.
+  spin, wait, back up) one behaviour per failure; a goal that looks blocked fails at once.
+  ``navigate.max_replans`` replans, an exhausted round or ``navigate.goal_timeout`` fail the goal.
 - **Settle** (optional, :class:`PoseCorrector`): at a goal the estimate reaches, when the
   localiser keeps disagreeing with its scans, and when the caller's collision monitor stopped the
   robot (``collision_stop``), turn in place and let the caller correct the pose.
@@ -285,7 +285,13 @@ class Navigator:
         self._actions: deque[_Action] = deque()
         self._cmd = (0.0, 0.0)  # the controller's last command, held between cycles
         self._next_ctrl_ns = 0
-        self._anchor: tuple[np.ndarray, int] | None = None  # progress checker
+        # Progress checker: (pose, time, held_ns then); held_ns: how long the collision monitor
+        # has cut the command to a stop in all (the tick intervals it reported a stop for).
+        self._anchor: tuple[np.ndarray, int, int] | None = None
+        self.held_ns = 0
+        self._tick_ns: int | None = None  # the last tick's time
+        hold = cfg.navigate.collision_hold_allowance
+        self.hold_ns = round(hold * NS_PER_S) if hold > 0.0 else None
         self._escape = False  # the path starts with the planner's way out of the band
         self._planned_ns = 0  # last (re)plan, for replan_frequency
         self._periodic: int | None = None  # ticket of a periodic plan in flight
@@ -341,6 +347,9 @@ class Navigator:
         way, where the map pose saw free space)."""
         self._pose = np.asarray(pose, dtype=np.float64).copy()
         self._collision_stop = collision_stop
+        if collision_stop and self._tick_ns is not None:
+            self.held_ns += now_ns - self._tick_ns
+        self._tick_ns = now_ns
         v, w, status = self._decide(now_ns, self._pose, moving)
         return self._smooth(now_ns, v, w, status)
 
@@ -373,7 +382,7 @@ class Navigator:
                 if self._actions:
                     continue  # an instant action ended: the next one
                 # The queue ran empty: follow again, progress judged afresh, control now.
-                self._anchor = (pose.copy(), now_ns)
+                self._set_anchor(pose, now_ns)
                 self._next_ctrl_ns = now_ns
             if self._goal is None:
                 return 0.0, 0.0, "idle"
@@ -420,16 +429,29 @@ class Navigator:
             self.counts["replans_blocked_path"] += 1
             return self._replan(now_ns, "path blocked by a new obstacle", "path")
         if self._anchor is None or self.progress.moved(self._anchor[0], pose):
-            self._anchor = (pose.copy(), now_ns)
+            self._set_anchor(pose, now_ns)
         elif self.progress.stuck((now_ns - self._anchor[1]) / NS_PER_S):
             pc = self.progress
             self.counts["no_progress"] += 1
-            self._anchor = (pose.copy(), now_ns)
+            self._set_anchor(pose, now_ns)
             return self._replan(
                 now_ns,
                 f"no progress: moved less than "
                 f"{pc.required_movement_radius} m in "
                 f"{pc.movement_time_allowance:g} s",
+                "stuck",
+            )
+        elif self.hold_ns is not None and self.held_ns - self._anchor[2] >= self.hold_ns:
+            # The collision monitor keeps cutting the command to a stop (a wall or a piece of
+            # furniture too close beside or ahead): no progress can come of waiting for the full
+            # allowance. Back up, so the camera sees it again, and plan around it.
+            # (docs/design/navigator.md, "Held by the collision monitor")
+            self.counts["no_progress_held"] += 1
+            self._set_anchor(pose, now_ns)
+            return self._replan(
+                now_ns,
+                f"no progress: the collision monitor held the robot for "
+                f"{self.cfg.navigate.collision_hold_allowance:g} s",
                 "stuck",
             )
         if now_ns < self._next_ctrl_ns - self.ctrl_ns // 2:
@@ -579,6 +601,9 @@ class Navigator:
                 return 0.0, 0.0, "settling"
             return None
         return self._plan_action(a, now_ns, pose)
+
+    def _set_anchor(self, pose: np.ndarray, now_ns: int) -> None:
+        self._anchor = (pose.copy(), now_ns, self.held_ns)
 
     def _queue_settle(self) -> None:
         nav = self.cfg.navigate

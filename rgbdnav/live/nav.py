@@ -387,8 +387,11 @@ class LiveNavigator:
 
     # 3. The controller tick.
 
-    def tick(self, now_ns: int, pose: np.ndarray | None) -> tuple[float, float]:
-        """The smoothed (v, w) to command now for the estimated ``pose`` (None: unknown, stop)."""
+    def tick(
+        self, now_ns: int, pose: np.ndarray | None, collision_stop: bool = False
+    ) -> tuple[float, float]:
+        """The smoothed (v, w) to command now for the estimated ``pose`` (None: unknown, stop);
+        ``collision_stop``: the collision monitor cut the last command to a stop."""
         t0 = time.perf_counter()
         with self._lock:
             built, self._built = self._built, None
@@ -409,7 +412,7 @@ class LiveNavigator:
             if not self.nav.active:
                 goal = self.route[self.i]
                 self.nav.set_goal((float(goal[0]), float(goal[1])), now_ns)
-            d = self.nav.tick(now_ns, pose)
+            d = self.nav.tick(now_ns, pose, collision_stop=collision_stop)
             if not self.nav.active:
                 self._goal_ended()
         ms = 1e3 * (time.perf_counter() - t0)

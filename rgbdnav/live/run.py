@@ -840,7 +840,9 @@ class LiveRun:
             elif self.navigator is not None:
                 pose = self.shared.pose_in_map()
                 v, w = self.navigator.tick(
-                    time.monotonic_ns(), pose if self.shared.tracking else None
+                    time.monotonic_ns(),
+                    pose if self.shared.tracking else None,
+                    collision_stop=guard == "stop",
                 )
                 self.route_done = self.navigator.done
             elif self.opts.drive == "route":

@@ -142,6 +142,33 @@ def test_no_progress_clears_the_costmap_backs_up_and_replans_then_the_goal_is_re
     assert 10.0 <= first_backup * DT_NS / 1e9 <= 11.0  # the allowance, then a stop
 
 
+def test_a_robot_the_collision_monitor_holds_backs_up_after_the_hold_allowance() -> None:
+    # The monitor cuts every forward command for the first 6 s (a piece of furniture too close
+    # beside the path): after collision_hold_allowance (3 s) of being held the navigator
+    # recovers as when stuck (clear, back up, replan), not after movement_time_allowance (10 s).
+    nav = Navigator(Sections(navigate=NavigateConfig(collision_hold_allowance=3.0)), two_rooms())
+    nav.set_goal((1.5, 2.2), 0)
+    pose, t_ns, held, statuses = np.array([0.5, 0.8, 0.0]), 0, False, []
+    for _ in range(round(60e9 / DT_NS)):
+        d = nav.tick(t_ns, pose, collision_stop=held)
+        statuses.append(d.status)
+        held = d.v > 0.0 and t_ns < 6 * 10**9
+        v = 0.0 if held else d.v  # the monitor: forward motion cut, turning allowed
+        dt = DT_NS / 1e9
+        a = pose[2] + d.w * dt / 2
+        pose = pose + np.array([v * dt * math.cos(a), v * dt * math.sin(a), d.w * dt])
+        t_ns += DT_NS
+        if not nav.busy:
+            break
+    out = outcome_of(nav)
+    assert out.status == "reached"
+    assert out.recoveries[:2] == ("clear_costmap", "backup")
+    assert nav.counts["no_progress_held"] >= 1 and nav.counts["no_progress"] == 0
+    first_backup = statuses.index("behavior:backup") * DT_NS / 1e9
+    hold = nav.cfg.navigate.collision_hold_allowance
+    assert hold <= first_backup <= hold + 1.5, first_backup  # held 3 s (from the first cut)
+
+
 def test_a_failing_controller_runs_the_recovery_round_robin_one_behaviour_per_failure(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
