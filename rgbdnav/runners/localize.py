@@ -9,8 +9,8 @@ the EKF-fused odometry with depth turned into scans. Each scan goes through
 ``trajectory.tum``
     The pose in ``map`` of every scan on which the localiser is ``tracking``: base_link's for a
     recording (the localiser tracks the scan's frame, ``depth_to_scan.output_frame``), the
-    laser's for a laser log. Scans
-    while lost or relocalising have no established pose and no line (counted in the summary).
+    laser's for a laser log. Scans while lost or relocalising have no established pose and no
+    line (counted in the summary).
 ``localization.csv``
     One row per scan, header ``stamp_s,x_m,y_m,yaw_rad,confidence,status,reason``: stamp [s],
     pose [m, m, rad] (empty when the scan has no pose), confidence in [0, 1], status
