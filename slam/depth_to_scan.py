@@ -66,13 +66,18 @@ def scan_frame_in_base(robot: RobotConfig, cfg: DepthToScanConfig) -> np.ndarray
 
 def scan_pose(base_pose: np.ndarray, scan_in_base: np.ndarray) -> np.ndarray:
     """Pose(s) (..., 3) of the scan frame from base_link's in any frame (odom, map): what the
-    mapper and the localiser are given with the scan, whose poses are the scan frame's."""
+    mapper and the localiser are given with the scan, whose poses are the scan frame's. A scan
+    in base_link takes the pose as it is (bit for bit: no second wrap of the yaw)."""
+    if not np.any(scan_in_base):
+        return np.asarray(base_pose, dtype=np.float64)
     return oplus(base_pose, scan_in_base)
 
 
 def base_pose(scan_frame_pose: np.ndarray, scan_in_base: np.ndarray) -> np.ndarray:
     """Pose(s) (..., 3) of base_link from the scan frame's (:func:`scan_pose` undone): what a
     trajectory compared with base_link ground truth or driven on reports."""
+    if not np.any(scan_in_base):
+        return np.asarray(scan_frame_pose, dtype=np.float64)
     return oplus(scan_frame_pose, ominus(scan_in_base, np.zeros(3)))
 
 
