@@ -2,7 +2,10 @@
 
 A laser log feeds its scans with the log's per-scan laser pose. An RGB-D source goes through
 the front end (:mod:`slam.front_end`: wheels, ``/odom``, IMU and VO in the EKF, depth -> scan),
-each frame's scan paired with its ``odom -> base_link`` pose, in one pass over the frames.
+each frame's scan paired with the odom pose of the scan's frame (``depth_to_scan.output_frame``:
+base_link's pose (+) :func:`slam.depth_to_scan.scan_frame_in_base`, as `live` pairs them), in one
+pass over the frames. The mapper and the localiser work in the scan frame; the runners report
+base_link poses through :func:`slam.depth_to_scan.base_pose`.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from sensors.recording_source import RecordingSource
 from sensors.source import PoseStream, Source
 from sensors.tum import write_tum_trajectory
 from sensors.types import LaserScan, SensorError
+from slam.depth_to_scan import scan_pose
 from slam.front_end import FrontEnd, odom_origin, options_for, replay
 from slam.geometry import oplus
 from slam.metrics import drift_report
@@ -58,14 +62,16 @@ def scan_stream(
     summary: dict,
     outputs: dict[str, Path],
     force_3dof: bool = False,
-) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:
-    """(scan, odometry pose) pairs, their count, and the frame the poses are of."""
+) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str, np.ndarray]:
+    """(scan, odometry pose of the scan's frame) pairs, their count, the frame reported poses
+    are of ("laser" for a laser log, else "base_link"), and the scan frame's pose in that frame
+    (:func:`slam.depth_to_scan.base_pose` turns the mapper's and localiser's poses into it)."""
     if isinstance(src, CarmenSource):
         odo = src.laser_poses()
         if odo is None:
             raise SensorError(f"{source_path}: the log has no laser scans")
         scans = list(src.scans())
-        return _with_poses(scans, odo), len(scans), "laser"
+        return _with_poses(scans, odo), len(scans), "laser", np.zeros(3)
     if src.intrinsics() is not None:
         return _rgbd_stream(src, source_path, cfg, run, summary, outputs, force_3dof)
     raise SensorError(
@@ -89,7 +95,7 @@ def _rgbd_stream(
     summary: dict,
     outputs: dict[str, Path],
     force_3dof: bool,
-) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str]:
+) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str, np.ndarray]:
     opts = options_for(src, True, force_3dof, cfg.camera.rate)
     if not opts.planar:
         raise SensorError(f"{source_path}: {HANDHELD}")
@@ -110,7 +116,7 @@ def _rgbd_stream(
             odom = oplus([start.x, start.y, start.yaw], [p.x, p.y, p.yaw])
             stamps.append(step.stamp_ns)
             poses.append(odom)
-            yield step.scan, odom
+            yield step.scan, scan_pose(odom, fe.scan_in_base)
         a = np.array(poses, np.float64).reshape(-1, 3)
         write_tum_trajectory(
             run.file("odom.tum"), np.array(stamps, np.int64), a[:, 0], a[:, 1], a[:, 2]
@@ -131,7 +137,7 @@ def _rgbd_stream(
             "counts": dict(sorted(fe.counts.items())),
         }
 
-    return gen(), n, "base_link"
+    return gen(), n, "base_link", fe.scan_in_base
 
 
 __all__ = ["HANDHELD", "RGBD_PROFILE", "scan_stream", "source_config"]

@@ -27,6 +27,7 @@ from sensors.config import RobotConfig
 from sensors.extrinsics import optical_in_base
 from sensors.types import CameraIntrinsics, ConfigError, LaserScan, RgbdFrame
 from slam.config import DepthToScanConfig
+from slam.geometry import ominus, oplus
 
 ROBOT_FRAMES = ("base_link", "base_footprint")  # base_link lies on the floor (ARCHITECTURE.md)
 CAMERA_FRAME_PREFIX = "camera"
@@ -50,7 +51,8 @@ def base_from_optical(robot: RobotConfig) -> tuple[np.ndarray, np.ndarray]:
 def scan_frame_in_base(robot: RobotConfig, cfg: DepthToScanConfig) -> np.ndarray:
     """(x, y, yaw = 0): the pose in base_link of the frame the scans of ``cfg.output_frame`` are
     in, base_link itself or the optical centre's floor projection (axes along base_link's).
-    Whoever carries a scan into base_link (the collision monitor) takes it from here."""
+    Whoever carries a scan into base_link or pairs it with a pose (the collision monitor, the
+    costmap, the mapper and the localiser through :func:`scan_pose`) takes it from here."""
     if cfg.output_frame in ROBOT_FRAMES:
         return np.zeros(3)
     if cfg.output_frame.startswith(CAMERA_FRAME_PREFIX):
@@ -60,6 +62,23 @@ def scan_frame_in_base(robot: RobotConfig, cfg: DepthToScanConfig) -> np.ndarray
         f"depth_to_scan.output_frame: {cfg.output_frame!r} is not one of "
         f"{list(ROBOT_FRAMES)} or a '{CAMERA_FRAME_PREFIX}*' frame"
     )
+
+
+def scan_pose(base_pose: np.ndarray, scan_in_base: np.ndarray) -> np.ndarray:
+    """Pose(s) (..., 3) of the scan frame from base_link's in any frame (odom, map): what the
+    mapper and the localiser are given with the scan, whose poses are the scan frame's. A scan
+    in base_link takes the pose as it is (bit for bit: no second wrap of the yaw)."""
+    if not np.any(scan_in_base):
+        return np.asarray(base_pose, dtype=np.float64)
+    return oplus(base_pose, scan_in_base)
+
+
+def base_pose(scan_frame_pose: np.ndarray, scan_in_base: np.ndarray) -> np.ndarray:
+    """Pose(s) (..., 3) of base_link from the scan frame's (:func:`scan_pose` undone): what a
+    trajectory compared with base_link ground truth or driven on reports."""
+    if not np.any(scan_in_base):
+        return np.asarray(scan_frame_pose, dtype=np.float64)
+    return oplus(scan_frame_pose, ominus(scan_in_base, np.zeros(3)))
 
 
 def row_band(height_px: int, cy: float, scan_height: int) -> tuple[int, int]:

@@ -35,7 +35,7 @@ from sensors.config import RobotConfig
 from sensors.source import ImuStream, Source
 from sensors.types import NS_PER_S, ImuSample, LaserScan, Odometry2D, Pose2, RgbdFrame, WheelTicks
 from slam.config import STATE_NAMES, DepthToScanConfig, EkfConfig, VoConfig
-from slam.depth_to_scan import DepthToScan
+from slam.depth_to_scan import DepthToScan, scan_frame_in_base
 from slam.diff_drive import EncoderGate, WheelErrorModel
 from slam.ekf import (
     WHEEL_VARIANCE_WINDOW_S,
@@ -92,7 +92,7 @@ class FrontEndStep:
     stamp_ns: int  # [ns] the frame's stamp
     odom: Odometry2D | None  # odom -> base_link at the frame, 3x3 covariance; None: no estimate
     timed_out: bool  # the pose is predicted only: no input for longer than ekf.sensor_timeout
-    scan: LaserScan | None  # depth -> scan in base_link (planar mode with scans on)
+    scan: LaserScan | None  # depth -> scan in its frame, FrontEnd.scan_in_base (planar, scans on)
     vo: VoResult | None  # None: VO off, or skipped on this frame
     camera_pose: np.ndarray | None  # (4, 4) handheld: camera in the first camera's optical frame
     vo_ms: float = math.nan  # [ms] VO time (incl. fusing its twist, and the features made ahead)
@@ -152,6 +152,10 @@ class FrontEnd:
         vo_given, vo = vo, vo_for_interval(vo, options.frame_interval_s, options.camera_rate_hz)
         self.vo_cfg = vo if options.planar else replace(vo, force_3dof=False)
         self.d2s_cfg = depth_to_scan
+        # The scans' frame (depth_to_scan.output_frame) in base_link: a scan goes to the mapper,
+        # the localiser and the costmap with the pose odom (+) scan_in_base (slam.depth_to_scan).
+        scans = options.scan and options.planar
+        self.scan_in_base = scan_frame_in_base(robot, depth_to_scan) if scans else np.zeros(3)
         if options.odometry == "pose" and not options.wheels:
             ekf = pose_only_odom0(ekf)
         # A reading or VO pair that came after a gap is fused spread over its span

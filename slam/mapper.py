@@ -19,8 +19,8 @@ Local maps are built on a second thread while the caller's thread matches (the n
 map during the loop-closure search); every result is awaited at a fixed point, so the map is
 bit-identical to a single thread's (docs/design/speed.md).
 
-The poses are those of the scan frame (the laser for laser logs, ``base_link`` for depth->scan
-scans) in the ``map`` frame; odometry is given for the same frame. Design notes and the
+Poses are the scan frame's in ``map`` (a log's laser, a depth scan's ``output_frame``:
+:func:`slam.depth_to_scan.scan_pose`); odometry is given for the same frame. Design notes and the
 measurements behind the decisions: docs/design/mapper.md and docs/benchmarks.md.
 """
 

@@ -46,6 +46,7 @@ from sensors.ros_export import (
 )
 from sensors.tum import load_tum_trajectory, read_stamped_text, yaw_from_quaternion
 from sensors.types import SensorError
+from slam.depth_to_scan import scan_frame_in_base
 from slam.geometry import ominus, oplus, wrap_angle
 from slam.map_bundle import load_bundle, load_map
 from slam.metrics import interpolate_poses
@@ -151,8 +152,11 @@ def _twist(track: PlanarTrack) -> np.ndarray:
 
 
 def _static(cfg: Any, has_camera: bool) -> list[StaticTransform]:
+    """The mounts; ``laser`` is where a depth scan was taken (depth_to_scan.output_frame)."""
     r = cfg.robot
-    out = [StaticTransform(BASE_FRAME, LASER_FRAME, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))]
+    at = scan_frame_in_base(r, cfg.depth_to_scan) if has_camera else np.zeros(3)
+    laser = (float(at[0]), float(at[1]), 0.0)
+    out = [StaticTransform(BASE_FRAME, LASER_FRAME, laser, (0.0, 0.0, 0.0, 1.0))]
     if has_camera:
         out += [
             StaticTransform(

@@ -84,7 +84,7 @@ from sensors.motor_board import MotorBoard
 from sensors.source import Source, open_source
 from sensors.tum import write_tum_trajectory
 from sensors.types import ConfigError, RgbdFrame, RgbdNavError, SensorError, WheelTicks
-from slam.depth_to_scan import scan_frame_in_base
+from slam.depth_to_scan import base_pose, scan_frame_in_base, scan_pose
 from slam.fleet import FleetRobot, load_fleet
 from slam.front_end import FrontEnd, FrontEndOptions, MessageFeed
 from slam.geometry import ominus, oplus, path_length
@@ -639,7 +639,7 @@ class LiveRun:
             camera_rate_hz=cfg.camera.rate,
         )
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
-        scan_in_base = scan_frame_in_base(cfg.robot, cfg.depth_to_scan)  # for the monitor
+        scan_in_base = fe.scan_in_base  # the scans' frame in base_link (depth_to_scan)
         self.front_end = fe
         imu_feed: MessageFeed | None = None  # built at the first frame, when its clock is known
         last_mapped_ns = -(2**62)  # [ns] stamp of the last scan handed to the mapper
@@ -710,14 +710,14 @@ class LiveRun:
             self.counts.inc("frames_processed")
             self.odom_track.add(frame.stamp_ns, float(odom[0]), float(odom[1]), float(odom[2]))
             if self.navigator is not None:  # the scan's frame in the map
-                self.navigator.add_scan(scan, oplus(oplus(m2o, odom), scan_in_base))
+                self.navigator.add_scan(scan, scan_pose(oplus(m2o, odom), scan_in_base))
             rate = cfg.live.mapper_rate
             if rate and frame.stamp_ns - last_mapped_ns < 1e9 / rate:
                 self.counts.inc("scans_thinned_mapper_rate")
             else:
                 last_mapped_ns = frame.stamp_ns
-                try:
-                    self.scan_q.put_nowait((scan, odom))
+                try:  # the mapper and the localiser work in the scan's frame, as offline
+                    self.scan_q.put_nowait((scan, scan_pose(odom, scan_in_base)))
                 except queue.Full:
                     self.counts.inc("scans_dropped_mapper_behind")
             n += 1
@@ -730,7 +730,10 @@ class LiveRun:
         self.scan_q.put(None)
 
     def _mapper_loop(self) -> None:
+        """Scans with the odom pose of their frame into the mapper or the localiser; map ->
+        odom back to the front end, base_link's pose in the map to ``trajectory.tum``."""
         cfg = self.cfg
+        scan_in_base = self._scan_in_base()
         while (item := self.scan_q.get()) is not None:
             scan, odom = item
             if self.localizer is not None:
@@ -766,17 +769,50 @@ class LiveRun:
                 self.shared.tracking = tracking
             if tracking and self._first_tracked is None:  # places odometry in the run chart
                 self._first_tracked = (scan.stamp_ns, np.array(m2o, dtype=np.float64))
-            self.map_track.add(scan.stamp_ns, float(pose[0]), float(pose[1]), float(pose[2]))
+            base = base_pose(np.asarray(pose), scan_in_base)
+            self.map_track.add(scan.stamp_ns, float(base[0]), float(base[1]), float(base[2]))
             self.counts.inc("scans_mapped")
             if self.map_track.count % max(cfg.live.visualize_every, 1) == 0:
                 pts = transform_points(np.asarray(pose), scan_points(scan))
                 self.vis.scan(scan.stamp_ns, pts)
-                self.vis.pose(scan.stamp_ns, np.asarray(pose), self.map_track.thinned())
+                self.vis.pose(scan.stamp_ns, base, self.map_track.thinned())
             if (
                 self.mapper is not None
                 and time.monotonic() - self._last_checkpoint >= cfg.live.checkpoint_period
             ):
                 self.checkpoint(final=False)
+
+    def _open_estimator(self) -> None:
+        """The localiser in the ``--map`` bundle, or else the mapper."""
+        cfg = self.cfg
+        if self.opts.map_bundle is None:
+            self.mapper = Mapper(cfg.mapper)
+            return
+        from slam.localization import Localizer, MapModel
+        from slam.map_bundle import load_map
+
+        loaded = load_map(self.opts.map_bundle)
+        self._loaded_map = loaded
+        model = MapModel.from_grid(
+            loaded.grid, cfg.localizer, loaded.occupied_thresh, loaded.free_thresh
+        )
+        self.localizer = Localizer(model, cfg.localizer)
+
+    def _place_localizer(self) -> None:
+        """``--initial-pose`` (or the simulated robot's known start) to the localiser, which
+        tracks the scan's frame: base_link's pose moved to it, as offline."""
+        if self.localizer is None:
+            return
+        if self.initial_pose is not None:
+            self.localizer.set_initial_pose(scan_pose(self.initial_pose, self._scan_in_base()))
+        elif self.sim is not None and self.cfg.live.sim_initial_pose:
+            # The simulated robot knows where it starts, as a user gives --initial-pose.
+            self.localizer.set_initial_pose(scan_pose(self.start_pose, self._scan_in_base()))
+
+    def _scan_in_base(self) -> np.ndarray:
+        """The scans' frame in base_link, for this run's robot (its mount is final once the
+        devices are up: a camera's own mount replaces the config's before the front end)."""
+        return scan_frame_in_base(self.cfg.robot, self.cfg.depth_to_scan)
 
     def _hand_map_to_navigator(self) -> None:
         """Every ``live.nav_map_period``: the mapper's keyframes (poses and scans, no copy of
@@ -988,18 +1024,7 @@ class LiveRun:
         # Before any thread allocates: freed memory goes back instead of creeping up for hours.
         tame_malloc(cfg.live.malloc_arena_max, cfg.live.malloc_mmap_threshold)
         outputs = {"config": self.run.write_config(cfg)}
-        if opts.map_bundle is not None:
-            from slam.localization import Localizer, MapModel
-            from slam.map_bundle import load_map
-
-            loaded = load_map(opts.map_bundle)
-            self._loaded_map = loaded
-            model = MapModel.from_grid(
-                loaded.grid, cfg.localizer, loaded.occupied_thresh, loaded.free_thresh
-            )
-            self.localizer = Localizer(model, cfg.localizer)
-        else:
-            self.mapper = Mapper(cfg.mapper)
+        self._open_estimator()
         vis = make_visualizer("live", opts.rrd, opts.viewer)
         self.vis = AsyncVisualizer(vis, cfg.live.visualize_queue_size)
         try:
@@ -1024,15 +1049,7 @@ class LiveRun:
         threads: list[threading.Thread] = []
         try:
             frames = self._start_devices()
-            if self.localizer is not None and self.initial_pose is not None:
-                self.localizer.set_initial_pose(self.initial_pose)
-            elif (
-                self.localizer is not None
-                and self.sim is not None
-                and self.cfg.live.sim_initial_pose
-            ):
-                # The simulated robot knows where it starts, as a user gives --initial-pose.
-                self.localizer.set_initial_pose(self.start_pose)
+            self._place_localizer()
             if self.poller is not None:
                 self.poller.start()
             specs: list[tuple[str, Callable[..., None], tuple[Any, ...]]] = [
@@ -1197,7 +1214,7 @@ class LiveRun:
         if result is not None and len(result.scan_stamps_ns):
             # The map's own trajectory: every scan placed by the final, optimised graph (what a
             # recorded run reports); trajectory.tum holds the poses as tracked online.
-            p = result.scan_poses
+            p = base_pose(result.scan_poses, self._scan_in_base())
             write_tum_trajectory(
                 run.file("trajectory_optimised.tum"),
                 result.scan_stamps_ns,

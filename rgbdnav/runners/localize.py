@@ -7,8 +7,10 @@ the EKF-fused odometry with depth turned into scans. Each scan goes through
 :meth:`slam.localization.Localizer.update`. The run directory holds:
 
 ``trajectory.tum``
-    The scan-frame pose in ``map`` of every scan on which the localiser is ``tracking``. Scans
-    while lost or relocalising have no established pose and no line (counted in the summary).
+    The pose in ``map`` of every scan on which the localiser is ``tracking``: base_link's for a
+    recording (the localiser tracks the scan's frame, ``depth_to_scan.output_frame``), the
+    laser's for a laser log. Scans while lost or relocalising have no established pose and no
+    line (counted in the summary).
 ``localization.csv``
     One row per scan, header ``stamp_s,x_m,y_m,yaw_rad,confidence,status,reason``: stamp [s],
     pose [m, m, rad] (empty when the scan has no pose), confidence in [0, 1], status
@@ -30,6 +32,7 @@ import logging
 import resource
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +56,7 @@ from sensors.gps import read_gps_txt
 from sensors.source import PoseStream
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
+from slam.depth_to_scan import base_pose, scan_pose
 from slam.geometry import oplus, wrap_angle
 from slam.localization import GpsPrior, LocalizationResult, Localizer, MapModel
 from slam.map_bundle import LoadedMap, load_map
@@ -238,10 +242,15 @@ def run_localize(
             summary["initial_pose"] = {"pose": init.tolist(), "cell": model.cell_class(init[:2])}
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
-        stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs, force_3dof)
+        stream, total, frame, scan_in_base = scan_stream(
+            src, source_path, cfg, run, summary, outputs, force_3dof
+        )
         gps = _gps_fixes(src, gps_path, map_path)
-        # 2. Localise every scan (each new GPS fix narrows the global search).
-        loc = Localizer(model, cfg.localizer, init)
+        # 2. Localise every scan (each new GPS fix narrows the global search) in the scan's
+        #    frame; what is reported is base_link's pose.
+        loc = Localizer(
+            model, cfg.localizer, None if init is None else scan_pose(init, scan_in_base)
+        )
         prior = GpsPrior(loc)
         if gps is not None:
             for t, xy, sigma in zip(*gps, strict=True):
@@ -253,12 +262,13 @@ def run_localize(
         update_s = 0.0
         for k, (scan, odom) in enumerate(stream):
             t = time.perf_counter()
-            odoms.append(odom)
+            odoms.append(base_pose(odom, scan_in_base))
             prior.before_scan(scan.stamp_ns, odom)
-            results.append(loc.update(scan, odom))
+            res = loc.update(scan, odom)
             update_s += time.perf_counter() - t
-            if drawing and has_pose(results[-1]):
-                scans_map.append(transform_points(results[-1].pose, scan_points(scan)))
+            if drawing and has_pose(res):
+                scans_map.append(transform_points(res.pose, scan_points(scan)))
+            results.append(replace(res, pose=base_pose(res.pose, scan_in_base)))
             if progress is not None:
                 progress(k + 1, total)
         if not results:

@@ -2,7 +2,9 @@
 
 Laser logs feed their scans with the log's per-scan laser pose as odometry. RGB-D sources go
 through the front end (:mod:`rgbdnav.scan_stream`: wheels, ``/odom``, IMU and VO in the EKF,
-depth -> scan), each frame's scan fed with its fused pose; ``odom.tum`` in the run directory.
+depth -> scan), each frame's scan fed with its fused pose moved to the scan's frame; ``odom.tum``
+in the run directory. The bundle keeps the scan frame's poses with the scans; ``trajectory.tum``
+and the scores are base_link's.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from sensors.sim.world import FloorPlan, floor_plan, world_from_dict
 from sensors.source import PoseStream
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
+from slam.depth_to_scan import base_pose
 from slam.map_bundle import load_bundle, save_bundle
 from slam.mapper import Mapper, MapperResult, build_grid, make_bundle
 from slam.metrics import align_se2, drift_summary, interpolate_poses
@@ -79,7 +82,9 @@ def run_map(
         else:
             mapper = Mapper(mapper_cfg)
         summary["config_files"] = [str(p) for p in config_files]
-        stream, total, frame = scan_stream(src, source_path, cfg, run, summary, outputs, force_3dof)
+        stream, total, frame, scan_in_base = scan_stream(
+            src, source_path, cfg, run, summary, outputs, force_3dof
+        )
         t_map = time.perf_counter()
         first_ns = last_ns = None
         for k, (scan, odom) in enumerate(stream):
@@ -92,8 +97,8 @@ def run_map(
         mapping_s = time.perf_counter() - t_map
         if len(result.scan_stamps_ns) == 0:
             raise SensorError(f"{source_path}: no usable scans to map")
-        # 1. Trajectory: one pose per accepted scan.
-        p = result.scan_poses
+        # 1. Trajectory: one pose per accepted scan, of base_link (the laser for a laser log).
+        p = base_pose(result.scan_poses, scan_in_base)
         write_tum_trajectory(
             run.file("trajectory.tum"), result.scan_stamps_ns, p[:, 0], p[:, 1], p[:, 2]
         )
@@ -130,7 +135,7 @@ def run_map(
         paths = [("SLAM", p[:, 0], p[:, 1])]
         gt = src.groundtruth()
         if gt is not None and gt.frame == "base_link" and frame == "base_link":
-            _score_against_truth(result, grid, gt, scene, cfg, summary)
+            _score_against_truth(result, grid, gt, scene, cfg, summary, p)
             paths.insert(0, ("ground truth", gt.x, gt.y))
         occ = grid.occupied_mask(cfg.mapper.occupied_thresh)
         g = grid.geometry
@@ -147,7 +152,8 @@ def run_map(
         # lines of message types this reader does not use (CARMEN SYNC, ...), by type
         summary["source_ignored"] = dict(getattr(src, "ignored", {}))
         outputs["summary"] = run.write_summary(summary)
-        _visualize(vis, result, occ, g, gt if gt is not None and frame == "base_link" else None)
+        truth = gt if gt is not None and frame == "base_link" else None
+        _visualize(vis, result, p, occ, g, truth)
         if rrd is not None:
             outputs["rerun recording"] = rrd
         return outputs
@@ -159,12 +165,13 @@ def run_map(
 def _visualize(
     vis: Visualizer,
     result: MapperResult,
+    path: np.ndarray,
     occupied: np.ndarray,
     g: GridGeometry,
     gt: PoseStream | None,
 ) -> None:
     """The run on rerun's time line: each keyframe's scan at its optimised pose, the path, the
-    final map (and the ground truth when the source has it)."""
+    final map (and the ground truth when the source has it); ``path``: the reported poses."""
     if isinstance(vis, NullVisualizer):
         return
     kf_stamps = np.array([k.stamp_ns for k in result.keyframes], dtype=np.int64)
@@ -181,8 +188,7 @@ def _visualize(
         None if gt is None else np.column_stack([gt.x, gt.y]),
     )
     if len(result.scan_stamps_ns):
-        p = result.scan_poses
-        vis.pose(int(result.scan_stamps_ns[-1]), p[-1], p[:, :2])
+        vis.pose(int(result.scan_stamps_ns[-1]), path[-1], path[:, :2])
 
 
 def occupancy_iou(
@@ -207,10 +213,13 @@ def _score_against_truth(
     scene: dict,
     cfg: Config,
     summary: dict,
+    poses: np.ndarray | None = None,
 ) -> None:
-    p = result.scan_poses
+    """``poses``: base_link's per scan (default: the mapper's, a scan frame at base_link)."""
+    stamps_ns = result.scan_stamps_ns
+    p = result.scan_poses if poses is None else poses
     summary["slam_vs_groundtruth"] = drift_summary(
-        result.scan_stamps_ns, (p[:, 0], p[:, 1], p[:, 2]), gt.stamps_ns, (gt.x, gt.y, gt.yaw)
+        stamps_ns, (p[:, 0], p[:, 1], p[:, 2]), gt.stamps_ns, (gt.x, gt.y, gt.yaw)
     )
     world = scene.get("world_description")
     if not isinstance(world, dict):
@@ -226,7 +235,7 @@ def _score_against_truth(
     # few cm / a fraction of a degree off as a whole loses IoU at every far wall. Scored again
     # with the floor plan moved by the SE(2) alignment of the aligned ATE, this separates the
     # map's shape from its placement (both are reported; neither replaces the other).
-    rx, ry, _, inside = interpolate_poses(gt.stamps_ns, gt.x, gt.y, gt.yaw, result.scan_stamps_ns)
+    rx, ry, _, inside = interpolate_poses(gt.stamps_ns, gt.x, gt.y, gt.yaw, stamps_ns)
     if inside.sum() >= 2:
         rot, t = align_se2(p[inside, :2], np.column_stack([rx, ry])[inside])
         summary["grid_vs_floor_plan_aligned"] = {

@@ -232,3 +232,44 @@ def test_vo_on_every_second_frame_with_wheels_spans_the_frame_between(
     moved = np.hypot(*(p[-1] - p[0]))
     true = np.hypot(truth.x[-1] - truth.x[0], truth.y[-1] - truth.y[0])
     assert moved > 0.3 and abs(moved - true) < 0.03
+
+
+def test_live_frames_whose_vo_is_skipped_get_the_wheels_pose_and_go_to_the_mapper(
+    recording: Path, tmp_path: Path
+) -> None:
+    # A front end behind (every frame finds another waiting) skips VO on all but the first:
+    # the wheels carry the EKF, and every frame's scan still reaches the mapper with a pose.
+    live = LiveRun(
+        LiveOptions(
+            out=tmp_path / "live",
+            camera=str(recording),
+            board="/dev/null",
+            drive="idle",
+            overrides=["live.frame_queue_size=100", "live.mapper_rate=0"],
+        )
+    )
+    assert live.cfg.live.skip_vo_when_behind
+    with open_source(recording) as src:
+        frames = list(src.frames())
+        wheels, truth = src.wheels(), src.groundtruth()
+    assert wheels is not None and truth is not None
+    for t, left, right in zip(wheels.stamps_ns, wheels.left, wheels.right, strict=True):
+        live.ticks_q.put(WheelTicks(int(t), int(left), int(right)))
+    for f in frames:
+        live.frame_q.put_nowait(f)
+    live.frame_q.put(None)
+    live._front_end_loop()
+    live.odom_track.close()
+    counts = live.counts.as_dict()
+    assert counts["vo_skipped_behind"] == len(frames) - 1  # (the end marker waits too)
+    assert counts["frames_processed"] == len(frames)
+    assert counts.get("frames_without_filter_pose", 0) == 0
+    mapped = []
+    while (item := live.scan_q.get_nowait()) is not None:
+        mapped.append(item)
+    assert len(mapped) == len(frames)  # each with its scan and pose
+    # The poses are the wheels': they follow the ground truth's path (start at the origin).
+    p = live.odom_track.load()[:, 1:3]
+    moved = np.hypot(*(p[-1] - p[0]))
+    true = np.hypot(truth.x[-1] - truth.x[0], truth.y[-1] - truth.y[0])
+    assert moved > 0.3 and abs(moved - true) < 0.03

@@ -260,3 +260,19 @@ def test_cluster_averaging_keeps_a_nearer_obstacle_in_the_beam() -> None:
     nearest = nearest_per_beam_reference(beam, r, 3)
     out = near_cluster_mean(beam, r, nearest, 0.01)
     np.testing.assert_allclose(out, [1.002, 3.0, np.inf], rtol=1e-6)
+
+
+def test_scan_pose_and_base_pose_move_a_pose_by_the_scan_frames_offset_and_back() -> None:
+    from slam.depth_to_scan import base_pose, scan_frame_in_base, scan_pose
+
+    at = scan_frame_in_base(
+        RobotConfig(camera_x=0.2, camera_y=0.05), replace(CFG, output_frame="camera_link")
+    )
+    base = np.array([[1.0, 2.0, np.pi / 2], [0.0, 0.0, 0.0]])
+    cam = scan_pose(base, at)
+    np.testing.assert_allclose(cam, [[0.95, 2.2, np.pi / 2], [0.2, 0.05, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(base_pose(cam, at), base, atol=1e-12)
+    # base_link scans: the pose itself, bit for bit (the mapper's results do not move by an ulp)
+    yaw = np.array([0.3, 0.4, 3.141592653589793])
+    assert np.array_equal(scan_pose(yaw, np.zeros(3)), yaw)
+    assert np.array_equal(base_pose(yaw, np.zeros(3)), yaw)
