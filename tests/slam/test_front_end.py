@@ -210,7 +210,7 @@ def test_a_robot_standing_at_start_up_learns_its_gyro_bias_and_keeps_its_heading
     bias, ticks, standing_yaw, standing_updates = 0.01, 0, math.nan, -1
     for k in range(500):  # 5 s at 100 Hz
         t = k * 10_000_000
-        ticks += k >= 300 and k % 40 == 0
+        ticks += k >= 300 and k % 40 == 20  # from 3 s on
         fe.imu(ImuSample(t + 1, bias + 0.005 * float(rng.standard_normal())))
         if k % 2 == 0:
             fe.wheels(WheelTicks(t, ticks, ticks))
