@@ -129,6 +129,14 @@ class EkfConfig:
     odom0_vy_variance: float = param(
         1e-4, unit="(m/s)^2", gt=0.0, doc="variance of the non-holonomic vy = 0 measurement"
     )
+    # A robot standing still shows its gyro's bias (docs/design/gyro_bias.md).
+    odom0_still_window: float = param(
+        1.0,
+        unit="s",
+        ge=0.0,
+        doc="encoder counts unchanged this long: the robot stood still in the window's middle, "
+        "whose mean gyro z is fused as the gyro bias (0 = off)",
+    )
     imu0_differential: bool = param(False, doc="differentiate absolute orientation")
     imu0_relative: bool = param(False, doc="treat the first orientation as zero")
     imu0_pose_rejection_threshold: float = param(

@@ -218,7 +218,22 @@ class TwistInput:
     valid: bool = True
 
 
-Message = PoseInput | TwistInput | ImuSample | Odometry2D
+@dataclass(frozen=True, eq=False)
+class GyroBiasInput:
+    """A direct measurement of the gyro z bias: the mean gyro reading while the robot stood
+    still (slam.front_end: the wheels unchanged), fused as sensor ``imu0``."""
+
+    stamp_ns: int  # [ns]
+    bias: float  # [rad/s]
+    variance: float  # [(rad/s)^2] of the mean
+    # The textbook update: the pose takes its share of the bias's correction. For a robot
+    # that has not moved yet (start-up): its heading error is the unknown bias's alone, and
+    # without a path behind it nothing can step sideways.
+    moves_pose: bool = False
+    valid: bool = True
+
+
+Message = PoseInput | TwistInput | ImuSample | Odometry2D | GyroBiasInput
 DEFAULT_WHEEL_ERROR = WheelErrorModel()
 
 
@@ -416,6 +431,7 @@ class Measurement:
     R: np.ndarray  # (m, m)
     threshold: float  # [sigma]
     gyro: bool = False  # from a gyro: its vyaw row reads vyaw + the gyro bias state
+    moves_pose: bool = False  # a bias measurement that may move the pose (GyroBiasInput)
 
 
 @dataclass(frozen=True)
@@ -564,6 +580,20 @@ class PlanarEkf:
                 sensor, msg.stamp_ns, "twist", spec.twist_mask, z, cov, spec.twist_threshold
             )
             return [dataclasses.replace(m, gyro=True) for m in made]
+        if isinstance(msg, GyroBiasInput):
+            var = max(msg.variance, MIN_MEASUREMENT_VARIANCE)
+            return [
+                Measurement(
+                    int(msg.stamp_ns),
+                    sensor,
+                    "bias",
+                    np.array([GYRO_BIAS]),
+                    np.array([msg.bias]),
+                    np.array([[var]]),
+                    spec.twist_threshold,
+                    moves_pose=msg.moves_pose,
+                )
+            ]
         if isinstance(msg, TwistInput):
             z = np.array([msg.vx, msg.vy, msg.vyaw])
             return self._make(
@@ -652,7 +682,8 @@ class PlanarEkf:
         dt = (m.stamp_ns - self.t_ns) / NS_PER_S
         x, P = (self.x, self.P) if dt <= 0 else predict(self.x, self.P, dt, self.Q)
         H = _observation(m)
-        bias_known = POSE_IDX if m.kind == "twist" and not self.twist_moves_pose else None
+        textbook = self.twist_moves_pose or m.moves_pose
+        bias_known = POSE_IDX if m.kind in ("twist", "bias") and not textbook else None
         xu, Pu, _, _, nis = update(
             x, P, m.z, H, m.R, angle_residual(m.idx == YAW), bias_known, GYRO_BIAS
         )

@@ -40,6 +40,7 @@ from slam.diff_drive import EncoderGate, WheelErrorModel
 from slam.ekf import (
     WHEEL_VARIANCE_WINDOW_S,
     EkfError,
+    GyroBiasInput,
     PlanarEkf,
     PoseInput,
     TwistInput,
@@ -54,6 +55,7 @@ log = logging.getLogger(__name__)
 OdometryMessage = PoseInput | TwistInput
 GAP_PERIODS = 1.5  # a VO pair longer than this many camera frame periods spans a lost frame
 MIN_HISTORY_S = 1.0  # [s] EKF history for spans fused late (a gap of up to ~1 s)
+STILL_PERIOD_NS = 100_000_000  # [ns] a still robot's gyro bias updates at most this often
 # [s] Python's GIL switch interval while replay() runs the frame stage (default 5 ms): a stage
 # thread back from a GIL-free OpenCV call waits up to this for the main thread to let go, many
 # times a frame (docs/design/speed.md)
@@ -186,6 +188,10 @@ class FrontEnd:
         self._recent: deque[WheelTicks] = deque()
         self._gate = EncoderGate(robot)
         self._last_wheel_ns: int | None = None
+        self._moved_ns: int | None = None  # the last reading whose counts changed (or the first)
+        self._ever_moved = False  # counts changed since the first reading
+        self._still_ns: int | None = None  # gyro samples up to here went into a bias update
+        self._gyro: deque[tuple[int, float]] = deque()  # the last still window's gyro samples
         self._window_ns = int(WHEEL_VARIANCE_WINDOW_S * NS_PER_S)
         self._vo: VisualOdometry | None = None
         self._d2s: DepthToScan | None = None
@@ -223,6 +229,10 @@ class FrontEnd:
         return True
 
     def _wheel_step(self, t: WheelTicks) -> None:
+        last = self._recent[-1] if self._recent else None
+        if last is None or (t.left, t.right) != (last.left, last.right):
+            self._ever_moved |= last is not None
+            self._moved_ns = t.stamp_ns
         self._recent.append(t)
         while len(self._recent) > 2 and self._recent[1].stamp_ns <= t.stamp_ns - self._window_ns:
             self._recent.popleft()
@@ -241,6 +251,38 @@ class FrontEnd:
                     max_interval_s=1.0 / self.ekf_cfg.frequency,
                 ),
             )
+            if "imu0" in self.inputs:
+                self._still_gyro(t.stamp_ns)
+
+    def _still_gyro(self, now_ns: int) -> None:
+        """Counts unchanged for ``odom0_still_window``: the robot stood still in that window
+        except, at most, its ends (from rest it needs about half the window to move one tick
+        unseen), so the mean gyro reading over the middle is the gyro's bias, fused as a direct
+        measurement of it (docs/design/gyro_bias.md) - the IMU drivers' start-up calibration,
+        and a zero-velocity update's gyro half. Each sample is used once, every
+        STILL_PERIOD_NS. A robot that has not moved yet (switched on and standing) also takes
+        back the heading the unknown bias turned (``GyroBiasInput.moves_pose``)."""
+        window = int(round(self.ekf_cfg.odom0_still_window * NS_PER_S))
+        if window <= 0 or self._moved_ns is None or now_ns - self._moved_ns < window:
+            return
+        lo = self._moved_ns + window // 2
+        if self._still_ns is not None:
+            lo = max(lo, self._still_ns)
+        hi = now_ns - window // 2
+        if hi - lo < STILL_PERIOD_NS:
+            return
+        t = np.fromiter((s[0] for s in self._gyro), np.int64, len(self._gyro))
+        g = np.fromiter((s[1] for s in self._gyro), np.float64, len(self._gyro))
+        used = (t > lo) & (t <= hi)
+        self._still_ns = hi
+        if not used.any():
+            return
+        assert self.ekf is not None and self.ekf.t_ns is not None
+        var = self.ekf_cfg.imu0_angular_velocity_variance / int(used.sum())
+        stamp = max(now_ns, self.ekf.t_ns)  # now: the bias is constant over the window
+        bias = GyroBiasInput(stamp, float(g[used].mean()), var, moves_pose=not self._ever_moved)
+        self.ekf.process("imu0", bias)
+        self.counts["gyro_bias_still_updates"] += 1
 
     def odometry(self, msg: OdometryMessage) -> None:
         """One odometry message (nav_msgs/Odometry twist, or pose when it has no twist)."""
@@ -250,6 +292,10 @@ class FrontEnd:
     def imu(self, s: ImuSample) -> None:
         if self.ekf is not None and "imu0" in self.inputs:
             self.ekf.process("imu0", s)
+            self._gyro.append((s.stamp_ns, s.gyro_z))
+            keep = int(self.ekf_cfg.odom0_still_window * NS_PER_S)
+            while self._gyro and self._gyro[0][0] < s.stamp_ns - keep:
+                self._gyro.popleft()
 
     # 2. Frames.
 

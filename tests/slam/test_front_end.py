@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sensors.config import RobotConfig
-from sensors.types import CameraIntrinsics, Pose2, RgbdFrame, WheelTicks
+from sensors.types import CameraIntrinsics, ImuSample, Pose2, RgbdFrame, WheelTicks
 from slam.config import DepthToScanConfig, EkfConfig, VoConfig
 from slam.diff_drive import WheelErrorModel, reject_encoder_glitches
 from slam.ekf import PoseInput, TwistInput, fuse, wheel_twist_inputs
@@ -191,3 +191,39 @@ def test_a_streaming_imu_is_fed_as_the_same_samples_read_whole() -> None:
     whole, streamed = fed(False), fed(True)
     assert len(whole) == len(stamps) and streamed == whole
     assert [t for t, _ in streamed] == sorted(t for t, _ in streamed)
+
+
+@pytest.mark.parametrize("window", [1.0, 0.0])
+def test_a_robot_standing_at_start_up_learns_its_gyro_bias_and_keeps_its_heading(
+    window: float,
+) -> None:
+    # Switched on and standing 3 s (encoder counts unchanged) with a gyro 0.01 rad/s off, then
+    # driving slowly (a tick every 0.4 s). Standing, the mean gyro reading is the bias; without
+    # that (window 0) the wheels' quantised zero twists leave the bias unknown and the standing
+    # robot turns with the gyro: 0.029 rad in 3 s.
+    from slam.ekf import GYRO_BIAS
+
+    rng = np.random.default_rng(2)
+    opts = FrontEndOptions(wheels=True, imu=True, vo=False, scan=False)
+    cfg = replace(EkfConfig(), odom0_still_window=window)
+    fe = FrontEnd(ROBOT, cfg, VoConfig(), DepthToScanConfig(), opts)
+    bias, ticks, standing_yaw, standing_updates = 0.01, 0, math.nan, -1
+    for k in range(500):  # 5 s at 100 Hz
+        t = k * 10_000_000
+        ticks += k >= 300 and k % 40 == 20  # from 3 s on
+        fe.imu(ImuSample(t + 1, bias + 0.005 * float(rng.standard_normal())))
+        if k % 2 == 0:
+            fe.wheels(WheelTicks(t, ticks, ticks))
+        if k == 299:
+            od = fe.frame(_blank(t + 2)).odom
+            assert od is not None
+            standing_yaw = od.pose.yaw
+            standing_updates = fe.counts["gyro_bias_still_updates"]
+    assert fe.ekf is not None
+    bias_error = abs(fe.ekf.x[GYRO_BIAS] - bias)
+    if window == 0.0:
+        assert bias_error > 5e-3 and abs(standing_yaw) > 0.02  # what the bias update fixes
+        return
+    assert bias_error < 1e-3 and abs(standing_yaw) < 2e-3  # [rad/s], [rad]
+    # ticks 0.4 s apart are not standing: no bias update while it drives
+    assert standing_updates > 10 and fe.counts["gyro_bias_still_updates"] == standing_updates
