@@ -128,6 +128,15 @@ def test_wrong_literal_choice_lists_the_choices() -> None:
             "mapper.resolution=1e12",
             r"mapper\.resolution: 10+\.0 m/cell is out of range \(must be <= 1\.0",
         ),
+        # Session 17's keys: a negative window or allowance is refused, not read as "off".
+        (
+            "ekf.odom0_still_window=-1",
+            r"ekf\.odom0_still_window: -1(\.0)? s is out of range \(must be >= 0\.0 s\)",
+        ),
+        (
+            "navigate.collision_hold_allowance=-2",
+            r"navigate\.collision_hold_allowance: -2(\.0)? s is out of range \(must be >= 0\.0",
+        ),
     ],
 )
 def test_out_of_range_value_names_key_and_range(override: str, pattern: str) -> None:
