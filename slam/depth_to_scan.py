@@ -81,6 +81,25 @@ def base_pose(scan_frame_pose: np.ndarray, scan_in_base: np.ndarray) -> np.ndarr
     return oplus(scan_frame_pose, ominus(scan_in_base, np.zeros(3)))
 
 
+def base_covariance(
+    scan_frame_pose: np.ndarray, covariance: np.ndarray, scan_in_base: np.ndarray
+) -> np.ndarray:
+    """Covariance(s) (..., 3, 3) over base_link's (x, y, yaw) from the scan frame's pose(s)
+    (..., 3) and covariance(s), both in one world frame (map, odom): what goes with
+    :func:`base_pose`. base_link is the scan frame (+) a fixed offset, so C' = J C J^T with
+    J = [[1, 0, -ly], [0, 1, lx], [0, 0, 1]], (lx, ly) the lever from the scan frame's origin
+    to base_link's in that frame: a yaw sigma adds lever x sigma of position across the lever.
+    A scan in base_link keeps the covariance as it is."""
+    if not np.any(scan_in_base):
+        return np.asarray(covariance, dtype=np.float64)
+    pose = np.asarray(scan_frame_pose, dtype=np.float64)
+    lever = base_pose(pose, scan_in_base)[..., :2] - pose[..., :2]
+    j = np.broadcast_to(np.eye(3), (*lever.shape[:-1], 3, 3)).copy()
+    j[..., 0, 2] = -lever[..., 1]
+    j[..., 1, 2] = lever[..., 0]
+    return j @ np.asarray(covariance, dtype=np.float64) @ np.swapaxes(j, -1, -2)
+
+
 def row_band(height_px: int, cy: float, scan_height: int) -> tuple[int, int]:
     """Rows [start, stop) used: depthimage_to_laserscan's ``offset = int(cy - scan_height / 2)``
     and ``scan_height`` rows from there, clipped to the image; 0 = every row."""

@@ -36,6 +36,7 @@ import numpy as np
 
 from sensors.types import LaserScan, MapError
 from slam.config import LocalizerConfig
+from slam.depth_to_scan import base_pose
 from slam.ekf import pose_update as kalman_update
 from slam.geometry import ominus, oplus, wrap_angle
 from slam.occupancy_grid import OccupancyGrid
@@ -692,15 +693,20 @@ class Localizer:
 
     def set_gps_fix(self, xy_map: np.ndarray, sigma_m: float, odom_pose: np.ndarray) -> None:
         """A GPS fix in the map frame (through the map's geo anchor) with its horizontal sigma,
-        taken at odometry pose ``odom_pose``: the next global searches only look within
-        ``gps_prior_sigmas`` sigmas of it, widened by the distance driven since."""
+        and the receiver's odometry pose when it was taken: the next global searches only look
+        within ``gps_prior_sigmas`` sigmas of it, widened by the odometry distance from the
+        receiver then to the scan frame now (one rigid robot in one odom frame, so the scan's
+        origin is at most that far from where the receiver was; :class:`GpsPrior`)."""
         self._gps = (
             np.asarray(xy_map, float).copy(),
             float(sigma_m),
             np.asarray(odom_pose, float).copy(),
         )
 
-    def _gps_region(self) -> tuple[float, float, float] | None:
+    @property
+    def gps_region(self) -> tuple[float, float, float] | None:
+        """(x, y, radius) [m] in the map: the disk of scan-frame origins the global search
+        covers after the last scan (None without a fix)."""
         if self._gps is None or self._odom is None:
             return None
         xy, sigma, odom_then = self._gps
@@ -1063,7 +1069,7 @@ class Localizer:
             cfg.global_search_max_hypotheses,
             cfg.relocalization_agreement_distance,
             cfg.relocalization_agreement_angle,
-            self._gps_region(),
+            self.gps_region,
         )
         if not cands:
             return [], (
@@ -1296,10 +1302,16 @@ class GpsPrior:
     the prior of its global search, the one way `localize --gps` and `live` do it: before each
     scan, the newest fix stamped at or before the scan goes in with the odometry pose of the
     last scan at or before the fix (the localiser widens the fix's disk by the distance driven
-    since). Fixes are added in time order, all at once (a log) or as they come (live)."""
+    since). Fixes are added in time order, all at once (a log) or as they come (live).
 
-    def __init__(self, localizer: Localizer) -> None:
+    The receiver rides base_link (navsat_transform_node's assumption without a ``base_link ->
+    gps`` transform); the localiser's odometry is its scan frame's, ``scan_in_base``
+    (:func:`slam.depth_to_scan.scan_frame_in_base`) from base_link, so the fix goes in with
+    base_link's odometry pose (:func:`slam.depth_to_scan.base_pose`)."""
+
+    def __init__(self, localizer: Localizer, scan_in_base: np.ndarray | None = None) -> None:
         self.localizer = localizer
+        self.scan_in_base = np.zeros(3) if scan_in_base is None else np.asarray(scan_in_base)
         self._pending: deque[tuple[int, np.ndarray, float]] = deque()  # (stamp, xy, sigma)
         self._odom: deque[tuple[int, np.ndarray]] = deque(maxlen=GPS_ODOM_HISTORY)
         self.fixes_used = 0
@@ -1308,7 +1320,8 @@ class GpsPrior:
         self._pending.append((int(stamp_ns), np.asarray(xy_map, float), float(sigma_m)))
 
     def before_scan(self, stamp_ns: int, odom: np.ndarray) -> None:
-        """Call with each scan's stamp and odometry pose before :meth:`Localizer.update`."""
+        """Call with each scan's stamp and odometry pose (the scan frame's, as given to
+        :meth:`Localizer.update`) before the update."""
         self._odom.append((int(stamp_ns), np.asarray(odom, float)))
         newest = None
         while self._pending and self._pending[0][0] <= stamp_ns:
@@ -1321,7 +1334,7 @@ class GpsPrior:
             if t <= t_fix:
                 at = pose
                 break
-        self.localizer.set_gps_fix(xy, sigma, at)
+        self.localizer.set_gps_fix(xy, sigma, base_pose(at, self.scan_in_base))
         self.fixes_used += 1
 
 

@@ -94,8 +94,10 @@ class MapBundle:
     grid: OccupancyGrid
     keyframe_ids: np.ndarray  # (K,) int64
     keyframe_stamps_ns: np.ndarray  # (K,) int64 [ns]
-    keyframe_poses: np.ndarray  # (K, 3) float64 [m, m, rad] base_link in map (optimised)
-    keyframe_odom_poses: np.ndarray  # (K, 3) float64 [m, m, rad] base_link in odom
+    # the scan's frame, where each scan was taken (base_link unless depth_to_scan.output_frame
+    # is a camera frame: slam.depth_to_scan.scan_pose)
+    keyframe_poses: np.ndarray  # (K, 3) float64 [m, m, rad] scan frame in map (optimised)
+    keyframe_odom_poses: np.ndarray  # (K, 3) float64 [m, m, rad] scan frame in odom
     edges: tuple[GraphEdge, ...]
     scans: tuple[LaserScan, ...]  # one per keyframe, same order
     config: dict[str, Any] = field(default_factory=dict)  # mapper config as plain values

@@ -539,7 +539,7 @@ class LiveRun:
         if self.map_anchor is None:
             log.warning("GPS fixes (%s) unused: the map has no geo anchor", self.gps_source)
             return
-        self._gps_prior = GpsPrior(self.localizer)
+        self._gps_prior = GpsPrior(self.localizer, self._scan_in_base())
 
     def _on_gps_fix(self, fix: GpsFix) -> None:
         """A fix from any receiver: to gps.txt and, placed in the map, to the localiser."""

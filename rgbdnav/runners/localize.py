@@ -12,9 +12,9 @@ the EKF-fused odometry with depth turned into scans. Each scan goes through
     laser's for a laser log. Scans while lost or relocalising have no established pose and no
     line (counted in the summary).
 ``localization.csv``
-    One row per scan, header ``stamp_s,x_m,y_m,yaw_rad,confidence,status,reason``: stamp [s],
-    pose [m, m, rad] (empty when the scan has no pose), confidence in [0, 1], status
-    (``tracking`` | ``lost`` | ``relocalising``) and the localiser's reason.
+    One row per scan, ``stamp_s,x_m,y_m,yaw_rad,confidence,status,reason,sigma_x_m,sigma_y_m,
+    sigma_yaw_rad``: stamp [s], pose [m, m, rad] and its 1-sigma (amcl_pose's covariance
+    diagonal; empty without a pose), confidence in [0, 1], status and the localiser's reason.
 ``summary.json``
     Counts per status, lost episodes, relocalisations with the scans each took, confidence
     percentiles, throughput, the map, and errors against ground truth when the source has it.
@@ -56,7 +56,7 @@ from sensors.gps import read_gps_txt
 from sensors.source import PoseStream
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
-from slam.depth_to_scan import base_pose, scan_pose
+from slam.depth_to_scan import base_covariance, base_pose, scan_pose
 from slam.geometry import oplus, wrap_angle
 from slam.localization import GpsPrior, LocalizationResult, Localizer, MapModel
 from slam.map_bundle import LoadedMap, load_map
@@ -66,7 +66,10 @@ from slam.scan_matching import scan_points, transform_points
 
 log = logging.getLogger(__name__)
 
-CSV_HEADER = ("stamp_s", "x_m", "y_m", "yaw_rad", "confidence", "status", "reason")
+CSV_HEADER = (
+    *("stamp_s", "x_m", "y_m", "yaw_rad", "confidence", "status", "reason"),
+    *("sigma_x_m", "sigma_y_m", "sigma_yaw_rad"),  # appended: readers by position still work
+)
 EPISODES_LISTED = 50  # lost episodes / relocalisations itemised in summary.json (all are counted)
 WRONG_POSITION_M = 0.2  # [m] a tracked pose this far from ground truth counts as wrong
 WRONG_HEADING_RAD = np.radians(5.0)  # [rad] likewise for heading
@@ -169,12 +172,13 @@ def csv_text(results: Sequence[LocalizationResult]) -> str:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(CSV_HEADER)
     for r in results:
-        pose = (
-            [f"{r.pose[0]:.6f}", f"{r.pose[1]:.6f}", f"{r.pose[2]:.6f}"]
-            if has_pose(r)
-            else ["", "", ""]
+        pose, sigma = ["", "", ""], ["", "", ""]
+        if has_pose(r):
+            pose = [f"{v:.6f}" for v in r.pose]
+            sigma = [f"{v:.6f}" for v in np.sqrt(np.clip(np.diag(r.covariance), 0.0, None))]
+        w.writerow(
+            [_stamp_text(r.stamp_ns), *pose, f"{r.confidence:.4f}", r.status, r.reason, *sigma]
         )
-        w.writerow([_stamp_text(r.stamp_ns), *pose, f"{r.confidence:.4f}", r.status, r.reason])
     return buf.getvalue()
 
 
@@ -251,7 +255,7 @@ def run_localize(
         loc = Localizer(
             model, cfg.localizer, None if init is None else scan_pose(init, scan_in_base)
         )
-        prior = GpsPrior(loc)
+        prior = GpsPrior(loc, scan_in_base)  # the receiver rides base_link
         if gps is not None:
             for t, xy, sigma in zip(*gps, strict=True):
                 prior.add_fix(int(t), xy, float(sigma))
@@ -268,7 +272,13 @@ def run_localize(
             update_s += time.perf_counter() - t
             if drawing and has_pose(res):
                 scans_map.append(transform_points(res.pose, scan_points(scan)))
-            results.append(replace(res, pose=base_pose(res.pose, scan_in_base)))
+            results.append(
+                replace(
+                    res,
+                    pose=base_pose(res.pose, scan_in_base),
+                    covariance=base_covariance(res.pose, res.covariance, scan_in_base),
+                )
+            )
             if progress is not None:
                 progress(k + 1, total)
         if not results:

@@ -127,10 +127,15 @@ def test_localize_without_initial_pose_relocalises_globally_and_tracks_within_3c
     # The per-scan table: every scan, documented header, empty pose while relocalising.
     with (out / "localization.csv").open() as f:
         rows = list(csv.DictReader(f))
-    assert list(rows[0]) == ["stamp_s", "x_m", "y_m", "yaw_rad", "confidence", "status", "reason"]
+    assert list(rows[0]) == [
+        *("stamp_s", "x_m", "y_m", "yaw_rad", "confidence", "status", "reason"),
+        *("sigma_x_m", "sigma_y_m", "sigma_yaw_rad"),
+    ]
     assert len(rows) == len(truth)
-    assert rows[0]["status"] == "relocalising" and rows[0]["x_m"] == ""
+    assert rows[0]["status"] == "relocalising" and rows[0]["x_m"] == rows[0]["sigma_x_m"] == ""
     assert rows[-1]["status"] == "tracking" and rows[-1]["reason"].startswith("matched")
+    sigma = [float(rows[-1][k]) for k in ("sigma_x_m", "sigma_y_m", "sigma_yaw_rad")]
+    assert 0.0 < max(sigma[:2]) < 0.05 and 0.0 < sigma[2] < 2.0 * DEG, sigma
     assert abs(float(rows[-1]["x_m"]) - truth[-1, 0]) < 0.1
     assert abs(float(rows[0]["stamp_s"]) - 900.0) < 1e-6
     assert (out / "map.png").is_file() and (out / "config.yaml").is_file()

@@ -276,3 +276,28 @@ def test_scan_pose_and_base_pose_move_a_pose_by_the_scan_frames_offset_and_back(
     yaw = np.array([0.3, 0.4, 3.141592653589793])
     assert np.array_equal(scan_pose(yaw, np.zeros(3)), yaw)
     assert np.array_equal(base_pose(yaw, np.zeros(3)), yaw)
+
+
+def test_base_covariance_is_the_spread_of_base_pose_over_samples_of_the_scan_frames_pose() -> None:
+    """A camera-frame pose known to 1 mm but 3 deg in yaw puts base_link, 0.2 m behind, 1 cm
+    across the lever: the scan frame's covariance given for base_link's (as before) is 10x
+    too tight there."""
+    from slam.depth_to_scan import base_covariance, base_pose, scan_frame_in_base
+
+    at = scan_frame_in_base(
+        RobotConfig(camera_x=0.2, camera_y=0.05), replace(CFG, output_frame="camera_link")
+    )
+    cam = np.array([1.0, 2.0, 0.7])
+    cov = np.array([[1e-6, 5e-7, 0.0], [5e-7, 2e-6, 1e-6], [0.0, 1e-6, np.radians(3.0) ** 2]])
+    rng = np.random.default_rng(0)
+    samples = base_pose(rng.multivariate_normal(cam, cov, 20000), at)
+    spread = np.cov(samples.T)
+    got = base_covariance(cam, cov, at)
+    np.testing.assert_allclose(got, spread, rtol=0.05, atol=2e-7)
+    lever_sigma = np.hypot(*at[:2]) * np.radians(3.0)  # 1.08 cm
+    assert abs(np.sqrt(np.trace(got[:2, :2]) - np.trace(cov[:2, :2])) - lever_sigma) < 1e-4
+    assert np.sqrt(np.trace(got[:2, :2])) > 5 * np.sqrt(np.trace(cov[:2, :2]))
+    # broadcast over poses, and a scan in base_link keeps its covariance bit for bit
+    many = base_covariance(np.stack([cam, cam]), np.stack([cov, cov]), at)
+    np.testing.assert_allclose(many, [got, got], atol=1e-15)
+    assert np.array_equal(base_covariance(cam, cov, np.zeros(3)), cov)

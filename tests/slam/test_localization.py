@@ -903,3 +903,29 @@ def test_gps_prior_hands_the_newest_fix_with_the_odometry_of_its_own_time() -> N
     assert rec.calls == [([7.0, 8.0], 2.0, [1.0, 0.0, 0.0])]  # placed at the scan of t = 1 s
     prior.before_scan(10 * s, np.array([10.0, 0.0, 0.0]))
     assert rec.calls[-1] == ([0.0, 0.0], 2.0, [2.0, 0.0, 0.0]) and prior.fixes_used == 2
+
+
+def test_a_gps_fix_of_base_link_bounds_a_camera_frame_scans_origin(room_model: MapModel) -> None:
+    """The receiver rides base_link, the localiser tracks a camera-frame scan 0.2 m ahead: the
+    search disk holds the camera's true position after a fix exactly at base_link, and keeps
+    holding it, no wider than the lever arm, while the robot turns in place. Before, the fix
+    went in with the camera's odometry: a 6 cm disk round base_link, 0.21 m from the camera."""
+    from slam.depth_to_scan import scan_pose
+    from slam.localization import GpsPrior
+
+    at = np.array([0.2, 0.05, 0.0])  # test_scan_frame's camera mount
+    sigma = 0.02  # [m] an RTK fix: 3 sigma is 6 cm, less than the lever arm
+    base = turn_in_place(np.array([3.0, 2.0, 0.0]), 5, math.pi)
+    cam = scan_pose(base, at)
+    odom = corrupt_odometry(cam, 3)  # the scan frame's odometry, as the runners give it
+    loc = Localizer(room_model, CFG)
+    prior = GpsPrior(loc, at)
+    prior.add_fix(0, base[0, :2], sigma)
+    reach = CFG.gps_prior_sigmas * sigma + math.hypot(*at[:2])
+    for scan, o, c in zip(scans_along(WORLD, cam), odom, cam, strict=True):
+        prior.before_scan(scan.stamp_ns, o)
+        loc.update(scan, o)
+        region = loc.gps_region
+        assert region is not None
+        assert math.hypot(c[0] - region[0], c[1] - region[1]) <= region[2]
+        assert region[2] <= reach + 0.02  # odometry noise of the turn
