@@ -62,7 +62,7 @@ def main() -> None:
             ok = np.isfinite(r)
             pts_laser = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])])
             pts_base = oplus(
-                self.T_base_laser, np.column_stack([pts_laser, np.zeros(len(pts_laser))])
+                self.scan_in_base, np.column_stack([pts_laser, np.zeros(len(pts_laser))])
             )
             self.memory.add(scan.stamp_ns, self.odometry.pose, pts_base[:, :2])
             self.seen.append((scan.stamp_ns, oplus(self.pose, pts_base)[:, :2]))

@@ -13,7 +13,7 @@ with no occupied cell within a cell). This splits them:
   misregistration), observed but below ``occupied_thresh``;
 - the IoU of the same keyframe scans inserted at their TRUE poses: the share of the misses the
   trajectory causes, against what the sensor and the grid model leave;
-- the keyframes furthest from the truth.
+- the keyframes furthest from the truth (base_link's, from the bundle's scan-frame poses).
 
 The picture (``--png``): green occupied and right, red false positive, blue false negative,
 grey the plan, keyframes as dots (orange: more than 5 cm off). North up.
@@ -39,6 +39,7 @@ from rgbdnav.runners.map import IOU_TOLERANCE_CELLS, _true_surface, occupancy_io
 from sensors.sim.world import floor_plan, load_world  # noqa: E402
 from sensors.tum import load_tum_trajectory  # noqa: E402
 from slam.config import MapperConfig  # noqa: E402
+from slam.depth_to_scan import base_pose, scan_frame_in_base, scan_pose  # noqa: E402
 from slam.map_bundle import load_bundle  # noqa: E402
 from slam.metrics import align_se2, interpolate_poses  # noqa: E402
 from slam.occupancy_grid import integrate_scans  # noqa: E402
@@ -71,14 +72,19 @@ def breakdown(run: Path, world: Path) -> tuple[dict, np.ndarray]:
     fn = truth & ~(cv2.dilate(mapped.astype(np.uint8), ring) > 0)
     to_truth = cv2.distanceTransform((~truth).astype(np.uint8), cv2.DIST_L2, 5)[fp]
     lo = grid.log_odds
+    # The bundle's keyframe poses and scans are the scan frame's (depth_to_scan.output_frame of
+    # the run's config), the truth base_link's: the one conversion between them, both ways.
+    cfg_path = run / "config.yaml"
+    run_cfg = load_config([cfg_path] if cfg_path.exists() else [], [])
+    scan_in_base = scan_frame_in_base(run_cfg.robot, run_cfg.depth_to_scan)
     # The same keyframe scans at their true poses (in the map frame: map = rot^T (world - t)).
     stamps = bundle.keyframe_stamps_ns
     x, y, yaw, _ = interpolate_poses(gt.stamps_ns, gt.x, gt.y, gt.yaw, stamps)
     true_xy = (np.column_stack([x, y]) - t) @ rot
     true_poses = np.column_stack([true_xy, yaw - th])
     cfg = MapperConfig(**{**bundle.config, "occupied_thresh": thresh})
-    at_truth = integrate_scans(g, true_poses, list(bundle.scans), cfg)
-    est = bundle.keyframe_poses
+    at_truth = integrate_scans(g, scan_pose(true_poses, scan_in_base), list(bundle.scans), cfg)
+    est = base_pose(bundle.keyframe_poses, scan_in_base)
     err = np.hypot(*(est[:, :2] - true_xy).T)
     yaw_err = np.degrees(np.angle(np.exp(1j * (est[:, 2] - true_poses[:, 2]))))
     worst = np.argsort(-err)[:8]

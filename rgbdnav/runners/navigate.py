@@ -3,13 +3,14 @@
 The robot lives in a simulator world (``sensors.sim.world``); the navigator only knows the map.
 Each simulation step, in simulated time (never wall time): a depth-camera scan is ray-cast
 against the world's floor plan at the true camera pose (one beam per ``SCAN_COLUMNS_PER_BEAM``
-image columns, Kinect range noise); the localiser (``localization="localizer"``, the default) or
-ground truth gives the navigator its pose; the scan marks and clears the costmap's obstacle layer;
-the navigator (:class:`nav.navigator.Navigator`, the one ``rgbdnav live`` ticks in wall time)
-plans, follows, checks progress, replans, recovers and smooths the command; the collision monitor
+image columns, Kinect range noise), in ``depth_to_scan.output_frame`` as live's scans are; the
+localiser (``localization="localizer"``, the default) or ground truth gives the navigator its
+pose; the scan marks and clears the costmap's obstacle layer; the navigator
+(:class:`nav.navigator.Navigator`, the one ``rgbdnav live`` ticks in wall time) plans, follows,
+checks progress, replans, recovers and smooths the command; the collision monitor
 (:class:`nav.collision_monitor.CollisionMonitor`, as in ``live``) limits it on what the camera saw;
-it goes to the wheels as ``GOSPD`` through the Eddie board emulator. Why each
-step is as it is (the localiser's gates, settles, replanning on moved furniture) and the run
+it goes to the wheels as ``GOSPD`` through the Eddie board emulator. Why each step is as it is
+(the localiser's gates, settles, replanning on moved furniture) and the run
 directory's files are in ``docs/design/navigate_simulation.md``.
 
 A goal in a wall, a keepout zone, outside the map or unreachable is refused with a reason;
@@ -52,6 +53,12 @@ from sensors.sim.scan import cast_scan, depth_range_sigma
 from sensors.sim.world import FloorPlan, floor_plan, load_world
 from sensors.tum import write_tum_trajectory
 from sensors.types import NS_PER_S, ConfigError, LaserScan, MapError, Pose2
+from slam.depth_to_scan import (
+    beam_index,
+    nearest_per_beam_reference,
+    scan_frame_in_base,
+    scan_pose,
+)
 from slam.diff_drive import WheelOdometry
 from slam.geometry import oplus, path_length, wrap_angle
 from slam.localization import Localizer, MapModel
@@ -90,6 +97,29 @@ def clearance_at(plan: FloorPlan, dist: np.ndarray, x: float, y: float) -> float
     row, col = plan.cell_of(np.array([[x, y]]))[0]
     h, w = dist.shape
     return float(dist[row, col]) if 0 <= row < h and 0 <= col < w else math.inf
+
+
+def rebase_scan(
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    origin_xy: np.ndarray,
+    range_min: float,
+    range_max: float,
+) -> np.ndarray:
+    """(N,) float32 ranges of beams at ``angles`` (ascending, evenly spaced) from the scan
+    frame's origin, from those cast at the same angles from ``origin_xy`` [m] in that frame
+    (axes parallel): each return goes to the beam of its bearing from the origin, nearest
+    kept, as depth -> scan does for a camera that is not above the scan origin. Returns
+    outside [range_min, range_max] are dropped; a beam left without one is +inf (REP-117)."""
+    r = np.asarray(ranges, dtype=np.float64)
+    ok = np.isfinite(r)
+    x = origin_xy[0] + r[ok] * np.cos(angles[ok])
+    y = origin_xy[1] + r[ok] * np.sin(angles[ok])
+    dist = np.hypot(x, y)
+    keep = (dist >= range_min) & (dist <= range_max)
+    inc = float(angles[1] - angles[0])
+    beam = beam_index(np.arctan2(y[keep], x[keep]), float(angles[0]), inc)
+    return nearest_per_beam_reference(beam, dist[keep], len(angles))
 
 
 # 2. Goal vetting ----------------------------------------------------------------------------
@@ -162,8 +192,12 @@ class _Sim:
         fov = 2.0 * math.atan(cam.width / (2.0 * cam.fx))  # [rad] horizontal field of view
         n = max(2, cam.width // SCAN_COLUMNS_PER_BEAM)
         self.angles = np.linspace(fov / 2, -fov / 2, n)[::-1].copy()  # ascending, REP-117
+        # The laser is cast where the camera is; the scan it stands for is in the frame of
+        # depth_to_scan.output_frame, as live's depth scans are (rebase_scan between the two).
+        d2s = cfg.depth_to_scan
+        self.camera_in_base = scan_frame_in_base(cfg.robot, replace(d2s, output_frame="camera"))
+        self.scan_in_base = scan_frame_in_base(cfg.robot, d2s)
         r = cfg.robot
-        self.T_base_laser = np.array([r.camera_x, r.camera_y, 0.0])
         # The robot: GOSPD into the board emulator, slip, encoder counts back.
         self.drive = EmulatedDrive(r, cfg.sim, start, rng)
         self.odometry = WheelOdometry(r, self.drive.ticks())
@@ -171,7 +205,7 @@ class _Sim:
         # odom starts at the start pose; the localiser is told the start (an initial pose).
         self.T_map_odom = np.asarray(start, dtype=np.float64).copy()
         if localizer is not None:
-            localizer.set_initial_pose(oplus(start, self.T_base_laser))
+            localizer.set_initial_pose(scan_pose(start, self.scan_in_base))
         self.localized = True  # the localiser tracks (always, with ground truth)
         self.last_fix_ns = 0  # [ns] of the last believed localiser answer
         self.loc_covariance: np.ndarray | None = None  # of the last tracking answer
@@ -234,8 +268,8 @@ class _Sim:
             return False
         self.next_scan_ns += self.scan_ns
         cam, sim = self.cfg.camera, self.cfg.sim
-        true_laser = oplus(self.pose, self.T_base_laser)
-        ranges = cast_scan(self.plan, true_laser, self.angles, cam.depth_min, cam.depth_max)
+        true_camera = scan_pose(self.pose, self.camera_in_base)
+        ranges = cast_scan(self.plan, true_camera, self.angles, cam.depth_min, cam.depth_max)
         sigma = depth_range_sigma(
             ranges, cam.disparity_focal, cam.baseline, sim.disparity_noise, sim.disparity_subpixel
         )
@@ -243,14 +277,17 @@ class _Sim:
         ranges[finite] += (sigma[finite] * self.rng.standard_normal(int(finite.sum()))).astype(
             np.float32
         )
+        if np.any(self.scan_in_base != self.camera_in_base):
+            at = (self.camera_in_base - self.scan_in_base)[:2]
+            ranges = rebase_scan(ranges, self.angles, at, cam.depth_min, cam.depth_max)
         inc = float(self.angles[1] - self.angles[0])
         scan = LaserScan(
             self.t_ns, float(self.angles[0]), inc, ranges, cam.depth_min, cam.depth_max
         )
         if self.localizer is not None:
             self.localize(scan)
-        self.monitor.add_scan(self.odometry.pose, scan, self.T_base_laser)
-        self.costmap.update_scan(scan, Pose2(*oplus(self.estimate, self.T_base_laser).tolist()))
+        self.monitor.add_scan(self.odometry.pose, scan, self.scan_in_base)
+        self.costmap.update_scan(scan, Pose2(*scan_pose(self.estimate, self.scan_in_base).tolist()))
         self.scans += 1
         return True
 
@@ -260,7 +297,7 @@ class _Sim:
         Whether a match far from the odometry prediction is believed is the localiser's call
         (``localizer.match_gate``, ``localizer.jump_confirm_scans``)."""
         assert self.localizer is not None
-        result = self.localizer.update(scan, oplus(self.odometry.pose, self.T_base_laser))
+        result = self.localizer.update(scan, scan_pose(self.odometry.pose, self.scan_in_base))
         self.fresh_scan = True
         self.log.loc_status.append(result.status)
         self.log.loc_confidence.append(result.confidence)
@@ -277,7 +314,7 @@ class _Sim:
             # (a fresh, search-window-wide one would let the next match, maybe of moved
             # furniture, pull the estimate anywhere inside the window).
             self.localizer.set_initial_pose(
-                oplus(self.estimate, self.T_base_laser), self.loc_covariance
+                scan_pose(self.estimate, self.scan_in_base), self.loc_covariance
             )
             self.reseeds += 1
 
@@ -793,5 +830,6 @@ __all__ = [
     "goal_problem",
     "navigate_settings",
     "pose_errors",
+    "rebase_scan",
     "run_navigate",
 ]
