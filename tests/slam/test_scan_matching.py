@@ -836,3 +836,60 @@ def test_a_polished_icp_ends_where_it_ends_whatever_its_start() -> None:
     assert all(r.converged for r in plain + polished)
     assert np.abs(plain[0].pose - plain[1].pose).max() > 1e-4
     assert np.abs(polished[0].pose - polished[1].pose).max() < 1e-6
+
+
+def _two_cell_walls(res: float = 0.05, origin: float = -0.5) -> np.ndarray:
+    """ROOM as a mapper draws it when its walls lie on cell boundaries: range noise puts hits on
+    both sides of each wall, so every wall is the two cells straddling its line."""
+    n_x, n_y = int(9.0 / res), int(7.0 / res)
+    gx, gy = np.meshgrid(
+        origin + (np.arange(n_x) + 0.5) * res, origin + (np.arange(n_y) + 0.5) * res
+    )
+    occ = np.zeros(gx.shape, bool)
+    for x0, y0, x1, y1 in ROOM:
+        across, along, (lo, hi) = (gx - x0, gy, (y0, y1)) if x0 == x1 else (gy - y0, gx, (x0, x1))
+        occ |= (np.abs(across) < res) & (along > min(lo, hi) - res) & (along < max(lo, hi) + res)
+    return occ
+
+
+@pytest.mark.parametrize(
+    "truth", [ICP_TRUTH, np.array([2.0, 4.0, 1.0]), np.array([6.7, 1.2, -2.0])], ids=str
+)
+def test_the_sub_cell_polish_recovers_the_pose_icp_snaps_to_cell_centres(
+    truth: np.ndarray,
+) -> None:
+    from slam.scan_matching import (
+        build_grid_reference,
+        build_smooth_field,
+        refine_on_field,
+        surface_mask,
+    )
+
+    occ = _two_cell_walls()
+    ref = build_grid_reference(occ, (-0.5, -0.5), 0.05)
+    field = build_smooth_field(surface_mask(occ), (-0.5, -0.5), 0.05, 0.0375)
+    pts = body_points(ROOM, truth, n_beams=361, fov=math.radians(270), noise_m=0.005)
+    icp = icp_refine(ref, pts, truth + ICP_PERTURBATION, MAX_CORRESPONDENCE)
+    # ICP's references are cell centres 2.5 cm either side of each wall: it ends on them.
+    assert math.hypot(*(icp.pose[:2] - truth[:2])) > 0.015
+    res = refine_on_field(field, pts, icp.pose, max_shift_m=0.05, max_turn_rad=0.0175)
+    assert res.ok and res.reason == ""
+    assert math.hypot(*(res.pose[:2] - truth[:2])) < 0.005
+    assert abs(float(wrap_angle(res.pose[2] - truth[2]))) < math.radians(0.05)
+
+
+def test_the_sub_cell_polish_falls_back_to_its_start_outside_the_basin_or_the_map() -> None:
+    from slam.scan_matching import build_smooth_field, refine_on_field, surface_mask
+
+    occ = _two_cell_walls()
+    field = build_smooth_field(surface_mask(occ), (-0.5, -0.5), 0.05, 0.0375)
+    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270))
+    # It converges 1.5 cm away, beyond a 1 cm basin: the start is kept and the reason given.
+    start = ICP_TRUTH + np.array([0.015, 0.0, 0.0])
+    res = refine_on_field(field, pts, start, max_shift_m=0.01)
+    assert not res.ok and res.reason == "left the match's basin"
+    np.testing.assert_array_equal(res.pose, start)
+    # Far outside the map no point sees the field.
+    away = refine_on_field(field, pts, np.array([50.0, 50.0, 0.0]))
+    assert not away.ok and away.reason == "too few points on the smooth field"
+    assert away.iterations == 0
