@@ -18,12 +18,9 @@ real-time CSM + Ceres refinement:
    c p_x - s p_y)``. Sub-cell accuracy comes from here; the covariance is ``sigma^2 (J^T W J)^-1``
    with ``sigma^2`` the weighted residual variance, floored so a perfect synthetic match is not
    infinitely certain.
-3. **Sub-cell polish** (:func:`refine_on_field`): ICP's reference points are cell centres, and a
-   wall on a cell boundary fills two cells whose centres ICP snaps to, 2.5 cm off at 5 cm cells
-   (docs/design/localization.md). As Cartographer's Ceres scan matcher does, Levenberg-Marquardt
-   minimises ``sum (1 - F(T p_i))^2`` on a bicubic (Catmull-Rom) interpolation of the map's
-   surface cells blurred by a Gaussian (:func:`build_smooth_field`), whose ridge lies at the
-   centroid of the occupied cells across a wall; a step is taken only if it lowers the cost.
+3. **Sub-cell polish** (:func:`refine_on_field`), as Cartographer's Ceres scan matcher: Newton
+   steps on a bicubic, blurred map of the wall cells, whose ridge is the centroid of a wall's
+   cells where ICP snaps to cell centres (why and measurements: docs/design/localization.md).
 
 All functions are pure: arrays in, results out. Poses are (x [m], y [m], yaw [rad]).
 """
