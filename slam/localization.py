@@ -216,6 +216,12 @@ class MapModel:
         )
         return cls(grid, pts, fine, ref, smooth, gfield, free, occ)
 
+    def normals_at(self, world: np.ndarray) -> np.ndarray:
+        """(N, 2) the ICP reference's normal nearest each world point within one cell (0 where
+        none is, or the map is no line there: a corner, clutter)."""
+        _, idx = self.reference.tree.query(world, distance_upper_bound=self.field.resolution)
+        return self.reference.normals[idx]
+
     def score(self, points: np.ndarray, pose: np.ndarray) -> float:
         """Confidence: mean fine likelihood of scan ``points`` (scan frame) at ``pose``."""
         if len(points) == 0:
@@ -534,8 +540,8 @@ def match_scan(
         return math.hypot(d[0], d[1]) <= lin + tol and abs(d[2]) <= ang + tol
 
     def polish(pose: np.ndarray, score: float, cov: np.ndarray) -> tuple[np.ndarray, float, str]:
-        """4c. The sub-cell polish of a match; ICP's pose when it leaves ICP's cell. Along a
-        corridor (ICP's weak axis, as release_degenerate_axis finds it) the polish would only
+        """4c. The sub-cell polish of a match; ICP's pose when it leaves ICP's cell. Along
+        ICP's weak axes (a corridor; a lateral shift traded for a turn) the polish would only
         slide to a ripple of the blurred wall cells: its move there is dropped."""
         if cfg.refine_max_iterations == 0:
             return pose, score, "off"
@@ -546,15 +552,13 @@ def match_scan(
             cfg.refine_max_iterations,
             max_shift_m=model.field.resolution,
             max_turn_rad=cfg.angular_search_step,
+            covariance=cov,
+            degeneracy_ratio=cfg.scan_match_degeneracy_ratio,
+            normals=model.normals_at(transform_points(pose, points)),
         )
         if not res.ok:
             return pose, score, f"fallback: {res.reason}"
-        out = res.pose.copy()
-        evals, evecs = np.linalg.eigh(cov[:2, :2])
-        if evals[1] > cfg.scan_match_degeneracy_ratio * max(float(evals[0]), 1e-12):
-            well = evecs[:, 0]
-            out[:2] = pose[:2] + well * float(well @ (res.pose[:2] - pose[:2]))
-        return out, model.score(points, out), "polished"
+        return res.pose, model.score(points, res.pose), "polished"
 
     # 4a. ICP straight from the prior: most scans follow odometry closely.
     pose, cov, score, converged = icp(prior)

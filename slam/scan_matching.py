@@ -723,27 +723,54 @@ def refine_on_field(
     max_shift_m: float = math.inf,
     max_turn_rad: float = math.inf,
     tolerance: float = 1e-4,
+    covariance: np.ndarray | None = None,
+    degeneracy_ratio: float = math.inf,
+    normals: np.ndarray | None = None,
 ) -> RefineResult:
     """Damped Newton on ``sum r_i^2``, ``r_i = 1 - F(R p_i + t)``, from ``initial``.
 
-    With ``a_i = d(R p_i + t)/d(x, y, yaw) = [[1, 0, -q_y], [0, 1, q_x]]`` (``q = R p_i``) the
-    Jacobian row is ``-a_i^T grad F``; the Hessian adds to Gauss-Newton's ``J^T J`` the terms
-    ``r_i d2r_i``, ``d2r_i = -(a_i^T H_F a_i - (grad F . q) e_yaw e_yaw^T)``. Across a wall
-    F is a ridge, and Gauss-Newton alone overshoots it every step (measured: 7+ iterations to
-    0.1 mm; Newton: 2-3). Where the full Hessian is not positive definite, Gauss-Newton's is
-    used. A step is kept only when it lowers the cost (else the damping grows), so the cost
-    never rises; the polish stops when a step is below ``tolerance`` [m, rad]. It falls back to
-    ``initial`` (``ok`` False, with the reason) when fewer than ``MIN_POINTS`` points see a
-    gradient, or when it ends farther than ``max_shift_m`` / ``max_turn_rad`` from ``initial``:
-    it left the basin the match found. Sums are numpy's (no BLAS), so the result does not
-    depend on which kernels OpenBLAS picks."""
+    **Frame-invariant**: the pose turns about the scan points' centroid, not the scan frame's
+    origin, and the basin test and weak axes are measured there, so the same points give the
+    same world pose whether the scan is in base_link or in a camera frame 0.2 m ahead.
+    **Along the wall's normal**: with ``normals`` (per point, world, at ``initial``; a zero row
+    leaves the point out) a point moves only along its normal, as in point-to-line ICP: ``F`` is
+    read at ``w0_i + n_i n_i^T (w_i - w0_i)``. Free in 2-D, the points near a wall's mapped end
+    or a gap in it are pulled along the wall, and a few of them turned a small depth scan
+    0.6 deg (docs/design/localization.md). The Hessian is Newton's (``J^T J`` plus ``r_i``
+    times the second derivatives of ``r_i``; Gauss-Newton alone overshoots a wall's ridge),
+    Gauss-Newton's where that is not positive definite; a step is kept only if it lowers the
+    cost; the polish stops below ``tolerance`` [m, rad]. **Weak axes**: the match's
+    ``covariance`` (at ``initial``), carried to the centroid with the yaw in metres (times the
+    points' RMS radius); along its axes with a variance over ``degeneracy_ratio`` times the
+    smallest (a corridor) ``initial`` is kept. It falls back to ``initial`` (``ok`` False, with
+    the reason) when fewer than ``MIN_POINTS`` points see a gradient, or when the centroid moves
+    farther than ``max_shift_m`` or the yaw ``max_turn_rad``: it left the match's basin. Sums
+    are numpy's (no BLAS): the result does not depend on OpenBLAS's kernels."""
     start = np.asarray(initial, dtype=np.float64)
-    px, py = points[:, 0], points[:, 1]
+    if normals is not None:
+        keep = np.any(normals != 0.0, axis=1)
+        points, normals = points[keep], normals[keep]
+    mean = points.mean(axis=0) if len(points) else np.zeros(2)
+    centred = points - mean
+    px, py = centred[:, 0], centred[:, 1]
+    c0, s0 = math.cos(start[2]), math.sin(start[2])
+    lever = np.array([c0 * mean[0] - s0 * mean[1], s0 * mean[0] + c0 * mean[1]])
+    origin = np.array([start[0] + lever[0], start[1] + lever[1], start[2]])  # the centroid's
+    anchors = centred @ np.array([[c0, s0], [-s0, c0]]) + origin[:2]  # the points at ``initial``
 
     def evaluate(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         c, s = math.cos(p[2]), math.sin(p[2])
         qx, qy = c * px - s * py, s * px + c * py
-        f, fx, fy, fxx, fxy, fyy = field.sample(np.column_stack([qx + p[0], qy + p[1]]))
+        world = np.column_stack([qx + p[0], qy + p[1]])
+        if normals is None:
+            f, fx, fy, fxx, fxy, fyy = field.sample(world)
+        else:  # F along each normal: its gradient and Hessian projected on n
+            nx, ny = normals[:, 0], normals[:, 1]
+            along = np.einsum("ij,ij->i", world - anchors, normals)
+            f, gx, gy, hxx, hxy, hyy = field.sample(anchors + along[:, None] * normals)
+            gn = gx * nx + gy * ny
+            hnn = hxx * nx * nx + 2.0 * hxy * nx * ny + hyy * ny * ny
+            fx, fy, fxx, fxy, fyy = gn * nx, gn * ny, hnn * nx * nx, hnn * nx * ny, hnn * ny * ny
         r = 1.0 - f
         jac = np.vstack([-fx, -fy, fx * qy - fy * qx])
         # Second derivatives of r_i (upper triangle: xx, xy, x-yaw, yy, y-yaw, yaw-yaw).
@@ -759,7 +786,13 @@ def refine_on_field(
         )
         return float(np.einsum("n,n->", r, r)), r, jac, d2
 
-    pose = start.copy()
+    def at_scan_origin(p: np.ndarray) -> np.ndarray:
+        c, s = math.cos(p[2]), math.sin(p[2])
+        out = p - np.array([c * mean[0] - s * mean[1], s * mean[0] + c * mean[1], 0.0])
+        out[2] = float(wrap_angle(out[2]))
+        return out
+
+    pose = origin.copy()
     cost, r, jac, d2 = evaluate(pose)
     n = max(len(points), 1)
     if int(np.count_nonzero(jac[0] != 0.0)) < MIN_POINTS:
@@ -789,11 +822,32 @@ def refine_on_field(
             damping = max(damping * LM_DAMPING_UP, 1e-4)
         if not improved or (abs(step[0]) + abs(step[1]) < tolerance and abs(step[2]) < tolerance):
             break
-    pose[2] = float(wrap_angle(pose[2]))
-    d = pose - start
-    if math.hypot(d[0], d[1]) > max_shift_m or abs(float(wrap_angle(d[2]))) > max_turn_rad:
+    move = pose - origin
+    move[2] = float(wrap_angle(move[2]))
+    if covariance is not None and math.isfinite(degeneracy_ratio):
+        move = _drop_weak_axes(move, covariance, lever, centred, degeneracy_ratio)
+        pose = origin + move
+        cost = evaluate(pose)[0]
+    if math.hypot(move[0], move[1]) > max_shift_m or abs(move[2]) > max_turn_rad:
         return RefineResult(start.copy(), False, "left the match's basin", it, cost / n)
-    return RefineResult(pose, True, "", it, cost / n)
+    return RefineResult(at_scan_origin(pose), True, "", it, cost / n)
+
+
+def _drop_weak_axes(
+    move: np.ndarray, covariance: np.ndarray, lever: np.ndarray, centred: np.ndarray, ratio: float
+) -> np.ndarray:
+    """``move`` (x, y, yaw about the centroid) without its part along the weak axes of
+    ``covariance`` (x, y, yaw at the scan origin): the covariance carried to the centroid
+    (``lever``: scan origin -> centroid in the world) with yaw in metres of the points' RMS
+    radius, its eigenvectors with a variance over ``ratio`` times the smallest projected out."""
+    radius = max(math.sqrt(float(np.einsum("ij,ij->", centred, centred)) / len(centred)), 1e-3)
+    carry = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]], [0.0, 0.0, radius]])
+    cov = carry @ np.asarray(covariance, dtype=np.float64) @ carry.T
+    evals, evecs = np.linalg.eigh(0.5 * (cov + cov.T))
+    well = evecs[:, evals <= ratio * max(float(evals[0]), 1e-18)]
+    scaled = np.array([move[0], move[1], move[2] * radius])
+    kept = well @ (well.T @ scaled)
+    return np.array([kept[0], kept[1], kept[2] / radius])
 
 
 _UPPER_TO_FULL = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # 3 x 3 from its upper triangle
