@@ -893,3 +893,57 @@ def test_the_sub_cell_polish_falls_back_to_its_start_outside_the_basin_or_the_ma
     away = refine_on_field(field, pts, np.array([50.0, 50.0, 0.0]))
     assert not away.ok and away.reason == "too few points on the smooth field"
     assert away.iterations == 0
+
+
+def _polish_setup(holes: bool) -> tuple:
+    """The two-cell-wall ROOM, with three 0.3 m gaps cut in its mapped walls if ``holes``: its
+    ICP reference (normals) and the polish's smooth field."""
+    from slam.scan_matching import build_grid_reference, build_smooth_field, surface_mask
+
+    occ = _two_cell_walls()
+    if holes:
+        occ[:, 40:46] = occ[:, 100:106] = occ[60:66, :] = False
+    ref = build_grid_reference(occ, (-0.5, -0.5), 0.05)
+    return ref, build_smooth_field(surface_mask(occ), (-0.5, -0.5), 0.05, 0.0375)
+
+
+def test_the_sub_cell_polish_moves_points_along_the_wall_normal_past_gaps_in_the_map() -> None:
+    # Free in 2-D, scan points near a mapped wall's end or gap are pulled along the wall onto
+    # its blurred cells; along the ICP reference's normals they are not (test_scan_frame's
+    # 160x120 scan turned 0.6 deg that way).
+    from slam.scan_matching import refine_on_field
+
+    ref, field = _polish_setup(holes=True)
+    for truth in (ICP_TRUTH, np.array([2.0, 4.0, 1.0])):
+        pts = body_points(ROOM, truth, n_beams=361, fov=math.radians(270), noise_m=0.005)
+        _, idx = ref.tree.query(transform_points(truth, pts), distance_upper_bound=0.05)
+        free = refine_on_field(field, pts, truth, 50)
+        along = refine_on_field(field, pts, truth, 50, normals=ref.normals[idx])
+        assert free.ok and along.ok
+        assert math.hypot(*(free.pose[:2] - truth[:2])) > 0.0015
+        assert math.hypot(*(along.pose[:2] - truth[:2])) < 0.001
+        assert abs(float(wrap_angle(along.pose[2] - truth[2]))) < math.radians(0.01)
+
+
+def test_the_sub_cell_polish_gives_one_world_pose_whatever_the_scan_frame() -> None:
+    # The same points in base_link and in a frame 0.2 m ahead (a camera-frame depth scan),
+    # from a start turned 0.86 deg about their centroid. The polish turns about the centroid and
+    # tests its basin there: both land on one pose. (Measured at the scan frame's origin, the
+    # move was 1.6 cm in base_link and 1.3 cm in the camera frame: only one kept it.)
+    from slam.geometry import ominus, oplus
+    from slam.scan_matching import refine_on_field
+
+    ref, field = _polish_setup(holes=False)
+    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270), noise_m=0.005)
+    mount = np.array([0.2, 0.05, 0.0])
+    centroid = np.array([*pts.mean(axis=0), 0.0])
+    turned = oplus(oplus(ICP_TRUTH, centroid), np.array([0.0, 0.0, 0.015]))
+    start = oplus(turned, ominus(centroid, np.zeros(3)))
+    _, idx = ref.tree.query(transform_points(start, pts), distance_upper_bound=0.05)
+    kw = {"max_shift_m": 0.014, "max_turn_rad": 0.0175, "normals": ref.normals[idx]}
+    base = refine_on_field(field, pts, start, **kw)
+    cam = refine_on_field(field, pts - mount[:2], oplus(start, mount), **kw)
+    assert base.ok and cam.ok
+    assert np.abs(oplus(cam.pose, ominus(mount, np.zeros(3))) - base.pose).max() < 1e-9
+    assert math.hypot(*(base.pose[:2] - ICP_TRUTH[:2])) < 0.002
+    assert abs(float(wrap_angle(base.pose[2] - ICP_TRUTH[2]))) < math.radians(0.05)  # from 0.86
