@@ -715,6 +715,13 @@ class RefineResult:
     cost: float  # mean (1 - F)^2 at ``pose``
 
 
+def near_surface(reference: ReferenceCloud, world: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) bool: the world points within ``radius`` of a reference point (for a grid's
+    reference, a wall cell next to free or unknown space)."""
+    dist, _ = reference.tree.query(world, distance_upper_bound=radius)
+    return np.isfinite(dist)
+
+
 def refine_on_field(
     field: SmoothField,
     points: np.ndarray,
@@ -725,18 +732,14 @@ def refine_on_field(
     tolerance: float = 1e-4,
     covariance: np.ndarray | None = None,
     degeneracy_ratio: float = math.inf,
-    normals: np.ndarray | None = None,
 ) -> RefineResult:
     """Damped Newton on ``sum r_i^2``, ``r_i = 1 - F(R p_i + t)``, from ``initial``.
 
     **Frame-invariant**: the pose turns about the scan points' centroid, not the scan frame's
     origin, and the basin test and weak axes are measured there, so the same points give the
-    same world pose whether the scan is in base_link or in a camera frame 0.2 m ahead.
-    **Along the wall's normal**: with ``normals`` (per point, world, at ``initial``; a zero row
-    leaves the point out) a point moves only along its normal, as in point-to-line ICP: ``F`` is
-    read at ``w0_i + n_i n_i^T (w_i - w0_i)``. Free in 2-D, the points near a wall's mapped end
-    or a gap in it are pulled along the wall, and a few of them turned a small depth scan
-    0.6 deg (docs/design/localization.md). The Hessian is Newton's (``J^T J`` plus ``r_i``
+    same world pose whether the scan is in base_link or in a camera frame 0.2 m ahead. Give it
+    only the points on the map's walls (:func:`near_surface`): one in a gap of a mapped wall is
+    pulled along the wall onto the gap's end. The Hessian is Newton's (``J^T J`` plus ``r_i``
     times the second derivatives of ``r_i``; Gauss-Newton alone overshoots a wall's ridge),
     Gauss-Newton's where that is not positive definite; a step is kept only if it lowers the
     cost; the polish stops below ``tolerance`` [m, rad]. **Weak axes**: the match's
@@ -747,30 +750,17 @@ def refine_on_field(
     farther than ``max_shift_m`` or the yaw ``max_turn_rad``: it left the match's basin. Sums
     are numpy's (no BLAS): the result does not depend on OpenBLAS's kernels."""
     start = np.asarray(initial, dtype=np.float64)
-    if normals is not None:
-        keep = np.any(normals != 0.0, axis=1)
-        points, normals = points[keep], normals[keep]
     mean = points.mean(axis=0) if len(points) else np.zeros(2)
     centred = points - mean
     px, py = centred[:, 0], centred[:, 1]
     c0, s0 = math.cos(start[2]), math.sin(start[2])
     lever = np.array([c0 * mean[0] - s0 * mean[1], s0 * mean[0] + c0 * mean[1]])
     origin = np.array([start[0] + lever[0], start[1] + lever[1], start[2]])  # the centroid's
-    anchors = centred @ np.array([[c0, s0], [-s0, c0]]) + origin[:2]  # the points at ``initial``
 
     def evaluate(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         c, s = math.cos(p[2]), math.sin(p[2])
         qx, qy = c * px - s * py, s * px + c * py
-        world = np.column_stack([qx + p[0], qy + p[1]])
-        if normals is None:
-            f, fx, fy, fxx, fxy, fyy = field.sample(world)
-        else:  # F along each normal: its gradient and Hessian projected on n
-            nx, ny = normals[:, 0], normals[:, 1]
-            along = np.einsum("ij,ij->i", world - anchors, normals)
-            f, gx, gy, hxx, hxy, hyy = field.sample(anchors + along[:, None] * normals)
-            gn = gx * nx + gy * ny
-            hnn = hxx * nx * nx + 2.0 * hxy * nx * ny + hyy * ny * ny
-            fx, fy, fxx, fxy, fyy = gn * nx, gn * ny, hnn * nx * nx, hnn * nx * ny, hnn * ny * ny
+        f, fx, fy, fxx, fxy, fyy = field.sample(np.column_stack([qx + p[0], qy + p[1]]))
         r = 1.0 - f
         jac = np.vstack([-fx, -fy, fx * qy - fy * qx])
         # Second derivatives of r_i (upper triangle: xx, xy, x-yaw, yy, y-yaw, yaw-yaw).
@@ -842,11 +832,11 @@ def _drop_weak_axes(
     radius, its eigenvectors with a variance over ``ratio`` times the smallest projected out."""
     radius = max(math.sqrt(float(np.einsum("ij,ij->", centred, centred)) / len(centred)), 1e-3)
     carry = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]], [0.0, 0.0, radius]])
-    cov = carry @ np.asarray(covariance, dtype=np.float64) @ carry.T
+    cov = np.einsum("ij,jk,lk->il", carry, np.asarray(covariance, dtype=np.float64), carry)
     evals, evecs = np.linalg.eigh(0.5 * (cov + cov.T))
     well = evecs[:, evals <= ratio * max(float(evals[0]), 1e-18)]
     scaled = np.array([move[0], move[1], move[2] * radius])
-    kept = well @ (well.T @ scaled)
+    kept = np.einsum("ik,jk,j->i", well, well, scaled)
     return np.array([kept[0], kept[1], kept[2] / radius])
 
 
@@ -885,6 +875,7 @@ __all__ = [
     "build_smooth_field",
     "correlative_match",
     "icp_refine",
+    "near_surface",
     "refine_on_field",
     "rival_score",
     "release_degenerate_axis",

@@ -897,7 +897,7 @@ def test_the_sub_cell_polish_falls_back_to_its_start_outside_the_basin_or_the_ma
 
 def _polish_setup(holes: bool) -> tuple:
     """The two-cell-wall ROOM, with three 0.3 m gaps cut in its mapped walls if ``holes``: its
-    ICP reference (normals) and the polish's smooth field."""
+    ICP reference (the wall cells) and the polish's smooth field."""
     from slam.scan_matching import build_grid_reference, build_smooth_field, surface_mask
 
     occ = _two_cell_walls()
@@ -907,22 +907,28 @@ def _polish_setup(holes: bool) -> tuple:
     return ref, build_smooth_field(surface_mask(occ), (-0.5, -0.5), 0.05, 0.0375)
 
 
-def test_the_sub_cell_polish_moves_points_along_the_wall_normal_past_gaps_in_the_map() -> None:
-    # Free in 2-D, scan points near a mapped wall's end or gap are pulled along the wall onto
-    # its blurred cells; along the ICP reference's normals they are not (test_scan_frame's
-    # 160x120 scan turned 0.6 deg that way).
-    from slam.scan_matching import refine_on_field
+def test_near_surface_leaves_out_the_scan_points_in_a_gap_of_the_mapped_walls() -> None:
+    # The polish's points: a scan point in a gap of a mapped wall would be pulled along the
+    # wall onto the gap's end (test_scan_frame's 160x120 scan turned 0.6 deg that way).
+    from slam.scan_matching import near_surface
 
-    ref, field = _polish_setup(holes=True)
-    for truth in (ICP_TRUTH, np.array([2.0, 4.0, 1.0])):
-        pts = body_points(ROOM, truth, n_beams=361, fov=math.radians(270), noise_m=0.005)
-        _, idx = ref.tree.query(transform_points(truth, pts), distance_upper_bound=0.05)
-        free = refine_on_field(field, pts, truth, 50)
-        along = refine_on_field(field, pts, truth, 50, normals=ref.normals[idx])
-        assert free.ok and along.ok
-        assert math.hypot(*(free.pose[:2] - truth[:2])) > 0.0015
-        assert math.hypot(*(along.pose[:2] - truth[:2])) < 0.001
-        assert abs(float(wrap_angle(along.pose[2] - truth[2]))) < math.radians(0.01)
+    ref, _ = _polish_setup(holes=True)
+    world = transform_points(
+        ICP_TRUTH, body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270))
+    )
+    on_wall = near_surface(ref, world, 0.05)
+    # The gaps: columns 40-45 and 100-105 (x from 1.5 and 4.5 m), rows 60-65 (y from 2.5 m).
+    gap_x = ((world[:, 0] > 1.5) & (world[:, 0] < 1.8)) | (
+        (world[:, 0] > 4.5) & (world[:, 0] < 4.8)
+    )
+    gap = gap_x | ((world[:, 1] > 2.5) & (world[:, 1] < 2.8))
+    inner = (
+        ((world[:, 0] > 1.6) & (world[:, 0] < 1.7))
+        | ((world[:, 0] > 4.6) & (world[:, 0] < 4.7))
+        | ((world[:, 1] > 2.6) & (world[:, 1] < 2.7))
+    )
+    assert np.count_nonzero(inner) >= 5 and not on_wall[inner].any()
+    assert on_wall[~gap].all()
 
 
 def test_the_sub_cell_polish_gives_one_world_pose_whatever_the_scan_frame() -> None:
@@ -939,8 +945,7 @@ def test_the_sub_cell_polish_gives_one_world_pose_whatever_the_scan_frame() -> N
     centroid = np.array([*pts.mean(axis=0), 0.0])
     turned = oplus(oplus(ICP_TRUTH, centroid), np.array([0.0, 0.0, 0.015]))
     start = oplus(turned, ominus(centroid, np.zeros(3)))
-    _, idx = ref.tree.query(transform_points(start, pts), distance_upper_bound=0.05)
-    kw = {"max_shift_m": 0.014, "max_turn_rad": 0.0175, "normals": ref.normals[idx]}
+    kw = {"max_shift_m": 0.014, "max_turn_rad": 0.0175}
     base = refine_on_field(field, pts, start, **kw)
     cam = refine_on_field(field, pts - mount[:2], oplus(start, mount), **kw)
     assert base.ok and cam.ok
