@@ -663,22 +663,19 @@ def _stencil(w: int) -> np.ndarray:
 
 def _keys_weights(t: np.ndarray) -> np.ndarray:
     """(3, N, 4) Catmull-Rom weights of samples -1, 0, 1, 2 at fraction ``t``, their d/dt and
-    d2/dt2."""
+    d2/dt2 (written in place: a nested ``np.array`` of the twelve rows cost a third more)."""
     t2 = t * t
     t3 = t2 * t
-    one = np.ones_like(t)
-    return 0.5 * np.array(
-        [
-            [-t3 + 2.0 * t2 - t, 3.0 * t3 - 5.0 * t2 + 2.0, -3.0 * t3 + 4.0 * t2 + t, t3 - t2],
-            [
-                -3.0 * t2 + 4.0 * t - one,
-                9.0 * t2 - 10.0 * t,
-                -9.0 * t2 + 8.0 * t + one,
-                3.0 * t2 - 2.0 * t,
-            ],
-            [-6.0 * t + 4.0, 18.0 * t - 10.0, -18.0 * t + 8.0, 6.0 * t - 2.0],
-        ]
-    ).transpose(0, 2, 1)
+    out = np.empty((3, len(t), 4))
+    w, d, h = out
+    w[:, 0], w[:, 1] = -t3 + 2.0 * t2 - t, 3.0 * t3 - 5.0 * t2 + 2.0
+    w[:, 2], w[:, 3] = -3.0 * t3 + 4.0 * t2 + t, t3 - t2
+    d[:, 0], d[:, 1] = -3.0 * t2 + 4.0 * t - 1.0, 9.0 * t2 - 10.0 * t
+    d[:, 2], d[:, 3] = -9.0 * t2 + 8.0 * t + 1.0, 3.0 * t2 - 2.0 * t
+    h[:, 0], h[:, 1] = -6.0 * t + 4.0, 18.0 * t - 10.0
+    h[:, 2], h[:, 3] = -18.0 * t + 8.0, 6.0 * t - 2.0
+    out *= 0.5
+    return out
 
 
 SMOOTH_PAD = 3  # [cells] zero border of a SmoothField (the bicubic stencil reaches 2)
