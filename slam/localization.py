@@ -6,8 +6,8 @@ Per scan (:meth:`Localizer.update`):
 
 1. **predict** from the last estimate and the odometry increment (AMCL's ``alpha1..4`` noise);
 2. **match**: point-to-line ICP from the prediction, else an exact correlative search in the
-   search window refined by ICP; then a sub-cell polish on the smoothed map (Cartographer's
-   Ceres scan matcher), kept only when it stays within a cell of ICP's pose;
+   search window refined by ICP; then a sub-cell polish of the points on the map's walls on
+   the smoothed map (Cartographer's Ceres scan matcher), kept within a cell of ICP's pose;
 3. **fuse** prediction and match in a Kalman update; a match far outside the prediction is
    gated and held as a jump hypothesis until consecutive scans confirm it;
 4. **confidence** from the scan's likelihood at the fused pose; low for ``lost_time`` means
