@@ -835,6 +835,19 @@ class LocalizerConfig:
     scan_match_min_sigma: float = param(
         0.01, unit="m", gt=0.0, doc="floor of the ICP residual sigma behind a match covariance"
     )
+    refine_max_iterations: int = param(
+        10,
+        ge=0,
+        doc="Levenberg-Marquardt polish of each match on the bicubic-interpolated, smoothed map "
+        "(Cartographer's ceres_scan_matcher max_num_iterations): sub-cell poses where ICP snaps "
+        "to cell centres (0 = off)",
+    )
+    refine_smoothing_sigma: float = param(
+        0.0375,
+        unit="m",
+        gt=0.0,
+        doc="Gaussian blur of the map's wall cells the polish runs on (0.75 cells at 5 cm)",
+    )
     # Odometry motion noise (AMCL diff-drive model: variances from rotation and translation).
     alpha1: float = param(0.2, ge=0.0, doc="rotation noise from rotation")
     alpha2: float = param(0.2, ge=0.0, doc="rotation noise from translation")

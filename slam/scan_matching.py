@@ -18,6 +18,9 @@ real-time CSM + Ceres refinement:
    c p_x - s p_y)``. Sub-cell accuracy comes from here; the covariance is ``sigma^2 (J^T W J)^-1``
    with ``sigma^2`` the weighted residual variance, floored so a perfect synthetic match is not
    infinitely certain.
+3. **Sub-cell polish** (:func:`refine_on_field`), as Cartographer's Ceres scan matcher: Newton
+   steps on a bicubic, blurred map of the wall cells, whose ridge is the centroid of a wall's
+   cells where ICP snaps to cell centres (why and measurements: docs/design/localization.md).
 
 All functions are pure: arrays in, results out. Poses are (x [m], y [m], yaw [rad]).
 """
@@ -471,6 +474,12 @@ def build_reference(points: np.ndarray) -> ReferenceCloud:
     return ReferenceCloud(padded, normals, tree)
 
 
+def surface_mask(occupied: np.ndarray) -> np.ndarray:
+    """The occupied cells next to a non-occupied one (8-neighbourhood): all a scan can hit."""
+    occ = np.asarray(occupied, dtype=bool)
+    return occ & (cv2.dilate((~occ).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+
+
 def build_grid_reference(
     occupied: np.ndarray, origin_xy: tuple[float, float], resolution: float
 ) -> ReferenceCloud:
@@ -486,9 +495,7 @@ def build_grid_reference(
     (Jxx + Jyy)`` rejects corners and clutter with the same eigenvalue-ratio rule as
     :func:`build_reference` (ratio <= PLANARITY_MAX <=> coherence >= (1 - r) / (1 + r))."""
     occ = np.asarray(occupied, dtype=bool)
-    ring = np.ones((3, 3), np.uint8)
-    surface = occ & (cv2.dilate((~occ).astype(np.uint8), ring) > 0)
-    rows, cols = np.nonzero(surface)
+    rows, cols = np.nonzero(surface_mask(occ))
     if len(rows) == 0:
         raise ValueError("the grid has no occupied cell next to free or unknown space")
     img = cv2.GaussianBlur(occ.astype(np.float32), (0, 0), GRID_GRADIENT_SIGMA_CELLS)
@@ -599,6 +606,240 @@ def icp_refine(
     return IcpResult(pose, 0.5 * (cov + cov.T), rmse, inliers, it, converged)
 
 
+# 5. Sub-cell polish on a smooth field (Cartographer's Ceres scan matcher) -----------------------
+
+
+@dataclass(frozen=True, eq=False)
+class SmoothField:
+    """A grid's surface cells blurred and normalised to a peak of 1, sampled bicubically.
+
+    ``values[r, c]`` is the field at world (origin_x + c res, origin_y + r res): samples sit at
+    cell centres, with a zero border of ``SMOOTH_PAD`` cells so the 4 x 4 stencil of any point
+    of the map stays inside."""
+
+    origin: np.ndarray  # (2,) [m] world (x, y) of sample (0, 0), a cell centre
+    resolution: float  # [m/cell]
+    values: np.ndarray  # (H, W) float64 in [0, 1]
+
+    def sample(self, xy: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Value, gradient [1/m] (x, y) and Hessian [1/m^2] (xx, xy, yy) at world points (N, 2);
+        all 0 beyond the field.
+
+        Catmull-Rom (Keys, a = -1/2) along x then y, as ``ceres::BiCubicInterpolator``: the
+        value is C1, so Newton sees a gradient that does not jump at cell edges, and the maximum
+        between two equal samples lies half way (bilinear would be flat there)."""
+        h, w = self.values.shape
+        u = (xy[:, 0] - self.origin[0]) / self.resolution
+        v = (xy[:, 1] - self.origin[1]) / self.resolution
+        iu, iv = np.floor(u), np.floor(v)
+        i, j = iu.astype(np.int64), iv.astype(np.int64)
+        inside = (i >= 1) & (j >= 1) & (i < w - 2) & (j < h - 2)
+        corner = np.where(inside, (j - 1) * w + (i - 1), 0)
+        patch = self.values.take(corner[:, None] + _stencil(w)).reshape(-1, 4, 4)
+        ku = _keys_weights(u - iu)  # (3, N, 4): weights, d/dt, d2/dt2
+        kv = _keys_weights(v - iv)
+        rows = np.einsum("nrc,knc->knr", patch, ku)  # per stencil row: value, d/du, d2/du2
+        f = np.einsum("nr,nr->n", rows[0], kv[0])
+        fx = np.einsum("nr,nr->n", rows[1], kv[0])
+        fy = np.einsum("nr,nr->n", rows[0], kv[1])
+        fxx = np.einsum("nr,nr->n", rows[2], kv[0])
+        fxy = np.einsum("nr,nr->n", rows[1], kv[1])
+        fyy = np.einsum("nr,nr->n", rows[0], kv[2])
+        res, res2 = self.resolution, self.resolution**2
+        return (
+            f * inside,
+            fx * inside / res,
+            fy * inside / res,
+            fxx * inside / res2,
+            fxy * inside / res2,
+            fyy * inside / res2,
+        )
+
+
+def _stencil(w: int) -> np.ndarray:
+    """Flat offsets of a 4 x 4 stencil from its corner in an array ``w`` wide (row-major)."""
+    return (np.arange(4)[:, None] * w + np.arange(4)[None, :]).ravel()
+
+
+def _keys_weights(t: np.ndarray) -> np.ndarray:
+    """(3, N, 4) Catmull-Rom weights of samples -1, 0, 1, 2 at fraction ``t``, their d/dt and
+    d2/dt2 (written in place: a nested ``np.array`` of the twelve rows cost a third more)."""
+    t2 = t * t
+    t3 = t2 * t
+    out = np.empty((3, len(t), 4))
+    w, d, h = out
+    w[:, 0], w[:, 1] = -t3 + 2.0 * t2 - t, 3.0 * t3 - 5.0 * t2 + 2.0
+    w[:, 2], w[:, 3] = -3.0 * t3 + 4.0 * t2 + t, t3 - t2
+    d[:, 0], d[:, 1] = -3.0 * t2 + 4.0 * t - 1.0, 9.0 * t2 - 10.0 * t
+    d[:, 2], d[:, 3] = -9.0 * t2 + 8.0 * t + 1.0, 3.0 * t2 - 2.0 * t
+    h[:, 0], h[:, 1] = -6.0 * t + 4.0, 18.0 * t - 10.0
+    h[:, 2], h[:, 3] = -18.0 * t + 8.0, 6.0 * t - 2.0
+    out *= 0.5
+    return out
+
+
+SMOOTH_PAD = 3  # [cells] zero border of a SmoothField (the bicubic stencil reaches 2)
+LM_DAMPING_DOWN = 0.1  # Levenberg-Marquardt damping after a step that lowered the cost
+LM_DAMPING_UP = 10.0  # ... and after one that did not (the step is retried, shorter)
+
+
+def build_smooth_field(
+    mask: np.ndarray, origin_xy: tuple[float, float], resolution: float, sigma_m: float
+) -> SmoothField:
+    """The Gaussian blur (``sigma_m``) of a cell mask (row 0 at the bottom, Nav2 origin at the
+    corner of cell (0, 0)), normalised to a maximum of 1. Its ridge across a wall is the centroid
+    of the wall's cells: on the boundary of a two-cell wall, at the centre of a one-cell one."""
+    pad = SMOOTH_PAD
+    img = np.zeros((mask.shape[0] + 2 * pad, mask.shape[1] + 2 * pad), np.float32)
+    img[pad:-pad, pad:-pad] = mask
+    sigma = sigma_m / resolution
+    if sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    values = img.astype(np.float64)
+    peak = float(values.max())
+    if peak > 0:
+        values /= peak
+    origin = np.array(origin_xy, dtype=np.float64) + (0.5 - pad) * resolution
+    return SmoothField(origin, resolution, values)
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    pose: np.ndarray  # (3,) the polished pose, or ``initial`` when not ``ok``
+    ok: bool
+    reason: str  # why the initial pose was kept ("" when ok)
+    iterations: int
+    cost: float  # mean (1 - F)^2 at ``pose``
+
+
+def near_surface(reference: ReferenceCloud, world: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) bool: the world points within ``radius`` of a reference point (for a grid's
+    reference, a wall cell next to free or unknown space)."""
+    dist, _ = reference.tree.query(world, distance_upper_bound=radius)
+    return np.isfinite(dist)
+
+
+def refine_on_field(
+    field: SmoothField,
+    points: np.ndarray,
+    initial: np.ndarray,
+    max_iterations: int = 10,
+    max_shift_m: float = math.inf,
+    max_turn_rad: float = math.inf,
+    tolerance: float = 1e-4,
+    covariance: np.ndarray | None = None,
+    degeneracy_ratio: float = math.inf,
+) -> RefineResult:
+    """Damped Newton on ``sum r_i^2``, ``r_i = 1 - F(R p_i + t)``, from ``initial``.
+
+    **Frame-invariant**: the pose turns about the scan points' centroid, not the scan frame's
+    origin, and the basin test and weak axes are measured there, so the same points give the
+    same world pose whether the scan is in base_link or in a camera frame 0.2 m ahead. Give it
+    only the points on the map's walls (:func:`near_surface`): one in a gap of a mapped wall is
+    pulled along the wall onto the gap's end. The Hessian is Newton's (``J^T J`` plus ``r_i``
+    times the second derivatives of ``r_i``; Gauss-Newton alone overshoots a wall's ridge),
+    Gauss-Newton's where that is not positive definite; a step is kept only if it lowers the
+    cost; the polish stops below ``tolerance`` [m, rad]. **Weak axes**: the match's
+    ``covariance`` (at ``initial``), carried to the centroid with the yaw in metres (times the
+    points' RMS radius); along its axes with a variance over ``degeneracy_ratio`` times the
+    smallest (a corridor) ``initial`` is kept. It falls back to ``initial`` (``ok`` False, with
+    the reason) when fewer than ``MIN_POINTS`` points see a gradient, or when the centroid moves
+    farther than ``max_shift_m`` or the yaw ``max_turn_rad``: it left the match's basin. Sums
+    are numpy's (no BLAS): the result does not depend on OpenBLAS's kernels."""
+    start = np.asarray(initial, dtype=np.float64)
+    mean = points.mean(axis=0) if len(points) else np.zeros(2)
+    centred = points - mean
+    px, py = centred[:, 0], centred[:, 1]
+    c0, s0 = math.cos(start[2]), math.sin(start[2])
+    lever = np.array([c0 * mean[0] - s0 * mean[1], s0 * mean[0] + c0 * mean[1]])
+    origin = np.array([start[0] + lever[0], start[1] + lever[1], start[2]])  # the centroid's
+
+    def evaluate(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        c, s = math.cos(p[2]), math.sin(p[2])
+        qx, qy = c * px - s * py, s * px + c * py
+        f, fx, fy, fxx, fxy, fyy = field.sample(np.column_stack([qx + p[0], qy + p[1]]))
+        r = 1.0 - f
+        jac = np.vstack([-fx, -fy, fx * qy - fy * qx])
+        # Second derivatives of r_i (upper triangle: xx, xy, x-yaw, yy, y-yaw, yaw-yaw).
+        d2 = np.vstack(
+            [
+                -fxx,
+                -fxy,
+                fxx * qy - fxy * qx,
+                -fyy,
+                fxy * qy - fyy * qx,
+                -(fxx * qy * qy - 2.0 * fxy * qx * qy + fyy * qx * qx) + fx * qx + fy * qy,
+            ]
+        )
+        return float(np.einsum("n,n->", r, r)), r, jac, d2
+
+    def at_scan_origin(p: np.ndarray) -> np.ndarray:
+        c, s = math.cos(p[2]), math.sin(p[2])
+        out = p - np.array([c * mean[0] - s * mean[1], s * mean[0] + c * mean[1], 0.0])
+        out[2] = float(wrap_angle(out[2]))
+        return out
+
+    pose = origin.copy()
+    cost, r, jac, d2 = evaluate(pose)
+    n = max(len(points), 1)
+    if int(np.count_nonzero(jac[0] != 0.0)) < MIN_POINTS:
+        return RefineResult(start.copy(), False, "too few points on the smooth field", 0, cost / n)
+    damping, it = 1e-6, 0
+    for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
+        hess = np.einsum("in,jn->ij", jac, jac)  # numpy's own loops: no BLAS
+        grad = np.einsum("in,n->i", jac, r)
+        second = np.einsum("kn,n->k", d2, r)
+        full = hess + second[_UPPER_TO_FULL]
+        if np.linalg.eigvalsh(full)[0] > 0.0:
+            hess = full
+        improved, step = False, np.zeros(3)
+        while damping <= 1e6:
+            lhs = hess + damping * np.diag(np.diag(hess) + 1e-12)
+            _, _, sol, info = gesv(lhs, -grad)
+            if info != 0:
+                break
+            step = sol
+            trial = pose + step
+            trial_cost, trial_r, trial_jac, trial_d2 = evaluate(trial)
+            if trial_cost < cost:
+                pose, cost, r, jac, d2 = trial, trial_cost, trial_r, trial_jac, trial_d2
+                damping = max(damping * LM_DAMPING_DOWN, 1e-9)
+                improved = True
+                break
+            damping = max(damping * LM_DAMPING_UP, 1e-4)
+        if not improved or (abs(step[0]) + abs(step[1]) < tolerance and abs(step[2]) < tolerance):
+            break
+    move = pose - origin
+    move[2] = float(wrap_angle(move[2]))
+    if covariance is not None and math.isfinite(degeneracy_ratio):
+        move = _drop_weak_axes(move, covariance, lever, centred, degeneracy_ratio)
+        pose = origin + move
+        cost = evaluate(pose)[0]
+    if math.hypot(move[0], move[1]) > max_shift_m or abs(move[2]) > max_turn_rad:
+        return RefineResult(start.copy(), False, "left the match's basin", it, cost / n)
+    return RefineResult(at_scan_origin(pose), True, "", it, cost / n)
+
+
+def _drop_weak_axes(
+    move: np.ndarray, covariance: np.ndarray, lever: np.ndarray, centred: np.ndarray, ratio: float
+) -> np.ndarray:
+    """``move`` (x, y, yaw about the centroid) without its part along the weak axes of
+    ``covariance`` (x, y, yaw at the scan origin): the covariance carried to the centroid
+    (``lever``: scan origin -> centroid in the world) with yaw in metres of the points' RMS
+    radius, its eigenvectors with a variance over ``ratio`` times the smallest projected out."""
+    radius = max(math.sqrt(float(np.einsum("ij,ij->", centred, centred)) / len(centred)), 1e-3)
+    carry = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]], [0.0, 0.0, radius]])
+    cov = np.einsum("ij,jk,lk->il", carry, np.asarray(covariance, dtype=np.float64), carry)
+    evals, evecs = np.linalg.eigh(0.5 * (cov + cov.T))
+    well = evecs[:, evals <= ratio * max(float(evals[0]), 1e-18)]
+    scaled = np.array([move[0], move[1], move[2] * radius])
+    kept = np.einsum("ik,jk,j->i", well, well, scaled)
+    return np.array([kept[0], kept[1], kept[2] / radius])
+
+
+_UPPER_TO_FULL = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # 3 x 3 from its upper triangle
+
+
 def release_degenerate_axis(
     covariance: np.ndarray, degeneracy_ratio: float, unobserved_variance: float
 ) -> tuple[np.ndarray, bool]:
@@ -623,14 +864,20 @@ __all__ = [
     "IcpResult",
     "LikelihoodField",
     "ReferenceCloud",
+    "RefineResult",
+    "SmoothField",
     "build_grid_reference",
     "build_likelihood_field",
     "build_reference",
+    "build_smooth_field",
     "correlative_match",
     "icp_refine",
+    "near_surface",
+    "refine_on_field",
     "rival_score",
     "release_degenerate_axis",
     "scan_points",
+    "surface_mask",
     "transform_points",
     "voxel_filter",
 ]

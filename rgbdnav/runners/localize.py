@@ -324,6 +324,8 @@ def run_localize(
                     "global_searches": loc.stats.global_searches,
                     "kidnap_checks": loc.stats.kidnap_checks,
                     "matches": loc.stats.matches,
+                    "refined": loc.stats.refined,
+                    "refine_fallbacks": loc.stats.refine_fallbacks,
                 },
                 "timings_s": {
                     "map_model": round(model_s, 3),

@@ -836,3 +836,119 @@ def test_a_polished_icp_ends_where_it_ends_whatever_its_start() -> None:
     assert all(r.converged for r in plain + polished)
     assert np.abs(plain[0].pose - plain[1].pose).max() > 1e-4
     assert np.abs(polished[0].pose - polished[1].pose).max() < 1e-6
+
+
+def _two_cell_walls(res: float = 0.05, origin: float = -0.5) -> np.ndarray:
+    """ROOM as a mapper draws it when its walls lie on cell boundaries: range noise puts hits on
+    both sides of each wall, so every wall is the two cells straddling its line."""
+    n_x, n_y = int(9.0 / res), int(7.0 / res)
+    gx, gy = np.meshgrid(
+        origin + (np.arange(n_x) + 0.5) * res, origin + (np.arange(n_y) + 0.5) * res
+    )
+    occ = np.zeros(gx.shape, bool)
+    for x0, y0, x1, y1 in ROOM:
+        across, along, (lo, hi) = (gx - x0, gy, (y0, y1)) if x0 == x1 else (gy - y0, gx, (x0, x1))
+        occ |= (np.abs(across) < res) & (along > min(lo, hi) - res) & (along < max(lo, hi) + res)
+    return occ
+
+
+@pytest.mark.parametrize(
+    "truth", [ICP_TRUTH, np.array([2.0, 4.0, 1.0]), np.array([6.7, 1.2, -2.0])], ids=str
+)
+def test_the_sub_cell_polish_recovers_the_pose_icp_snaps_to_cell_centres(
+    truth: np.ndarray,
+) -> None:
+    from slam.scan_matching import (
+        build_grid_reference,
+        build_smooth_field,
+        refine_on_field,
+        surface_mask,
+    )
+
+    occ = _two_cell_walls()
+    ref = build_grid_reference(occ, (-0.5, -0.5), 0.05)
+    field = build_smooth_field(surface_mask(occ), (-0.5, -0.5), 0.05, 0.0375)
+    pts = body_points(ROOM, truth, n_beams=361, fov=math.radians(270), noise_m=0.005)
+    icp = icp_refine(ref, pts, truth + ICP_PERTURBATION, MAX_CORRESPONDENCE)
+    # ICP's references are cell centres 2.5 cm either side of each wall: it ends on them.
+    assert math.hypot(*(icp.pose[:2] - truth[:2])) > 0.015
+    res = refine_on_field(field, pts, icp.pose, max_shift_m=0.05, max_turn_rad=0.0175)
+    assert res.ok and res.reason == ""
+    assert math.hypot(*(res.pose[:2] - truth[:2])) < 0.005
+    assert abs(float(wrap_angle(res.pose[2] - truth[2]))) < math.radians(0.05)
+
+
+def test_the_sub_cell_polish_falls_back_to_its_start_outside_the_basin_or_the_map() -> None:
+    from slam.scan_matching import build_smooth_field, refine_on_field, surface_mask
+
+    occ = _two_cell_walls()
+    field = build_smooth_field(surface_mask(occ), (-0.5, -0.5), 0.05, 0.0375)
+    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270))
+    # It converges 1.5 cm away, beyond a 1 cm basin: the start is kept and the reason given.
+    start = ICP_TRUTH + np.array([0.015, 0.0, 0.0])
+    res = refine_on_field(field, pts, start, max_shift_m=0.01)
+    assert not res.ok and res.reason == "left the match's basin"
+    np.testing.assert_array_equal(res.pose, start)
+    # Far outside the map no point sees the field.
+    away = refine_on_field(field, pts, np.array([50.0, 50.0, 0.0]))
+    assert not away.ok and away.reason == "too few points on the smooth field"
+    assert away.iterations == 0
+
+
+def _polish_setup(holes: bool) -> tuple:
+    """The two-cell-wall ROOM, with three 0.3 m gaps cut in its mapped walls if ``holes``: its
+    ICP reference (the wall cells) and the polish's smooth field."""
+    from slam.scan_matching import build_grid_reference, build_smooth_field, surface_mask
+
+    occ = _two_cell_walls()
+    if holes:
+        occ[:, 40:46] = occ[:, 100:106] = occ[60:66, :] = False
+    ref = build_grid_reference(occ, (-0.5, -0.5), 0.05)
+    return ref, build_smooth_field(surface_mask(occ), (-0.5, -0.5), 0.05, 0.0375)
+
+
+def test_near_surface_leaves_out_the_scan_points_in_a_gap_of_the_mapped_walls() -> None:
+    # The polish's points: a scan point in a gap of a mapped wall would be pulled along the
+    # wall onto the gap's end (test_scan_frame's 160x120 scan turned 0.6 deg that way).
+    from slam.scan_matching import near_surface
+
+    ref, _ = _polish_setup(holes=True)
+    world = transform_points(
+        ICP_TRUTH, body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270))
+    )
+    on_wall = near_surface(ref, world, 0.05)
+    # The gaps: columns 40-45 and 100-105 (x from 1.5 and 4.5 m), rows 60-65 (y from 2.5 m).
+    gap_x = ((world[:, 0] > 1.5) & (world[:, 0] < 1.8)) | (
+        (world[:, 0] > 4.5) & (world[:, 0] < 4.8)
+    )
+    gap = gap_x | ((world[:, 1] > 2.5) & (world[:, 1] < 2.8))
+    inner = (
+        ((world[:, 0] > 1.6) & (world[:, 0] < 1.7))
+        | ((world[:, 0] > 4.6) & (world[:, 0] < 4.7))
+        | ((world[:, 1] > 2.6) & (world[:, 1] < 2.7))
+    )
+    assert np.count_nonzero(inner) >= 5 and not on_wall[inner].any()
+    assert on_wall[~gap].all()
+
+
+def test_the_sub_cell_polish_gives_one_world_pose_whatever_the_scan_frame() -> None:
+    # The same points in base_link and in a frame 0.2 m ahead (a camera-frame depth scan),
+    # from a start turned 0.86 deg about their centroid. The polish turns about the centroid and
+    # tests its basin there: both land on one pose. (Measured at the scan frame's origin, the
+    # move was 1.6 cm in base_link and 1.3 cm in the camera frame: only one kept it.)
+    from slam.geometry import ominus, oplus
+    from slam.scan_matching import refine_on_field
+
+    ref, field = _polish_setup(holes=False)
+    pts = body_points(ROOM, ICP_TRUTH, n_beams=361, fov=math.radians(270), noise_m=0.005)
+    mount = np.array([0.2, 0.05, 0.0])
+    centroid = np.array([*pts.mean(axis=0), 0.0])
+    turned = oplus(oplus(ICP_TRUTH, centroid), np.array([0.0, 0.0, 0.015]))
+    start = oplus(turned, ominus(centroid, np.zeros(3)))
+    kw = {"max_shift_m": 0.014, "max_turn_rad": 0.0175}
+    base = refine_on_field(field, pts, start, **kw)
+    cam = refine_on_field(field, pts - mount[:2], oplus(start, mount), **kw)
+    assert base.ok and cam.ok
+    assert np.abs(oplus(cam.pose, ominus(mount, np.zeros(3))) - base.pose).max() < 1e-9
+    assert math.hypot(*(base.pose[:2] - ICP_TRUTH[:2])) < 0.002
+    assert abs(float(wrap_angle(base.pose[2] - ICP_TRUTH[2]))) < math.radians(0.05)  # from 0.86
