@@ -1,7 +1,8 @@
 """Does the mapper hold on buildings, seeds and stamps it was not tuned on? (issue #12, item 2)
 
 Run: ``.venv/bin/python bench/bench_generalisation.py [--out docs/benchmarks.md]
-[--only aces,orebro] [--seeds 0,1,2]``.
+[--only aces,orebro] [--seeds 0,1,2] [--rerun loc]``. Results are cached in
+``runs/bench_generalisation.json``; ``--rerun loc|sharp`` recomputes that step after a change.
 
 Every Radish log in ``../shared/data/radish`` is mapped twice per case, each run in a fresh
 process with the default ``MapperConfig``:
@@ -309,6 +310,13 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     parser.add_argument("--only", help="comma-separated log names")
     parser.add_argument("--seeds", default=",".join(map(str, SEEDS)))
+    parser.add_argument(
+        "--rerun",
+        choices=("loc", "sharp"),
+        action="append",
+        default=[],
+        help="recompute these steps instead of reading them from the cache (after a code change)",
+    )
     args = parser.parse_args()
     if not RADISH_DIR.is_dir():
         sys.exit(f"error: {RADISH_DIR} is absent")
@@ -320,6 +328,8 @@ def main() -> None:
         for synthetic in (False, True) if own_clock else (False,):
             cases += [Case(name, seed, synthetic) for seed in (None, *seeds)]
     results: dict[str, dict[str, Any]] = json.loads(CACHE.read_text()) if CACHE.exists() else {}
+    stale = {f"{step}|{key(c)}" for step in args.rerun for c in cases}
+    results = {k: v for k, v in results.items() if k not in stale}
     jobs = [(key(c), run_case, (c,)) for c in cases]
     jobs += [
         ("loc|" + key(c), run_localisation, (c, key(dataclasses.replace(c, seed=None))))
