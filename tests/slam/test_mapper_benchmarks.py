@@ -18,6 +18,7 @@ import bench_mapper  # noqa: E402  (bench/ is no package)
 CARTOGRAPHER_M, CARTOGRAPHER_DEG = 0.0319, 0.369  # published, Kümmerle et al. 2009 relations
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     not (bench_mapper.MIT_LOG.is_file() and bench_mapper.MIT_RELATIONS.is_file()),
     reason="../shared/data/carmen is absent",
@@ -37,6 +38,7 @@ def test_mit_csail_relations_beat_cartographer() -> None:
 # The perturbed cases (1e-6 m of range noise, far below any laser's) hold the map to the same
 # bounds: before the loop-closure vote (2026-11-27) aces flipped to 1.7-2.7 m on such noise and
 # on another CPU's BLAS rounding (issue #12).
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("name", "max_mean_m", "range_noise_m"),
     [("aces", 0.4, 0.0), ("aces", 0.4, 1e-6), ("seattle", 0.25, 0.0)],
