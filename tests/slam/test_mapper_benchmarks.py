@@ -5,7 +5,9 @@ that SLAM must snap back. Skipped where the data is absent (a user's clone)."""
 
 from __future__ import annotations
 
+import logging
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -16,6 +18,16 @@ sys.path.insert(0, str(BENCH))
 import bench_mapper  # noqa: E402  (bench/ is no package)
 
 CARTOGRAPHER_M, CARTOGRAPHER_DEG = 0.0319, 0.369  # published, Kümmerle et al. 2009 relations
+
+
+@pytest.fixture(autouse=True)
+def _carmen_log_level_put_back() -> Iterator[None]:
+    """``run_case`` quiets ``sensors.carmen`` for the bench's child process; here it runs in the
+    test process, so the level is put back: later tests on the same worker read its warnings."""
+    logger = logging.getLogger("sensors.carmen")
+    level = logger.level
+    yield
+    logger.setLevel(level)
 
 
 @pytest.mark.slow
