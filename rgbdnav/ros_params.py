@@ -92,7 +92,10 @@ def parameter_blocks(data: Any, path: Path) -> list[tuple[str, dict[str, Any]]]:
 
 def _diagonal(value: Any, what: str) -> tuple[list[float], str]:
     """A robot_localization covariance: 15 diagonal values or a 15x15 row-major matrix."""
-    a = np.asarray(value, dtype=np.float64).reshape(-1)
+    try:
+        a = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):  # a string, a ragged list, a mapping
+        raise ConfigError(f"{what}: expected a list of numbers, got {value!r:.60}") from None
     if a.size == STATE_SIZE:
         return a.tolist(), ""
     if a.size != STATE_SIZE * STATE_SIZE:

@@ -326,6 +326,7 @@ def test_a_localize_run_carries_the_map_it_localised_in(laser_run: Path, tmp_pat
     assert np.array_equal(np.asarray(grid.data).reshape(expected.shape), expected)
 
 
+@pytest.mark.realtime  # a live run / playback against the wall clock
 def test_a_live_run_with_its_recording_exports_images_and_the_optimised_path(
     live_recorded_run: tuple[Path, Path], tmp_path: Path
 ) -> None:

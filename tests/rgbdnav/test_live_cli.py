@@ -21,6 +21,9 @@ from rgbdnav.live.run import MEMORY_SAMPLE_S, Drill, LiveOptions, LiveRun, route
 from sensors.types import ConfigError, MapError
 from slam.map_bundle import load_bundle
 
+# Live runs against the wall clock: `make test` runs these alone, after the parallel part.
+pytestmark = pytest.mark.realtime
+
 REPO = Path(__file__).resolve().parents[2]
 WORLD = REPO / "scenes" / "house.yaml"
 RGBDNAV = Path(sys.executable).with_name("rgbdnav")

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from rgbdnav.cli import app
@@ -18,6 +19,9 @@ from rgbdnav.live.world_view import robot_runs, to_world
 from rgbdnav.visualize import occupied_cells_xy
 from sensors.tum import load_tum_trajectory
 from slam.map_bundle import load_map
+
+# Live runs against the wall clock: `make test` runs these alone, after the parallel part.
+pytestmark = pytest.mark.realtime
 
 REPO = Path(__file__).resolve().parents[2]
 WORLD = REPO / "scenes" / "house.yaml"

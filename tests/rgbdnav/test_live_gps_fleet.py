@@ -22,6 +22,9 @@ from slam.geometry import ominus, oplus
 from slam.map_bundle import save_map_yaml
 from slam.occupancy_grid import GridGeometry, OccupancyGrid, warp_to_geometry
 
+# Live runs against the wall clock: `make test` runs these alone, after the parallel part.
+pytestmark = pytest.mark.realtime
+
 REPO = Path(__file__).resolve().parents[2]
 HOUSE = REPO / "scenes" / "house.yaml"
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"

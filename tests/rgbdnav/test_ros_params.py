@@ -136,6 +136,10 @@ def test_layers_config_files_then_ros_params_then_set(tmp_path):
             "ekf_filter_node:\n  ros__parameters:\n    frequency: -5.0\n",
             "ekf.frequency: -5.0 Hz is out of range",
         ),
+        (  # the fuzz test's find: a mutated list read as a string
+            "ekf_filter_node:\n  ros__parameters:\n    process_noise_covariance: 0.05, 0.0]\n",
+            "process_noise_covariance: expected a list of numbers, got '0.05, 0.0]'",
+        ),
         ("ekf:\n  frequency: 30\n", "no 'ros__parameters' block"),
         ("ekf_filter_node:\n  ros__parameters: [1, 2]\n", "ros__parameters is not a mapping"),
     ],

@@ -149,6 +149,7 @@ def test_info_says_whether_the_accelerometer_pitch_or_the_config_wins(monkeypatc
         assert f"extrinsics  {want}" in res.output, res.output
 
 
+@pytest.mark.realtime  # a live run / playback against the wall clock
 def test_live_takes_the_accelerometer_pitch_unless_the_config_sets_it(
     monkeypatch, tmp_path
 ) -> None:

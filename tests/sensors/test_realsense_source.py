@@ -241,6 +241,7 @@ def test_odometry_and_map_of_a_recording_follow_the_route(route, tmp_path: Path)
     assert "map bundle" in res.output and (tmp_path / "map" / "summary.json").exists()
 
 
+@pytest.mark.realtime  # a live run / playback against the wall clock
 def test_a_recording_played_as_a_camera_keeps_its_timing(route) -> None:
     path, truth = route
     t0 = time.monotonic()
@@ -287,6 +288,7 @@ def live_run(route, tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.realtime  # a live run / playback against the wall clock
 def test_live_maps_from_a_recording_played_as_the_camera(live_run: Path) -> None:
     s = json.loads((live_run / "summary.json").read_text())
     assert s["errors"] == [] and s["counts"]["frames_processed"] >= 5
@@ -309,6 +311,7 @@ def _yaw_error(out: Path) -> tuple[float, dict]:
     return abs(yaw - truth), {**summary, "odom_span_s": odom[-1, 0] - odom[0, 0]}
 
 
+@pytest.mark.realtime  # a live run / playback against the wall clock
 def test_live_fuses_the_streaming_gyro_and_turns_as_the_route(
     route, live_run: Path, tmp_path: Path
 ) -> None:

@@ -12,6 +12,9 @@ from sensors.eddie import BoardError, EddieBoard
 from sensors.sim.live import SimRobot
 from sensors.types import SensorError
 
+# Live runs against the wall clock: `make test` runs these alone, after the parallel part.
+pytestmark = pytest.mark.realtime
+
 WORLD = Path(__file__).resolve().parents[3] / "scenes" / "house.yaml"
 FRAME_TIMEOUT_S = 5.0  # [s] generous: CI machines are shared
 WAIT_S = 30.0  # [s] for MIN_FRAMES on a starved machine (idle: done in the drive's 1.5 s)
