@@ -18,7 +18,7 @@ from sensors.types import RgbdNavError
 log = logging.getLogger(__name__)
 ProgressBar = Callable[[str], AbstractContextManager[Callable[[int, int], None] | None]]
 
-SIM_VERSION = "3"  # bump when the simulator's output changes for the same inputs
+SIM_VERSION = "2"  # bump when the simulator's output changes for the same inputs
 
 
 def cache_root() -> Path:

@@ -352,9 +352,6 @@ class SimConfig:
     max_linear_accel: float = param(0.5, unit="m/s^2", gt=0.0)
     max_angular_accel: float = param(1.5, unit="rad/s^2", gt=0.0)
     waypoint_tolerance: float = param(0.1, unit="m", gt=0.0)
-    start_still_time: float = param(
-        3.0, unit="s", ge=0.0, doc="standing before the route, as a robot switched on does"
-    )
     # Kinect v1 depth: Gaussian disparity noise, then 1/8-px quantisation -> sigma_z ~ z^2.
     disparity_noise: float = param(0.07, unit="px", ge=0.0)
     disparity_subpixel: int = param(8, ge=1, doc="disparity quantisation steps per pixel")

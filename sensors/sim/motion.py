@@ -64,8 +64,7 @@ def _wrap(a: float) -> float:
 def drive_route(world: World, sim: SimConfig) -> Trajectory:
     """Drive ``world.route`` from ``world.start``: turn in place towards the next waypoint when the
     heading error is large, otherwise drive forward while steering; slow down before waypoints
-    that need a sharp turn. It stands still for ``sim.start_still_time`` first (the front end learns
-    the gyro bias from a stand) and SETTLE_TIME at the end. Deterministic."""
+    that need a sharp turn. Deterministic."""
     dt = 1.0 / sim.physics_rate
     x, y, th = world.start
     v = w = 0.0
@@ -74,7 +73,7 @@ def drive_route(world: World, sim: SimConfig) -> Trajectory:
         world.route_length() / sim.max_linear_speed + len(route) * math.pi / sim.max_angular_speed
     )
     max_steps = int(ROUTE_TIME_FACTOR * ideal / dt) + 1
-    out = [(x, y, th, v, w)] * (1 + int(round(sim.start_still_time / dt)))
+    out = [(x, y, th, v, w)]
     i, settle = 0, 0
     for _ in range(max_steps):
         if i < len(route):

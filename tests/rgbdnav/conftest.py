@@ -19,11 +19,11 @@ OREBRO = DATA / "radish" / "orebro-corrected.log.gz"
 
 @pytest.fixture(scope="session")
 def house_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """45 frames (1.5 s) of the house route, seed 2: `rgbdnav simulate` as a user runs it,
-    without the stand at start-up (the frames show the robot driving)."""
+    """45 frames (1.5 s) of the house route, seed 2: `rgbdnav simulate` as a user runs it."""
     out = tmp_path_factory.mktemp("rec") / "house"
-    args = ["--frames", "45", "--seed", "2", "--set", "sim.start_still_time=0", "--quiet"]
-    result = CliRunner().invoke(app, ["simulate", str(HOUSE), "--out", str(out), *args])
+    result = CliRunner().invoke(
+        app, ["simulate", str(HOUSE), "--out", str(out), "--frames", "45", "--seed", "2", "--quiet"]
+    )
     assert result.exit_code == 0, result.output
     return out
 

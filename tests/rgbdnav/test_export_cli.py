@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -104,8 +103,7 @@ def laser_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def rgbd_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("rgbd")
     cfg = load_config()
-    sim = replace(cfg.sim, start_still_time=0.0)  # 24 frames of driving, no stand
-    simulate(REPO / "scenes" / "house.yaml", d / "rec", cfg.robot, cfg.camera, sim, frames=24)
+    simulate(REPO / "scenes" / "house.yaml", d / "rec", cfg.robot, cfg.camera, cfg.sim, frames=24)
     res = _cli("map", d / "rec", "--out", d / "run", "-q", "--set", "robot.camera_height=0.52")
     assert res.exit_code == 0, res.output
     return d / "run"

@@ -6,9 +6,8 @@ occupied cells match the floor plan's observed surfaces (IoU >= 0.9 within one c
 The suite drives a cut of the house route: the shipped house (same walls, textures, furniture,
 start, robot and sensor models), a 9 m loop of the living room that sets off along the shipped
 route's first leg, comes back to the start and re-drives that leg, so it still closes a loop and
-re-visits mapped ground (1036 frames, 90 of them the 3 s stand at start-up, instead of about 4060).
-The thresholds are the full route's; the cut measured 0.022 m aligned ATE, 0.034 m
-start-anchored, IoU 0.923, 4 closures accepted (docs/design/gyro_bias.md). The full
+re-visits mapped ground (946 frames instead of 3970). The thresholds are the full route's; the cut
+measured 0.017 m aligned ATE, 0.041 m start-anchored, IoU 0.937, 4 closures accepted. The full
 44 m route, with the same targets, is `bench/bench_house_route.py` (docs/benchmarks.md, which
 also says why this cut replaced a 14 m one).
 

@@ -106,11 +106,7 @@ def _bag_from_recording(recording: Path, bag_path: Path) -> None:
 def test_a_ros2_bag_with_only_odom_rgbd_and_imu_maps(tmp_path: Path) -> None:
     rec = tmp_path / "rec"
     result = runner.invoke(
-        app,
-        [
-            *("simulate", str(HOUSE), "--out", str(rec), "--frames", "90", "--seed", "2"),
-            *("--set", "sim.start_still_time=0", "--quiet"),  # 3 s of driving, no stand
-        ],
+        app, ["simulate", str(HOUSE), "--out", str(rec), "--frames", "90", "--seed", "2", "--quiet"]
     )
     assert result.exit_code == 0, result.output
     bag = tmp_path / "odom_only_bag"

@@ -19,7 +19,7 @@ how many frames before that were "tracking" at a wrong pose with confidence >= m
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -206,9 +206,9 @@ def run_kidnap(
 
 
 def house(scene: str = "house") -> tuple[World, Config, Trajectory, MapModel]:
-    """A shipped scene (``scenes/<scene>.yaml``), the RGB-D config, its route (driven from
-    t = 0: the kidnap times are along the driving) and floor-plan map."""
+    """A shipped scene (``scenes/<scene>.yaml``), the RGB-D config, its route and floor-plan
+    map."""
     cfg = rgbd_config()
     world = load_world(SCENES / f"{scene}.yaml")
     model = MapModel.from_grid(floor_plan_grid(world, cfg), cfg.localizer)
-    return world, cfg, drive_route(world, replace(cfg.sim, start_still_time=0.0)), model
+    return world, cfg, drive_route(world, cfg.sim), model

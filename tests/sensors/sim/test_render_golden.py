@@ -52,9 +52,7 @@ GOLDEN = {
 
 def route_poses(world: World) -> list[Pose]:
     traj = drive_route(world, SimConfig())
-    # Poses along the driving, after the stand at start-up (the hashes predate the stand).
-    first = round(SimConfig().start_still_time * SimConfig().physics_rate)
-    idx = [first + round(f * (len(traj.t_ns) - 1 - first)) for f in ROUTE_FRACTIONS]
+    idx = [round(f * (len(traj.t_ns) - 1)) for f in ROUTE_FRACTIONS]
     return [(float(traj.x[i]), float(traj.y[i]), float(traj.yaw[i])) for i in idx]
 
 
