@@ -4,6 +4,7 @@ the front end (wheels, gyro, the logged VO results, EKF) re-run over them in sec
 Run::
 
     python bench/diag_ekf_lateral.py capture REC --out CACHE.pkl   # VO + depth->scan once
+    python bench/diag_ekf_lateral.py capture WORLD.yaml --seed 1 --out CACHE.pkl
     python bench/diag_ekf_lateral.py replay CACHE.pkl [--set ekf.KEY=V ...] [--map]
 
 ``capture`` drives ``rgbdnav map``'s front end over a recording (``rgbdnav simulate WORLD --out
@@ -57,9 +58,9 @@ WINDOW = 10  # frames: the relative-motion window of the across-path error
 # --- capture ----------------------------------------------------------------------------------
 
 
-def capture(rec: Path, out: Path, overrides: list[str]) -> None:
+def capture(rec: Path, out: Path, overrides: list[str], seed: int = 0) -> None:
     cfg = load_config([], overrides)
-    src = open_world_or_source(rec, cfg, 0)
+    src = open_world_or_source(rec, cfg, seed)
     scene, _, cfg, _ = source_config(src, [], overrides)
     opts = options_for(src, True, False, cfg.camera.rate)
     fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
@@ -256,6 +257,7 @@ def main() -> None:
     c.add_argument("recording", type=Path)
     c.add_argument("--out", type=Path, required=True)
     c.add_argument("--set", action="append", default=[], dest="overrides")
+    c.add_argument("--seed", type=int, default=0, help="the simulator's seed (a world file)")
     r = sub.add_parser("replay")
     r.add_argument("cache", type=Path)
     r.add_argument("--set", action="append", default=[], dest="overrides")
@@ -270,7 +272,7 @@ def main() -> None:
     )
     a = ap.parse_args()
     if a.cmd == "capture":
-        capture(a.recording, a.out, a.overrides)
+        capture(a.recording, a.out, a.overrides, a.seed)
         return
     data = pickle.loads(a.cache.read_bytes())
     PlanarEkf.twist_moves_pose = a.textbook
