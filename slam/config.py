@@ -339,7 +339,7 @@ class VoConfig:
     every_n_frames: int = param(
         1,
         ge=1,
-        doc="with wheels or /odom in the EKF, VO on every n-th frame only (the pair spans the "
+        doc="with wheel encoders in the EKF, VO on every n-th frame only (the pair spans the "
         "frames between; docs/design/speed.md)",
     )
 

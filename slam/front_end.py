@@ -177,7 +177,7 @@ class FrontEnd:
             self.inputs = tuple(
                 sorted(n for n, on in wanted.items() if on and any(getattr(ekf, f"{n}_config")))
             )
-        if self.vo_cfg.every_n_frames > 1 and "odom0" in self.inputs:  # pairs n frames apart
+        if self.vo_cfg.every_n_frames > 1 and self._wheels_carry:  # pairs n frames apart
             period = max(options.frame_interval_s, 1.0 / options.camera_rate_hz)
             span = period * self.vo_cfg.every_n_frames
             self.vo_cfg = replace(
@@ -205,6 +205,15 @@ class FrontEnd:
     def vo_stats(self) -> dict[str, int]:
         """The VO's own counters (depth ICP fallbacks used / failed), empty before any frame."""
         return dict(self._vo.stats) if self._vo is not None else {}
+
+    @property
+    def _wheels_carry(self) -> bool:
+        """Wheel encoders are in the filter: what ``vo.every_n_frames`` needs to skip VO. Not
+        odometry messages: on the only ``/odom`` source measured (the 90-frame bag of
+        tests/rgbdnav/test_odometry_sources.py) VO on every 2nd frame fused 0.8 % less travel
+        (SLAM ATE 3.1 -> 4.6 mm, a keyframe lost), while the same frames with their wheel
+        ticks mapped alike (docs/design/speed.md, session 18)."""
+        return self.options.wheels and "odom0" in self.inputs
 
     @property
     def vo_carries(self) -> bool:
@@ -371,9 +380,9 @@ class FrontEnd:
 
     def _vo_due(self, index: int) -> bool:
         """VO runs on frame ``index`` (0 = the first): every frame, or with ``vo.every_n_frames``
-        n > 1 every n-th one while the wheels or odometry messages carry the filter between."""
+        n > 1 every n-th one while the wheel encoders carry the filter between."""
         n = self.vo_cfg.every_n_frames
-        return n <= 1 or "odom0" not in self.inputs or index % n == 0
+        return n <= 1 or not self._wheels_carry or index % n == 0
 
     def _pose_at(self, stamp_ns: int) -> tuple[Odometry2D | None, bool]:
         if self.ekf is None:

@@ -171,7 +171,8 @@ def test_features_and_scans_made_ahead_on_the_stage_thread_give_the_sequential_s
     for ahead in (False, True):
         where.clear()
         with open_source(recording) as src:
-            cfg = source_config(src, [], [])[2]  # `rgbdnav map`'s config: ORB on every frame
+            # `rgbdnav map`'s config with ORB on every frame (its default, every 2nd: below)
+            cfg = source_config(src, [], ["vo.every_n_frames=1"])[2]
             fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, options_for(src))
             runs[ahead] = list(itertools.islice(replay(src, fe, ahead=ahead), 25))
         n = len(runs[ahead])
@@ -216,7 +217,7 @@ def test_vo_on_every_second_frame_with_wheels_spans_the_frame_between(
 
     monkeypatch.setattr(VisualOdometry, "extract", spy)
     with open_source(recording) as src:
-        cfg = source_config(src, [], ["vo.every_n_frames=2"])[2]
+        cfg = source_config(src, [], [])[2]  # the RGB-D profile's vo.every_n_frames=2
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, options_for(src))
         assert fe.vo_cfg.max_translation == pytest.approx(2 * cfg.vo.max_translation)
         steps = list(replay(src, fe))

@@ -119,6 +119,8 @@ def test_a_ros2_bag_with_only_odom_rgbd_and_imu_maps(tmp_path: Path) -> None:
     assert fe["inputs"] == ["imu0", "odom0", "vo0"]  # /odom stands in for the wheels
     assert fe["ekf"]["sensors"]["odom0"]["fused"] > 100
     assert fe["ekf"]["sensors"]["vo0"]["fused"] > 80
+    # The RGB-D profile's vo.every_n_frames=2 needs wheel encoders: with /odom, VO every frame.
+    assert "vo_skipped_stride" not in fe["counts"]
     assert summary["counts"]["scans"] == 90
     # The bag has no ground truth: score the map's trajectory against the simulator's.
     stamps, xyz, quat = load_tum_trajectory(out / "trajectory.tum")
