@@ -27,7 +27,7 @@ from sensors.config import RobotConfig
 from sensors.extrinsics import optical_in_base
 from sensors.types import CameraIntrinsics, ConfigError, LaserScan, RgbdFrame
 from slam.config import DepthToScanConfig
-from slam.geometry import ominus, oplus
+from slam.geometry import lever_jacobian, ominus, oplus
 
 ROBOT_FRAMES = ("base_link", "base_footprint")  # base_link lies on the floor (ARCHITECTURE.md)
 CAMERA_FRAME_PREFIX = "camera"
@@ -93,10 +93,7 @@ def base_covariance(
     if not np.any(scan_in_base):
         return np.asarray(covariance, dtype=np.float64)
     pose = np.asarray(scan_frame_pose, dtype=np.float64)
-    lever = base_pose(pose, scan_in_base)[..., :2] - pose[..., :2]
-    j = np.broadcast_to(np.eye(3), (*lever.shape[:-1], 3, 3)).copy()
-    j[..., 0, 2] = -lever[..., 1]
-    j[..., 1, 2] = lever[..., 0]
+    j = lever_jacobian(base_pose(pose, scan_in_base)[..., :2] - pose[..., :2])
     return j @ np.asarray(covariance, dtype=np.float64) @ np.swapaxes(j, -1, -2)
 
 

@@ -68,6 +68,17 @@ def rotate_covariance(cov: np.ndarray, yaw: float) -> np.ndarray:
     return rot @ cov @ rot.T
 
 
+def lever_jacobian(lever: ArrayLike) -> np.ndarray:
+    """(..., 3, 3) d(point pose)/d(pose) for a point rigidly ``lever`` (..., 2) [m] from a pose's
+    origin, the lever in the world frame: ``[[1, 0, -ly], [0, 1, lx], [0, 0, 1]]``. A covariance
+    carried to that point is ``J C J^T``: a yaw sigma adds lever x sigma of position across it."""
+    lever = np.asarray(lever, dtype=np.float64)
+    j = np.broadcast_to(np.eye(3), (*lever.shape[:-1], 3, 3)).copy()
+    j[..., 0, 2] = -lever[..., 1]
+    j[..., 1, 2] = lever[..., 0]
+    return j
+
+
 def path_length(xy: ArrayLike) -> float:
     """Length [m] of the polyline through the points (N, 2); 0 for fewer than two."""
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)

@@ -37,7 +37,7 @@ from scipy.linalg.lapack import dgesv as gesv
 from scipy.spatial import cKDTree
 
 from sensors.types import LaserScan
-from slam.geometry import wrap_angle
+from slam.geometry import lever_jacobian, wrap_angle
 
 NORMAL_NEIGHBOURS = 5  # points used to fit each reference point's line (incl. itself)
 NORMAL_TIE_EXTRA = 3  # further neighbours looked at for a tie with the k-th
@@ -828,7 +828,8 @@ def _drop_weak_axes(
     (``lever``: scan origin -> centroid in the world) with yaw in metres of the points' RMS
     radius, its eigenvectors with a variance over ``ratio`` times the smallest projected out."""
     radius = max(math.sqrt(float(np.einsum("ij,ij->", centred, centred)) / len(centred)), 1e-3)
-    carry = np.array([[1.0, 0.0, -lever[1]], [0.0, 1.0, lever[0]], [0.0, 0.0, radius]])
+    carry = lever_jacobian(lever)
+    carry[2, 2] = radius
     cov = np.einsum("ij,jk,lk->il", carry, np.asarray(covariance, dtype=np.float64), carry)
     evals, evecs = np.linalg.eigh(0.5 * (cov + cov.T))
     well = evecs[:, evals <= ratio * max(float(evals[0]), 1e-18)]
