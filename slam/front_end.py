@@ -209,10 +209,9 @@ class FrontEnd:
     @property
     def _wheels_carry(self) -> bool:
         """Wheel encoders are in the filter: what ``vo.every_n_frames`` needs to skip VO. Not
-        odometry messages: on the only ``/odom`` source measured (the 90-frame bag of
-        tests/rgbdnav/test_odometry_sources.py) VO on every 2nd frame fused 0.8 % less travel
-        (SLAM ATE 3.1 -> 4.6 mm, a keyframe lost), while the same frames with their wheel
-        ticks mapped alike (docs/design/speed.md, session 18)."""
+        odometry messages: fused with ``/odom``, VO on every 2nd frame measured worse than on
+        every frame, while the same frames with wheel ticks mapped alike (measurements:
+        docs/design/speed.md, session 18)."""
         return self.options.wheels and "odom0" in self.inputs
 
     @property
