@@ -373,6 +373,25 @@ def test_bad_input_is_skipped_with_a_counted_reason() -> None:
     assert np.degrees(yaw.max()) < 0.5
 
 
+def test_the_first_keyframe_is_the_first_scan_with_points() -> None:
+    """A camera that sees nothing at first (out of range, a wall too close): those scans are
+    skipped and counted, and the map starts at the first scan it can match."""
+    scans = scans_along(ROOM, ROOM_ROUTE, noise_m=0.005, seed=0)
+    blind = [replace(s, ranges=np.full_like(s.ranges, np.inf)) for s in scans[:3]]
+    mapper = Mapper(CFG)
+    for scan in blind:
+        assert mapper.add_scan(scan, ROOM_ROUTE[0]) is None
+    for scan, pose in zip(scans[3:], ROOM_ROUTE[3:], strict=True):
+        assert mapper.add_scan(scan, pose) is not None
+    result = mapper.finish()
+    assert result.counts["skipped"] == {"too few points before the first keyframe": 3}
+    assert result.keyframes[0].stamp_ns == scans[3].stamp_ns
+    assert len(result.keyframes[0].points) > 100
+    assert result.counts["scans_used"] == len(scans) - 3 == len(result.scan_poses)
+    pos, yaw = errors(result.scan_poses, ROOM_ROUTE[3:])
+    assert pos.max() < 0.02 and np.degrees(yaw.max()) < 0.5
+
+
 def test_scans_with_varying_beam_counts_map_fine() -> None:
     scans = [
         raycast(
