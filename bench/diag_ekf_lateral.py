@@ -144,7 +144,9 @@ class _LoggedScans:
 
 def replay(data: dict, overrides: list[str]) -> dict:
     cfg = load_config([], overrides)
-    src = open_world_or_source(Path(data["source"]), cfg, 0)
+    # Only the source's config is read: no renderer process (a wrapper script that calls
+    # replay needs no `if __name__ == "__main__":` guard; capture's renderer does).
+    src = open_world_or_source(Path(data["source"]), cfg, 0, render_ahead=False)
     _, _, cfg, _ = source_config(src, [], overrides)
     src.close()
     TracedEkf.trace = {}

@@ -52,7 +52,9 @@ def breakdown(run: Path, world: Path) -> tuple[dict, np.ndarray]:
     summary = json.loads((run / "summary.json").read_text())
     # The run's own source (a recording of the world, or the world) holds its ground truth.
     source = Path(summary.get("source", world))
-    gt = open_world_or_source(source if source.exists() else world, load_config([], []), 0)
+    gt = open_world_or_source(
+        source if source.exists() else world, load_config([], []), 0, render_ahead=False
+    )
     gt = gt.groundtruth()
     if gt is None:
         raise SystemExit(f"error: {source}: no ground truth")

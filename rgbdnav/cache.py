@@ -77,14 +77,15 @@ def recording_for(
     return cached
 
 
-def open_world_or_source(source: Path, cfg: Config, seed: int) -> Source:
+def open_world_or_source(source: Path, cfg: Config, seed: int, render_ahead: bool = True) -> Source:
     """A world file as a source rendered on demand (no cache; see
-    :mod:`sensors.sim.world_source`; its renderer process starting at once), any other path
-    as :func:`sensors.source.open_source` opens it with ``cfg``'s options."""
+    :mod:`sensors.sim.world_source`; its renderer process starting at once unless
+    ``render_ahead`` is False: a caller that reads no frames starts none), any other path as
+    :func:`sensors.source.open_source` opens it with ``cfg``'s options."""
     from rgbdnav.config import source_options
     from sensors.sim.world_source import open_world
     from sensors.source import open_source
 
     if is_world(source):
-        return open_world(source, cfg.robot, cfg.camera, cfg.sim, seed, render_ahead=True)
+        return open_world(source, cfg.robot, cfg.camera, cfg.sim, seed, render_ahead=render_ahead)
     return open_source(source, source_options(cfg))

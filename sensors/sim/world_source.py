@@ -44,6 +44,18 @@ log = logging.getLogger(__name__)
 
 QUEUE_FRAMES = 6  # frame slots the renderer may fill ahead of the consumer (~1.5 MB each)
 POLL_S = 1.0  # [s] how often a waiting consumer checks that the renderer is still alive
+NO_MAIN_GUARD = (
+    'a script that opens a world must keep its code under `if __name__ == "__main__":` '
+    "(the renderer is a spawned process, which imports the script again)"
+)
+
+
+def _check_not_bootstrapping() -> None:
+    """A spawned process still importing its parent's main script (one without the guard)
+    must not start a renderer: it would run the script's work again and then fail in
+    multiprocessing's start-up check with a 30-line text. The same test as that check's."""
+    if getattr(mp.current_process(), "_inheriting", False):
+        raise SensorError(NO_MAIN_GUARD)
 
 
 class _Slots:
@@ -62,10 +74,14 @@ class _Slots:
         return np.frombuffer(self.counts_buf, np.uint16).reshape(QUEUE_FRAMES, *self.shape)[slot]
 
 
-def _render_worker(plan: SimulationPlan, slots: _Slots, free: Any, filled: Any) -> None:
-    """Child process: every frame of ``plan`` written into a slot taken from ``free`` and the
-    slot's number sent on ``filled``, then None; an exception is sent as its text (the parent
-    raises it). Ends when the parent is gone."""
+def _render_worker(
+    plan: SimulationPlan, slots: _Slots, free: Any, filled: Any, started: Any
+) -> None:
+    """Child process (``started`` set once it runs: it got past the spawn): every frame of
+    ``plan`` written into a slot taken from ``free`` and the slot's number sent on ``filled``,
+    then None; an exception is sent as its text (the parent raises it). Ends when the parent
+    is gone."""
+    started.set()
     parent = mp.parent_process()
 
     def take_slot() -> int | None:
@@ -99,14 +115,15 @@ class _RenderProcess:
     that runs threads), its slots and queues, and ending it."""
 
     def __init__(self, plan: SimulationPlan, height: int, width: int) -> None:
+        _check_not_bootstrapping()
         ctx = mp.get_context("spawn")
         self.slots = _Slots(ctx, height, width)
-        self.free, self.filled = ctx.Queue(), ctx.Queue()
+        self.free, self.filled, self.started = ctx.Queue(), ctx.Queue(), ctx.Event()
         for slot in range(QUEUE_FRAMES):
             self.free.put(slot)
         self.proc = ctx.Process(
             target=_render_worker,
-            args=(plan, self.slots, self.free, self.filled),
+            args=(plan, self.slots, self.free, self.filled, self.started),
             name="render",
             daemon=True,
         )
@@ -183,30 +200,37 @@ class RenderedRecording(Recording):
         self.start_rendering()
         child, self._started = self._started, None  # a second pass starts its own
         assert child is not None
-        slots, free, filled, proc = child.slots, child.free, child.filled, child.proc
+        slots, free = child.slots, child.free
         try:
             for k in range(n):
-                item = self._next(filled, proc)
+                item = self._next(child)
                 if not isinstance(item, int):
                     raise SensorError(f"rendering {self.plan.world.name} failed: {item}")
                 frame = self._frame(k, slots.rgb(item).copy(), slots.counts(item))
                 free.put(item)  # the frame owns copies: the slot may be filled again
                 yield frame
-            if self._next(filled, proc) is not None:
+            if self._next(child) is not None:
                 raise SensorError(f"rendering {self.plan.world.name}: more frames than planned")
         finally:
             child.close()
 
-    def _next(self, frames_q: Any, proc: Any) -> Any:
+    def _next(self, child: _RenderProcess) -> Any:
         while True:
             try:
-                return frames_q.get(timeout=POLL_S)
+                return child.filled.get(timeout=POLL_S)
             except queue.Empty:
-                if not proc.is_alive():
+                proc = child.proc
+                if proc.is_alive():
+                    continue
+                if not child.started.is_set():  # died in the spawn: importing the script
                     raise SensorError(
                         f"rendering {self.plan.world.name}: the renderer process ended "
-                        f"(exit code {proc.exitcode}) before its last frame"
+                        f"(exit code {proc.exitcode}) before it started: {NO_MAIN_GUARD}"
                     ) from None
+                raise SensorError(
+                    f"rendering {self.plan.world.name}: the renderer process ended "
+                    f"(exit code {proc.exitcode}) before its last frame"
+                ) from None
 
     def frame(self, k: int) -> RgbdFrame:
         """The k-th frame, rendered in this process (its noise draws replayed up to k)."""
@@ -257,6 +281,8 @@ def open_world(
     with the same arguments. Nothing stays on disk. With ``render_ahead`` the renderer process
     starts as soon as the plan is made (:meth:`RenderedRecording.start_rendering`): its start-up
     then overlaps the writing of the streams here and the caller's own set-up."""
+    if render_ahead:
+        _check_not_bootstrapping()  # before the plan: its work is wasted in such a process
     plan = plan_simulation(world_path, robot, camera, sim, seed, frames=frames)
     ahead = None
     if render_ahead and not mp.current_process().daemon:

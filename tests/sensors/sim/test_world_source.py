@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing as mp
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ import yaml
 from sensors.config import CameraConfig, RobotConfig, SimConfig
 from sensors.recording import Recording
 from sensors.recording_source import RecordingSource
+from sensors.sim import world_source
 from sensors.sim.simulator import simulate
 from sensors.sim.world_source import open_world
 from sensors.types import SensorError
@@ -86,3 +88,35 @@ def test_a_renderer_that_fails_is_a_one_line_error(world: Path) -> None:
             list(src.frames())
     finally:
         src.close()
+
+
+class _DiesInSpawn:
+    """A renderer target that ends the spawned child while it unpickles its task: as a script
+    without the main guard ends it (multiprocessing refuses to start the child's own
+    renderer), before the renderer runs."""
+
+    def __reduce__(self) -> tuple:
+        return (sys.exit, (1,))
+
+    def __call__(self, *args: object) -> None:
+        raise AssertionError("never runs")
+
+
+def test_a_renderer_that_dies_in_its_spawn_says_the_script_needs_the_main_guard(
+    world: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    src = open_world(world, *_args(), seed=3, frames=2)
+    monkeypatch.setattr(world_source, "_render_worker", _DiesInSpawn())
+    try:
+        with pytest.raises(SensorError, match=r"exit code 1\) before it started: a script"):
+            list(src.frames())
+    finally:
+        src.close()
+
+
+def test_a_spawned_process_importing_its_script_starts_no_renderer(
+    world: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(mp.current_process(), "_inheriting", True, raising=False)
+    with pytest.raises(SensorError, match="must keep its code under `if __name__"):
+        open_world(world, *_args(), seed=3, frames=2, render_ahead=True)
