@@ -55,7 +55,12 @@ def test_a_loop_of_the_house_maps_within_5_cm_and_matches_the_floor_plan(
     assert not cache.exists()  # no ~1 GB rendering on disk
     s = json.loads((out / "summary.json").read_text())
     slam = s["slam_vs_groundtruth"]
-    assert slam["matched"] == s["counts"]["scans"] > 900  # a pose for every frame, all scored
+    # A pose for every frame with points, all scored: the map starts at the first (the first
+    # 15 frames see nothing the scan keeps; mapper.MIN_SCAN_POINTS), the frames before skipped.
+    counts = s["counts"]
+    before = counts["skipped"].pop("too few points before the first keyframe", 0)
+    assert before <= 20 and counts["skipped"] == {}, counts["skipped"]
+    assert slam["matched"] == counts["scans_used"] == counts["scans"] - before > 900
     assert slam["path_length_m"] > 9.0
     assert slam["ate_rmse_aligned_m"] <= 0.05, slam
     assert s["grid_vs_floor_plan_aligned"]["iou"] >= 0.9, s["grid_vs_floor_plan_aligned"]
