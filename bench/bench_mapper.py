@@ -35,7 +35,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import machine, publish  # noqa: E402  (bench/ is on sys.path)
+from common import machine, publish, quiet_logger  # noqa: E402  (bench/ is on sys.path)
 
 DATA = REPO.parent / "shared" / "data"
 MIT_LOG = DATA / "carmen" / "mit-csail.clf"
@@ -167,10 +167,11 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
     """Map one log in this (child) process; returns the numbers and the process's peak RSS."""
     from sensors.carmen import CarmenSource
 
-    logging.getLogger("sensors.carmen").setLevel(logging.ERROR)  # Radish ODOM stamps are all 0
     path = MIT_LOG if spec.name == "mit" else RADISH[spec.name]
-    src = CarmenSource(path)
-    scans = list(src.scans())[:: spec.every]
+    with quiet_logger("sensors.carmen", logging.ERROR):  # Radish ODOM stamps are all 0
+        src = CarmenSource(path)
+        scans = list(src.scans())[:: spec.every]
+        stream = src.laser_poses()
     if spec.range_noise_m > 0:  # a perturbation far below any sensor's noise: the map must hold
         rng = np.random.default_rng(spec.noise_seed)
         scans = [
@@ -186,7 +187,6 @@ def run_case(spec: CaseSpec) -> dict[str, Any]:
             dataclasses.replace(s, ranges=np.asarray(s.ranges, np.float32).astype(np.float64))
             for s in scans
         ]
-    stream = src.laser_poses()
     assert stream is not None
     stamps = stream.stamps_ns[:: spec.every]
     logged = _poses(stream)[:: spec.every]

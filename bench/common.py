@@ -3,14 +3,29 @@ the rgbdnav they run is this tree's (``python -m rgbdnav.cli`` with the tree on 
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import re
 import resource
 import subprocess
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
+
+
+@contextlib.contextmanager
+def quiet_logger(name: str, level: int) -> Iterator[None]:
+    """Raise logger ``name`` to ``level`` inside the block and put its level back after: a bench
+    function a test calls in its own process must not change what later tests log."""
+    logger = logging.getLogger(name)
+    before = logger.level
+    logger.setLevel(level)
+    try:
+        yield
+    finally:
+        logger.setLevel(before)
 
 
 def write_section(out: Path, section: str, body: str) -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -20,23 +19,15 @@ import bench_mapper  # noqa: E402  (bench/ is no package)
 CARTOGRAPHER_M, CARTOGRAPHER_DEG = 0.0319, 0.369  # published, Kümmerle et al. 2009 relations
 
 
-@pytest.fixture(autouse=True)
-def _carmen_log_level_put_back() -> Iterator[None]:
-    """``run_case`` quiets ``sensors.carmen`` for the bench's child process; here it runs in the
-    test process, so the level is put back: later tests on the same worker read its warnings."""
-    logger = logging.getLogger("sensors.carmen")
-    level = logger.level
-    yield
-    logger.setLevel(level)
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(
     not (bench_mapper.MIT_LOG.is_file() and bench_mapper.MIT_RELATIONS.is_file()),
     reason="../shared/data/carmen is absent",
 )
 def test_mit_csail_relations_beat_cartographer() -> None:
+    level = logging.getLogger("sensors.carmen").level
     run = bench_mapper.run_case(bench_mapper.CaseSpec("mit"))
+    assert logging.getLogger("sensors.carmen").level == level  # later tests read its warnings
     slam, odom = run["slam"], run["odom"]
     assert slam["skipped"] == 0 and slam["count"] == odom["count"] > 1000
     assert slam["trans_mean_m"] < CARTOGRAPHER_M, slam
