@@ -64,7 +64,7 @@ from slam.scan_matching import (
 log = logging.getLogger(__name__)
 
 MIN_SCAN_POINTS = 20  # valid returns a keyframe needs to be matched at all
-NO_POINTS_BEFORE_FIRST_KEYFRAME = "too few points before the first keyframe"
+EMPTY_BEFORE_FIRST_KEYFRAME = "no return before the first keyframe"
 LOOP_SIGMA_GATE = 3.0  # search radius/window in relative-uncertainty sigmas
 LOOP_MIN_LINEAR_WINDOW = 0.5  # [m] smallest loop-closure search half-window
 LOOP_MIN_ANGULAR_WINDOW = 0.2  # [rad] smallest loop-closure angular half-window
@@ -314,20 +314,18 @@ class Mapper:
         if self._relocalise:
             return self._relocalise_in_map(scan, odom)
         if not self.keyframes:
-            # The map starts at the first scan it can match against (slam_toolbox and
-            # Cartographer skip empty scans too): an empty first keyframe would leave tracking
-            # with no local map until the next one, and the map resting on a later keyframe.
+            # The map starts at the first scan with a return (Cartographer drops empty range
+            # data, slam_toolbox too): an empty first keyframe would leave tracking with no
+            # local map until the next one, and the map resting on a later keyframe.
             kf = self._make_keyframe(scan, odom)
-            if len(kf.match_points) < MIN_SCAN_POINTS:
-                self.skipped[NO_POINTS_BEFORE_FIRST_KEYFRAME] += 1
+            if len(kf.points) == 0:
+                self.skipped[EMPTY_BEFORE_FIRST_KEYFRAME] += 1
                 return None
-            if self.skipped[NO_POINTS_BEFORE_FIRST_KEYFRAME]:
+            if self.skipped[EMPTY_BEFORE_FIRST_KEYFRAME]:
                 log.info(
-                    "mapping starts at scan %d: skipped the %d scans before it with fewer than "
-                    "%d points",
+                    "mapping starts at scan %d: skipped the %d scans before it with no return",
                     self._scans_seen,
-                    self.skipped[NO_POINTS_BEFORE_FIRST_KEYFRAME],
-                    MIN_SCAN_POINTS,
+                    self.skipped[EMPTY_BEFORE_FIRST_KEYFRAME],
                 )
             self.graph.add_node(odom)
             self._append_keyframe(kf, 0.0, odom, True)

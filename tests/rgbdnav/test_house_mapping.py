@@ -55,10 +55,10 @@ def test_a_loop_of_the_house_maps_within_5_cm_and_matches_the_floor_plan(
     assert not cache.exists()  # no ~1 GB rendering on disk
     s = json.loads((out / "summary.json").read_text())
     slam = s["slam_vs_groundtruth"]
-    # A pose for every frame with points, all scored: the map starts at the first (the first
-    # 15 frames see nothing the scan keeps; mapper.MIN_SCAN_POINTS), the frames before skipped.
+    # A pose for every frame with a return, all scored: the map starts at the first (the first
+    # frames see nothing the scan keeps), the frames before it skipped.
     counts = s["counts"]
-    before = counts["skipped"].pop("too few points before the first keyframe", 0)
+    before = counts["skipped"].pop("no return before the first keyframe", 0)
     assert before <= 20 and counts["skipped"] == {}, counts["skipped"]
     assert slam["matched"] == counts["scans_used"] == counts["scans"] - before > 900
     assert slam["path_length_m"] > 9.0

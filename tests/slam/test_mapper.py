@@ -384,7 +384,7 @@ def test_the_first_keyframe_is_the_first_scan_with_points() -> None:
     for scan, pose in zip(scans[3:], ROOM_ROUTE[3:], strict=True):
         assert mapper.add_scan(scan, pose) is not None
     result = mapper.finish()
-    assert result.counts["skipped"] == {"too few points before the first keyframe": 3}
+    assert result.counts["skipped"] == {"no return before the first keyframe": 3}
     assert result.keyframes[0].stamp_ns == scans[3].stamp_ns
     assert len(result.keyframes[0].points) > 100
     assert result.counts["scans_used"] == len(scans) - 3 == len(result.scan_poses)
