@@ -32,13 +32,15 @@ demo: $(STAMP)
 # The suite in two parts (docs/design/speed.md): all but the live runs on TEST_WORKERS
 # pytest-xdist workers, then the live runs (marker `realtime`) alone, as they run against the wall
 # clock. Both parts always run. pytest's exit code is kept in .venv/pytest-exit-code so .ci/run
-# can tell "no tests" (5) apart: 5 only when neither part collected a test.
+# can tell "no tests" (5) apart: 5 only when neither part collected a test. Both parts share
+# RGBDNAV_TEST_PASSES_DIR (tests/conftest.py `passes_dir`): inputs both need are made once.
 TEST_WORKERS ?= 2
 test: $(STAMP)
-	@a=0; b=0; \
+	@a=0; b=0; export RGBDNAV_TEST_PASSES_DIR=$$(mktemp -d); \
 	$(PY) -X faulthandler -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder \
 	  -m "not realtime" $(PYTEST_ARGS) || a=$$?; \
 	$(PY) -X faulthandler -m pytest -m realtime $(PYTEST_ARGS) || b=$$?; \
+	rm -rf "$$RGBDNAV_TEST_PASSES_DIR"; \
 	if [ $$a = 5 ] && [ $$b = 5 ]; then rc=5; elif [ $$a != 0 ] && [ $$a != 5 ]; then rc=$$a; \
 	elif [ $$b != 0 ] && [ $$b != 5 ]; then rc=$$b; else rc=0; fi; \
 	echo $$rc > $(VENV)/pytest-exit-code; exit $$rc

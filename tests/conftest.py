@@ -6,6 +6,7 @@ temporary directory, and the CLIs that tests start as child processes inherit it
 from __future__ import annotations
 
 import functools
+import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,6 +19,15 @@ def _render_cache_in_a_temporary_dir(tmp_path_factory: pytest.TempPathFactory) -
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("RGBDNAV_CACHE", str(tmp_path_factory.mktemp("rgbdnav-cache")))
         yield
+
+
+@pytest.fixture(scope="session")
+def passes_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder both passes of `make test` see (RGBDNAV_TEST_PASSES_DIR: the Makefile makes
+    and removes it): a module whose tests run in both passes builds its inputs there once,
+    keyed by their parameters. Elsewhere, this session's own temporary folder."""
+    env = os.environ.get("RGBDNAV_TEST_PASSES_DIR")
+    return Path(env) if env else tmp_path_factory.mktemp("passes")
 
 
 # `make test` runs the suite in two parts: `pytest -n 2 --dist loadfile -m "not realtime"` on two
