@@ -205,6 +205,8 @@ class RobotConfig:
     camera_height: float = param(0.45, unit="m", ge=0.0, le=5.0, doc="camera_link z above floor")
     camera_pitch: float = param(0.0, unit="rad", ge=-1.2, le=1.2, doc="positive tilts down")
     camera_roll: float = param(0.0, unit="rad", ge=-0.5, le=0.5, doc="about the optical axis")
+    gps_x: float = param(0.0, unit="m", doc="GPS antenna x in base_link (navsat_transform's gps)")
+    gps_y: float = param(0.0, unit="m", doc="GPS antenna y in base_link (left)")
     wheel_error_left: float = param(
         0.0005, unit="m", ge=0.0, doc="odometry: left wheel travel variance per metre"
     )

@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import numpy as np
 
@@ -150,10 +151,21 @@ class SimGpsConfig:
         return cls(sim.gps_sigma, sim.gps_rate, sim.gps_outage_probability, sim.gps_mean_outage)
 
 
+def antenna_xy(x: Any, y: Any, yaw: Any, mount: Sequence[float]) -> tuple[Any, Any]:
+    """Where a receiver mounted at ``mount`` (x, y) [m] in base_link is when base_link is at
+    (x, y, yaw) (scalars or arrays): navsat_transform's ``base_link -> gps`` transform, the
+    robot's ``gps_x`` / ``gps_y``. At (0, 0) it is (x, y) as given, bit for bit."""
+    mx, my = float(mount[0]), float(mount[1])
+    if mx == 0.0 and my == 0.0:
+        return x, y
+    c, s = np.cos(yaw), np.sin(yaw)
+    return x + c * mx - s * my, y + s * mx + c * my
+
+
 class SimGpsReceiver:
-    """A simulated receiver riding base_link, fed true poses as they happen (the live simulated
-    robot) or all at once (:func:`simulate_gps`): a fix every ``1 / rate_hz`` with Gaussian
-    noise of ``sigma_m`` per axis, lost in bursts (the module doc's Gilbert channel);
+    """A simulated receiver fed its true positions (:func:`antenna_xy`) as they happen (the
+    live simulated robot) or all at once (:func:`simulate_gps`): a fix every ``1 / rate_hz``
+    with Gaussian noise of ``sigma_m`` per axis, lost in bursts (the module doc's Gilbert channel);
     deterministic for a seed."""
 
     def __init__(self, anchor: GeoAnchor, cfg: SimGpsConfig, seed: int) -> None:

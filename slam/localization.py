@@ -35,6 +35,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from sensors.gps import antenna_xy
 from sensors.types import LaserScan, MapError
 from slam.config import LocalizerConfig
 from slam.depth_to_scan import base_pose
@@ -1353,14 +1354,22 @@ class GpsPrior:
     last scan at or before the fix (the localiser widens the fix's disk by the distance driven
     since). Fixes are added in time order, all at once (a log) or as they come (live).
 
-    The receiver rides base_link (navsat_transform_node's assumption without a ``base_link ->
-    gps`` transform); the localiser's odometry is its scan frame's, ``scan_in_base``
+    The receiver sits at ``gps_in_base`` (x, y) in base_link (navsat_transform_node's
+    ``base_link -> gps`` transform; the robot's ``gps_x`` / ``gps_y``, 0: on base_link); the
+    localiser's odometry is its scan frame's, ``scan_in_base``
     (:func:`slam.depth_to_scan.scan_frame_in_base`) from base_link, so the fix goes in with
-    base_link's odometry pose (:func:`slam.depth_to_scan.base_pose`)."""
+    the receiver's odometry pose: base_link's (:func:`slam.depth_to_scan.base_pose`) moved by
+    the mount (:func:`sensors.gps.antenna_xy`)."""
 
-    def __init__(self, localizer: Localizer, scan_in_base: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        localizer: Localizer,
+        scan_in_base: np.ndarray | None = None,
+        gps_in_base: tuple[float, float] = (0.0, 0.0),
+    ) -> None:
         self.localizer = localizer
         self.scan_in_base = np.zeros(3) if scan_in_base is None else np.asarray(scan_in_base)
+        self.gps_in_base = gps_in_base
         self._pending: deque[tuple[int, np.ndarray, float]] = deque()  # (stamp, xy, sigma)
         self._odom: deque[tuple[int, np.ndarray]] = deque(maxlen=GPS_ODOM_HISTORY)
         self.fixes_used = 0
@@ -1383,7 +1392,9 @@ class GpsPrior:
             if t <= t_fix:
                 at = pose
                 break
-        self.localizer.set_gps_fix(xy, sigma, base_pose(at, self.scan_in_base))
+        base = base_pose(at, self.scan_in_base)
+        x, y = antenna_xy(base[0], base[1], base[2], self.gps_in_base)
+        self.localizer.set_gps_fix(xy, sigma, np.array([x, y, base[2]]))
         self.fixes_used += 1
 
 

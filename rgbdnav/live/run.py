@@ -78,6 +78,7 @@ from sensors.gps import (
     GpsWriter,
     SimGpsConfig,
     SimGpsReceiver,
+    antenna_xy,
     read_gps_txt,
 )
 from sensors.motor_board import MotorBoard
@@ -429,7 +430,7 @@ class LiveRun:
                 else world.route
             )
             self.route = self._in_map(np.column_stack([route, np.zeros(len(route))]))[:, :2]
-            if world.geo is not None and opts.camera == "sim":  # a receiver riding base_link
+            if world.geo is not None and opts.camera == "sim":  # at robot.gps_x / gps_y
                 self._sim_gps = SimGpsReceiver(
                     world.geo, SimGpsConfig.from_sim(cfg.sim), seed=opts.seed
                 )
@@ -539,7 +540,8 @@ class LiveRun:
         if self.map_anchor is None:
             log.warning("GPS fixes (%s) unused: the map has no geo anchor", self.gps_source)
             return
-        self._gps_prior = GpsPrior(self.localizer, self._scan_in_base())
+        mount = (self.cfg.robot.gps_x, self.cfg.robot.gps_y)
+        self._gps_prior = GpsPrior(self.localizer, self._scan_in_base(), mount)
 
     def _on_gps_fix(self, fix: GpsFix) -> None:
         """A fix from any receiver: to gps.txt and, placed in the map, to the localiser."""
@@ -570,7 +572,8 @@ class LiveRun:
                 yield None  # type: ignore[misc]  # lets the camera thread notice a stall
                 continue
             if self._sim_gps is not None:
-                fix = self._sim_gps.update(msg.stamp_ns, *msg.true_pose[:2])
+                mount = (self.cfg.robot.gps_x, self.cfg.robot.gps_y)
+                fix = self._sim_gps.update(msg.stamp_ns, *antenna_xy(*msg.true_pose[:3], mount))
                 if fix is not None:
                     self._on_gps_fix(fix)
             yield RgbdFrame(msg.stamp_ns, msg.rgb, msg.depth_m, self.sim.intrinsics)

@@ -255,7 +255,7 @@ def run_localize(
         loc = Localizer(
             model, cfg.localizer, None if init is None else scan_pose(init, scan_in_base)
         )
-        prior = GpsPrior(loc, scan_in_base)  # the receiver rides base_link
+        prior = GpsPrior(loc, scan_in_base, (cfg.robot.gps_x, cfg.robot.gps_y))
         if gps is not None:
             for t, xy, sigma in zip(*gps, strict=True):
                 prior.add_fix(int(t), xy, float(sigma))

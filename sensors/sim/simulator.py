@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from sensors.config import CameraConfig, RobotConfig, SimConfig, section_to_dict
-from sensors.gps import GpsStream, SimGpsConfig, simulate_gps
+from sensors.gps import GpsStream, SimGpsConfig, antenna_xy, simulate_gps
 from sensors.recording import RecordingWriter
 from sensors.sim.motion import (
     Trajectory,
@@ -193,8 +193,8 @@ def plan_simulation(
     gt_t = sample_times(duration_ns, sim.groundtruth_rate)
     gt_x, gt_y, gt_yaw = traj.interpolate(gt_t)
     gps = None
-    if world.geo is not None:  # a receiver riding base_link (sim.gps_*)
-        gps_xy = np.column_stack([gt_x, gt_y])
+    if world.geo is not None:  # a receiver at robot.gps_x / gps_y (sim.gps_*)
+        gps_xy = np.column_stack(antenna_xy(gt_x, gt_y, gt_yaw, (robot.gps_x, robot.gps_y)))
         gps = simulate_gps(gt_t, gps_xy, world.geo, SimGpsConfig.from_sim(sim), seed)
 
     # 3. Each camera frame is rendered at its true capture time.

@@ -905,6 +905,35 @@ def test_gps_prior_hands_the_newest_fix_with_the_odometry_of_its_own_time() -> N
     assert rec.calls[-1] == ([0.0, 0.0], 2.0, [2.0, 0.0, 0.0]) and prior.fixes_used == 2
 
 
+def test_a_gps_antenna_off_base_link_bounds_the_scans_origin_through_its_mount(
+    room_model: MapModel,
+) -> None:
+    """robot.gps_x / gps_y (navsat_transform's base_link -> gps): the fix is the antenna's, 0.5 m
+    from the camera. Taken as base_link's (the mount ignored), the 6 cm disk plus the 0.21 m
+    base-to-camera lever would miss the camera; through the mount it holds it all along a turn."""
+    from sensors.gps import antenna_xy
+    from slam.depth_to_scan import scan_pose
+    from slam.localization import GpsPrior
+
+    at, mount = np.array([0.2, 0.05, 0.0]), (-0.3, 0.15)
+    sigma = 0.02  # [m] an RTK fix
+    base = turn_in_place(np.array([3.0, 2.0, 0.0]), 5, math.pi)
+    cam = scan_pose(base, at)
+    odom = corrupt_odometry(cam, 3)
+    loc = Localizer(room_model, CFG)
+    prior = GpsPrior(loc, at, mount)
+    prior.add_fix(0, np.array(antenna_xy(*base[0], mount)), sigma)
+    reach = CFG.gps_prior_sigmas * sigma + math.hypot(at[0] - mount[0], at[1] - mount[1])
+    for scan, o, c in zip(scans_along(WORLD, cam), odom, cam, strict=True):
+        prior.before_scan(scan.stamp_ns, o)
+        loc.update(scan, o)
+        region = loc.gps_region
+        assert region is not None
+        assert math.hypot(c[0] - region[0], c[1] - region[1]) <= region[2] <= reach + 0.02
+    assert antenna_xy(1.0, 2.0, math.pi / 2, mount) == pytest.approx((0.85, 1.7))
+    assert antenna_xy(-0.0, 2.0, 0.3, (0.0, 0.0)) == (-0.0, 2.0)  # no mount: the pose as is
+
+
 def test_a_gps_fix_of_base_link_bounds_a_camera_frame_scans_origin(room_model: MapModel) -> None:
     """The receiver rides base_link, the localiser tracks a camera-frame scan 0.2 m ahead: the
     search disk holds the camera's true position after a fix exactly at base_link, and keeps
