@@ -70,9 +70,6 @@ LOOP_MIN_ANGULAR_WINDOW = 0.2  # [rad] smallest loop-closure angular half-window
 ODOM_MIN_SIGMA = (0.01, 0.005)  # [m, rad] floor of an odometry edge's sigmas
 LOOP_MIN_SIGMA = (0.02, 0.01)  # [m, rad] floor of a loop closure's sigmas
 UNOBSERVED_VARIANCE = 1e6  # [m^2] a direction the scan cannot constrain
-# Tracking ICP leaves directions with under 1/this of the strongest's information to the
-# odometry prediction (icp_refine's weak_axis_ratio; issue #12, session 19 experiment).
-TRACK_WEAK_AXIS_RATIO = 100.0
 ROTATED_RIVAL_WINDOW = math.pi / 4  # [rad] loop angular half-window from which turned twins count
 ROTATED_RIVAL_ANGLES = np.radians([90.0, 180.0, -90.0])  # [rad] yaw offsets of a turned twin
 LOOP_EXTRA_ITERATIONS = 3  # iSAM2 passes after a closure, so a large correction converges
@@ -486,7 +483,6 @@ class Mapper:
         huber_m: float,
         min_coarse: float = 0.0,
         tried: tuple[np.ndarray, IcpResult] | None = None,
-        anchor: np.ndarray | None = None,
     ) -> MatchOutcome:
         """Correlative search in the window, then ICP from its optimum. ``tried``: an ICP of
         these scan points on this map with these settings, from the pose it holds; reused when
@@ -531,8 +527,6 @@ class Mapper:
                 max_iterations=cfg.icp_max_iterations,
                 min_sigma_m=cfg.scan_match_min_sigma,
                 huber_m=huber_m,
-                weak_axis_ratio=math.inf if anchor is None else TRACK_WEAK_AXIS_RATIO,
-                anchor=anchor,
             )
         if not np.all(np.isfinite(icp.pose)) or icp.rmse == math.inf:
             return MatchOutcome(False, "ICP failed", prior, np.eye(3), coarse.score, 0.0)
@@ -567,8 +561,6 @@ class Mapper:
             max_iterations=cfg.icp_max_iterations,
             min_sigma_m=cfg.scan_match_min_sigma,
             huber_m=cfg.icp_huber_width,
-            weak_axis_ratio=TRACK_WEAK_AXIS_RATIO,
-            anchor=prior,
         )
         step = icp.pose - prior
         inside = (
@@ -637,7 +629,6 @@ class Mapper:
             penalise=True,
             huber_m=cfg.icp_huber_width,
             tried=None if icp is None else (prior, icp),
-            anchor=prior,
         )
         self._note(
             "track",

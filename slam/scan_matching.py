@@ -542,8 +542,6 @@ def icp_refine(
     min_sigma_m: float = 0.01,
     tolerance: float = 5e-4,
     polish: float | None = None,
-    weak_axis_ratio: float = math.inf,
-    anchor: np.ndarray | None = None,
 ) -> IcpResult:
     """Point-to-line Gauss-Newton from ``initial`` (see module docstring).
 
@@ -552,12 +550,6 @@ def icp_refine(
     at ``tolerance`` the result still depends on where ICP started by up to about that much, so
     the two paths of the mapper (ICP from odometry, or from the correlative optimum) and two
     CPUs' rounding gave poses 0.1-1 mm apart that the next matches amplified (issue #12).
-
-    ``weak_axis_ratio`` (finite): each Gauss-Newton step leaves the weakly observed directions
-    to ``anchor`` (default ``initial``; the mapper gives the odometry prediction), "solution
-    remapping" after Zhang et al. 2016 made continuous (:func:`_weak_axis_information`): along a
-    corridor the nearest-neighbour residual is nearly flat and ICP crept, stopping where the
-    tolerance cut it, so 1e-6 m of range noise moved a match by millimetres (issue #12).
 
     Per iteration this is one k-d tree query, one gather of the neighbours' rows and a few
     vector operations on preallocated buffers (the ICP is a third of the mapper's time); the
@@ -572,11 +564,6 @@ def icp_refine(
     world = np.empty((len(points), 2))  # scan points in the reference frame (tree query input)
     wx, wy = world[:, 0], world[:, 1]
     jac = np.empty((len(points), 3))  # rows [n_x, n_y, n . (dR/dyaw p)]
-    weak = math.isfinite(weak_axis_ratio) and len(points) > 0
-    if weak:
-        base = pose.copy() if anchor is None else np.asarray(anchor, dtype=np.float64)
-        centroid = points.mean(axis=0)
-        radius = max(math.sqrt(float(np.mean(np.sum((points - centroid) ** 2, axis=1)))), 1e-3)
     it, converged = 0, False
     for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
         c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -597,14 +584,8 @@ def icp_refine(
             return failed
         jw = jac * wts[:, None]
         hess = jw.T @ jac
-        lhs, rhs = hess, jw.T @ r
-        if weak:
-            pen = _weak_axis_information(hess, centroid, radius, pose[2], weak_axis_ratio)
-            off = pose - base
-            off[2] = wrap_angle(off[2])
-            lhs, rhs = hess + pen, rhs + pen @ off
         # LAPACK's gesv, which np.linalg.solve wraps, without the wrapper's overhead.
-        _, _, step, info = gesv(lhs + 1e-9 * hess.trace() * EYE3, rhs)
+        _, _, step, info = gesv(hess + 1e-9 * hess.trace() * EYE3, jw.T @ r)
         if info != 0:  # exactly singular
             return failed
         pose -= step
@@ -623,26 +604,6 @@ def icp_refine(
     cov = sigma2 * (evecs / evals) @ evecs.T
     inliers = float(np.count_nonzero(idx < ref.size)) / n
     return IcpResult(pose, 0.5 * (cov + cov.T), rmse, inliers, it, converged)
-
-
-def _weak_axis_information(
-    hess: np.ndarray, centroid: np.ndarray, radius: float, yaw: float, ratio: float
-) -> np.ndarray:
-    """Information (x, y, yaw at the scan origin) that ties ICP's weak directions to its anchor.
-
-    ``hess`` is carried to the scan points' ``centroid`` with yaw in metres of their RMS
-    ``radius`` (so the directions do not depend on where the scan frame sits); along each of its
-    eigenvectors whose information is below ``1 / ratio`` of the strongest, the anchor supplies
-    the difference. A direction the scan does not observe is so held where the anchor put it
-    (Zhang's projection of the step onto the observed directions), one just below the floor
-    only slightly: no threshold switches the solution on or off."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    mx, my = c * centroid[0] - s * centroid[1], s * centroid[0] + c * centroid[1]
-    carry = np.array([[1.0, 0.0, my / radius], [0.0, 1.0, -mx / radius], [0.0, 0.0, 1.0 / radius]])
-    evals, evecs = np.linalg.eigh(carry.T @ hess @ carry)
-    lack = np.maximum(float(evals[-1]) / ratio - evals, 0.0)
-    back = np.linalg.inv(carry)
-    return back.T @ ((evecs * lack) @ evecs.T) @ back
 
 
 # 5. Sub-cell polish on a smooth field (Cartographer's Ceres scan matcher) -----------------------
