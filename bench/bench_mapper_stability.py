@@ -71,9 +71,12 @@ def table(name: str, rows: list[tuple[str, dict[str, Any]]]) -> str:
     means = [r["after"]["t_mean"] for _, r in rows]
     spread = max(means) - min(means)
     verdict = "meets" if spread < TARGET_SPREAD_M else "misses"
+    verdict = (
+        f"{verdict} the {100 * TARGET_SPREAD_M:.0f} cm target" if len(rows) > 1 else "no spread"
+    )
     lines = [
         f"**{name}**: spread of the mean pair error **{100 * spread:.1f} cm** over "
-        f"{len(rows)} runs ({verdict} the {100 * TARGET_SPREAD_M:.0f} cm target); "
+        f"{len(rows)} runs ({verdict}); "
         f"worst {max(means):.3f} m, pairs > 1 m at most "
         f"{max(r['after']['broken'] for _, r in rows):.1%}.",
         "",
