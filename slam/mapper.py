@@ -913,7 +913,7 @@ class Mapper:
         Otherwise the scan fits a repeating corridor one period on about as well as where the
         graph says it is, and the graph decides (issue #12: infinite-corridor's first wrong
         closure moved a prediction 0.4 m from the truth 7.8 m to the next bay, which scored
-        1 / 0.70 of the true place). The match is then redone in a narrow window at the
+        1 / 0.61 of the place at the prediction). The match is then redone in a narrow window at the
         prediction (+-half ``loop_match_ambiguity_distance``, clear of the far match); if that
         fails, the closure is rejected."""
         cfg = self.config
