@@ -912,10 +912,10 @@ class Mapper:
         window, unless the prediction's place scores below a loop's coarse threshold.
         Otherwise the scan fits a repeating corridor one period on about as well as where the
         graph says it is, and the graph decides (issue #12: infinite-corridor's first wrong
-        closure moved a prediction 0.4 m from the truth 7.8 m to the next bay, which scored
-        1 / 0.61 of the place at the prediction). The match is then redone in a narrow window at the
-        prediction (+-half ``loop_match_ambiguity_distance``, clear of the far match); if that
-        fails, the closure is rejected."""
+        closure moved a prediction 0.4 m from the truth 7.8 m to the next bay, where the place
+        at the prediction scored 0.61 of it). The match is then redone in a narrow window at
+        the prediction (+-half ``loop_match_ambiguity_distance``, clear of the far match); if
+        that fails, the closure is rejected."""
         cfg = self.config
         jump = float(np.hypot(*(match.pose[:2] - prior[:2])))
         if jump <= cfg.loop_match_ambiguity_distance:
