@@ -32,7 +32,7 @@ import os
 import time
 from collections import Counter, defaultdict
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from typing import Any, Literal
 
@@ -175,6 +175,8 @@ class LoopStats:
     rejected: Counter[str] = field(default_factory=Counter)
     readmitted: int = 0  # held back when they came, accepted by the vote (in ``accepted``)
     outvoted: int = 0  # accepted when they came, removed by the vote (in ``rejected``)
+    # wide-window matches redone at the graph's prediction, which scored nearly as well
+    rematched_at_prediction: int = 0
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -184,6 +186,7 @@ class LoopStats:
             "rejected_by_reason": {k: v for k, v in self.rejected.items() if v},
             "readmitted": self.readmitted,
             "outvoted": self.outvoted,
+            "rematched_at_prediction": self.rematched_at_prediction,
         }
 
 
@@ -873,6 +876,11 @@ class Mapper:
                 self.loops.rejected["ambiguous (a rival pose scores as well)"] += 1
                 log.debug("loop %d-%d ambiguous: rival %.3f vs %.3f", j, k, rival, best)
                 return
+        if local is not None and lin > cfg.loop_match_ambiguity_distance:
+            match = self._prefer_prediction(kf, poses[k], local, match, lin / LOOP_SIGMA_GATE)
+            if not match.ok:
+                self.loops.rejected[match.reason] += 1
+                return
         loop_cov = loop_covariance(
             match.covariance, float(match.pose[2]), cfg.scan_match_degeneracy_ratio
         )
@@ -902,6 +910,54 @@ class Mapper:
         self._local = None  # the closure moved the recent keyframes
         self.loop_edges.append((j, k))
         self._note("chi2", k, j, True, chi2)
+
+    def _prefer_prediction(
+        self,
+        kf: Keyframe,
+        prior: np.ndarray,
+        local: _LocalMap,
+        match: MatchOutcome,
+        sigma_m: float,
+    ) -> MatchOutcome:
+        """A wide-window closure that jumped ``d`` away from the graph's prediction must beat
+        the place at the prediction (at the match's heading) by the prior's odds: its score
+        times ``exp(-d^2 / 2 sigma^2)``, with the Gaussian (``sigma_m``) that sized the search
+        window, unless the prediction's place scores below a loop's coarse threshold.
+        Otherwise the scan fits a repeating corridor one period on about as well as where the
+        graph says it is, and the graph decides (issue #12: infinite-corridor's first wrong
+        closure moved a prediction 0.4 m from the truth 7.8 m to the next bay, where the place
+        at the prediction scored 0.61 of it). The match is then redone in a narrow window at
+        the prediction (+-half ``loop_match_ambiguity_distance``, clear of the far match); if
+        that fails, the closure is rejected."""
+        cfg = self.config
+        jump = float(np.hypot(*(match.pose[:2] - prior[:2])))
+        if jump <= cfg.loop_match_ambiguity_distance:
+            return match
+        near_m = cfg.loop_match_ambiguity_distance / 2  # the prediction's place: half as far
+        at_prior = np.array([prior[0], prior[1], match.pose[2]])
+        best = match.response  # the score at match.pose
+        near = rival_score(local.field, kf.match_points, at_prior, near_m, -1.0)
+        odds = math.exp(-0.5 * (jump / sigma_m) ** 2)
+        self._note("prediction", kf.id, near / best if best > 0 else math.inf, odds)
+        if near <= odds * best or near < cfg.loop_match_minimum_response_coarse:
+            return match  # the far match wins, or nothing at the prediction could match
+        again = self._match(
+            kf,
+            at_prior,
+            local,
+            linear_window=near_m,
+            angular_window=LOOP_MIN_ANGULAR_WINDOW,
+            angle_step=cfg.coarse_angle_resolution,
+            min_response=cfg.loop_match_minimum_response_fine,
+            penalise=False,
+            huber_m=cfg.loop_icp_huber_width,
+            min_coarse=cfg.loop_match_minimum_response_coarse,
+        )
+        if again.ok:
+            self.loops.rematched_at_prediction += 1
+            return again
+        reason = "ambiguous (the predicted place scores nearly as well)"
+        return replace(again, reason=reason)
 
     def _vote(self) -> None:
         """At the end every loop closure votes, the accepted ones and those held back (found
