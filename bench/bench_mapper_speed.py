@@ -35,6 +35,7 @@ def child(tree: Path, case: str, save: Path) -> None:
     """Map ``case`` with ``tree``'s code (its bench_mapper, slam and sensors); print the figures
     as JSON."""
     here = sys.modules.pop("bench_mapper")  # this tree's: the logs are found beside it
+    sys.modules.pop("common", None)  # the base's bench_mapper imports its own tree's helpers
     sys.path[:0] = [str(tree / "bench"), str(tree)]
     import bench_mapper as bm
 
