@@ -21,7 +21,7 @@ import logging
 import os
 import shutil
 from collections import deque
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from types import TracebackType
@@ -33,7 +33,7 @@ import yaml
 
 from sensors.atomic import atomic_write_text, commit_staging_dir, make_staging_dir
 from sensors.gps import GPS_TXT, GpsStream, read_gps_txt, write_gps_txt
-from sensors.images import ImageError, decoded_ahead, read_image
+from sensors.images import ImageError, check_image_file, decoded_ahead, read_image
 from sensors.safe_yaml import read_yaml
 from sensors.tum import (
     load_trajectory,
@@ -42,6 +42,7 @@ from sensors.tum import (
     yaw_from_quaternion,
 )
 from sensors.types import (
+    NO_RGB,
     CameraIntrinsics,
     RgbdFrame,
     SensorError,
@@ -504,34 +505,54 @@ class Recording:
         stamps, xyz, quat = gt
         return stamps, xyz[:, 0].copy(), xyz[:, 1].copy(), yaw_from_quaternion(quat)
 
-    def frames(self, skip_bad: bool = False) -> Iterator[RgbdFrame]:
+    def frames(
+        self, skip_bad: bool = False, rgb_wanted: Callable[[int], bool] | None = None
+    ) -> Iterator[RgbdFrame]:
         """Associated frames in rgb-stamp order, stamped with the rgb stamp.
 
         A missing or bad image raises :class:`SensorError` naming the file; with ``skip_bad``
         the pair is skipped with a warning and counted in ``self.skipped`` (reset per call).
+        ``rgb_wanted(i)`` False: the i-th frame yielded (from 0) may come without its colour
+        (``rgb`` empty, :data:`NO_RGB`): its PNG is checked but not decoded. The front end's VO
+        stride needs no colour on the frames it skips (:func:`slam.front_end.replay`).
         """
         self.skipped = {}
-        for k, future in decoded_ahead(self.frame, len(self), self.workers, "png-decode"):
+        bad = 0  # frames skipped so far: frame k is likely the (k - bad)-th yielded
+
+        def decode(k: int) -> RgbdFrame:
+            return self.frame(k, rgb_wanted is None or rgb_wanted(k - bad))
+
+        yielded = 0
+        for k, future in decoded_ahead(decode, len(self), self.workers, "png-decode"):
             try:
                 frame = future.result()
+                if frame.rgb is NO_RGB and rgb_wanted is not None and rgb_wanted(yielded):
+                    frame = self.frame(k)  # a skipped frame before it moved the count
             except ImageError as err:
                 if not skip_bad:
                     raise
                 stamp = format_stamp(int(self.rgb_stamps_ns[self.rgb_index[k]]))
                 log.warning("skipping frame %s: %s", stamp, err)
                 self.skipped[err.reason] = self.skipped.get(err.reason, 0) + 1
+                bad += 1
                 continue
+            yielded += 1
             yield frame
 
-    def frame(self, k: int) -> RgbdFrame:
-        """The k-th associated frame (0 <= k < len(self)); raises SensorError on a bad image."""
+    def frame(self, k: int, rgb: bool = True) -> RgbdFrame:
+        """The k-th associated frame (0 <= k < len(self)); raises SensorError on a bad image.
+        Without ``rgb`` the colour PNG is only checked (:func:`sensors.images.check_image_file`)
+        and the frame's ``rgb`` is :data:`NO_RGB`."""
         i, j = int(self.rgb_index[k]), int(self.depth_index[k])
         size = (self.intrinsics.width, self.intrinsics.height)
-        rgb = read_image(self.path / self._rgb_files[i], size, depth=False)
+        rgb_file = self.path / self._rgb_files[i]
+        colour = read_image(rgb_file, size, depth=False) if rgb else NO_RGB
+        if not rgb:
+            check_image_file(rgb_file, size)
         counts = read_image(self.path / self._depth_files[j], size, depth=True)
         return RgbdFrame(
             stamp_ns=int(self.rgb_stamps_ns[i]),
-            rgb=rgb,
+            rgb=colour,
             depth_m=counts_to_depth(counts, self.intrinsics.depth_scale),
             intrinsics=self.intrinsics,
         )

@@ -32,7 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sensors.config import RobotConfig
-from sensors.source import ImuStream, Source
+from sensors.source import ImuStream, Source, SourceBase
 from sensors.types import NS_PER_S, ImuSample, LaserScan, Odometry2D, Pose2, RgbdFrame, WheelTicks
 from slam.config import STATE_NAMES, DepthToScanConfig, EkfConfig, VoConfig
 from slam.depth_to_scan import DepthToScan, scan_frame_in_base
@@ -377,6 +377,11 @@ class FrontEnd:
             frame.stamp_ns, odom, timed_out, scan, res, camera, vo_ms, scan_ms, ekf_ms
         )
 
+    def needs_rgb(self, index: int) -> bool:
+        """Frame ``index`` (0 = the first given to :meth:`frame`) is read for its colour: VO
+        runs on it. The others' colour images need not be decoded (:func:`replay`)."""
+        return self.options.vo and self._vo_due(index)
+
     def _vo_due(self, index: int) -> bool:
         """VO runs on frame ``index`` (0 = the first): every frame, or with ``vo.every_n_frames``
         n > 1 every n-th one while the wheel encoders carry the filter between."""
@@ -608,7 +613,8 @@ def replay(
     scan) runs on the stage thread meanwhile (:meth:`FrontEnd.prefetch`; the same steps)."""
     messages = MessageFeed(src, fe)
     n = len(src.stream_stamps().get("rgb", ()))
-    frames = src.frames()
+    # (a recording does not decode the colour of the frames VO skips: half its RGB decode)
+    frames = src.frames_for(fe.needs_rgb) if isinstance(src, SourceBase) else src.frames()
     if not ahead:
         for j, frame in enumerate(frames):
             messages.until(frame.stamp_ns)

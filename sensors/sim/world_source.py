@@ -26,7 +26,7 @@ import multiprocessing as mp
 import queue
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -166,9 +166,12 @@ class RenderedRecording(Recording):
         if started is not None:
             started.close()
 
-    def frames(self, skip_bad: bool = False) -> Iterator[RgbdFrame]:
+    def frames(
+        self, skip_bad: bool = False, rgb_wanted: Callable[[int], bool] | None = None
+    ) -> Iterator[RgbdFrame]:
         """The frames in order, rendered in a child process up to QUEUE_FRAMES ahead (here, in
-        a daemonic process, which may not have children)."""
+        a daemonic process, which may not have children); always with their colour (the
+        renderer makes it anyway), whatever ``rgb_wanted`` says."""
         self.skipped = {}
         n = len(self.plan.stamps_ns)
         if not np.array_equal(self.rgb_index, np.arange(n)):  # one stamp list: cannot happen
