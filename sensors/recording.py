@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -50,6 +50,7 @@ from sensors.types import (
 )
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 DEFAULT_MAX_DIFFERENCE_NS = 20_000_000  # [ns] rgb/depth association window (TUM associate.py)
 PNG_COMPRESSION = 1  # fast zlib level: recording speed matters more than disk here
@@ -444,6 +445,7 @@ class Recording:
             self.rgb_stamps_ns, self.depth_stamps_ns, max_difference_ns
         )
         self.skipped: dict[str, int] = {}
+        self._streams_read: dict[str, Any] = {}  # _parsed
 
     @classmethod
     def open(
@@ -469,8 +471,19 @@ class Recording:
     def __len__(self) -> int:
         return int(self.rgb_index.size)
 
+    def _parsed(self, name: str, parse: Callable[[], T]) -> T:
+        """``parse()``'s result for stream ``name``, parsed once: a run asks for the same
+        streams several times (stamps, options, feed, scoring), ~30 ms of text parsing each."""
+        if name not in self._streams_read:
+            self._streams_read[name] = parse()
+        return self._streams_read[name]  # type: ignore[no-any-return]
+
     def wheels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(stamps_ns, left, right), all int64; empty when the recording has no wheels.txt."""
+        t, left, right = self._parsed("wheels", self._read_wheels)
+        return t.copy(), left.copy(), right.copy()
+
+    def _read_wheels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         file = self.path / "wheels.txt"
         if not file.is_file():
             empty = np.zeros(0, dtype=np.int64)
@@ -481,6 +494,10 @@ class Recording:
 
     def imu(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(stamps_ns, gyro_z [rad/s]) or None without imu.txt."""
+        imu = self._parsed("imu", self._read_imu)
+        return None if imu is None else (imu[0].copy(), imu[1].copy())
+
+    def _read_imu(self) -> tuple[np.ndarray, np.ndarray] | None:
         file = self.path / "imu.txt"
         if not file.is_file():
             return None
@@ -495,7 +512,8 @@ class Recording:
     def groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(stamps_ns, xyz (N, 3) [m], quat_xyzw (N, 4)) of base_link in the world, or None."""
         file = self.path / "groundtruth.txt"
-        return load_trajectory(file) if file.is_file() else None
+        gt = self._parsed("groundtruth", lambda: load_trajectory(file) if file.is_file() else None)
+        return None if gt is None else (gt[0].copy(), gt[1].copy(), gt[2].copy())
 
     def groundtruth_planar(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """(stamps_ns, x [m], y [m], yaw [rad]) or None."""

@@ -13,7 +13,7 @@ import pytest
 
 from rgbdnav.live.run import LiveOptions, LiveRun
 from sensors.source import open_source
-from sensors.types import RgbdFrame, WheelTicks
+from sensors.types import NO_RGB, RgbdFrame, WheelTicks
 from slam.front_end import FrontEnd, options_for, replay
 from slam.geometry import wrap_angle
 
@@ -209,13 +209,20 @@ def test_vo_on_every_second_frame_with_wheels_spans_the_frame_between(
     from slam.visual_odometry import VisualOdometry
 
     made: list[int] = []
-    extract = VisualOdometry.extract
+    colour: list[bool] = []  # per frame given to the front end: it came with its colour
+    extract, step = VisualOdometry.extract, FrontEnd.frame
 
     def spy(self: VisualOdometry, frame: RgbdFrame) -> object:
         made.append(frame.stamp_ns)
+        assert frame.rgb is not NO_RGB
         return extract(self, frame)
 
+    def seen(self: FrontEnd, frame: RgbdFrame, skip_vo: bool = False) -> object:
+        colour.append(frame.rgb is not NO_RGB)
+        return step(self, frame, skip_vo)
+
     monkeypatch.setattr(VisualOdometry, "extract", spy)
+    monkeypatch.setattr(FrontEnd, "frame", seen)
     with open_source(recording) as src:
         cfg = source_config(src, [], [])[2]  # the RGB-D profile's vo.every_n_frames=2
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, options_for(src))
@@ -226,6 +233,8 @@ def test_vo_on_every_second_frame_with_wheels_spans_the_frame_between(
     # VO (and the features made ahead for it) on frames 0, 2, 4, ... only.
     assert [s.vo is not None for s in steps] == [k % 2 == 0 for k in range(len(steps))]
     assert sorted(made) == [s.stamp_ns for s in steps[::2]]
+    # The recording decoded no colour for the frames VO skips (and all for the others).
+    assert colour == [k % 2 == 0 for k in range(len(steps))]
     assert fe.counts["vo_skipped_stride"] == len(steps) // 2
     assert sum(s.vo.success for s in steps if s.vo is not None) >= 20  # pairs 2 frames apart
     assert all(s.odom is not None and s.scan is not None for s in steps)  # a pose every frame
