@@ -60,6 +60,11 @@ STILL_PERIOD_NS = 100_000_000  # [ns] a still robot's gyro bias updates at most 
 # thread back from a GIL-free OpenCV call waits up to this for the main thread to let go, many
 # times a frame (docs/design/speed.md)
 STAGE_SWITCH_INTERVAL_S = 0.0005
+# Frames whose own work (features, scan) is queued on the stage thread beyond the one being
+# processed. With VO on every 2nd frame the two threads' loads alternate (the stage's ORB falls
+# on the frames where the main thread only fuses and maps, the main thread's matching on the
+# others): one frame ahead, each waited for the other every frame (docs/design/speed.md).
+STAGE_FRAMES_AHEAD = 3
 
 _STAGE: list[ThreadPoolExecutor] = []  # the frame stage's thread (FrontEnd.prefetch), made once
 if hasattr(os, "register_at_fork"):  # a forked child has no threads: it makes its own
@@ -609,8 +614,9 @@ def replay(
 ) -> Iterator[FrontEndStep]:
     """``src``'s streams through ``fe`` in time order: before each frame every wheel reading,
     odometry message and IMU sample stamped at or before it (:class:`MessageFeed`). With
-    ``ahead`` the next frame is read before this one is processed and its own work (features,
-    scan) runs on the stage thread meanwhile (:meth:`FrontEnd.prefetch`; the same steps)."""
+    ``ahead`` the next STAGE_FRAMES_AHEAD frames are read before this one is processed and their
+    own work (features, scan) runs on the stage thread meanwhile (:meth:`FrontEnd.prefetch`;
+    the same steps)."""
     messages = MessageFeed(src, fe)
     n = len(src.stream_stamps().get("rgb", ()))
     # (a recording does not decode the colour of the frames VO skips: half its RGB decode)
@@ -637,25 +643,30 @@ def _replay_ahead(
     progress: Callable[[int, int], None] | None,
     n: int,
 ) -> Iterator[FrontEndStep]:
-    nxt = next(frames, None)
-    if nxt is not None:  # (the first frame too: frames are announced in order)
-        fe.prefetch(nxt)
+    pending: deque[RgbdFrame] = deque()  # read, their own work started, not processed yet
+    error: Exception | None = None
+    done = False
     j = 0
-    while nxt is not None:
-        frame, error = nxt, None
-        try:
-            nxt = next(frames, None)
-        except Exception as err:  # a bad next frame: raised where it was before, after this one
-            nxt, error = None, err
-        if nxt is not None:
-            fe.prefetch(nxt)
+    while True:
+        while not done and len(pending) <= STAGE_FRAMES_AHEAD:  # (frames come in order)
+            try:
+                nxt = next(frames, None)
+            except Exception as err:  # a bad frame: raised where it was, after those before it
+                nxt, error = None, err
+            done = nxt is None
+            if nxt is not None:
+                fe.prefetch(nxt)
+                pending.append(nxt)
+        if not pending:
+            break
+        frame = pending.popleft()
         messages.until(frame.stamp_ns)
         yield fe.frame(frame)
         j += 1
         if progress is not None:
             progress(j, n)
-        if error is not None:
-            raise error
+    if error is not None:
+        raise error
 
 
 __all__ = [

@@ -14,7 +14,7 @@ import pytest
 from rgbdnav.live.run import LiveOptions, LiveRun
 from sensors.source import open_source
 from sensors.types import NO_RGB, RgbdFrame, WheelTicks
-from slam.front_end import FrontEnd, options_for, replay
+from slam.front_end import STAGE_FRAMES_AHEAD, FrontEnd, options_for, replay
 from slam.geometry import wrap_angle
 
 
@@ -178,8 +178,9 @@ def test_features_and_scans_made_ahead_on_the_stage_thread_give_the_sequential_s
         n = len(runs[ahead])
         on_main = where.count(threading.main_thread().name)
         # Sequential: every frame's features on the caller's thread; ahead: on the stage's,
-        # and one frame more (the 26th, read ahead when the 25th was processed).
-        assert (len(where), on_main) == ((n, n) if not ahead else (n + 1, 0)), where
+        # and STAGE_FRAMES_AHEAD frames more (read ahead when the 25th was processed).
+        more = STAGE_FRAMES_AHEAD
+        assert (len(where), on_main) == ((n, n) if not ahead else (n + more, 0)), where
     seq, pipe = runs[False], runs[True]
     assert len(seq) == len(pipe) == 25
     tracked = 0
