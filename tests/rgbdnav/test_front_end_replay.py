@@ -178,9 +178,12 @@ def test_features_and_scans_made_ahead_on_the_stage_thread_give_the_sequential_s
         n = len(runs[ahead])
         on_main = where.count(threading.main_thread().name)
         # Sequential: every frame's features on the caller's thread; ahead: on the stage's,
-        # and STAGE_FRAMES_AHEAD frames more (read ahead when the 25th was processed).
-        more = STAGE_FRAMES_AHEAD
-        assert (len(where), on_main) == ((n, n) if not ahead else (n + more, 0)), where
+        # and up to STAGE_FRAMES_AHEAD frames more (read ahead when the 25th was processed,
+        # their work maybe still queued).
+        if ahead:
+            assert n <= len(where) <= n + STAGE_FRAMES_AHEAD and on_main == 0, where
+        else:
+            assert (len(where), on_main) == (n, n), where
     seq, pipe = runs[False], runs[True]
     assert len(seq) == len(pipe) == 25
     tracked = 0
