@@ -287,3 +287,32 @@ def test_live_frames_whose_vo_is_skipped_get_the_wheels_pose_and_go_to_the_mappe
     moved = np.hypot(*(p[-1] - p[0]))
     true = np.hypot(truth.x[-1] - truth.x[0], truth.y[-1] - truth.y[0])
     assert moved > 0.3 and abs(moved - true) < 0.03
+
+
+def test_a_frame_that_fails_to_read_raises_after_the_frames_read_ahead_before_it() -> None:
+    from sensors.config import RobotConfig
+    from sensors.source import SourceBase
+    from sensors.types import CameraIntrinsics, SensorError
+    from slam.config import DepthToScanConfig, EkfConfig, VoConfig
+    from slam.front_end import FrontEndOptions
+
+    k = CameraIntrinsics(width=8, height=6, fx=10.0, fy=10.0, cx=3.5, cy=2.5)
+
+    class Failing(SourceBase):
+        path, skipped = "failing", {}
+
+        def stream_stamps(self) -> dict[str, np.ndarray]:
+            return {"rgb": np.arange(6) * 33_000_000}
+
+        def frames(self):  # type: ignore[no-untyped-def]
+            for j in range(5):
+                yield RgbdFrame(j * 33_000_000, np.zeros((6, 8, 3), np.uint8), np.ones((6, 8)), k)
+            raise SensorError("frame 5: broken")
+
+    opts = FrontEndOptions(vo=False, scan=False, planar=False)
+    fe = FrontEnd(RobotConfig(), EkfConfig(), VoConfig(), DepthToScanConfig(), opts)
+    got: list[int] = []
+    with pytest.raises(SensorError, match="frame 5: broken"):
+        for step in replay(Failing(), fe):
+            got.append(step.stamp_ns)
+    assert got == [j * 33_000_000 for j in range(5)]  # every frame before it, then the error
