@@ -211,8 +211,9 @@ class RenderedRecording(Recording):
                         f"(exit code {proc.exitcode}) before its last frame"
                     ) from None
 
-    def frame(self, k: int) -> RgbdFrame:
-        """The k-th frame, rendered in this process (its noise draws replayed up to k)."""
+    def frame(self, k: int, rgb: bool = True) -> RgbdFrame:
+        """The k-th frame, rendered in this process (its noise draws replayed up to k), with its
+        colour whatever ``rgb`` says."""
         if not 0 <= k < len(self.plan.stamps_ns):
             raise SensorError(f"{self.path}: no frame {k} (0..{len(self.plan.stamps_ns) - 1})")
         if self._renderer is None:
