@@ -222,8 +222,8 @@ class RenderedRecording(Recording):
         for _ in range(k):
             self._renderer.noise_offsets(rng)
         x, y, yaw = (float(v) for v in self.plan.poses[k])
-        rgb, depth = self._renderer.render(x, y, yaw, rng)
-        return self._frame(k, rgb, depth_to_counts(depth, self.plan.intrinsics.depth_scale))
+        colour, depth = self._renderer.render(x, y, yaw, rng)
+        return self._frame(k, colour, depth_to_counts(depth, self.plan.intrinsics.depth_scale))
 
     def _frame(self, k: int, rgb: np.ndarray, counts: np.ndarray) -> RgbdFrame:
         """What :meth:`Recording.frame` makes of the PNGs of these images."""
