@@ -26,7 +26,7 @@ import sys
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -331,6 +331,15 @@ class FrontEnd:
         feats = due and self._vo is not None and self._vo.features_every_frame
         if feats or self._d2s is not None:
             self._ahead.append((frame, _stage().submit(self._own_work, frame, feats)))
+
+    def drop_ahead(self) -> None:
+        """Cancel the work queued by :meth:`prefetch` for frames that will not be processed (a
+        replay its consumer stopped early) and wait for the one already running, so no work of
+        this front end is left on the shared stage thread."""
+        while self._ahead:
+            _, work = self._ahead.popleft()
+            if not work.cancel():
+                wait([work])
 
     def _own_work(self, frame: RgbdFrame, feats: bool) -> _OwnWork:
         t0 = time.perf_counter()
@@ -637,6 +646,19 @@ def replay(
 
 
 def _replay_ahead(
+    frames: Iterator[RgbdFrame],
+    messages: MessageFeed,
+    fe: FrontEnd,
+    progress: Callable[[int, int], None] | None,
+    n: int,
+) -> Iterator[FrontEndStep]:
+    try:
+        yield from _replay_pending(frames, messages, fe, progress, n)
+    finally:  # (a consumer that stops early leaves no work queued)
+        fe.drop_ahead()
+
+
+def _replay_pending(
     frames: Iterator[RgbdFrame],
     messages: MessageFeed,
     fe: FrontEnd,
