@@ -41,6 +41,27 @@ class _Unreadable(ImageError):
 def read_image(file: Path, size: tuple[int, int], depth: bool) -> np.ndarray:
     """A colour image as (H, W, 3) uint8 RGB, or a depth image as (H, W) uint16 counts, of
     ``size`` = (width, height); anything else raises :class:`ImageError` naming the file."""
+    data = check_image_file(file, size)
+    w, h = size
+    image = decode_image(data, file, _Unreadable)
+    if image.shape[:2] != (h, w):
+        raise ImageError(
+            f"{file}: image is {image.shape[1]}x{image.shape[0]}, camera is {w}x{h}", "wrong_size"
+        )
+    want = ((h, w), np.uint16) if depth else ((h, w, 3), np.uint8)
+    if image.shape != want[0] or image.dtype != want[1]:
+        raise ImageError(
+            f"{file}: expected {want[0]} {np.dtype(want[1]).name}, got {image.shape} {image.dtype}",
+            "wrong_dtype",
+        )
+    return image if depth else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def check_image_file(file: Path, size: tuple[int, int]) -> bytes:
+    """The bytes of an image file of ``size`` = (width, height) after the checks that need no
+    decoding (present, readable, complete, the size its header declares, a PNG's chunk layout);
+    :class:`ImageError` otherwise. A frame whose colour is not needed is checked this far only
+    (:meth:`sensors.recording.Recording.frames`)."""
     if not file.exists():
         raise ImageError(f"{file}: image is missing", "missing")
     data = read_bounded(file, MAX_IMAGE_FILE_BYTES, _Unreadable, "image")
@@ -56,18 +77,9 @@ def read_image(file: Path, size: tuple[int, int], depth: bool) -> np.ndarray:
         raise ImageError(
             f"{file}: image is {declared[0]}x{declared[1]}, camera is {w}x{h}", "wrong_size"
         )
-    image = decode_image(data, file, _Unreadable)
-    if image.shape[:2] != (h, w):
-        raise ImageError(
-            f"{file}: image is {image.shape[1]}x{image.shape[0]}, camera is {w}x{h}", "wrong_size"
-        )
-    want = ((h, w), np.uint16) if depth else ((h, w, 3), np.uint8)
-    if image.shape != want[0] or image.dtype != want[1]:
-        raise ImageError(
-            f"{file}: expected {want[0]} {np.dtype(want[1]).name}, got {image.shape} {image.dtype}",
-            "wrong_dtype",
-        )
-    return image if depth else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    if data.startswith(_PNG_SIGNATURE) and (problem := png_chunk_problem(data)) is not None:
+        raise _Unreadable(f"{file}: corrupt PNG ({problem})")
+    return data
 
 
 def decoded_ahead(

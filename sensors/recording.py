@@ -21,11 +21,11 @@ import logging
 import os
 import shutil
 from collections import deque
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -33,7 +33,7 @@ import yaml
 
 from sensors.atomic import atomic_write_text, commit_staging_dir, make_staging_dir
 from sensors.gps import GPS_TXT, GpsStream, read_gps_txt, write_gps_txt
-from sensors.images import ImageError, decoded_ahead, read_image
+from sensors.images import ImageError, check_image_file, decoded_ahead, read_image
 from sensors.safe_yaml import read_yaml
 from sensors.tum import (
     load_trajectory,
@@ -42,6 +42,7 @@ from sensors.tum import (
     yaw_from_quaternion,
 )
 from sensors.types import (
+    NO_RGB,
     CameraIntrinsics,
     RgbdFrame,
     SensorError,
@@ -49,6 +50,7 @@ from sensors.types import (
 )
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 DEFAULT_MAX_DIFFERENCE_NS = 20_000_000  # [ns] rgb/depth association window (TUM associate.py)
 PNG_COMPRESSION = 1  # fast zlib level: recording speed matters more than disk here
@@ -443,6 +445,7 @@ class Recording:
             self.rgb_stamps_ns, self.depth_stamps_ns, max_difference_ns
         )
         self.skipped: dict[str, int] = {}
+        self._streams_read: dict[str, Any] = {}  # _parsed
 
     @classmethod
     def open(
@@ -468,8 +471,19 @@ class Recording:
     def __len__(self) -> int:
         return int(self.rgb_index.size)
 
+    def _parsed(self, name: str, parse: Callable[[], T]) -> T:
+        """``parse()``'s result for stream ``name``, parsed once: a run asks for the same
+        streams several times (stamps, options, feed, scoring), ~30 ms of text parsing each."""
+        if name not in self._streams_read:
+            self._streams_read[name] = parse()
+        return self._streams_read[name]  # type: ignore[no-any-return]
+
     def wheels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(stamps_ns, left, right), all int64; empty when the recording has no wheels.txt."""
+        t, left, right = self._parsed("wheels", self._read_wheels)
+        return t.copy(), left.copy(), right.copy()
+
+    def _read_wheels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         file = self.path / "wheels.txt"
         if not file.is_file():
             empty = np.zeros(0, dtype=np.int64)
@@ -480,6 +494,10 @@ class Recording:
 
     def imu(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(stamps_ns, gyro_z [rad/s]) or None without imu.txt."""
+        imu = self._parsed("imu", self._read_imu)
+        return None if imu is None else (imu[0].copy(), imu[1].copy())
+
+    def _read_imu(self) -> tuple[np.ndarray, np.ndarray] | None:
         file = self.path / "imu.txt"
         if not file.is_file():
             return None
@@ -494,7 +512,8 @@ class Recording:
     def groundtruth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(stamps_ns, xyz (N, 3) [m], quat_xyzw (N, 4)) of base_link in the world, or None."""
         file = self.path / "groundtruth.txt"
-        return load_trajectory(file) if file.is_file() else None
+        gt = self._parsed("groundtruth", lambda: load_trajectory(file) if file.is_file() else None)
+        return None if gt is None else (gt[0].copy(), gt[1].copy(), gt[2].copy())
 
     def groundtruth_planar(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """(stamps_ns, x [m], y [m], yaw [rad]) or None."""
@@ -504,34 +523,54 @@ class Recording:
         stamps, xyz, quat = gt
         return stamps, xyz[:, 0].copy(), xyz[:, 1].copy(), yaw_from_quaternion(quat)
 
-    def frames(self, skip_bad: bool = False) -> Iterator[RgbdFrame]:
+    def frames(
+        self, skip_bad: bool = False, rgb_wanted: Callable[[int], bool] | None = None
+    ) -> Iterator[RgbdFrame]:
         """Associated frames in rgb-stamp order, stamped with the rgb stamp.
 
         A missing or bad image raises :class:`SensorError` naming the file; with ``skip_bad``
         the pair is skipped with a warning and counted in ``self.skipped`` (reset per call).
+        ``rgb_wanted(i)`` False: the i-th frame yielded (from 0) may come without its colour
+        (``rgb`` empty, :data:`NO_RGB`): its PNG is checked but not decoded. The front end's VO
+        stride needs no colour on the frames it skips (:func:`slam.front_end.replay`).
         """
         self.skipped = {}
-        for k, future in decoded_ahead(self.frame, len(self), self.workers, "png-decode"):
+        bad = 0  # frames skipped so far: frame k is likely the (k - bad)-th yielded
+
+        def decode(k: int) -> RgbdFrame:
+            return self.frame(k, rgb_wanted is None or rgb_wanted(k - bad))
+
+        yielded = 0
+        for k, future in decoded_ahead(decode, len(self), self.workers, "png-decode"):
             try:
                 frame = future.result()
+                if frame.rgb is NO_RGB and rgb_wanted is not None and rgb_wanted(yielded):
+                    frame = self.frame(k)  # a skipped frame before it moved the count
             except ImageError as err:
                 if not skip_bad:
                     raise
                 stamp = format_stamp(int(self.rgb_stamps_ns[self.rgb_index[k]]))
                 log.warning("skipping frame %s: %s", stamp, err)
                 self.skipped[err.reason] = self.skipped.get(err.reason, 0) + 1
+                bad += 1
                 continue
+            yielded += 1
             yield frame
 
-    def frame(self, k: int) -> RgbdFrame:
-        """The k-th associated frame (0 <= k < len(self)); raises SensorError on a bad image."""
+    def frame(self, k: int, rgb: bool = True) -> RgbdFrame:
+        """The k-th associated frame (0 <= k < len(self)); raises SensorError on a bad image.
+        Without ``rgb`` the colour PNG is only checked (:func:`sensors.images.check_image_file`)
+        and the frame's ``rgb`` is :data:`NO_RGB`."""
         i, j = int(self.rgb_index[k]), int(self.depth_index[k])
         size = (self.intrinsics.width, self.intrinsics.height)
-        rgb = read_image(self.path / self._rgb_files[i], size, depth=False)
+        rgb_file = self.path / self._rgb_files[i]
+        colour = read_image(rgb_file, size, depth=False) if rgb else NO_RGB
+        if not rgb:
+            check_image_file(rgb_file, size)
         counts = read_image(self.path / self._depth_files[j], size, depth=True)
         return RgbdFrame(
             stamp_ns=int(self.rgb_stamps_ns[i]),
-            rgb=rgb,
+            rgb=colour,
             depth_m=counts_to_depth(counts, self.intrinsics.depth_scale),
             intrinsics=self.intrinsics,
         )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +59,10 @@ class RecordingSource(SourceBase):
 
     def frames(self) -> Iterator[RgbdFrame]:
         yield from self.recording.frames(skip_bad=self.skip_bad)
+        self.skipped = dict(self.recording.skipped)
+
+    def frames_for(self, rgb_wanted: Callable[[int], bool]) -> Iterator[RgbdFrame]:
+        yield from self.recording.frames(skip_bad=self.skip_bad, rgb_wanted=rgb_wanted)
         self.skipped = dict(self.recording.skipped)
 
     def gps(self) -> GpsStream | None:

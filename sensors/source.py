@@ -96,6 +96,12 @@ class SourceBase:
     def frames(self) -> Iterator[RgbdFrame]:
         return iter(())
 
+    def frames_for(self, rgb_wanted: Callable[[int], bool]) -> Iterator[RgbdFrame]:
+        """:meth:`frames`, where the i-th frame may come without its colour
+        (:data:`sensors.types.NO_RGB`) when ``rgb_wanted(i)`` is False and the source can save
+        work by it (a recording: the PNG is not decoded). Here: every frame in full."""
+        return self.frames()
+
     def scans(self) -> Iterator[LaserScan]:
         return iter(())
 

@@ -128,9 +128,15 @@ class CameraIntrinsics:
 @dataclass(frozen=True, eq=False)
 class RgbdFrame:
     stamp_ns: int  # [ns] capture time of the colour image
-    rgb: np.ndarray  # HxWx3 uint8, RGB order
+    rgb: np.ndarray  # HxWx3 uint8, RGB order; NO_RGB when the reader was told it is not needed
     depth_m: np.ndarray  # HxW float32 [m], registered to rgb; 0 or NaN = invalid
     intrinsics: CameraIntrinsics
+
+
+# The colour of a frame read without it (Recording.frames' rgb_wanted): empty and read-only, so
+# any use of it as an image fails at once rather than passing as a black one.
+NO_RGB = np.zeros((0, 0, 3), np.uint8)
+NO_RGB.flags.writeable = False
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ import math
 from bisect import bisect_right
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from operator import attrgetter
 from typing import NamedTuple
 
 import numpy as np
@@ -483,6 +484,9 @@ class _Entry:
     accepted: bool
 
 
+_STAMP = attrgetter("stamp_ns")  # a history entry's sort key (bisect on the list itself)
+
+
 def _observation(m: Measurement) -> np.ndarray:
     """H of a measurement: ones at its state rows (a gyro's vyaw also sees the gyro bias)."""
     H = np.zeros((len(m.idx), STATE_DIM))
@@ -705,7 +709,7 @@ class PlanarEkf:
         """Keep the states needed to revert up to history_length back (plus one before it)."""
         assert self.t_ns is not None
         keep_from = self.t_ns - self.history_ns if self.cfg.smooth_lagged_data else self.t_ns
-        i = bisect_right([e.stamp_ns for e in self._history], keep_from) - 1
+        i = bisect_right(self._history, keep_from, key=_STAMP) - 1
         if i > 0:
             del self._history[:i]
 
@@ -714,8 +718,7 @@ class PlanarEkf:
         assert self.t_ns is not None
         if not self.cfg.smooth_lagged_data or m.stamp_ns < self.t_ns - self.history_ns:
             return None
-        stamps = [e.stamp_ns for e in self._history]
-        i = bisect_right(stamps, m.stamp_ns) - 1
+        i = bisect_right(self._history, m.stamp_ns, key=_STAMP) - 1
         if i < 0:
             return None
         replay = self._history[i + 1 :]
@@ -844,7 +847,7 @@ class PlanarEkf:
         if stamp_ns >= self.t_ns:
             x, P, t0 = self.x, self.P, self.t_ns
         else:
-            i = bisect_right([e.stamp_ns for e in self._history], stamp_ns) - 1
+            i = bisect_right(self._history, stamp_ns, key=_STAMP) - 1
             if i < 0:
                 raise EkfError(f"stamp {stamp_ns} ns is older than the kept history")
             x, P, t0 = self._history[i].x, self._history[i].P, self._history[i].stamp_ns

@@ -26,13 +26,13 @@ import sys
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from sensors.config import RobotConfig
-from sensors.source import ImuStream, Source
+from sensors.source import ImuStream, Source, SourceBase
 from sensors.types import NS_PER_S, ImuSample, LaserScan, Odometry2D, Pose2, RgbdFrame, WheelTicks
 from slam.config import STATE_NAMES, DepthToScanConfig, EkfConfig, VoConfig
 from slam.depth_to_scan import DepthToScan, scan_frame_in_base
@@ -60,6 +60,11 @@ STILL_PERIOD_NS = 100_000_000  # [ns] a still robot's gyro bias updates at most 
 # thread back from a GIL-free OpenCV call waits up to this for the main thread to let go, many
 # times a frame (docs/design/speed.md)
 STAGE_SWITCH_INTERVAL_S = 0.0005
+# Frames whose own work (features, scan) is queued on the stage thread beyond the one being
+# processed. With VO on every 2nd frame the two threads' loads alternate (the stage's ORB falls
+# on the frames where the main thread only fuses and maps, the main thread's matching on the
+# others): one frame ahead, each waited for the other every frame (docs/design/speed.md).
+STAGE_FRAMES_AHEAD = 3
 
 _STAGE: list[ThreadPoolExecutor] = []  # the frame stage's thread (FrontEnd.prefetch), made once
 if hasattr(os, "register_at_fork"):  # a forked child has no threads: it makes its own
@@ -327,6 +332,15 @@ class FrontEnd:
         if feats or self._d2s is not None:
             self._ahead.append((frame, _stage().submit(self._own_work, frame, feats)))
 
+    def drop_ahead(self) -> None:
+        """Cancel the work queued by :meth:`prefetch` for frames that will not be processed (a
+        replay its consumer stopped early) and wait for the one already running, so no work of
+        this front end is left on the shared stage thread."""
+        while self._ahead:
+            _, work = self._ahead.popleft()
+            if not work.cancel():
+                wait([work])
+
     def _own_work(self, frame: RgbdFrame, feats: bool) -> _OwnWork:
         t0 = time.perf_counter()
         f = self._vo.extract(frame) if feats and self._vo is not None else None
@@ -376,6 +390,11 @@ class FrontEnd:
         return FrontEndStep(
             frame.stamp_ns, odom, timed_out, scan, res, camera, vo_ms, scan_ms, ekf_ms
         )
+
+    def needs_rgb(self, index: int) -> bool:
+        """Frame ``index`` (0 = the first given to :meth:`frame`) is read for its colour: VO
+        runs on it. The others' colour images need not be decoded (:func:`replay`)."""
+        return self.options.vo and self._vo_due(index)
 
     def _vo_due(self, index: int) -> bool:
         """VO runs on frame ``index`` (0 = the first): every frame, or with ``vo.every_n_frames``
@@ -604,11 +623,13 @@ def replay(
 ) -> Iterator[FrontEndStep]:
     """``src``'s streams through ``fe`` in time order: before each frame every wheel reading,
     odometry message and IMU sample stamped at or before it (:class:`MessageFeed`). With
-    ``ahead`` the next frame is read before this one is processed and its own work (features,
-    scan) runs on the stage thread meanwhile (:meth:`FrontEnd.prefetch`; the same steps)."""
+    ``ahead`` the next STAGE_FRAMES_AHEAD frames are read before this one is processed and their
+    own work (features, scan) runs on the stage thread meanwhile (:meth:`FrontEnd.prefetch`;
+    the same steps)."""
     messages = MessageFeed(src, fe)
     n = len(src.stream_stamps().get("rgb", ()))
-    frames = src.frames()
+    # (a recording does not decode the colour of the frames VO skips: half its RGB decode)
+    frames = src.frames_for(fe.needs_rgb) if isinstance(src, SourceBase) else src.frames()
     if not ahead:
         for j, frame in enumerate(frames):
             messages.until(frame.stamp_ns)
@@ -631,25 +652,43 @@ def _replay_ahead(
     progress: Callable[[int, int], None] | None,
     n: int,
 ) -> Iterator[FrontEndStep]:
-    nxt = next(frames, None)
-    if nxt is not None:  # (the first frame too: frames are announced in order)
-        fe.prefetch(nxt)
+    try:
+        yield from _replay_pending(frames, messages, fe, progress, n)
+    finally:  # (a consumer that stops early leaves no work queued)
+        fe.drop_ahead()
+
+
+def _replay_pending(
+    frames: Iterator[RgbdFrame],
+    messages: MessageFeed,
+    fe: FrontEnd,
+    progress: Callable[[int, int], None] | None,
+    n: int,
+) -> Iterator[FrontEndStep]:
+    pending: deque[RgbdFrame] = deque()  # read, their own work started, not processed yet
+    error: Exception | None = None
+    done = False
     j = 0
-    while nxt is not None:
-        frame, error = nxt, None
-        try:
-            nxt = next(frames, None)
-        except Exception as err:  # a bad next frame: raised where it was before, after this one
-            nxt, error = None, err
-        if nxt is not None:
-            fe.prefetch(nxt)
+    while True:
+        while not done and len(pending) <= STAGE_FRAMES_AHEAD:  # (frames come in order)
+            try:
+                nxt = next(frames, None)
+            except Exception as err:  # a bad frame: raised where it was, after those before it
+                nxt, error = None, err
+            done = nxt is None
+            if nxt is not None:
+                fe.prefetch(nxt)
+                pending.append(nxt)
+        if not pending:
+            break
+        frame = pending.popleft()
         messages.until(frame.stamp_ns)
         yield fe.frame(frame)
         j += 1
         if progress is not None:
             progress(j, n)
-        if error is not None:
-            raise error
+    if error is not None:
+        raise error
 
 
 __all__ = [

@@ -26,7 +26,7 @@ import multiprocessing as mp
 import queue
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -183,9 +183,12 @@ class RenderedRecording(Recording):
         if started is not None:
             started.close()
 
-    def frames(self, skip_bad: bool = False) -> Iterator[RgbdFrame]:
+    def frames(
+        self, skip_bad: bool = False, rgb_wanted: Callable[[int], bool] | None = None
+    ) -> Iterator[RgbdFrame]:
         """The frames in order, rendered in a child process up to QUEUE_FRAMES ahead (here, in
-        a daemonic process, which may not have children)."""
+        a daemonic process, which may not have children); always with their colour (the
+        renderer makes it anyway), whatever ``rgb_wanted`` says."""
         self.skipped = {}
         n = len(self.plan.stamps_ns)
         if not np.array_equal(self.rgb_index, np.arange(n)):  # one stamp list: cannot happen
@@ -232,8 +235,9 @@ class RenderedRecording(Recording):
                     f"(exit code {proc.exitcode}) before its last frame"
                 ) from None
 
-    def frame(self, k: int) -> RgbdFrame:
-        """The k-th frame, rendered in this process (its noise draws replayed up to k)."""
+    def frame(self, k: int, rgb: bool = True) -> RgbdFrame:
+        """The k-th frame, rendered in this process (its noise draws replayed up to k), with its
+        colour whatever ``rgb`` says."""
         if not 0 <= k < len(self.plan.stamps_ns):
             raise SensorError(f"{self.path}: no frame {k} (0..{len(self.plan.stamps_ns) - 1})")
         if self._renderer is None:
@@ -242,8 +246,8 @@ class RenderedRecording(Recording):
         for _ in range(k):
             self._renderer.noise_offsets(rng)
         x, y, yaw = (float(v) for v in self.plan.poses[k])
-        rgb, depth = self._renderer.render(x, y, yaw, rng)
-        return self._frame(k, rgb, depth_to_counts(depth, self.plan.intrinsics.depth_scale))
+        colour, depth = self._renderer.render(x, y, yaw, rng)
+        return self._frame(k, colour, depth_to_counts(depth, self.plan.intrinsics.depth_scale))
 
     def _frame(self, k: int, rgb: np.ndarray, counts: np.ndarray) -> RgbdFrame:
         """What :meth:`Recording.frame` makes of the PNGs of these images."""

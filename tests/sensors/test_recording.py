@@ -5,6 +5,7 @@ import logging
 import numpy as np
 import pytest
 
+from sensors.images import ImageError
 from sensors.recording import (
     Recording,
     RecordingWriter,
@@ -12,7 +13,7 @@ from sensors.recording import (
     counts_to_depth,
     depth_to_counts,
 )
-from sensors.types import CameraIntrinsics, RgbdFrame, SensorError
+from sensors.types import NO_RGB, CameraIntrinsics, RgbdFrame, SensorError
 
 MS = 1_000_000  # [ns]
 INTR = CameraIntrinsics(width=8, height=6, fx=10.0, fy=10.0, cx=3.5, cy=2.5)
@@ -212,6 +213,41 @@ def test_skip_bad_counts_skipped_frames_and_logs_a_warning(tmp_path, caplog):
     assert [f.stamp_ns for f in frames] == [1_033 * MS]
     assert rec.skipped == {"missing": 1, "truncated": 1}
     assert sum("skipping frame" in r.message for r in caplog.records) == 2
+
+
+def test_frames_whose_colour_is_not_wanted_skip_its_decode_but_not_its_checks(tmp_path):
+    stamps = tuple(1_000 * MS + 33 * MS * k for k in range(6))
+    write_recording(tmp_path / "rec", stamps_ns=stamps)
+    full = list(Recording.open(tmp_path / "rec").frames())
+    rec = Recording.open(tmp_path / "rec")
+    asked: list[int] = []
+
+    def even(i: int) -> bool:
+        asked.append(i)
+        return i % 2 == 0
+
+    got = list(rec.frames(rgb_wanted=even))
+    assert [f.stamp_ns for f in got] == list(stamps)
+    for i, (want, f) in enumerate(zip(full, got, strict=True)):
+        np.testing.assert_array_equal(f.depth_m, want.depth_m)
+        if i % 2 == 0:
+            np.testing.assert_array_equal(f.rgb, want.rgb)
+        else:
+            assert f.rgb is NO_RGB and f.rgb.size == 0 and not f.rgb.flags.writeable
+    assert set(asked) >= set(range(6))
+    # A bad frame moves the count of the frames after it: the wanted ones still get colour
+    # (the others may), and a truncated colour PNG is found although its colour is not wanted.
+    (tmp_path / "rec" / "depth" / "1.033000000.png").unlink()
+    png = tmp_path / "rec" / "rgb" / "1.132000000.png"
+    png.write_bytes(png.read_bytes()[:-12])
+    rec = Recording.open(tmp_path / "rec")
+    got = list(rec.frames(skip_bad=True, rgb_wanted=lambda i: i % 2 == 0))
+    assert [f.stamp_ns for f in got] == [stamps[0], stamps[2], stamps[3], stamps[5]]
+    assert rec.skipped == {"missing": 1, "truncated": 1}
+    np.testing.assert_array_equal(got[0].rgb, full[0].rgb)
+    np.testing.assert_array_equal(got[2].rgb, full[3].rgb)
+    with pytest.raises(ImageError, match="truncated PNG"):
+        rec.frame(4, rgb=False)
 
 
 def test_slightly_offset_depth_is_associated_to_the_nearest_rgb(tmp_path):
