@@ -133,7 +133,7 @@ def report(world: str, seeds: list[int], r: dict, command: str, jobs: int = 1) -
         f"Measured {dt.date.today()} on {machine('numpy', 'cv2')}; 1-min load average "
         f"{r['load'][0]:.1f}-{r['load'][1]:.1f} during the runs (wall times scale with it, CPU "
         "times much less; the trees ran alternating, seed by seed"
-        + (f", {jobs} maps at once: compare CPU, not wall times)." if jobs > 1 else ").")
+        + (f", {jobs} maps at once: compare CPU, not wall times)." if jobs > 1 else ")."),
         f"Command: `python bench/bench_demo_seeds.py {command}`. Each run: `rgbdnav map {world} "
         "--seed S -q` in a fresh process. ± is the sample standard deviation over the seeds; "
         "'paired' is the mean (± sd) of the per-seed differences against the first tree.",
