@@ -242,8 +242,8 @@ def test_vo_strides_only_once_the_gyro_bias_is_known_to_the_configured_sigma(
 ) -> None:
     # vo.stride_below_bias_sigma: VO on every frame while the EKF's gyro-bias sigma is above
     # the limit (the heading it turns then turns the whole map), on every 2nd frame after.
-    # The profile's 3 mrad/s takes ~20 s of driving: 1.5 s never strides; a limit the bias
-    # passes mid-recording switches there, once.
+    # 3 mrad/s takes ~20 s of driving: 1.5 s never strides; a limit the bias passes
+    # mid-recording switches there, once.
     from rgbdnav.scan_stream import source_config
     from slam.ekf import GYRO_BIAS
 
@@ -255,7 +255,7 @@ def test_vo_strides_only_once_the_gyro_bias_is_known_to_the_configured_sigma(
         assert fe.ekf is not None and "imu0" in fe.inputs
         return fe, vo, float(np.sqrt(fe.ekf.P[GYRO_BIAS, GYRO_BIAS]))
 
-    fe, vo, sigma = run(0.003)  # the profile's
+    fe, vo, sigma = run(0.003)
     assert all(vo) and "vo_skipped_stride" not in fe.counts and sigma > 0.003
     limit = (sigma + float(np.sqrt(EkfConfig().imu0_gyro_bias_initial_variance))) / 2
     fe, vo, sigma = run(limit)
