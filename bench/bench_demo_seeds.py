@@ -119,9 +119,9 @@ def run(
     return {"figures": out, "load": (min(load), max(load))}
 
 
-def _mean_sd(values: list[float], fmt: str) -> str:
+def _mean_sd(values: list[float], fmt: str, sign: bool = False) -> str:
     sd = statistics.stdev(values) if len(values) > 1 else 0.0
-    return f"{statistics.mean(values):{fmt}} ± {sd:{fmt}}"
+    return f"{statistics.mean(values):{'+' if sign else ''}{fmt}} ± {sd:{fmt}}"
 
 
 def report(world: str, seeds: list[int], r: dict, command: str, jobs: int = 1) -> str:
@@ -152,7 +152,8 @@ def report(world: str, seeds: list[int], r: dict, command: str, jobs: int = 1) -
         lines.append(f"| {name} | mean | {mean} |")
         if name != names[0]:
             diff = " | ".join(
-                _mean_sd([per[s][k] - ref[s][k] for s in seeds], "+" + fmt) for k, _, fmt in FIGURES
+                _mean_sd([per[s][k] - ref[s][k] for s in seeds], fmt, sign=True)
+                for k, _, fmt in FIGURES
             )
             lines.append(f"| {name} | paired | {diff} |")
     return "\n".join(lines)
