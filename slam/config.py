@@ -342,6 +342,14 @@ class VoConfig:
         doc="with wheel encoders in the EKF, VO on every n-th frame only (the pair spans the "
         "frames between; docs/design/speed.md)",
     )
+    stride_below_bias_sigma: float = param(
+        0.0,
+        unit="rad/s",
+        ge=0.0,
+        doc="with every_n_frames > 1 and a gyro in the EKF: VO on every frame until the EKF's "
+        "gyro-bias sigma first falls below this, then on every n-th (0: from the first frame; "
+        "docs/design/gyro_bias.md)",
+    )
 
     cor_type: Literal["features", "optical_flow"] = param(
         "features",

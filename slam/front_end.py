@@ -38,6 +38,7 @@ from slam.config import STATE_NAMES, DepthToScanConfig, EkfConfig, VoConfig
 from slam.depth_to_scan import DepthToScan, scan_frame_in_base
 from slam.diff_drive import EncoderGate, WheelErrorModel
 from slam.ekf import (
+    GYRO_BIAS,
     WHEEL_VARIANCE_WINDOW_S,
     EkfError,
     GyroBiasInput,
@@ -205,6 +206,7 @@ class FrontEnd:
         # prefetch: the frames whose own work runs ahead on the stage thread, and that work
         self._ahead: deque[tuple[RgbdFrame, Future[_OwnWork]]] = deque()
         self._n_frames = 0  # frames through frame() so far
+        self._bias_settled = False  # vo.stride_below_bias_sigma reached (see _bias_learned)
 
     @property
     def vo_stats(self) -> dict[str, int]:
@@ -393,14 +395,30 @@ class FrontEnd:
 
     def needs_rgb(self, index: int) -> bool:
         """Frame ``index`` (0 = the first given to :meth:`frame`) is read for its colour: VO
-        runs on it. The others' colour images need not be decoded (:func:`replay`)."""
-        return self.options.vo and self._vo_due(index)
+        runs on it. The others' colour images need not be decoded (:func:`replay`). Readers
+        ask from their decode threads, so this only reads the gyro-bias latch: the filter is
+        judged on the frame loop's thread alone, and the stride stays deterministic."""
+        return self.options.vo and self._vo_due(index, judge_bias=False)
 
-    def _vo_due(self, index: int) -> bool:
+    def _vo_due(self, index: int, judge_bias: bool = True) -> bool:
         """VO runs on frame ``index`` (0 = the first): every frame, or with ``vo.every_n_frames``
         n > 1 every n-th one while the wheel encoders carry the filter between."""
         n = self.vo_cfg.every_n_frames
-        return n <= 1 or not self._wheels_carry or index % n == 0
+        learned = self._bias_learned() if judge_bias else self._bias_settled
+        return n <= 1 or not self._wheels_carry or not learned or index % n == 0
+
+    def _bias_learned(self) -> bool:
+        """The EKF's gyro bias is known to ``vo.stride_below_bias_sigma`` (latched once true), or
+        that rule is off or has no gyro. Until then VO runs on every frame: the heading the
+        bias turns while it is learned turns the whole map (docs/design/gyro_bias.md)."""
+        limit = self.vo_cfg.stride_below_bias_sigma
+        if not self._bias_settled and (limit <= 0 or self.ekf is None or "imu0" not in self.inputs):
+            self._bias_settled = True
+        elif not self._bias_settled:
+            self._bias_settled = self.ekf.P[GYRO_BIAS, GYRO_BIAS] < limit * limit
+            if self._bias_settled:
+                self.counts["vo_stride_from_frame"] = self._n_frames
+        return self._bias_settled
 
     def _pose_at(self, stamp_ns: int) -> tuple[Odometry2D | None, bool]:
         if self.ekf is None:

@@ -14,6 +14,7 @@ import pytest
 from rgbdnav.live.run import LiveOptions, LiveRun
 from sensors.source import open_source
 from sensors.types import NO_RGB, RgbdFrame, WheelTicks
+from slam.config import EkfConfig
 from slam.front_end import STAGE_FRAMES_AHEAD, FrontEnd, options_for, replay
 from slam.geometry import wrap_angle
 
@@ -228,7 +229,8 @@ def test_vo_on_every_second_frame_with_wheels_spans_the_frame_between(
     monkeypatch.setattr(VisualOdometry, "extract", spy)
     monkeypatch.setattr(FrontEnd, "frame", seen)
     with open_source(recording) as src:
-        cfg = source_config(src, [], [])[2]  # the RGB-D profile's vo.every_n_frames=2
+        # the RGB-D profile's vo.every_n_frames=2, from the first frame (the gyro-bias rule off)
+        cfg = source_config(src, [], ["vo.stride_below_bias_sigma=0"])[2]
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, options_for(src))
         assert fe.vo_cfg.max_translation == pytest.approx(2 * cfg.vo.max_translation)
         steps = list(replay(src, fe))
@@ -246,6 +248,34 @@ def test_vo_on_every_second_frame_with_wheels_spans_the_frame_between(
     moved = np.hypot(*(p[-1] - p[0]))
     true = np.hypot(truth.x[-1] - truth.x[0], truth.y[-1] - truth.y[0])
     assert moved > 0.3 and abs(moved - true) < 0.03
+
+
+def test_vo_strides_only_once_the_gyro_bias_is_known_to_the_configured_sigma(
+    recording: Path,
+) -> None:
+    # vo.stride_below_bias_sigma: VO on every frame while the EKF's gyro-bias sigma is above
+    # the limit (the heading it turns then turns the whole map), on every 2nd frame after.
+    # 3 mrad/s takes ~20 s of driving: 1.5 s never strides; a limit the bias passes
+    # mid-recording switches there, once.
+    from rgbdnav.scan_stream import source_config
+    from slam.ekf import GYRO_BIAS
+
+    def run(limit: float) -> tuple[FrontEnd, list[bool], float]:
+        with open_source(recording) as src:
+            cfg = source_config(src, [], [f"vo.stride_below_bias_sigma={limit}"])[2]
+            fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, options_for(src))
+            vo = [s.vo is not None for s in replay(src, fe)]
+        assert fe.ekf is not None and "imu0" in fe.inputs
+        return fe, vo, float(np.sqrt(fe.ekf.P[GYRO_BIAS, GYRO_BIAS]))
+
+    fe, vo, sigma = run(0.003)
+    assert all(vo) and "vo_skipped_stride" not in fe.counts and sigma > 0.003
+    limit = (sigma + float(np.sqrt(EkfConfig().imu0_gyro_bias_initial_variance))) / 2
+    fe, vo, sigma = run(limit)
+    k0 = fe.counts["vo_stride_from_frame"]
+    assert 0 < k0 < len(vo) - 4 and sigma < limit
+    assert vo == [k < k0 or k % 2 == 0 for k in range(len(vo))]
+    assert fe.counts["vo_skipped_stride"] == sum(not v for v in vo) > 0
 
 
 def test_live_frames_whose_vo_is_skipped_get_the_wheels_pose_and_go_to_the_mapper(
