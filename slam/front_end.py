@@ -206,7 +206,10 @@ class FrontEnd:
         # prefetch: the frames whose own work runs ahead on the stage thread, and that work
         self._ahead: deque[tuple[RgbdFrame, Future[_OwnWork]]] = deque()
         self._n_frames = 0  # frames through frame() so far
-        self._bias_settled = False  # vo.stride_below_bias_sigma reached (see _bias_learned)
+        # vo.stride_below_bias_sigma reached (see _bias_learned); settled from the start when
+        # that rule is off or has no gyro, so needs_rgb (which only reads it) strides at once
+        rule = self.vo_cfg.stride_below_bias_sigma > 0 and self.ekf is not None
+        self._bias_settled = not (rule and "imu0" in self.inputs)
 
     @property
     def vo_stats(self) -> dict[str, int]:
@@ -412,9 +415,7 @@ class FrontEnd:
         that rule is off or has no gyro. Until then VO runs on every frame: the heading the
         bias turns while it is learned turns the whole map (docs/design/gyro_bias.md)."""
         limit = self.vo_cfg.stride_below_bias_sigma
-        if not self._bias_settled and (limit <= 0 or self.ekf is None or "imu0" not in self.inputs):
-            self._bias_settled = True
-        elif not self._bias_settled:
+        if not self._bias_settled and self.ekf is not None:
             self._bias_settled = self.ekf.P[GYRO_BIAS, GYRO_BIAS] < limit * limit
             if self._bias_settled:
                 self.counts["vo_stride_from_frame"] = self._n_frames
