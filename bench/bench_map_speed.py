@@ -177,12 +177,15 @@ def main() -> int:
                 w["route"] = w["route"][: args.cut]
                 rec = tmp / f"{args.world.stem}_cut{args.cut}.yaml"
                 rec.write_text(yaml.safe_dump(w))
-        elif rec is None:
-            frames, rec = args.frames, tmp / "recording"
-            _cli(REPO, "simulate", str(HOUSE), "--frames", str(frames), "--out", str(rec))
         trees: dict[str, tuple[Path, list[str]]] = {}
         if args.base:
             trees[f"base {args.base}"] = (export(args.base, tmp / "base"), [])
+        if args.world is None and rec is None:
+            # rendered by the oldest tree: a newer tree's recording may carry config keys
+            # (its scene.yaml's robot section) that an older reader rejects
+            oldest = next(iter(trees.values()))[0] if trees else REPO
+            frames, rec = args.frames, tmp / "recording"
+            _cli(oldest, "simulate", str(HOUSE), "--frames", str(frames), "--out", str(rec))
         trees["this tree"] = (REPO, [])
         for kv in args.variant:
             trees[f"this tree, {kv}"] = (REPO, [kv])
