@@ -659,22 +659,10 @@ def replay(
     switch = sys.getswitchinterval()
     sys.setswitchinterval(min(switch, STAGE_SWITCH_INTERVAL_S))
     try:
-        yield from _replay_ahead(frames, messages, fe, progress, n)
-    finally:
-        sys.setswitchinterval(switch)
-
-
-def _replay_ahead(
-    frames: Iterator[RgbdFrame],
-    messages: MessageFeed,
-    fe: FrontEnd,
-    progress: Callable[[int, int], None] | None,
-    n: int,
-) -> Iterator[FrontEndStep]:
-    try:
         yield from _replay_pending(frames, messages, fe, progress, n)
     finally:  # (a consumer that stops early leaves no work queued)
         fe.drop_ahead()
+        sys.setswitchinterval(switch)
 
 
 def _replay_pending(

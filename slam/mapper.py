@@ -486,6 +486,25 @@ class Mapper:
         ref = _builder_pool().submit(ref_job)  # the next scan's ICP needs it first
         return _LocalMap(_builder_pool().submit(field_job), ref)
 
+    def _match_loop(
+        self, kf: Keyframe, prior: np.ndarray, local: _LocalMap | None, lin: float, ang: float
+    ) -> MatchOutcome:
+        """:meth:`_match` with the loop closure's settings (coarse angle lattice, no prior
+        penalty, the loop's Huber width and response thresholds) in a ``lin`` x ``ang`` window."""
+        cfg = self.config
+        return self._match(
+            kf,
+            prior,
+            local,
+            linear_window=lin,
+            angular_window=ang,
+            angle_step=cfg.coarse_angle_resolution,
+            min_response=cfg.loop_match_minimum_response_fine,
+            penalise=False,
+            huber_m=cfg.loop_icp_huber_width,
+            min_coarse=cfg.loop_match_minimum_response_coarse,
+        )
+
     def _match(
         self,
         kf: Keyframe,
@@ -834,18 +853,7 @@ class Mapper:
             max(cfg.loop_search_space_smear_deviation, cfg.loop_search_space_resolution),
             first="field",  # the correlative search needs it first
         )
-        match = self._match(
-            kf,
-            poses[k],
-            local,
-            linear_window=lin,
-            angular_window=ang,
-            angle_step=cfg.coarse_angle_resolution,
-            min_response=cfg.loop_match_minimum_response_fine,
-            penalise=False,
-            huber_m=cfg.loop_icp_huber_width,
-            min_coarse=cfg.loop_match_minimum_response_coarse,
-        )
+        match = self._match_loop(kf, poses[k], local, lin, ang)
         self._note("loop", k, j, match.reason or "matched", match.response, match.inlier_fraction)
         if not match.ok:
             self.loops.rejected[match.reason] += 1
@@ -941,18 +949,7 @@ class Mapper:
         self._note("prediction", kf.id, near / best if best > 0 else math.inf, odds)
         if near <= odds * best or near < cfg.loop_match_minimum_response_coarse:
             return match  # the far match wins, or nothing at the prediction could match
-        again = self._match(
-            kf,
-            at_prior,
-            local,
-            linear_window=near_m,
-            angular_window=LOOP_MIN_ANGULAR_WINDOW,
-            angle_step=cfg.coarse_angle_resolution,
-            min_response=cfg.loop_match_minimum_response_fine,
-            penalise=False,
-            huber_m=cfg.loop_icp_huber_width,
-            min_coarse=cfg.loop_match_minimum_response_coarse,
-        )
+        again = self._match_loop(kf, at_prior, local, near_m, LOOP_MIN_ANGULAR_WINDOW)
         if again.ok:
             self.loops.rematched_at_prediction += 1
             return again
