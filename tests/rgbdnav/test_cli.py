@@ -345,14 +345,14 @@ def test_map_of_a_recording_decodes_each_frame_once(
     from sensors.recording_source import RecordingSource
 
     decoded = []
-    frames = RecordingSource.frames
+    frames_for = RecordingSource.frames_for  # what the front end reads through
 
-    def counting(self: RecordingSource):  # type: ignore[no-untyped-def]
-        for f in frames(self):
+    def counting(self: RecordingSource, rgb_wanted):  # type: ignore[no-untyped-def]
+        for f in frames_for(self, rgb_wanted):
             decoded.append(f.stamp_ns)
             yield f
 
-    monkeypatch.setattr(RecordingSource, "frames", counting)
+    monkeypatch.setattr(RecordingSource, "frames_for", counting)
     out = tmp_path / "map"
     result = runner.invoke(app, ["map", str(recording), "--out", str(out), "-q"])
     assert result.exit_code == 0, result.output
