@@ -201,6 +201,9 @@ def _known_errors(fn: Any) -> Any:
         except OSError as err:  # unwritable --out, full disk, ...
             where = f"{err.filename}: " if err.filename else ""
             message = f"{where}{err.strerror or err}"
+        except KeyboardInterrupt:  # a second Ctrl-C: no outputs, but say so in the run folder
+            _failed_run_summary(kwargs.get("out"), fn.__name__.rstrip("_"), "interrupted")
+            raise
         _failed_run_summary(kwargs.get("out"), fn.__name__.rstrip("_"), message)
         typer.echo(f"error: {message}", err=True)
         raise typer.Exit(1) from None
@@ -545,9 +548,12 @@ def map_(
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.runners.map import run_map
+    from rgbdnav.stop_signals import StopSignals
 
-    # A world is rendered straight into the front end (no recording on disk).
-    with _Progress("mapping", shared.quiet) as progress:
+    # A world is rendered straight into the front end (no recording on disk). Ctrl-C or SIGTERM
+    # stops the reading; what was read is mapped and saved (a second one aborts).
+    stop = StopSignals("no more frames are read; the map of what was read is being saved")
+    with stop, _Progress("mapping", shared.quiet) as progress:
         outputs = run_map(
             source,
             out,
@@ -559,10 +565,14 @@ def map_(
             viewer,
             force_3dof,
             seed,
+            stop,
         )
     _echo_source(source)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
+    if stop.signum is not None:
+        typer.echo(f"interrupted by {stop.name}: the map holds what was read before it", err=True)
+        raise typer.Exit(stop.exit_code)
 
 
 @app.command()

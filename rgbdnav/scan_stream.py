@@ -11,7 +11,7 @@ base_link poses through :func:`slam.depth_to_scan.base_pose`.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -62,18 +62,22 @@ def scan_stream(
     summary: dict,
     outputs: dict[str, Path],
     force_3dof: bool = False,
+    stop: Callable[[], bool] | None = None,
 ) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str, np.ndarray]:
     """(scan, odometry pose of the scan's frame) pairs, their count, the frame reported poses
     are of ("laser" for a laser log, else "base_link"), and the scan frame's pose in that frame
-    (:func:`slam.depth_to_scan.base_pose` turns the mapper's and localiser's poses into it)."""
+    (:func:`slam.depth_to_scan.base_pose` turns the mapper's and localiser's poses into it).
+    The stream ends early, as if the source had, once ``stop()`` is true after a pair (an
+    interrupted run still writes ``odom.tum`` and its summary of what it read)."""
+    stop = stop or (lambda: False)
     if isinstance(src, CarmenSource):
         odo = src.laser_poses()
         if odo is None:
             raise SensorError(f"{source_path}: the log has no laser scans")
         scans = list(src.scans())
-        return _with_poses(scans, odo), len(scans), "laser", np.zeros(3)
+        return _with_poses(scans, odo, stop), len(scans), "laser", np.zeros(3)
     if src.intrinsics() is not None:
-        return _rgbd_stream(src, source_path, cfg, run, summary, outputs, force_3dof)
+        return _rgbd_stream(src, source_path, cfg, run, summary, outputs, force_3dof, stop)
     raise SensorError(
         f"{source_path}: cannot map this source: it needs laser scans with odometry (CARMEN) or "
         "RGB-D frames (with wheel encoders, /odom, or --force-3dof for VO alone)"
@@ -81,10 +85,12 @@ def scan_stream(
 
 
 def _with_poses(
-    scans: Sequence[LaserScan], odo: PoseStream
+    scans: Sequence[LaserScan], odo: PoseStream, stop: Callable[[], bool]
 ) -> Iterator[tuple[LaserScan, np.ndarray]]:
     for k, scan in enumerate(scans):
         yield scan, np.array([odo.x[k], odo.y[k], odo.yaw[k]])
+        if stop():
+            return
 
 
 def _rgbd_stream(
@@ -95,6 +101,7 @@ def _rgbd_stream(
     summary: dict,
     outputs: dict[str, Path],
     force_3dof: bool,
+    stop: Callable[[], bool],
 ) -> tuple[Iterator[tuple[LaserScan, np.ndarray]], int, str, np.ndarray]:
     opts = options_for(src, True, force_3dof, cfg.camera.rate)
     if not opts.planar:
@@ -117,6 +124,8 @@ def _rgbd_stream(
             stamps.append(step.stamp_ns)
             poses.append(odom)
             yield step.scan, scan_pose(odom, fe.scan_in_base)
+            if stop():
+                break
         a = np.array(poses, np.float64).reshape(-1, 3)
         write_tum_trajectory(
             run.file("odom.tum"), np.array(stamps, np.int64), a[:, 0], a[:, 1], a[:, 2]

@@ -31,7 +31,6 @@ import logging
 import math
 import queue
 import resource
-import signal
 import sys
 import threading
 import time
@@ -67,6 +66,7 @@ from rgbdnav.live.stats import (
 from rgbdnav.report import gps_chart, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import NAVIGATE_PROFILE, RGBD_PROFILE
+from rgbdnav.stop_signals import StopSignals
 from rgbdnav.visualize import AsyncVisualizer, NullVisualizer, make_visualizer, occupied_cells_xy
 from sensors.boards import OpenedBoard, open_board
 from sensors.eddie import OdometryPoller
@@ -1188,22 +1188,9 @@ class LiveRun:
             log.warning("progress summary not written: %s", err)
 
     def _install_signal_handlers(self) -> Callable[[], None]:
-        if threading.current_thread() is not threading.main_thread():
-            return lambda: None
-        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-
-        def handler(signum: int, _frame: Any) -> None:
-            log.warning("%s: stopping (motors, final map checkpoint)", signal.Signals(signum).name)
-            self.stop.set()
-
-        for s in old:
-            signal.signal(s, handler)
-
-        def restore() -> None:
-            for s, h in old.items():
-                signal.signal(s, h)
-
-        return restore
+        stop = StopSignals("stopping (motors, final map checkpoint)", self.stop, False)
+        stop.__enter__()
+        return lambda: stop.__exit__(None, None, None)
 
     def _write_outputs(self, wall: float, cpu0: Any, sim_stats: Any) -> dict[str, Path]:
         outputs: dict[str, Path] = {}

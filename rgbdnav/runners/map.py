@@ -24,6 +24,7 @@ from rgbdnav.config import Config, load_config
 from rgbdnav.report import plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import scan_stream, source_config
+from rgbdnav.stop_signals import StopSignals
 from rgbdnav.visualize import (
     NullVisualizer,
     Visualizer,
@@ -58,8 +59,13 @@ def run_map(
     viewer: bool = False,
     force_3dof: bool = False,
     seed: int = 0,
+    stop: StopSignals | None = None,
 ) -> dict[str, Path]:
-    """Map ``source_path``: any source, or a world file rendered on demand with ``seed``."""
+    """Map ``source_path``: any source, or a world file rendered on demand with ``seed``.
+
+    Once ``stop`` is set (the CLI's SIGINT/SIGTERM) no more frames are read: the scans read so
+    far are optimised and saved as a complete bundle, the summary's ``interrupted`` says after
+    how many."""
     t0 = time.perf_counter()
     vis = make_visualizer("map", rrd, viewer)  # fails before minutes of mapping, not after
     cfg = load_config(config_files, overrides)
@@ -83,16 +89,29 @@ def run_map(
             mapper = Mapper(mapper_cfg)
         summary["config_files"] = [str(p) for p in config_files]
         stream, total, frame, scan_in_base = scan_stream(
-            src, source_path, cfg, run, summary, outputs, force_3dof
+            src,
+            source_path,
+            cfg,
+            run,
+            summary,
+            outputs,
+            force_3dof,
+            None if stop is None else stop.is_set,
         )
         t_map = time.perf_counter()
         first_ns = last_ns = None
-        for k, (scan, odom) in enumerate(stream):
+        read = 0
+        for read, (scan, odom) in enumerate(stream, 1):
             mapper.add_scan(scan, odom)
             first_ns = scan.stamp_ns if first_ns is None else first_ns
             last_ns = scan.stamp_ns
             if progress is not None:
-                progress(k + 1, total)
+                progress(read, total)
+        if stop is not None and stop.is_set():
+            summary["interrupted"] = {"signal": stop.name, "scans_read": read, "of": total}
+            log.warning(
+                "%s: mapping the %d of %d scans read so far, then saving", stop.name, read, total
+            )
         result = mapper.finish()
         mapping_s = time.perf_counter() - t_map
         if len(result.scan_stamps_ns) == 0:

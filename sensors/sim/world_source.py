@@ -25,6 +25,7 @@ import logging
 import multiprocessing as mp
 import queue
 import shutil
+import signal
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -80,7 +81,9 @@ def _render_worker(
     """Child process (``started`` set once it runs: it got past the spawn): every frame of
     ``plan`` written into a slot taken from ``free`` and the slot's number sent on ``filled``,
     then None; an exception is sent as its text (the parent raises it). Ends when the parent
-    is gone."""
+    is gone. Ctrl-C reaches the whole process group: the parent decides what it means (a
+    mapping run stops reading and saves its map), so the child ignores SIGINT."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     started.set()
     parent = mp.parent_process()
 
