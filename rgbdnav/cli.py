@@ -19,6 +19,7 @@ from typing import Annotated, Any
 
 import typer
 
+from rgbdnav.stop_signals import StopSignals
 from sensors.types import RgbdNavError
 
 app = typer.Typer(
@@ -209,6 +210,13 @@ def _known_errors(fn: Any) -> Any:
         raise typer.Exit(1) from None
 
     return wrapper
+
+
+def _end_if_stopped(stop: StopSignals, kept: str) -> None:
+    """A run a signal stopped early exits with the shell's code for it, after its outputs."""
+    if stop.signum is not None:
+        typer.echo(f"interrupted by {stop.name}: {kept}", err=True)
+        raise typer.Exit(stop.exit_code)
 
 
 def _failed_run_summary(out: Any, command: str, message: str) -> None:
@@ -548,7 +556,6 @@ def map_(
     if not _is_world(source):
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.runners.map import run_map
-    from rgbdnav.stop_signals import StopSignals
 
     # A world is rendered straight into the front end (no recording on disk). Ctrl-C or SIGTERM
     # stops the reading; what was read is mapped and saved (a second one aborts).
@@ -570,9 +577,7 @@ def map_(
     _echo_source(source)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
-    if stop.signum is not None:
-        typer.echo(f"interrupted by {stop.name}: the map holds what was read before it", err=True)
-        raise typer.Exit(stop.exit_code)
+    _end_if_stopped(stop, "the map holds what was read before it")
 
 
 @app.command()
@@ -615,7 +620,8 @@ def localize(
 
     if _is_world(source):
         load_map(map_)  # refuse a bad map before spending minutes rendering the world
-    with _Progress("localising", shared.quiet) as progress:
+    stop = StopSignals("no more frames are read; the poses of what was read are being saved")
+    with stop, _Progress("localising", shared.quiet) as progress:
         outputs, summary = run_localize(
             source,
             map_,
@@ -629,11 +635,13 @@ def localize(
             force_3dof,
             gps,
             seed,
+            stop,
         )
     _echo_source(source)
     typer.echo(f"result      {describe(summary)}")
     _echo_outputs(outputs)
     _write_formats(out, fmt)
+    _end_if_stopped(stop, "the trajectory holds what was read before it")
 
 
 # Extra args: the Y of the deprecated `--goal X Y` form (see parse_goals).

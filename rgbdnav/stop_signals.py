@@ -76,6 +76,16 @@ class StopSignals:
     ) -> None:
         self._restore()
 
+    def record(self, summary: dict[str, Any], read: int, total: int) -> None:
+        """After a run's reading loop: if a signal stopped it, say so in the run's summary
+        (``interrupted``: the signal, the scans read, of how many) and in the log."""
+        if self.signum is None:
+            return
+        summary["interrupted"] = {"signal": self.name, "scans_read": read, "of": total}
+        log.warning(
+            "%s: finishing with the %d of %d scans read, then saving", self.name, read, total
+        )
+
     @property
     def exit_code(self) -> int:
         """The shell's code for a run ended by this signal (130 SIGINT, 143 SIGTERM); 0 if none."""

@@ -43,6 +43,7 @@ from rgbdnav.config import initial_pose_array, load_config
 from rgbdnav.report import gps_chart, plot_trajectories
 from rgbdnav.run_dir import RunDir
 from rgbdnav.scan_stream import scan_stream, source_config
+from rgbdnav.stop_signals import StopSignals
 from rgbdnav.visualize import (
     NullVisualizer,
     Visualizer,
@@ -198,6 +199,7 @@ def run_localize(
     force_3dof: bool = False,
     gps_path: Path | None = None,
     seed: int = 0,
+    stop: StopSignals | None = None,
 ) -> tuple[dict[str, Path], dict[str, Any]]:
     """Localise every scan of ``source_path`` in the map; (files written, summary). ``rrd`` /
     ``viewer`` log the run to rerun (:mod:`rgbdnav.visualize`). GPS fixes (``gps_path``, else the
@@ -247,7 +249,14 @@ def run_localize(
         run = RunDir(out)
         outputs = {"config": run.write_config(cfg)}
         stream, total, frame, scan_in_base = scan_stream(
-            src, source_path, cfg, run, summary, outputs, force_3dof
+            src,
+            source_path,
+            cfg,
+            run,
+            summary,
+            outputs,
+            force_3dof,
+            None if stop is None else stop.is_set,
         )
         gps = _gps_fixes(src, gps_path, map_path)
         # 2. Localise every scan (each new GPS fix narrows the global search) in the scan's
@@ -281,6 +290,8 @@ def run_localize(
             )
             if progress is not None:
                 progress(k + 1, total)
+        if stop is not None:
+            stop.record(summary, len(results), total)
         if not results:
             raise SensorError(f"{source_path}: no usable scans to localise")
         # 3. Trajectory (tracked scans only) and the per-scan table.

@@ -107,11 +107,8 @@ def run_map(
             last_ns = scan.stamp_ns
             if progress is not None:
                 progress(read, total)
-        if stop is not None and stop.is_set():
-            summary["interrupted"] = {"signal": stop.name, "scans_read": read, "of": total}
-            log.warning(
-                "%s: mapping the %d of %d scans read so far, then saving", stop.name, read, total
-            )
+        if stop is not None:
+            stop.record(summary, read, total)
         result = mapper.finish()
         mapping_s = time.perf_counter() - t_map
         if len(result.scan_stamps_ns) == 0:

@@ -93,3 +93,30 @@ def test_stop_signals_restores_the_handlers_and_names_the_first_signal() -> None
         os.kill(os.getpid(), signal.SIGTERM)
         assert stop.is_set() and stop.name == "SIGTERM" and stop.exit_code == 143
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_localize_stopped_by_a_signal_keeps_the_poses_it_made(
+    orebro_map: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rgbdnav.runners import localize
+    from tests.rgbdnav.conftest import OREBRO
+
+    update = localize.Localizer.update
+    calls = []
+
+    def counted(self, scan, odom):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        if len(calls) == 30:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return update(self, scan, odom)
+
+    monkeypatch.setattr(localize.Localizer, "update", counted)
+    out = tmp_path / "loc"
+    args = ["localize", str(OREBRO), "--map", str(orebro_map / "map"), "--out", str(out), "-q"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 143, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] == {"signal": "SIGTERM", "scans_read": 30, "of": 237}
+    rows = (out / "localization.csv").read_text().splitlines()
+    assert len(rows) == 31  # a header and the 30 scans read
+    assert len(np.loadtxt(out / "trajectory.tum", ndmin=2)) > 20
