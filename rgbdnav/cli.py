@@ -523,13 +523,15 @@ def odometry(
         _refuse_unused(ctx, "only with a world SOURCE (it seeds the rendering)", "seed")
     from rgbdnav.commands.odometry import run_odometry
 
-    with _Progress("visual odometry", shared.quiet or not vo) as progress:
+    stop = StopSignals("no more frames are read; the odometry of what was read is being saved")
+    with stop, _Progress("visual odometry", shared.quiet or not vo) as progress:
         outputs = run_odometry(
-            source, out, shared.config, shared.overrides, vo, progress, force_3dof, seed
+            source, out, shared.config, shared.overrides, vo, progress, force_3dof, seed, stop
         )
     _echo_source(source)
     _echo_outputs(outputs)
     _write_formats(out, fmt)
+    _end_if_stopped(stop, "the trajectories hold what was read before it")
 
 
 @app.command("map")

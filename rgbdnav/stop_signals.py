@@ -76,15 +76,13 @@ class StopSignals:
     ) -> None:
         self._restore()
 
-    def record(self, summary: dict[str, Any], read: int, total: int) -> None:
+    def record(self, summary: dict[str, Any], read: int, total: int, what: str = "scans") -> None:
         """After a run's reading loop: if a signal stopped it, say so in the run's summary
-        (``interrupted``: the signal, the scans read, of how many) and in the log."""
+        (``interrupted``: the signal, the scans or frames read, of how many) and in the log."""
         if self.signum is None:
             return
-        summary["interrupted"] = {"signal": self.name, "scans_read": read, "of": total}
-        log.warning(
-            "%s: finishing with the %d of %d scans read, then saving", self.name, read, total
-        )
+        summary["interrupted"] = {"signal": self.name, f"{what}_read": read, "of": total}
+        log.warning("%s: finishing with the %d of %d %s read", self.name, read, total, what)
 
     @property
     def exit_code(self) -> int:

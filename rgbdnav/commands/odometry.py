@@ -18,6 +18,7 @@ from rgbdnav.cache import open_world_or_source
 from rgbdnav.config import Config, camera_mount, load_config
 from rgbdnav.report import contact_sheet, plot_trajectories
 from rgbdnav.run_dir import RunDir
+from rgbdnav.stop_signals import StopSignals
 from sensors.recording_source import RecordingSource
 from sensors.sim.world import floor_plan, world_from_dict
 from sensors.source import Source
@@ -51,9 +52,12 @@ def run_odometry(
     progress: Callable[[int, int], None] | None = None,
     force_3dof: bool = False,
     seed: int = 0,
+    stop: StopSignals | None = None,
 ) -> dict[str, Path]:
     """Odometry of any source with wheels, ``/odom`` or RGB-D frames (recording, folder, bag),
-    or of a world file rendered on demand with ``seed``."""
+    or of a world file rendered on demand with ``seed``. Once ``stop`` is set no more frames
+    are read; the outputs cover the frames read (the wheel-only path, computed at once, covers
+    the whole source) and the summary's ``interrupted`` says how many."""
     t0 = time.perf_counter()
     cfg = load_config(config_files, overrides)
     src = open_world_or_source(source_path, cfg, seed)
@@ -64,7 +68,7 @@ def run_odometry(
         base, extrinsics = camera_mount(src, config_files, overrides, base)
         cfg = load_config(config_files, overrides, base=base)
         scene = {**scene, "extrinsics": extrinsics}
-        return _run(src, source_path, out, cfg, scene, t0, use_vo, progress, force_3dof)
+        return _run(src, source_path, out, cfg, scene, t0, use_vo, progress, force_3dof, stop)
     finally:
         src.close()
 
@@ -79,6 +83,7 @@ def _run(
     use_vo: bool,
     progress: Callable[[int, int], None] | None,
     force_3dof: bool,
+    stop: StopSignals | None,
 ) -> dict[str, Path]:
     run = RunDir(out)
     outputs = {"config": run.write_config(cfg)}
@@ -102,7 +107,13 @@ def _run(
         paths += _wheel_odometry(src, cfg, start, run, summary, outputs)
     # The front end over every frame: VO, and the EKF over whatever inputs the source has.
     fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, replace(opts, scan=False))
-    steps = list(replay(src, fe, progress if opts.vo else None))
+    steps = []
+    for step in replay(src, fe, progress if opts.vo else None):
+        steps.append(step)
+        if stop is not None and stop.is_set():
+            break  # the replay is closed: no work is left queued
+    if stop is not None:
+        stop.record(summary, len(steps), len(src.stream_stamps().get("depth", ())), "frames")
     summary["frames"] = len(steps)
     tracked = sum(s.vo is not None and s.vo.success for s in steps)
     if not (opts.wheels or opts.odometry) and tracked == 0:

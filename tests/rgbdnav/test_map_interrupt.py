@@ -1,4 +1,5 @@
-"""Ctrl-C or SIGTERM during `rgbdnav map` keeps the work: a map of what was read, saved whole."""
+"""Ctrl-C or SIGTERM during `rgbdnav map`, `localize` or `odometry` keeps the work: the outputs of
+what was read, saved whole."""
 
 from __future__ import annotations
 
@@ -120,3 +121,19 @@ def test_localize_stopped_by_a_signal_keeps_the_poses_it_made(
     rows = (out / "localization.csv").read_text().splitlines()
     assert len(rows) == 31  # a header and the 30 scans read
     assert len(np.loadtxt(out / "trajectory.tum", ndmin=2)) > 20
+
+
+def test_odometry_stopped_by_a_signal_writes_the_trajectories_of_what_was_read(
+    house_recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    read = _signal_at_frame(monkeypatch, {20: signal.SIGINT})
+    out = tmp_path / "odom"
+    result = runner.invoke(app, ["odometry", str(house_recording), "--out", str(out), "-q"])
+    assert result.exit_code == 130, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    stopped = summary["interrupted"]
+    assert stopped["signal"] == "SIGINT" and stopped["of"] == 45
+    assert 15 <= stopped["frames_read"] == summary["frames"] <= len(read) < 30
+    vo = np.loadtxt(out / "vo.tum", ndmin=2)
+    fused = np.loadtxt(out / "fused.tum", ndmin=2)
+    assert len(vo) == len(fused) == stopped["frames_read"]
