@@ -1241,6 +1241,7 @@ def geo(
         x, y, _ = anchor.to_map(latlon[0], latlon[1])
         typer.echo(f"x {float(x):.3f} y {float(y):.3f}")
     else:
+        assert xy is not None  # exactly one of the two, checked above
         lat, lon, _ = anchor.to_wgs84(xy[0], xy[1])
         typer.echo(f"lat {float(lat):.8f} lon {float(lon):.8f}")
 

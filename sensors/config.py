@@ -99,7 +99,7 @@ def _check_scalar(value: Any, tp: Any, path: str) -> Any:
 
 
 def _coerce(value: Any, tp: Any, path: str) -> Any:
-    if dataclasses.is_dataclass(tp):  # a nested section, e.g. vo.advanced
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):  # a nested section, e.g. vo.advanced
         return value if isinstance(value, tp) else build_section(tp, value, path)
     origin = typing.get_origin(tp)
     if origin is Literal:

@@ -108,7 +108,7 @@ def _robot(item: Any, i: int, base: Path, world_geo: GeoAnchor | None, where: st
         None if keepout is None else _existing(base, keepout, f"{at} ({name})", "keepout")
     )
     if "geo" in item:
-        geo = geo_from_dict(item["geo"], f"{at} ({name})")
+        geo: GeoAnchor | None = geo_from_dict(item["geo"], f"{at} ({name})")
     else:
         geo = read_geo_anchor(map_path)
     if "T_world_map" in item:

@@ -562,7 +562,7 @@ class MessageFeed:
             imu=fe.options.imu and "imu" in kinds,
         )
         stamps: list[np.ndarray] = []
-        feed: list[Callable[[int], None]] = []
+        feed: list[Callable[[int], object]] = []  # each feeds message i; results unused
         wheels = src.wheels() if opts.wheels else None
         if wheels is not None:
             w = wheels

@@ -694,9 +694,9 @@ class Mapper:
         edges = [
             Edge(
                 id=n,
-                kind=e.kind,
+                kind=e.kind,  # type: ignore[arg-type]  # a bundle's kinds are checked on load
                 i=e.from_id,
-                j=e.to_id,  # type: ignore[arg-type]
+                j=e.to_id,
                 delta=np.asarray(e.delta, float),
                 information=np.asarray(e.information),
                 robust=e.kind == "loop",

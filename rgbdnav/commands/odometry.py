@@ -195,7 +195,9 @@ def _wheel_odometry(
     outputs["wheel odom"] = run.file("wheel.tum")
     # Frames: approximate-time sets of colour and depth (message_filters semantics).
     stamp_streams = src.stream_stamps()
-    camera = {k: stamp_streams[k] for k in ("rgb", "depth") if k in stamp_streams}
+    camera: dict[str, np.ndarray] = {
+        k: stamp_streams[k] for k in ("rgb", "depth") if k in stamp_streams
+    }
     frame_t = np.zeros(0, dtype=np.int64)
     if camera:
         index, sync_stats = synchronise(
@@ -302,8 +304,9 @@ def _fused_outputs(
 ) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """``fused.tum``: the front end's ``odom -> base_link`` at every frame, placed at ``start``."""
     good = [s for s in steps if s.odom is not None]
+    poses = [s.odom.pose for s in steps if s.odom is not None]
     t = np.array([s.stamp_ns for s in good], np.int64)
-    p = np.array([(s.odom.pose.x, s.odom.pose.y, s.odom.pose.yaw) for s in good]).reshape(-1, 3)
+    p = np.array([(q.x, q.y, q.yaw) for q in poses]).reshape(-1, 3)
     ex, ey, eyaw = compose(start.x, start.y, start.yaw, p[:, 0], p[:, 1], p[:, 2])
     write_tum_trajectory(run.file("fused.tum"), t, ex, ey, eyaw)
     outputs["fused odom"] = run.file("fused.tum")

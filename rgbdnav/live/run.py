@@ -38,7 +38,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import yaml
@@ -404,7 +404,11 @@ class LiveRun:
             ),
             "T_world_map": None if self.T_world_map is None else list(self.T_world_map),
             "T_world_map_from": self.T_world_map_from,
-            "map": str(self.run.file("map") if own_map else Path(self.opts.map_bundle).resolve()),
+            "map": str(
+                self.run.file("map")
+                if own_map
+                else Path(cast(Path, self.opts.map_bundle)).resolve()
+            ),
             "keepout": None if keepout is None else str(keepout),
         }
 
@@ -493,7 +497,8 @@ class LiveRun:
         # realtime: a device recording plays at its own pace, stamped like a camera.
         self.camera_src = open_source(opts.camera, replace(source_options(cfg), realtime=True))
         self._take_camera_mount(self.camera_src)
-        gps = self.camera_src.gps() if callable(getattr(self.camera_src, "gps", None)) else None
+        gps_of = getattr(self.camera_src, "gps", None)
+        gps = gps_of() if callable(gps_of) else None
         if gps is not None and len(gps):  # NavSatFix in a bag, gps.txt in a recording
             self._recorded_gps = gps
             self.gps_source = "camera source"
@@ -573,7 +578,8 @@ class LiveRun:
                 continue
             if self._sim_gps is not None:
                 mount = (self.cfg.robot.gps_x, self.cfg.robot.gps_y)
-                fix = self._sim_gps.update(msg.stamp_ns, *antenna_xy(*msg.true_pose[:3], mount))
+                x, y, yaw = (float(v) for v in msg.true_pose[:3])
+                fix = self._sim_gps.update(msg.stamp_ns, *antenna_xy(x, y, yaw, mount))
                 if fix is not None:
                     self._on_gps_fix(fix)
             yield RgbdFrame(msg.stamp_ns, msg.rgb, msg.depth_m, self.sim.intrinsics)

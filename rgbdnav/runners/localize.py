@@ -53,7 +53,7 @@ from rgbdnav.visualize import (
 )
 from sensors.atomic import atomic_write_text
 from sensors.geo import geo_anchor_of, read_geo_anchor
-from sensors.gps import read_gps_txt
+from sensors.gps import GpsStream, read_gps_txt
 from sensors.source import PoseStream
 from sensors.tum import write_tum_trajectory
 from sensors.types import SensorError
@@ -410,22 +410,22 @@ def _gps_fixes(
     when both they and the anchor exist."""
     if gps_path is not None:
         stream = read_gps_txt(gps_path)
-        anchor = geo_anchor_of(map_path)
-    else:
-        stream = src.gps() if callable(getattr(src, "gps", None)) else None
-        if stream is None or len(stream) == 0:
-            return None
-        anchor = read_geo_anchor(map_path)
-        if anchor is None:
-            log.warning(
-                "%s has GPS fixes but %s has no geo anchor (geo.yaml): GPS unused",
-                src.path,
-                map_path,
-            )
-            return None
-    if len(stream) == 0:
-        raise SensorError(f"{gps_path}: no GPS fixes")
-    return stream.stamps_ns, stream.in_map(anchor), stream.sigma_m
+        if len(stream) == 0:
+            raise SensorError(f"{gps_path}: no GPS fixes")
+        return stream.stamps_ns, stream.in_map(geo_anchor_of(map_path)), stream.sigma_m
+    gps_of = getattr(src, "gps", None)
+    own: GpsStream | None = gps_of() if callable(gps_of) else None
+    if own is None or len(own) == 0:
+        return None
+    anchor = read_geo_anchor(map_path)
+    if anchor is None:
+        log.warning(
+            "%s has GPS fixes but %s has no geo anchor (geo.yaml): GPS unused",
+            src.path,
+            map_path,
+        )
+        return None
+    return own.stamps_ns, own.in_map(anchor), own.sigma_m
 
 
 def _gps_chart(
