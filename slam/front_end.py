@@ -33,7 +33,16 @@ import numpy as np
 
 from sensors.config import RobotConfig
 from sensors.source import ImuStream, Source, SourceBase
-from sensors.types import NS_PER_S, ImuSample, LaserScan, Odometry2D, Pose2, RgbdFrame, WheelTicks
+from sensors.types import (
+    NS_PER_S,
+    CameraIntrinsics,
+    ImuSample,
+    LaserScan,
+    Odometry2D,
+    Pose2,
+    RgbdFrame,
+    WheelTicks,
+)
 from slam.config import STATE_NAMES, DepthToScanConfig, EkfConfig, VoConfig
 from slam.depth_to_scan import DepthToScan, scan_frame_in_base
 from slam.diff_drive import EncoderGate, WheelErrorModel
@@ -201,6 +210,8 @@ class FrontEnd:
         self._window_ns = int(WHEEL_VARIANCE_WINDOW_S * NS_PER_S)
         self._vo: VisualOdometry | None = None
         self._d2s: DepthToScan | None = None
+        self._prepared_for: CameraIntrinsics | None = None  # the camera VO and the scan are for
+        self._staged = False  # the first frame went through _stages
         self._vo_prev_ns: int | None = None  # the frame VO last ran on
         self._vo_skipped: list[int] = []  # frames VO skipped since then
         # prefetch: the frames whose own work runs ahead on the stage thread, and that work
@@ -317,12 +328,25 @@ class FrontEnd:
 
     # 2. Frames.
 
-    def _stages(self, frame: RgbdFrame) -> None:
-        """VO and depth -> scan for the camera of the first frame seen."""
+    def prepare(self, intrinsics: CameraIntrinsics) -> None:
+        """Build VO and depth -> scan for this camera now, before its first frame: a live run
+        calls it before the camera starts, so their set-up (~0.45 s here, kiss-icp's import
+        among it) does not land on the first frame and the frames queued behind it."""
         if self._vo is None and self.options.vo:
-            self._vo = VisualOdometry(frame.intrinsics, self.vo_cfg, self.robot)
+            self._vo = VisualOdometry(intrinsics, self.vo_cfg, self.robot)
         if self._d2s is None and self.options.scan and self.options.planar:
-            self._d2s = DepthToScan(frame.intrinsics, self.robot, self.d2s_cfg)
+            self._d2s = DepthToScan(intrinsics, self.robot, self.d2s_cfg)
+        self._prepared_for = intrinsics
+
+    def _stages(self, frame: RgbdFrame) -> None:
+        """VO and depth -> scan for the camera of the first frame seen (rebuilt if they were
+        prepared for other intrinsics than that frame's)."""
+        if self._staged:
+            return
+        self._staged = True
+        if self._prepared_for is not None and self._prepared_for != frame.intrinsics:
+            self._vo = self._d2s = None
+        self.prepare(frame.intrinsics)
 
     def prefetch(self, frame: RgbdFrame) -> None:
         """Start the work of ``frame`` that depends on nothing but the frame (its ORB features,

@@ -648,6 +648,15 @@ class LiveRun:
             camera_rate_hz=cfg.camera.rate,
         )
         fe = FrontEnd(cfg.robot, cfg.ekf, cfg.vo, cfg.depth_to_scan, opts)
+        # VO and depth -> scan built now, while the camera starts, not on its first frame.
+        intrinsics = self.sim.intrinsics if self.sim is not None else None
+        if intrinsics is None and src is not None:
+            try:
+                intrinsics = src.intrinsics()
+            except SensorError as err:  # the first frame brings them instead
+                log.debug("camera intrinsics not known before the first frame: %s", err)
+        if intrinsics is not None:
+            fe.prepare(intrinsics)
         scan_in_base = fe.scan_in_base  # the scans' frame in base_link (depth_to_scan)
         self.front_end = fe
         imu_feed: MessageFeed | None = None  # built at the first frame, when its clock is known

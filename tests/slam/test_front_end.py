@@ -227,3 +227,39 @@ def test_a_robot_standing_at_start_up_learns_its_gyro_bias_and_keeps_its_heading
     assert bias_error < 1e-3 and abs(standing_yaw) < 2e-3  # [rad/s], [rad]
     # ticks 0.4 s apart are not standing: no bias update while it drives
     assert standing_updates > 10 and fe.counts["gyro_bias_still_updates"] == standing_updates
+
+
+def test_vo_and_scan_prepared_before_the_first_frame_are_kept_or_rebuilt_for_its_camera() -> None:
+    """A live run builds VO and depth -> scan before the camera's first frame (their set-up
+    would otherwise delay it); the first frame keeps them if they are for its camera and has
+    them rebuilt for its own intrinsics if not."""
+    intr = CameraIntrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)
+
+    def frame(stamp_ns: int) -> RgbdFrame:
+        rgb = np.zeros((48, 64, 3), np.uint8)
+        return RgbdFrame(stamp_ns, rgb, np.full((48, 64), 2.0, np.float32), intr)
+
+    def front_end() -> FrontEnd:
+        return FrontEnd(ROBOT, EkfConfig(), VoConfig(), DepthToScanConfig(), FrontEndOptions())
+
+    same = front_end()
+    same.prepare(intr)
+    vo, d2s = same._vo, same._d2s
+    assert vo is not None and d2s is not None
+    same.frame(frame(0))
+    assert same._vo is vo and same._d2s is d2s
+
+    other = front_end()
+    other.prepare(replace(intr, fx=90.0, fy=90.0))
+    stale = other._vo
+    other.frame(frame(0))
+    assert other._vo is not stale and other._vo is not None
+    assert other._d2s is not None and other._d2s.intrinsics == intr
+
+    plain = front_end()  # never prepared: the first frame builds them, as before
+    step, step_prepared = plain.frame(frame(0)), front_end()
+    step_prepared.prepare(intr)
+    again = step_prepared.frame(frame(0))
+    assert (step.scan is None) == (again.scan is None)
+    if step.scan is not None and again.scan is not None:
+        np.testing.assert_array_equal(step.scan.ranges, again.scan.ranges)
